@@ -1,0 +1,151 @@
+"""Open-circuit voltage OCV(SOC, T): table lookup, slope and inverse.
+
+The table is resampled once onto a uniform SOC grid so a lookup for a whole pack is
+an index computation, not a search.  Outside [0, 1] the end slopes extrapolate
+linearly (sigma points of the UKF may step outside).  Between temperatures the
+lookup is linear; outside the table's temperatures it holds the nearest row.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+GRID_POINTS = 201
+
+
+@dataclass(frozen=True)
+class OcvTable:
+    """``ocv_v[k, s]`` at ``temps_c[k]`` and uniform ``soc[s]`` in [0, 1]."""
+
+    temps_c: np.ndarray
+    ocv_v: np.ndarray
+
+    @classmethod
+    def from_points(
+        cls, soc: np.ndarray, ocv_v: np.ndarray, temps_c: np.ndarray | None = None
+    ) -> "OcvTable":
+        """Build from points; ``ocv_v`` is ``[S]`` or ``[K, S]``.  Enforces monotone rows."""
+        soc = np.asarray(soc, dtype=float)
+        ocv = np.atleast_2d(np.asarray(ocv_v, dtype=float))
+        temps = np.atleast_1d(np.asarray(25.0 if temps_c is None else temps_c, dtype=float))
+        if ocv.shape != (temps.size, soc.size):
+            raise ValueError(
+                f"OCV table shape {ocv.shape} does not match {temps.size} temperatures x {soc.size} SOC points"
+            )
+        if soc.size < 2 or np.any(np.diff(soc) <= 0):
+            raise ValueError("OCV table SOC points must be strictly increasing (at least 2)")
+        if not np.all(np.isfinite(ocv)):
+            raise ValueError("OCV table holds non-finite voltages")
+        order = np.argsort(temps)
+        grid = np.linspace(0.0, 1.0, GRID_POINTS)
+        rows = []
+        for row in ocv[order]:
+            # extrapolate to [0, 1] with the end slopes, then force monotone increasing
+            slope_lo = (row[1] - row[0]) / (soc[1] - soc[0])
+            slope_hi = (row[-1] - row[-2]) / (soc[-1] - soc[-2])
+            r = np.interp(grid, soc, row)
+            r = np.where(grid < soc[0], row[0] + slope_lo * (grid - soc[0]), r)
+            r = np.where(grid > soc[-1], row[-1] + slope_hi * (grid - soc[-1]), r)
+            rows.append(make_monotone(r))
+        return cls(temps_c=temps[order], ocv_v=np.array(rows))
+
+    # -- lookups ------------------------------------------------------------------------
+    def _rows_at(self, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self.temps_c.size == 1:
+            z = np.zeros(np.shape(temp_c), dtype=int)
+            return z, z, np.zeros(np.shape(temp_c))
+        t = np.clip(temp_c, self.temps_c[0], self.temps_c[-1])
+        k1 = np.clip(np.searchsorted(self.temps_c, t, side="right"), 1, self.temps_c.size - 1)
+        k0 = k1 - 1
+        f = (t - self.temps_c[k0]) / (self.temps_c[k1] - self.temps_c[k0])
+        return k0, k1, f
+
+    def ocv(self, soc: np.ndarray, temp_c: np.ndarray | float = 25.0) -> np.ndarray:
+        """OCV at ``soc`` and ``temp_c`` (broadcast together)."""
+        soc, temp_c = np.broadcast_arrays(np.asarray(soc, float), np.asarray(temp_c, float))
+        k0, k1, f = self._rows_at(temp_c)
+        n = GRID_POINTS - 1
+        x = soc * n
+        i0 = np.clip(np.floor(x).astype(int), 0, n - 1)
+        u = x - i0  # may be <0 or >1 outside [0, 1]: linear extrapolation of the end segment
+        lo = self.ocv_v[k0, i0] + u * (self.ocv_v[k0, i0 + 1] - self.ocv_v[k0, i0])
+        hi = self.ocv_v[k1, i0] + u * (self.ocv_v[k1, i0 + 1] - self.ocv_v[k1, i0])
+        return lo + f * (hi - lo)
+
+    def slope(self, soc: np.ndarray, temp_c: np.ndarray | float = 25.0) -> np.ndarray:
+        """dOCV/dSOC (V per unit SOC) at ``soc``, ``temp_c``."""
+        soc, temp_c = np.broadcast_arrays(np.asarray(soc, float), np.asarray(temp_c, float))
+        k0, k1, f = self._rows_at(temp_c)
+        n = GRID_POINTS - 1
+        i0 = np.clip(np.floor(soc * n).astype(int), 0, n - 1)
+        d0 = (self.ocv_v[k0, i0 + 1] - self.ocv_v[k0, i0]) * n
+        d1 = (self.ocv_v[k1, i0 + 1] - self.ocv_v[k1, i0]) * n
+        return d0 + f * (d1 - d0)
+
+    def soc_from_ocv(self, ocv_v: np.ndarray, temp_c: np.ndarray | float = 25.0) -> np.ndarray:
+        """Inverse map: SOC in [0, 1] whose OCV at ``temp_c`` is ``ocv_v``."""
+        ocv_v, temp_c = np.broadcast_arrays(np.asarray(ocv_v, float), np.asarray(temp_c, float))
+        k0, k1, f = self._rows_at(temp_c)
+        rows = self.ocv_v[k0] + f[..., None] * (self.ocv_v[k1] - self.ocv_v[k0])
+        grid = np.linspace(0.0, 1.0, GRID_POINTS)
+        flat_rows = rows.reshape(-1, GRID_POINTS)
+        out = np.array([np.interp(v, r, grid) for v, r in zip(ocv_v.ravel(), flat_rows)])
+        return out.reshape(ocv_v.shape)
+
+    @property
+    def soc_grid(self) -> np.ndarray:
+        return np.linspace(0.0, 1.0, GRID_POINTS)
+
+
+def make_monotone(ocv_row: np.ndarray, min_step_v: float = 1e-6) -> np.ndarray:
+    """Smallest upward correction that makes a row strictly increasing (running max)."""
+    out = np.maximum.accumulate(np.asarray(ocv_row, dtype=float))
+    return out + min_step_v * np.arange(out.size)
+
+
+#: columns accepted as the OCV of an OCV CSV, in order of preference
+OCV_COLUMNS = ("ocv_v", "ocv_avg_v", "ocv_discharge_v", "ocv_charge_v")
+
+
+def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read an OCV(SOC) table CSV (``soc`` + one of :data:`OCV_COLUMNS`); blank cells skipped.
+
+    SOC may be in [0, 1] or percent (detected from the maximum).  Raises ``ValueError``
+    naming the file and the problem.
+    """
+    import csv
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        with path.open(newline="") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read OCV table: {exc.strerror or exc}") from exc
+    if not rows:
+        raise ValueError(f"{path}: empty OCV table")
+    header = [h.strip() for h in rows[0]]
+    if "soc" not in header:
+        raise ValueError(f"{path}: OCV table needs a 'soc' column; header is {','.join(header)}")
+    col = next((c for c in OCV_COLUMNS if c in header), None)
+    if col is None:
+        raise ValueError(f"{path}: OCV table needs one of columns {', '.join(OCV_COLUMNS)}")
+    i_soc, i_ocv = header.index("soc"), header.index(col)
+    soc, ocv = [], []
+    for n, row in enumerate(rows[1:], start=2):
+        if len(row) <= max(i_soc, i_ocv) or not row[i_soc].strip() or not row[i_ocv].strip():
+            continue
+        try:
+            soc.append(float(row[i_soc]))
+            ocv.append(float(row[i_ocv]))
+        except ValueError as exc:
+            raise ValueError(f"{path}: row {n}: {exc}") from exc
+    soc_a, ocv_a = np.array(soc), np.array(ocv)
+    if soc_a.size < 2:
+        raise ValueError(f"{path}: OCV table has fewer than 2 usable rows")
+    if soc_a.max() > 1.5:
+        soc_a = soc_a / 100.0
+    order = np.argsort(soc_a)
+    return soc_a[order], ocv_a[order]

@@ -1,0 +1,240 @@
+"""Cell profile: what ``socd fit`` learns about a cell and every estimator loads.
+
+A profile holds the capacity, OCV(SOC, T), the MTS-FOM parameters (Zeng Fig. 1) on a
+temperature grid, the hysteresis of Zeng Eq. 1, and optional model *extensions* (the
+physics ``socd diagnose`` can add: Arrhenius temperature laws, an extra diffusion
+branch, capacity scale, current-sensor bias, Butler–Volmer kinetics, an OCV
+correction).  Extensions are parts of the same model, not a fork: each one is applied
+by :meth:`CellProfile.parameters_at` or by :mod:`service.cell.model`.
+
+Files are TOML (``.toml``) or JSON (anything else), chosen by suffix.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from service.cell.ocv import OcvTable
+
+SCHEMA_VERSION = 1
+GAS_CONSTANT = 8.314462618  # J/(mol K)
+FARADAY = 96485.33212  # C/mol
+KELVIN = 273.15
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class OcvSpec(_Strict):
+    """OCV(SOC[, T]); ``ocv_v`` has one row per temperature."""
+
+    soc: list[float]
+    temps_c: list[float] = [25.0]
+    ocv_v: list[list[float]]
+
+    @model_validator(mode="after")
+    def _shape(self) -> "OcvSpec":
+        if len(self.ocv_v) != len(self.temps_c):
+            raise ValueError(f"ocv_v has {len(self.ocv_v)} rows but temps_c has {len(self.temps_c)}")
+        for k, row in enumerate(self.ocv_v):
+            if len(row) != len(self.soc):
+                raise ValueError(f"ocv_v row {k} has {len(row)} values, soc has {len(self.soc)}")
+        return self
+
+
+class ParameterPoint(_Strict):
+    """MTS-FOM parameters at one temperature (Zeng Fig. 1).  C's are CPE coefficients."""
+
+    temp_c: float = 25.0
+    r_ohm: float = Field(gt=0, description="ohmic resistance, ohm")
+    r_ct: float = Field(gt=0, description="charge-transfer resistance, ohm")
+    c_dl: float = Field(gt=0, description="double-layer CPE coefficient, F s^(m-1)")
+    m: float = Field(gt=0, le=1, description="charge-transfer CPE order")
+    r_df: float = Field(gt=0, description="diffusion resistance, ohm")
+    c_df: float = Field(gt=0, description="diffusion CPE coefficient, F s^(n-1)")
+    n: float = Field(gt=0, le=1, description="diffusion CPE order")
+
+
+class HysteresisSpec(_Strict):
+    """Zeng Eq. 1: ``u_h_max_v`` = U_H, ``rate`` = ε·η (dimensionless)."""
+
+    u_h_max_v: float = Field(0.0, ge=0)
+    rate: float = Field(30.0, gt=0)
+
+
+class ArrheniusSpec(_Strict):
+    """Resistances scale as exp(Ea/R (1/T - 1/T_ref)); entropic OCV slope dOCV/dT."""
+
+    ref_temp_c: float = 25.0
+    ea_r_ohm_j_mol: float = 0.0
+    ea_r_ct_j_mol: float = 0.0
+    ea_r_df_j_mol: float = 0.0
+    entropic_v_per_k: float = 0.0
+
+
+class BranchSpec(_Strict):
+    """An extra CPE branch (e.g. a slow diffusion time constant)."""
+
+    r: float = Field(gt=0)
+    c: float = Field(gt=0)
+    alpha: float = Field(1.0, gt=0, le=1)
+
+
+class OcvCorrectionSpec(_Strict):
+    """Additive correction ΔOCV(SOC) to the table."""
+
+    soc: list[float]
+    delta_v: list[float]
+
+
+class Extensions(_Strict):
+    """Model parts beyond the base MTS-FOM (added by ``socd diagnose``)."""
+
+    current_bias_a: float = 0.0
+    capacity_scale: float = Field(1.0, gt=0)
+    arrhenius: ArrheniusSpec | None = None
+    extra_branches: list[BranchSpec] = []
+    kinetics_i0_a: float | None = Field(None, gt=0, description="Butler-Volmer exchange current")
+    ocv_correction: OcvCorrectionSpec | None = None
+
+
+class CellProfile(_Strict):
+    """Everything known about one cell type; loaded by estimators and the service."""
+
+    schema_version: int = SCHEMA_VERSION
+    name: str = "cell"
+    capacity_ah: float = Field(gt=0)
+    ocv: OcvSpec
+    parameters: list[ParameterPoint] = Field(min_length=1)
+    hysteresis: HysteresisSpec = HysteresisSpec()
+    extensions: Extensions = Extensions()
+    notes: dict[str, str] = {}
+
+    @field_validator("parameters")
+    @classmethod
+    def _sorted(cls, v: list[ParameterPoint]) -> list[ParameterPoint]:
+        temps = [p.temp_c for p in v]
+        if len(set(temps)) != len(temps):
+            raise ValueError(f"duplicate temperatures in parameters: {temps}")
+        return sorted(v, key=lambda p: p.temp_c)
+
+    # -- derived objects ----------------------------------------------------------------
+    def ocv_table(self) -> OcvTable:
+        table = OcvTable.from_points(np.array(self.ocv.soc), np.array(self.ocv.ocv_v), np.array(self.ocv.temps_c))
+        corr = self.extensions.ocv_correction
+        if corr is not None:
+            delta = np.interp(table.soc_grid, corr.soc, corr.delta_v)
+            table = OcvTable.from_points(table.soc_grid, table.ocv_v + delta[None, :], table.temps_c)
+        return table
+
+    def parameters_at(self, temp_c: np.ndarray | float, n_cells: int | None = None) -> "CellParameters":
+        """Parameters for each cell at its temperature (log-linear in T between grid points)."""
+        temp = np.atleast_1d(np.asarray(temp_c, dtype=float))
+        if n_cells is not None and temp.size == 1:
+            temp = np.full(n_cells, float(temp[0]))
+        grid = np.array([p.temp_c for p in self.parameters])
+
+        def interp(name: str, log: bool) -> np.ndarray:
+            vals = np.array([getattr(p, name) for p in self.parameters])
+            if log:
+                return np.exp(np.interp(temp, grid, np.log(vals)))
+            return np.interp(temp, grid, vals)
+
+        r_ohm, r_ct, r_df = interp("r_ohm", True), interp("r_ct", True), interp("r_df", True)
+        arr = self.extensions.arrhenius
+        if arr is not None:
+            # Arrhenius scaling around the nearest table temperature's value
+            ref = arr.ref_temp_c
+            inv = 1.0 / (temp + KELVIN) - 1.0 / (ref + KELVIN)
+            r_ohm = r_ohm * np.exp(arr.ea_r_ohm_j_mol / GAS_CONSTANT * inv)
+            r_ct = r_ct * np.exp(arr.ea_r_ct_j_mol / GAS_CONSTANT * inv)
+            r_df = r_df * np.exp(arr.ea_r_df_j_mol / GAS_CONSTANT * inv)
+        extra = self.extensions.extra_branches
+        r = np.stack([r_ct, r_df] + [np.full_like(temp, b.r) for b in extra], axis=-1)
+        c = np.stack([interp("c_dl", True), interp("c_df", True)] + [np.full_like(temp, b.c) for b in extra], axis=-1)
+        alpha = np.stack([interp("m", False), interp("n", False)] + [np.full_like(temp, b.alpha) for b in extra], axis=-1)
+        ones = np.ones_like(temp)
+        return CellParameters(
+            r_ohm=r_ohm,
+            r=r,
+            c=c,
+            alpha=alpha,
+            u_h_max=self.hysteresis.u_h_max_v * ones,
+            hyst_rate=self.hysteresis.rate * ones,
+            capacity_ah=self.capacity_ah * self.extensions.capacity_scale * ones,
+            current_bias_a=self.extensions.current_bias_a * ones,
+            kinetics_i0_a=(np.inf if self.extensions.kinetics_i0_a is None else self.extensions.kinetics_i0_a) * ones,
+        )
+
+    @property
+    def n_branches(self) -> int:
+        return 2 + len(self.extensions.extra_branches)
+
+
+@dataclass
+class CellParameters:
+    """Per-cell model parameters as arrays (``[N]`` or ``[N, B]`` for the CPE branches).
+
+    Branch 0 is charge transfer (R_ct, C_dl, m), branch 1 diffusion (R_df, C_df, n),
+    further branches come from extensions.
+    """
+
+    r_ohm: np.ndarray
+    r: np.ndarray
+    c: np.ndarray
+    alpha: np.ndarray
+    u_h_max: np.ndarray
+    hyst_rate: np.ndarray
+    capacity_ah: np.ndarray
+    current_bias_a: np.ndarray
+    kinetics_i0_a: np.ndarray
+
+    def copy(self) -> "CellParameters":
+        return CellParameters(**{k: np.array(v, copy=True) for k, v in self.__dict__.items()})
+
+    def take(self, idx: np.ndarray | slice) -> "CellParameters":
+        return CellParameters(**{k: np.array(v[idx], copy=True) for k, v in self.__dict__.items()})
+
+
+class ProfileError(Exception):
+    """A cell profile file that cannot be used; the message names the file and field."""
+
+
+def load_profile(path: str | Path) -> CellProfile:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ProfileError(f"{path}: cannot read cell profile: {exc.strerror or exc}") from exc
+    try:
+        raw = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+        raise ProfileError(f"{path}: not valid {'TOML' if path.suffix == '.toml' else 'JSON'}: {exc}") from exc
+    try:
+        return CellProfile.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = ".".join(str(p) for p in first["loc"])
+        raise ProfileError(f"{path}: field '{field}': {first['msg']}") from exc
+
+
+def save_profile(profile: CellProfile, path: str | Path) -> None:
+    path = Path(path)
+    data = profile.model_dump(mode="json", exclude_none=True)
+    if path.suffix == ".toml":
+        import tomli_w
+
+        text = tomli_w.dumps(data)
+    else:
+        text = json.dumps(data, indent=1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)

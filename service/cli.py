@@ -1,0 +1,78 @@
+"""The ``socd`` command line: a registry of subcommands, one module each.
+
+Like cantools' ``subparsers/``, a subcommand whose module fails to import (a missing
+optional dependency, say) registers a stand-in that reports the import error, so one
+broken command never breaks the others.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from service import __version__
+
+#: subcommand name -> module that defines ``add_subparser(subparsers)``
+SUBCOMMANDS: dict[str, str] = {
+    "demo": "service.commands.demo",
+    "run": "service.commands.run",
+    "replay": "replay.cli",
+    "watch": "service.commands.watch",
+    "fit": "service.commands.fit",
+    "evaluate": "service.commands.evaluate",
+    "bench": "service.commands.bench",
+    "diagnose": "service.commands.diagnose",
+}
+
+
+class UserError(Exception):
+    """A problem with the user's input: printed as one clear line, exit status 2."""
+
+
+def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: BaseException) -> None:
+    parser = subparsers.add_parser(name, help=f"(unavailable: {exc})")
+
+    def _fail(_args: argparse.Namespace) -> int:
+        print(f"socd {name}: unavailable because its module failed to import: {exc}", file=sys.stderr)
+        return 3
+
+    parser.set_defaults(func=_fail)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="socd",
+        description=(
+            "Battery state estimator: multi-time-scale fractional-order model with online "
+            "identification and FO-MI-UKF, served over CAN and Zenoh."
+        ),
+    )
+    parser.add_argument("--version", action="version", version=f"socd {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module_name in SUBCOMMANDS.items():
+        try:
+            module = importlib.import_module(module_name)
+            module.add_subparser(subparsers)
+        except Exception as exc:  # noqa: BLE001 - reported through the stand-in command
+            _register_broken(subparsers, name, exc)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except UserError as exc:
+        print(f"socd {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

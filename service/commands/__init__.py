@@ -1,0 +1,1 @@
+"""One module per ``socd`` subcommand; each exposes ``add_subparser(subparsers)``."""
