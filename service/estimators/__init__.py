@@ -1,0 +1,1 @@
+"""State and parameter estimators: the paper's pipeline and the baselines it is judged against."""
