@@ -1,0 +1,36 @@
+"""Tuning of the paper's pipeline (FO-MI-UKF + fast and slow identifiers), validated by pydantic.
+
+Defaults were chosen by measurement with ``socd evaluate`` (see README).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class EstimatorSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    memory_length: int = Field(16, ge=1, le=512, description="G-L short-memory length L (Zeng Eq. 2)")
+    innovation_length: int = Field(
+        4, ge=1, le=512, description="multi-innovation window (Zeng Eq. 18); 1 = single-innovation FO-UKF"
+    )
+    innovation_weighting: Literal["paper", "normalized"] = Field(
+        "normalized",
+        description="'paper': Σ F_i K_i e_i as in Zeng Eq. 20; 'normalized': weights sum to 1 so old "
+        "innovations are not counted twice",
+    )
+    fast_identifier: bool = Field(True, description="run the fast-rate EKF over [R_ohm, R_ct, C_dl, m, U_df]")
+    slow_identifier: bool = Field(True, description="run the slow-rate EKF over [R_df, C_df, n]")
+    slow_soc_delta: float = Field(0.005, gt=0, le=0.5, description="SOC movement that triggers a slow update")
+    voltage_noise_v: float = Field(0.004, gt=0, description="measurement noise σ of the SOC filter")
+    current_noise_a: float = Field(0.02, ge=0, description="current-sensor noise σ driving SOC process noise")
+    soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
+    ukf_alpha: float = Field(1.0, gt=0, le=1)
+    ukf_beta: float = Field(2.0, ge=0)
+    ukf_kappa: float = Field(0.0)
+    param_process_rel: float = Field(1e-4, ge=0, description="relative σ per step of parameter random walk (fast)")
+    slow_param_process_rel: float = Field(2e-2, ge=0, description="relative σ per slow update (slow)")
+    divergence_sigma: float = Field(8.0, gt=1, description="normalised innovation that counts as divergence")
