@@ -1,0 +1,341 @@
+"""Fit the base MTS-FOM parameters (Zeng Fig. 1) to recorded voltage.
+
+Shared by ``socd fit`` (characterise a cell) and ``socd diagnose`` (fit the base model
+before naming what it misses).  The model fitted is :class:`service.cell.model.MtsFom`
+itself, run through :func:`service.cell.model.simulate` with ``N`` parameter
+candidates at once, so what is fitted is exactly what the estimator runs.
+
+Search space (all bounded, physical)::
+
+    ln R_ohm, ln R_ct, ln tau_ct, m, ln R_df, ln(tau_df / tau_ct), n  [, U_H, ln rate]
+
+A CPE branch is parametrised by its resistance and its characteristic time
+``tau = (R C)^(1/alpha)`` rather than by ``C``: the voltage response scales with ``R``
+at fixed ``tau``, which decouples the coordinates, and ``tau_df = tau_ct * ratio`` with
+``ratio >= 3`` keeps the charge-transfer branch the fast one (no label switching).
+``C = tau^alpha / R``.  ``m, n`` are kept in [0.3, 1].
+
+Procedure:
+
+1. global search: :func:`scipy.optimize.differential_evolution` (seeded, vectorised
+   over the population, time-bounded) on a block-averaged copy of the data
+   (:func:`decimate`, charge-preserving) of at most ``global_points`` samples;
+2. local polish: :func:`scipy.optimize.least_squares` (``trf``, bounds) on the data at
+   full rate, or block-averaged to at most ``polish_points`` samples for very long
+   recordings (Panasonic HPPC: ~100k rows).  Its Jacobian is a forward difference
+   evaluated as one vectorised simulation of ``p + 1`` candidates.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import differential_evolution, least_squares
+
+from service.cell.model import DEFAULT_MEMORY_LENGTH, simulate
+from service.cell.profile import CellParameters, CellProfile, HysteresisSpec, ParameterPoint
+
+#: bounds of the search coordinates (see module docstring)
+BOUNDS: dict[str, tuple[float, float]] = {
+    "ln_r_ohm": (math.log(1e-4), math.log(1.0)),
+    "ln_r_ct": (math.log(1e-5), math.log(1.0)),
+    "ln_tau_ct": (math.log(0.1), math.log(300.0)),
+    "m": (0.3, 1.0),
+    "ln_r_df": (math.log(1e-5), math.log(2.0)),
+    "ln_tau_ratio": (math.log(3.0), math.log(3000.0)),
+    "n": (0.3, 1.0),
+}
+HYSTERESIS_BOUNDS: dict[str, tuple[float, float]] = {
+    "u_h_max_v": (0.0, 0.15),
+    "ln_rate": (math.log(1.0), math.log(1000.0)),
+}
+BASE_NAMES = tuple(BOUNDS)
+
+
+@dataclass
+class FitSegment:
+    """One stretch of recording to fit, with its known starting state."""
+
+    time_s: np.ndarray
+    current_a: np.ndarray
+    voltage_v: np.ndarray
+    temperature_c: np.ndarray
+    soc0: float
+    u_h0: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.time_s = np.asarray(self.time_s, dtype=float)
+        self.current_a = np.asarray(self.current_a, dtype=float)
+        self.voltage_v = np.asarray(self.voltage_v, dtype=float)
+        self.temperature_c = np.asarray(self.temperature_c, dtype=float)
+        n = self.time_s.size
+        for name in ("current_a", "voltage_v", "temperature_c"):
+            if getattr(self, name).size != n:
+                raise ValueError(f"FitSegment.{name} has {getattr(self, name).size} samples, time_s has {n}")
+        if n < 3:
+            raise ValueError(f"FitSegment needs at least 3 samples, has {n}")
+        if np.any(np.diff(self.time_s) <= 0):
+            raise ValueError("FitSegment.time_s must increase strictly")
+
+    def __len__(self) -> int:
+        return int(self.time_s.size)
+
+
+@dataclass
+class FitResult:
+    point: ParameterPoint
+    hysteresis: HysteresisSpec | None
+    rmse_mv: float
+    n_evaluations: int
+
+
+# -- data helpers -------------------------------------------------------------------------
+def decimate(seg: FitSegment, max_points: int) -> FitSegment:
+    """Block-average ``seg`` to at most ``max_points`` samples.
+
+    Current is averaged over each block (charge, hence SOC, is preserved under the
+    model's backward zero-order hold); voltage and temperature are block means, which
+    pair with the mean current in the ohmic term.  Time is the block's last stamp.
+    """
+    n = len(seg)
+    k = max(1, math.ceil(n / max_points))
+    if k == 1:
+        return seg
+    # the first sample is kept on its own: it carries the initial state's time stamp
+    t0 = seg.time_s[:1]
+    rest = n - 1
+    m = rest // k
+    if m < 2:
+        return seg
+    start = n - m * k  # drop a few samples right after the first so blocks tile the tail
+    dt = np.diff(seg.time_s)[start - 1:]  # interval before each sample in the tail
+    sl = slice(start, None)
+
+    def block_mean(x: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+        x = x[sl].reshape(m, k)
+        if w is None:
+            return x.mean(axis=1)
+        w = w.reshape(m, k)
+        return (x * w).sum(axis=1) / w.sum(axis=1)
+
+    # the dropped samples' charge goes into the first block
+    i_first = seg.current_a[1:start]
+    dt_first = np.diff(seg.time_s)[: start - 1]
+    cur = block_mean(seg.current_a, dt)
+    if i_first.size:
+        w0 = dt[:k].sum()
+        cur[0] = (cur[0] * w0 + float((i_first * dt_first).sum())) / (w0 + dt_first.sum())
+    return FitSegment(
+        time_s=np.concatenate([t0, seg.time_s[sl].reshape(m, k)[:, -1]]),
+        current_a=np.concatenate([seg.current_a[:1], cur]),
+        voltage_v=np.concatenate([seg.voltage_v[:1], block_mean(seg.voltage_v)]),
+        temperature_c=np.concatenate([seg.temperature_c[:1], block_mean(seg.temperature_c)]),
+        soc0=seg.soc0,
+        u_h0=seg.u_h0,
+    )
+
+
+def estimate_r_ohm(segments: list[FitSegment]) -> float | None:
+    """Median instantaneous resistance ``-dV/dI`` over large current steps (first guess)."""
+    vals = []
+    for s in segments:
+        di = np.diff(s.current_a)
+        dv = np.diff(s.voltage_v)
+        big = np.abs(di) > max(0.2 * np.max(np.abs(s.current_a)), 1e-3)
+        if big.any():
+            vals.append(-dv[big] / di[big])
+    if not vals:
+        return None
+    r = float(np.median(np.concatenate(vals)))
+    return r if r > 0 else None
+
+
+# -- parameter coding ---------------------------------------------------------------------
+def decode(x: np.ndarray, profile: CellProfile, temp_c: float, fit_hysteresis: bool) -> CellParameters:
+    """Search coordinates ``x[N, p]`` -> :class:`CellParameters` for ``N`` candidates."""
+    x = np.atleast_2d(x)
+    n = x.shape[0]
+    base = profile.parameters_at(temp_c, n_cells=n)
+    r_ohm = np.exp(x[:, 0])
+    r_ct, tau_ct, m = np.exp(x[:, 1]), np.exp(x[:, 2]), x[:, 3]
+    r_df, tau_df, nn = np.exp(x[:, 4]), np.exp(x[:, 2] + x[:, 5]), x[:, 6]
+    r = np.array(base.r, copy=True)
+    c = np.array(base.c, copy=True)
+    alpha = np.array(base.alpha, copy=True)
+    r[:, 0], r[:, 1] = r_ct, r_df
+    alpha[:, 0], alpha[:, 1] = m, nn
+    c[:, 0] = tau_ct**m / r_ct
+    c[:, 1] = tau_df**nn / r_df
+    p = CellParameters(
+        r_ohm=r_ohm, r=r, c=c, alpha=alpha, u_h_max=base.u_h_max, hyst_rate=base.hyst_rate,
+        capacity_ah=base.capacity_ah, current_bias_a=base.current_bias_a, kinetics_i0_a=base.kinetics_i0_a,
+    )
+    if fit_hysteresis:
+        p.u_h_max = x[:, 7].copy()
+        p.hyst_rate = np.exp(x[:, 8])
+    return p
+
+
+def encode_point(point: ParameterPoint) -> np.ndarray:
+    """A :class:`ParameterPoint` -> base search coordinates (clipped into the bounds)."""
+    tau_ct = (point.r_ct * point.c_dl) ** (1.0 / point.m)
+    tau_df = (point.r_df * point.c_df) ** (1.0 / point.n)
+    x = np.array([
+        math.log(point.r_ohm), math.log(point.r_ct), math.log(tau_ct), point.m,
+        math.log(point.r_df), math.log(max(tau_df / tau_ct, 1e-12)), point.n,
+    ])
+    lo, hi = np.array(list(BOUNDS.values())).T
+    return np.clip(x, lo, hi)
+
+
+def point_from_x(x: np.ndarray, temp_c: float) -> ParameterPoint:
+    r_ct, tau_ct, m = math.exp(x[1]), math.exp(x[2]), float(x[3])
+    r_df, tau_df, n = math.exp(x[4]), math.exp(x[2] + x[5]), float(x[6])
+    return ParameterPoint(
+        temp_c=float(temp_c), r_ohm=math.exp(x[0]), r_ct=r_ct, c_dl=tau_ct**m / r_ct, m=min(m, 1.0),
+        r_df=r_df, c_df=tau_df**n / r_df, n=min(n, 1.0),
+    )
+
+
+# -- the objective ------------------------------------------------------------------------
+class _Objective:
+    """Residuals of ``N`` candidates over all segments, one vectorised simulation each."""
+
+    def __init__(self, profile, segments, memory_length, fit_hysteresis, temp_c):
+        self.profile = profile
+        self.segments = segments
+        self.memory_length = memory_length
+        self.fit_hysteresis = fit_hysteresis
+        self.temp_c = temp_c
+        self.n_evaluations = 0
+        self.n_samples = sum(len(s) for s in segments)
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """``[N, samples]`` simulated minus measured voltage."""
+        x = np.atleast_2d(x)
+        params = decode(x, self.profile, self.temp_c, self.fit_hysteresis)
+        out = []
+        for s in self.segments:
+            v, _ = simulate(
+                self.profile, s.time_s, s.current_a, s.temperature_c, s.soc0, params=params,
+                memory_length=self.memory_length, u_h0=s.u_h0,
+            )
+            out.append(v.T - s.voltage_v[None, :])
+        self.n_evaluations += x.shape[0]
+        res = np.concatenate(out, axis=1)
+        return np.where(np.isfinite(res), np.clip(res, -10.0, 10.0), 10.0)
+
+
+class _Deadline(Exception):
+    pass
+
+
+def fit_parameters(
+    profile: CellProfile,
+    segments: list[FitSegment],
+    *,
+    memory_length: int = DEFAULT_MEMORY_LENGTH,
+    fit_hysteresis: bool = False,
+    max_seconds: float = 120.0,
+    seed: int = 0,
+    global_points: int = 1500,
+    polish_points: int = 20000,
+    x0: ParameterPoint | None = None,
+) -> FitResult:
+    """Fit R_ohm, R_ct, C_dl, m, R_df, C_df, n (and U_H, rate) to ``segments``.
+
+    ``profile`` supplies the OCV, capacity and extensions (kept as they are); its
+    parameters are only a template.  ``x0`` (a point) seeds the search.  The global
+    stage gets about 60 % of ``max_seconds``, the polish the rest.
+    """
+    if not segments:
+        raise ValueError("fit_parameters needs at least one segment")
+    t_start = time.perf_counter()
+    deadline = t_start + max_seconds
+    total = sum(len(s) for s in segments)
+    temp_c = float(np.average([np.mean(s.temperature_c) for s in segments], weights=[len(s) for s in segments]))
+
+    bounds = list(BOUNDS.values()) + (list(HYSTERESIS_BOUNDS.values()) if fit_hysteresis else [])
+    lo, hi = np.array(bounds).T
+    p = len(bounds)
+
+    # a first guess: the seed point, else R_ohm from current steps and mid-range dynamics
+    if x0 is not None:
+        guess = encode_point(x0)
+    else:
+        r0 = estimate_r_ohm(segments) or 0.02
+        guess = np.array([math.log(r0), math.log(r0 / 2), math.log(5.0), 0.8, math.log(r0), math.log(40.0), 0.8])
+    if fit_hysteresis:
+        guess = np.concatenate([guess, [0.01, math.log(30.0)]])
+    guess = np.clip(guess, lo + 1e-9, hi - 1e-9)
+
+    # 1. global search on a block-averaged copy
+    coarse = [decimate(s, max(50, int(global_points * len(s) / total))) for s in segments]
+    obj_g = _Objective(profile, coarse, memory_length, fit_hysteresis, temp_c)
+    g_deadline = t_start + 0.6 * max_seconds
+
+    def cost(xt: np.ndarray) -> np.ndarray:  # xt: [p, S] (vectorised DE)
+        r = obj_g.residuals(xt.T)
+        return np.mean(r**2, axis=1)
+
+    def stop(intermediate_result) -> bool:  # noqa: ARG001 - scipy matches the name
+        return time.perf_counter() > g_deadline
+
+    de = differential_evolution(
+        cost, bounds, seed=seed, popsize=max(6, 60 // p), maxiter=200, tol=1e-4, mutation=(0.5, 1.0),
+        recombination=0.8, polish=False, vectorized=True, updating="deferred", x0=guess, callback=stop,
+        init="sobol",
+    )
+    x_best = np.clip(de.x, lo, hi)
+
+    # 2. local polish on (nearly) full-rate data
+    fine = [decimate(s, max(50, int(polish_points * len(s) / total))) for s in segments]
+    obj = _Objective(profile, fine, memory_length, fit_hysteresis, temp_c)
+    steps = np.full(p, 1e-4)
+    best = {"x": x_best, "cost": np.inf}
+    cache: dict[str, np.ndarray] = {}
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        key = x.tobytes()
+        if key in cache:
+            r = cache[key]
+        else:
+            if time.perf_counter() > deadline:
+                raise _Deadline
+            r = obj.residuals(x)[0]
+        c = float(r @ r)
+        if c < best["cost"]:
+            best.update(x=x.copy(), cost=c)
+        return r
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        if time.perf_counter() > deadline:
+            raise _Deadline
+        h = steps * np.where(x + steps > hi, -1.0, 1.0)
+        xs = np.vstack([x, x + np.diag(h)])
+        r = obj.residuals(xs)
+        cache.clear()
+        cache[x.tobytes()] = r[0]
+        return ((r[1:] - r[0]) / h[:, None]).T
+
+    try:
+        least_squares(fun, np.clip(x_best, lo + 1e-9, hi - 1e-9), jac=jac, bounds=(lo, hi), method="trf",
+                      x_scale="jac", max_nfev=60, xtol=1e-6, ftol=1e-7)
+    except _Deadline:
+        pass
+    x_fin = best["x"] if np.isfinite(best["cost"]) else x_best
+    if not np.isfinite(best["cost"]):
+        best["cost"] = float(np.sum(obj.residuals(x_fin)[0] ** 2))
+    rmse_mv = 1000.0 * math.sqrt(best["cost"] / obj.n_samples)
+    hyst = None
+    if fit_hysteresis:
+        hyst = HysteresisSpec(u_h_max_v=float(max(x_fin[7], 0.0)), rate=float(math.exp(x_fin[8])))
+    return FitResult(
+        point=point_from_x(x_fin, temp_c),
+        hysteresis=hyst,
+        rmse_mv=rmse_mv,
+        n_evaluations=obj_g.n_evaluations + obj.n_evaluations,
+    )
