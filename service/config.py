@@ -1,0 +1,517 @@
+"""The service configuration: one TOML file, overridable from the environment.
+
+Layering (python-can style): the file, then ``SOCD_*`` environment variables (nested with
+``__``, e.g. ``SOCD_BUS__CHANNEL=can0``, ``SOCD_ESTIMATOR__MEMORY_LENGTH=32``); the
+environment wins.  Every section forbids unknown keys, so a typo is an error, and every
+error names the file and the field (``configs/x.toml: mapping.cell_voltage_signals[3]:
+...``).
+
+Which signal is the pack current, which are cell voltages (and which cell each is) and
+which are temperatures (and which cells each covers) is configuration, not code
+(DESIGN §4): a user's own DBC works by editing ``[mapping]`` only.  Cell indices are
+0-based everywhere in the config.
+
+Relative paths in the file resolve against the file's directory; relative paths from the
+environment resolve against the working directory.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from service.estimators.settings import EstimatorSettings
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DBC_DIR = REPO_ROOT / "dbc"
+CONFIG_DIR = REPO_ROOT / "configs"
+DEFAULT_INPUT_DBC = DBC_DIR / "bms_pack.dbc"
+DEFAULT_OUTPUT_DBC = DBC_DIR / "socd_output.dbc"
+DEFAULT_CELL_PROFILE = CONFIG_DIR / "cells" / "panasonic_18650pf.toml"
+DEFAULT_CONFIG = CONFIG_DIR / "default.toml"
+
+#: messages/signals the encoder needs in ``dbc.output``
+OUTPUT_MESSAGES: dict[str, tuple[str, ...]] = {
+    "SOCD_CellSoc": ("SOCD_SocCellIndex", "SOCD_Soc", "SOCD_SocStd"),
+    "SOCD_CellParams": ("SOCD_ParCellIndex", "SOCD_ROhm", "SOCD_RCt", "SOCD_RDf", "SOCD_M", "SOCD_N"),
+    "SOCD_PackSummary": ("SOCD_SocMin", "SOCD_SocMean", "SOCD_SocMax", "SOCD_SocMinCell", "SOCD_SocMaxCell"),
+    "SOCD_Status": ("SOCD_FramesRejected", "SOCD_StaleCells"),
+}
+
+
+class ConfigError(Exception):
+    """A configuration that cannot be used; the message is ``<file>: <field.path>: <msg>``."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=False)
+
+
+# ---------------------------------------------------------------------------------------
+# sections
+# ---------------------------------------------------------------------------------------
+class BusConfig(_Section):
+    """The CAN bus, as python-can's ``can.Bus(interface=..., channel=..., ...)``."""
+
+    interface: str = "virtual"
+    channel: str = "vcan0"
+    bitrate: int | None = Field(500000, gt=0)
+    fd: bool = False
+    data_bitrate: int | None = Field(None, gt=0)
+    receive_own_messages: bool = False
+    reconnect_initial_s: float = Field(0.5, gt=0)
+    reconnect_max_s: float = Field(10.0, gt=0)
+
+    @model_validator(mode="after")
+    def _backoff(self) -> "BusConfig":
+        if self.reconnect_max_s < self.reconnect_initial_s:
+            raise ValueError(
+                f"reconnect_max_s ({self.reconnect_max_s}) < reconnect_initial_s ({self.reconnect_initial_s})"
+            )
+        return self
+
+    def bus_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for ``can.Bus(**kwargs)``."""
+        kw: dict[str, Any] = {
+            "interface": self.interface,
+            "channel": self.channel,
+            "receive_own_messages": self.receive_own_messages,
+        }
+        if self.bitrate is not None and self.interface != "virtual":
+            kw["bitrate"] = self.bitrate
+        if self.fd:
+            kw["fd"] = True
+            if self.data_bitrate is not None:
+                kw["data_bitrate"] = self.data_bitrate
+        return kw
+
+
+class DbcConfig(_Section):
+    input: Path = DEFAULT_INPUT_DBC
+    output: Path = DEFAULT_OUTPUT_DBC
+
+
+class CellVoltageMap(_Section):
+    """One cell voltage signal and the (0-based) cell it measures."""
+
+    cell: int = Field(ge=0)
+    signal: str = Field(min_length=1)
+
+
+class TemperatureMap(_Section):
+    """One temperature signal and the (0-based) cells it covers."""
+
+    signal: str = Field(min_length=1)
+    cells: list[int] = Field(min_length=1)
+
+
+class MappingConfig(_Section):
+    """Which DBC signals feed the estimator.
+
+    Cell voltages, one of: ``cell_voltage_signals`` (index i = cell i), ``cells``
+    (``[{cell, signal}]``) or ``cell_voltage_pattern`` (``str.format`` with ``index``
+    = 0-based and ``number`` = 1-based cell, expanded to ``pack.n_cells`` names).
+    Temperatures, one of: ``temperature_signals`` (``[{signal, cells}]``) or
+    ``temperature_pattern`` + ``cells_per_sensor`` (sensor k covers cells
+    ``k*cps .. k*cps+cps-1``; ``index``/``number`` as above, for the sensor).
+    After validation ``cell_voltage_signals`` and ``temperature_signals`` are always filled.
+    """
+
+    current_signal: str = "BMS_PackCurrent"
+    current_sign: float = Field(-1.0, description="decoded × sign × scale = current, positive = discharge")
+    current_scale: float = Field(1.0, gt=0)
+    cell_voltage_signals: list[str] = []
+    cells: list[CellVoltageMap] = []
+    cell_voltage_pattern: str | None = "BMS_Cell{number:03d}_V"
+    temperature_signals: list[TemperatureMap] = []
+    temperature_pattern: str | None = "BMS_Temp{number:02d}_C"
+    cells_per_sensor: int | None = Field(4, ge=1)
+    counter_signals: dict[str, str] = {
+        "BMS_PackStatus": "BMS_PackCounter",
+        "BMS_CellVoltages": "BMS_CellVoltCounter",
+        "BMS_CellTemps": "BMS_CellTempCounter",
+    }
+    voltage_range_v: tuple[float, float] = (1.5, 4.8)
+    temperature_range_c: tuple[float, float] = (-40.0, 90.0)
+    current_range_a: tuple[float, float] = (-1000.0, 1000.0)
+    stale_after_s: float = Field(2.0, gt=0)
+
+    @field_validator("current_sign")
+    @classmethod
+    def _sign(cls, v: float) -> float:
+        if v not in (-1.0, 1.0):
+            raise ValueError("must be 1 or -1 (use current_scale for scaling)")
+        return v
+
+    @field_validator("voltage_range_v", "temperature_range_c", "current_range_a")
+    @classmethod
+    def _range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not (math.isfinite(v[0]) and math.isfinite(v[1]) and v[0] < v[1]):
+            raise ValueError(f"must be [low, high] with low < high, got {list(v)}")
+        return v
+
+    @field_validator("cell_voltage_pattern", "temperature_pattern")
+    @classmethod
+    def _pattern(cls, v: str | None) -> str | None:
+        if v is not None:
+            try:
+                a, b = v.format(index=0, number=1), v.format(index=1, number=2)
+            except (KeyError, IndexError, ValueError) as exc:
+                raise ValueError(f"pattern {v!r} must use only {{index}} and/or {{number}}: {exc}") from None
+            if a == b:
+                raise ValueError(f"pattern {v!r} gives the same name for every cell")
+        return v
+
+    def expand(self, n_cells: int) -> None:
+        """Fill ``cell_voltage_signals`` / ``temperature_signals`` from the compact forms.
+
+        Explicitly given forms must agree with each other (so a dumped, already expanded
+        config validates again); the pattern defaults apply only when no form was given.
+        """
+        set_ = self.model_fields_set
+        candidates: list[tuple[str, list[str]]] = []
+        if self.cell_voltage_signals:
+            candidates.append(("cell_voltage_signals", list(self.cell_voltage_signals)))
+        if self.cells:
+            seen: dict[int, str] = {}
+            for k, c in enumerate(self.cells):
+                if c.cell in seen:
+                    raise ValueError(f"mapping.cells[{k}].cell: cell {c.cell} is mapped twice")
+                if c.cell >= n_cells:
+                    raise ValueError(f"mapping.cells[{k}].cell: {c.cell} >= pack.n_cells ({n_cells})")
+                seen[c.cell] = c.signal
+            missing = [i for i in range(n_cells) if i not in seen]
+            if missing:
+                raise ValueError(f"mapping.cells: no signal for cell(s) {missing[:10]}")
+            candidates.append(("cells", [seen[i] for i in range(n_cells)]))
+        if self.cell_voltage_pattern is not None and ("cell_voltage_pattern" in set_ or not candidates):
+            candidates.append(("cell_voltage_pattern", [
+                self.cell_voltage_pattern.format(index=i, number=i + 1) for i in range(n_cells)
+            ]))
+        if not candidates:
+            raise ValueError("mapping: give one of cell_voltage_signals, cells, cell_voltage_pattern")
+        for name, lst in candidates[1:]:
+            if lst != candidates[0][1]:
+                raise ValueError(f"mapping.{name}: conflicts with mapping.{candidates[0][0]}; give only one")
+        self.cell_voltage_signals = candidates[0][1]
+
+        t_candidates: list[tuple[str, list[TemperatureMap]]] = []
+        if self.temperature_signals:
+            t_candidates.append(("temperature_signals", list(self.temperature_signals)))
+        if self.temperature_pattern is not None and ("temperature_pattern" in set_ or not t_candidates):
+            if self.cells_per_sensor is None:
+                raise ValueError("mapping.cells_per_sensor: required with temperature_pattern")
+            cps = self.cells_per_sensor
+            t_candidates.append(("temperature_pattern", [
+                TemperatureMap(
+                    signal=self.temperature_pattern.format(index=k, number=k + 1),
+                    cells=list(range(k * cps, min(n_cells, (k + 1) * cps))),
+                )
+                for k in range(math.ceil(n_cells / cps))
+            ]))
+        if not t_candidates:
+            raise ValueError("mapping: give one of temperature_signals, temperature_pattern")
+        for name, lst in t_candidates[1:]:
+            if lst != t_candidates[0][1]:
+                raise ValueError(f"mapping.{name}: conflicts with mapping.{t_candidates[0][0]}; give only one")
+        self.temperature_signals = t_candidates[0][1]
+
+    def sensor_of_cell(self, n_cells: int) -> list[int]:
+        """Index into ``temperature_signals`` of the (first) sensor covering each cell."""
+        out = [-1] * n_cells
+        for k, t in enumerate(self.temperature_signals):
+            for c in t.cells:
+                if 0 <= c < n_cells and out[c] < 0:
+                    out[c] = k
+        return out
+
+    def all_signals(self) -> list[tuple[str, str]]:
+        """``(field path, signal name)`` of every mapped input signal."""
+        out = [("mapping.current_signal", self.current_signal)]
+        out += [(f"mapping.cell_voltage_signals[{i}]", s) for i, s in enumerate(self.cell_voltage_signals)]
+        out += [(f"mapping.temperature_signals[{k}].signal", t.signal) for k, t in enumerate(self.temperature_signals)]
+        out += [(f"mapping.counter_signals.{m}", s) for m, s in self.counter_signals.items()]
+        return out
+
+
+class OutputConfig(_Section):
+    can_enabled: bool = True
+    can_period_s: float = Field(1.0, gt=0)
+    zenoh_enabled: bool = True
+    zenoh_period_s: float = Field(0.5, gt=0)
+    queue_size: int = Field(256, ge=1)
+
+
+class ZenohConfig(_Section):
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = ["tcp/127.0.0.1:7447"]
+    connect: list[str] = []
+    scouting_multicast: bool = False
+    key_prefix: str = Field("bms", min_length=1)
+    pack_id: str = Field("pack0", min_length=1)
+
+    @field_validator("key_prefix", "pack_id")
+    @classmethod
+    def _key_chunk(cls, v: str) -> str:
+        bad = set(v) & set("*$?#")
+        if bad or v.startswith("/") or v.endswith("/") or "//" in v:
+            raise ValueError(f"{v!r} is not a valid key-expression part")
+        return v
+
+
+class CheckpointConfig(_Section):
+    path: Path = Path("socd-state.npz")
+    interval_s: float = Field(30.0, gt=0)
+
+
+class PackConfig(_Section):
+    n_cells: int = Field(96, ge=1, le=1024)
+
+
+# ---------------------------------------------------------------------------------------
+# the whole config
+# ---------------------------------------------------------------------------------------
+class SocdConfig(BaseSettings):
+    """Everything the daemon and the replay tool need; see the module docstring."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="SOCD_",
+        env_nested_delimiter="__",
+        extra="forbid",
+        case_sensitive=False,
+    )
+
+    bus: BusConfig = BusConfig()
+    dbc: DbcConfig = DbcConfig()
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
+    cell_profile: Path = DEFAULT_CELL_PROFILE
+    estimator: EstimatorSettings = EstimatorSettings()
+    output: OutputConfig = OutputConfig()
+    zenoh: ZenohConfig = ZenohConfig()
+    checkpoint: CheckpointConfig = CheckpointConfig()
+    pack: PackConfig = PackConfig()
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # the file arrives as init kwargs; the environment overrides it
+        return (env_settings, init_settings)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "SocdConfig":
+        m = self.mapping
+        explicit_n = "n_cells" in self.pack.model_fields_set
+        if not explicit_n and (m.cell_voltage_signals or m.cells):
+            # infer the pack size from an explicit mapping
+            n = len(m.cell_voltage_signals) or (max(c.cell for c in m.cells) + 1)
+            self.pack = PackConfig(n_cells=n)
+        n = self.pack.n_cells
+        m.expand(n)
+        if len(m.cell_voltage_signals) != n:
+            raise ValueError(
+                f"mapping.cell_voltage_signals: has {len(m.cell_voltage_signals)} signals but "
+                f"pack.n_cells is {n}"
+            )
+        seen: dict[str, str] = {}
+        for path, name in m.all_signals():
+            if path.startswith("mapping.counter_signals"):
+                continue
+            if name in seen:
+                raise ValueError(f"{path}: signal {name!r} is already mapped as {seen[name]}")
+            seen[name] = path
+        for k, t in enumerate(m.temperature_signals):
+            for j, c in enumerate(t.cells):
+                if not 0 <= c < n:
+                    raise ValueError(
+                        f"mapping.temperature_signals[{k}].cells[{j}]: cell {c} outside 0..{n - 1}"
+                    )
+        uncovered = [i for i, s in enumerate(m.sensor_of_cell(n)) if s < 0]
+        if uncovered:
+            raise ValueError(
+                f"mapping.temperature_signals: cell(s) {uncovered[:10]} covered by no temperature sensor"
+            )
+        if n > 256 and self.output.can_enabled:
+            raise ValueError("pack.n_cells: the output DBC's 8-bit cell index carries at most 256 cells")
+        return self
+
+    # -- helpers -------------------------------------------------------------------------
+    def input_db(self):
+        """The input DBC as a cantools database (cached per path and mtime)."""
+        return load_dbc(self.dbc.input)
+
+    def output_db(self):
+        return load_dbc(self.dbc.output)
+
+    def zenoh_key(self, *parts: str | int) -> str:
+        """``<key_prefix>/<pack_id>/<parts...>``, e.g. ``zenoh_key("cell", 3, "soc")``."""
+        return "/".join([self.zenoh.key_prefix, self.zenoh.pack_id, *map(str, parts)])
+
+
+# ---------------------------------------------------------------------------------------
+# loading
+# ---------------------------------------------------------------------------------------
+def load_dbc(path: str | Path):
+    """Load a DBC with cantools (strict), cached by path and modification time."""
+    p = Path(path).resolve()
+    return _load_dbc_cached(str(p), p.stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=16)
+def _load_dbc_cached(path: str, _mtime_ns: int):
+    import cantools
+
+    return cantools.database.load_file(path, database_format="dbc", strict=True)
+
+
+_PATH_FIELDS = (("dbc", "input"), ("dbc", "output"), ("cell_profile",), ("checkpoint", "path"))
+
+
+def _resolve_relative(raw: dict[str, Any], base: Path) -> None:
+    for keys in _PATH_FIELDS:
+        node: Any = raw
+        for k in keys[:-1]:
+            node = node.get(k) if isinstance(node, dict) else None
+        if isinstance(node, dict) and isinstance(node.get(keys[-1]), str):
+            p = Path(node[keys[-1]]).expanduser()
+            node[keys[-1]] = str(p if p.is_absolute() else (base / p).resolve())
+
+
+def format_loc(loc: tuple[Any, ...]) -> str:
+    """``('mapping', 'cell_voltage_signals', 3)`` -> ``mapping.cell_voltage_signals[3]``."""
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out
+
+
+def format_validation_error(exc: ValidationError, source: str) -> str:
+    lines = []
+    for err in exc.errors():
+        msg = err["msg"]
+        if msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
+        loc = format_loc(tuple(err["loc"]))
+        # cross-field checks name their own field at the start of the message
+        lines.append(f"{source}: {loc}: {msg}" if loc else f"{source}: {msg}")
+    return "\n".join(lines)
+
+
+def build_config(raw: dict[str, Any], source: str = "<config>", base_dir: Path | None = None) -> SocdConfig:
+    """Validate a config dict (as read from TOML); raise :class:`ConfigError`."""
+    raw = _deepcopy(raw)
+    if base_dir is not None:
+        _resolve_relative(raw, base_dir)
+    try:
+        return SocdConfig(**raw)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, source)) from None
+    except ValueError as exc:  # pragma: no cover - pydantic wraps these, belt and braces
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def _deepcopy(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {k: _deepcopy(v) for k, v in d.items()}
+    if isinstance(d, list):
+        return [_deepcopy(v) for v in d]
+    return d
+
+
+def load_config(path: str | Path | None = None, *, check_files: bool = True) -> SocdConfig:
+    """Load ``path`` (default ``configs/default.toml``), apply ``SOCD_*`` env, validate.
+
+    With ``check_files`` (default) also checks that both DBCs load, that every mapped signal
+    exists in ``dbc.input`` (naming the first missing one), that ``dbc.output`` has the
+    frames the encoder writes, and that ``cell_profile`` exists.
+    """
+    path = Path(DEFAULT_CONFIG if path is None else path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config: {exc.strerror or exc}") from None
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    config = build_config(raw, str(path), path.resolve().parent)
+    # relative paths from the environment resolve against the working directory
+    for keys in _PATH_FIELDS:
+        obj: Any = config
+        for k in keys[:-1]:
+            obj = getattr(obj, k)
+        p = getattr(obj, keys[-1])
+        if not p.is_absolute():
+            setattr(obj, keys[-1], p.resolve())
+    if check_files:
+        check_config_files(config, str(path))
+    return config
+
+
+def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
+    """Check the files the config points at and the signal names against the DBCs."""
+    dbs = {}
+    for field in ("input", "output"):
+        p = getattr(config.dbc, field)
+        try:
+            dbs[field] = load_dbc(p)
+        except FileNotFoundError:
+            raise ConfigError(f"{source}: dbc.{field}: no such file {p}") from None
+        except Exception as exc:  # cantools raises many kinds for a bad file
+            raise ConfigError(f"{source}: dbc.{field}: cannot load DBC {p}: {exc}") from None
+    db_in = dbs["input"]
+    signals = {s.name: m for m in db_in.messages for s in m.signals}
+    for path, name in config.mapping.all_signals():
+        if path.startswith("mapping.counter_signals."):
+            msg_name = path.split(".", 2)[2]
+            try:
+                msg = db_in.get_message_by_name(msg_name)
+            except KeyError:
+                raise ConfigError(
+                    f"{source}: {path}: message {msg_name!r} not in dbc.input ({config.dbc.input.name})"
+                ) from None
+            if name not in {s.name for s in msg.signals}:
+                raise ConfigError(
+                    f"{source}: {path}: signal {name!r} not in message {msg_name!r} of dbc.input"
+                )
+            continue
+        if name not in signals:
+            hint = _close(name, signals)
+            raise ConfigError(
+                f"{source}: {path}: signal {name!r} not in dbc.input ({config.dbc.input.name})"
+                + (f"; did you mean {hint!r}?" if hint else "")
+            )
+    db_out = dbs["output"]
+    if config.output.can_enabled:
+        for msg_name, sig_names in OUTPUT_MESSAGES.items():
+            try:
+                msg = db_out.get_message_by_name(msg_name)
+            except KeyError:
+                raise ConfigError(f"{source}: dbc.output: message {msg_name!r} missing") from None
+            have = {s.name for s in msg.signals}
+            for s in sig_names:
+                if s not in have:
+                    raise ConfigError(f"{source}: dbc.output: signal {s!r} missing from {msg_name}")
+    if not config.cell_profile.is_file():
+        raise ConfigError(f"{source}: cell_profile: no such file {config.cell_profile}")
+
+
+def _close(name: str, names) -> str | None:
+    import difflib
+
+    m = difflib.get_close_matches(name, list(names), n=1)
+    return m[0] if m else None
