@@ -1,0 +1,215 @@
+"""EKF over model parameters with the total-derivative output Jacobian (Zeng §2.2.2, Table 1).
+
+The filter estimates a chosen subset of ``[R_ohm, R_ct, C_dl, m, R_df, C_df, n, U_df]``
+for every cell, alongside the SOC filter (dual estimation, Zeng Fig. 2).  Parameters
+are carried as corrections ``z`` to the profile's values at the cell's temperature:
+resistances and CPE coefficients multiplicatively (``θ = θ_profile(T)·z``), orders
+additively (``θ = θ_profile(T) + z``) and ``U_df`` as a voltage.  The random walk of
+Zeng Eq. 12 therefore also follows the known temperature drift of the profile.
+
+Output (Zeng Eq. 9, in this project's signs, with the SOC filter's posterior state):
+
+    h(θ) = OCV(SOC+) + U_h+ - R_ohm I_k - Σ_b U_b,k(θ) - [U_df if identified]
+
+where ``U_b,k(θ)`` is the implicit G-L step of branch ``b`` from the posterior history.
+Jacobian (Table 1): ``C = ∂h/∂θ + ∂h/∂x · A · dx⁺_{k-1}/dθ`` and
+``dx⁻_k/dθ = ∂f/∂θ + A dx⁺_{k-1}/dθ``, ``dx⁺_k/dθ = dx⁻_k/dθ - K_k C_k`` with ``K``
+the SOC filter's gain.  Table 1 lists the explicit branch derivative both in its
+part (1) and inside part (3); here it is counted once (in ``∂h/∂θ``), and the state
+path carries only the dependence through earlier steps.  The correction uses the
+innovation of the current sample (Zeng Eq. 13 mixes indices).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.cell.fractional import gl_weights
+from service.cell.profile import CellParameters
+
+#: name -> (branch index or None, kind) ; kind: "mul" multiplicative, "add" additive, "volt"
+PARAMETERS: dict[str, tuple[int | None, str]] = {
+    "r_ohm": (None, "mul"),
+    "r_ct": (0, "mul"),
+    "c_dl": (0, "mul"),
+    "m": (0, "add"),
+    "r_df": (1, "mul"),
+    "c_df": (1, "mul"),
+    "n": (1, "add"),
+    "u_df": (1, "volt"),
+}
+ORDER_LIMITS = (0.3, 1.0)
+RELATIVE_LIMITS = (1.0 / 3.0, 3.0)
+U_DF_LIMITS = (-0.5, 0.5)
+
+
+def apply_corrections(nominal: CellParameters, names: list[str], z: np.ndarray, out: CellParameters) -> None:
+    """Write ``nominal`` corrected by ``z[N, len(names)]`` into ``out`` (in place)."""
+    for col, name in enumerate(names):
+        branch, kind = PARAMETERS[name]
+        if kind == "volt":
+            continue
+        if name == "r_ohm":
+            out.r_ohm = nominal.r_ohm * z[:, col]
+        elif name in ("r_ct", "r_df"):
+            out.r[:, branch] = nominal.r[:, branch] * z[:, col]
+        elif name in ("c_dl", "c_df"):
+            out.c[:, branch] = nominal.c[:, branch] * z[:, col]
+        else:
+            out.alpha[:, branch] = np.clip(nominal.alpha[:, branch] + z[:, col], *ORDER_LIMITS)
+
+
+def branch_step_and_derivatives(
+    hist: np.ndarray, i: np.ndarray, dt_s: float, r: np.ndarray, c: np.ndarray, alpha: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Implicit G-L branch step ``U_k`` and ``∂U_k/∂R, ∂U_k/∂C, ∂U_k/∂α`` (all ``[N]``).
+
+    ``U = (g I - M)/(1 + g/R)``, ``g = h^α/C``, ``M = Σ_{j≥1} w_j U_{k-j}``.  The α
+    derivative is a central difference (the weights depend on α too).
+    """
+    h = max(dt_s, 1e-9)
+
+    def step(a: np.ndarray, w: np.ndarray) -> np.ndarray:
+        g = np.power(h, a) / c
+        return (g * i - np.einsum("nj,nj->n", w[:, 1:], hist)) / (1.0 + g / r)
+
+    g = np.power(h, alpha) / c
+    den = 1.0 + g / r
+    u = (g * i - np.einsum("nj,nj->n", weights[:, 1:], hist)) / den
+    du_dr = u * g / (den * r * r)
+    du_dc = (-g * i / c) / den + u * g / (r * c * den)
+    d = 1e-5
+    L = hist.shape[-1]
+    du_da = (step(alpha + d, gl_weights(alpha + d, L)) - step(alpha - d, gl_weights(alpha - d, L))) / (2 * d)
+    return u, du_dr, du_dc, du_da
+
+
+class ParameterEkf:
+    """Vectorised EKF over the parameters ``names`` of ``n_cells`` cells (Zeng Eqs. 11-13)."""
+
+    def __init__(
+        self,
+        names: list[str],
+        n_cells: int,
+        n_states: int,
+        process_rel: float,
+        voltage_noise_v: float,
+        init_rel: float = 0.1,
+    ) -> None:
+        unknown = [n for n in names if n not in PARAMETERS]
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
+        self.names = list(names)
+        self.n = n_cells
+        self.np = len(names)
+        self.z = np.array([[0.0 if PARAMETERS[k][1] != "mul" else 1.0 for k in names]] * n_cells)
+        sig = np.array([init_rel if PARAMETERS[k][1] == "mul" else (0.05 if PARAMETERS[k][1] == "add" else 0.02) for k in names])
+        self.P = np.tile(np.diag(sig**2), (n_cells, 1, 1))
+        q = np.array([process_rel if PARAMETERS[k][1] != "volt" else 1e-3 for k in names])
+        self.Q = np.diag(q**2)
+        self.R = voltage_noise_v**2
+        self.D = np.zeros((n_cells, n_states, self.np))  # dx+/dθ
+        self.updates = 0
+        self._volt = [c for c, k in enumerate(names) if PARAMETERS[k][1] == "volt"]
+        self._identifies_df_voltage = bool(self._volt)
+
+    def reset(self, cells: np.ndarray) -> None:
+        self.z[cells] = np.array([0.0 if PARAMETERS[k][1] != "mul" else 1.0 for k in self.names])
+        self.D[cells] = 0.0
+
+    @property
+    def u_df(self) -> np.ndarray | None:
+        return self.z[:, self._volt[0]] if self._volt else None
+
+    def update(
+        self,
+        *,
+        nominal: CellParameters,
+        params: CellParameters,
+        weights: np.ndarray,
+        hist: np.ndarray,
+        x_post: np.ndarray,
+        soc_slope: np.ndarray,
+        ocv_post: np.ndarray,
+        gain: np.ndarray,
+        transition: np.ndarray,
+        current_a: np.ndarray,
+        dt_s: float,
+        voltage_v: np.ndarray,
+        active: np.ndarray,
+    ) -> None:
+        """One EKF step for every cell (inactive cells only predict)."""
+        n_b = params.r.shape[1]
+        i_soc, i_uh = n_b, n_b + 1
+        i = current_a - params.current_bias_a
+        # explicit output and derivatives
+        h = ocv_post + x_post[:, i_uh] - params.r_ohm * i
+        dh = np.zeros((self.n, self.np))
+        df = np.zeros((self.n, x_post.shape[1], self.np))  # ∂f/∂θ
+        branch_cols: dict[int, dict[str, int]] = {}
+        for col, name in enumerate(self.names):
+            br, _ = PARAMETERS[name]
+            if br is not None:
+                branch_cols.setdefault(br, {})[name] = col
+        dhdx = np.zeros((self.n, x_post.shape[1]))
+        dhdx[:, i_soc] = soc_slope
+        dhdx[:, i_uh] = 1.0
+        for b in range(n_b):
+            cols = branch_cols.get(b, {})
+            if b == 1 and self._identifies_df_voltage:
+                h = h - self.u_df
+                dh[:, self._volt[0]] = -1.0
+                continue
+            dhdx[:, b] = -1.0
+            if not cols:
+                h = h - x_post[:, b]
+                continue
+            u, du_dr, du_dc, du_da = branch_step_and_derivatives(
+                hist[:, b], i, dt_s, params.r[:, b], params.c[:, b], params.alpha[:, b], weights[:, b]
+            )
+            h = h - u
+            for name, col in cols.items():
+                if name in ("r_ct", "r_df"):
+                    s = du_dr * nominal.r[:, b]
+                elif name in ("c_dl", "c_df"):
+                    s = du_dc * nominal.c[:, b]
+                else:
+                    s = du_da
+                dh[:, col] = -s
+                df[:, b, col] = s
+        if "r_ohm" in self.names:
+            dh[:, self.names.index("r_ohm")] = -i * nominal.r_ohm
+        # total derivative through the state (Table 1 parts 2-3)
+        d_prior_hist = transition[:, :, None] * self.D
+        c_row = dh + np.einsum("ni,nip->np", dhdx, d_prior_hist)
+        d_prior = df + d_prior_hist
+        self.D = d_prior - gain[:, :, None] * c_row[:, None, :]
+
+        # EKF (Zeng Eqs. 12-13): random walk, then correction with this sample's innovation
+        self.P = self.P + self.Q
+        pc = np.einsum("nij,nj->ni", self.P, c_row)
+        s = np.einsum("ni,ni->n", c_row, pc) + self.R
+        k = pc / s[:, None]
+        e = np.where(active, voltage_v - h, 0.0)
+        k = np.where(active[:, None], k, 0.0)
+        self.z = self.z + k * e[:, None]
+        self.P = self.P - s[:, None, None] * k[:, :, None] * k[:, None, :]
+        self.P = 0.5 * (self.P + np.swapaxes(self.P, 1, 2))
+        self._clip(nominal)
+        self.updates += 1
+
+    def _clip(self, nominal: CellParameters) -> None:
+        """Keep every parameter inside physical bounds (relative to the profile)."""
+        for col, name in enumerate(self.names):
+            br, kind = PARAMETERS[name]
+            if kind == "mul":
+                self.z[:, col] = np.clip(self.z[:, col], *RELATIVE_LIMITS)
+            elif kind == "add":
+                base = nominal.alpha[:, br]
+                self.z[:, col] = np.clip(self.z[:, col], ORDER_LIMITS[0] - base, ORDER_LIMITS[1] - base)
+            else:
+                self.z[:, col] = np.clip(self.z[:, col], *U_DF_LIMITS)
+        bad = ~np.isfinite(self.z).all(axis=1) | ~np.isfinite(self.P).all(axis=(1, 2))
+        if bad.any():
+            self.reset(bad)
+            self.P[bad] = np.diag(np.diag(self.Q) * 100)

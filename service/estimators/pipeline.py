@@ -1,0 +1,310 @@
+"""The paper's full pipeline for a whole pack: FO-MI-UKF + fast and slow identifiers (Zeng Fig. 2).
+
+:class:`PackEstimator` is what the service drives sample by sample; the offline
+estimators (``fomiukf``, ``foukf``, ``fom-single-scale``) wrap it for one cell.
+
+Per sample: profile parameters at each cell's temperature, corrected by the
+identifiers → FO-MI-UKF prediction and update → fast identifier (EKF over
+``[R_ohm, R_ct, C_dl, m, U_df]`` using the SOC filter's gain) → G-L memory push.
+The slow identifier (``[R_df, C_df, n]``) buffers what it needs on the fast path and
+updates in :meth:`PackEstimator.slow_update`, which the service calls from its own
+task and the offline runner after every sample.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from service.cell.fractional import gl_weights
+from service.cell.profile import CellParameters, CellProfile
+from service.estimators.base import EstimateTrace
+from service.estimators.fomiukf import FoMiUkf
+from service.estimators.parameter_ekf import PARAMETERS, ParameterEkf, apply_corrections
+from service.estimators.settings import EstimatorSettings
+from service.estimators.slow_identifier import SlowIdentifier
+from service.recording import Recording
+
+Identification = Literal["multi", "single", "none"]
+FAST_NAMES = ["r_ohm", "r_ct", "c_dl", "m", "u_df"]
+SINGLE_NAMES = ["r_ohm", "r_ct", "c_dl", "m", "r_df", "c_df", "n"]
+PARAM_NAMES = ("r_ohm", "r_ct", "c_dl", "m", "r_df", "c_df", "n")
+TEMP_REFRESH_C = 0.5
+STATE_VERSION = 1
+
+
+class PackEstimator:
+    """SOC, its σ and identified parameters for ``n_cells`` cells, advanced together."""
+
+    def __init__(
+        self,
+        profile: CellProfile,
+        n_cells: int,
+        settings: EstimatorSettings | None = None,
+        identification: Identification = "multi",
+    ) -> None:
+        self.profile = profile
+        self.settings = settings or EstimatorSettings()
+        self.n = int(n_cells)
+        self.identification = identification
+        s = self.settings
+        self.ocv = profile.ocv_table()
+        self.n_branches = profile.n_branches
+        self.ukf = FoMiUkf(self.ocv, self.n, self.n_branches, s)
+        self._temp_used = np.full(self.n, np.nan)
+        self.nominal = profile.parameters_at(25.0, n_cells=self.n)
+        self.params = self.nominal.copy()
+        nx = self.n_branches + 2
+        self.fast: ParameterEkf | None = None
+        self.slow: SlowIdentifier | None = None
+        if identification == "multi" and s.fast_identifier:
+            self.fast = ParameterEkf(FAST_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v)
+        elif identification == "single" and s.fast_identifier:
+            self.fast = ParameterEkf(SINGLE_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v)
+        if identification == "multi" and s.slow_identifier:
+            self.slow = SlowIdentifier(self.n, s.memory_length, s.slow_soc_delta, s.slow_param_process_rel)
+        self.reset_count = np.zeros(self.n, dtype=int)
+        self.ocv_initialised = np.zeros(self.n, dtype=bool)
+        self.steps = 0
+
+    # -- parameters ---------------------------------------------------------------------
+    def _refresh_nominal(self, temp_c: np.ndarray) -> None:
+        moved = ~(np.abs(temp_c - self._temp_used) < TEMP_REFRESH_C)
+        if moved.any():
+            self.nominal = self.profile.parameters_at(np.where(moved, temp_c, self._temp_used))
+            self._temp_used = np.where(moved, temp_c, self._temp_used)
+
+    def _current_params(self) -> CellParameters:
+        p = self.params
+        nom = self.nominal
+        p.r_ohm, p.r[:], p.c[:], p.alpha[:] = nom.r_ohm, nom.r, nom.c, nom.alpha
+        for k in ("u_h_max", "hyst_rate", "capacity_ah", "current_bias_a", "kinetics_i0_a"):
+            setattr(p, k, getattr(nom, k))
+        if self.fast is not None:
+            apply_corrections(nom, self.fast.names, self.fast.z, p)
+        if self.slow is not None:
+            apply_corrections(nom, list(PARAMETERS)[4:7], self.slow.z, p)
+        return p
+
+    def parameters(self) -> dict[str, np.ndarray]:
+        """Identified parameters now: r_ohm, r_ct, c_dl, m, r_df, c_df, n (+ u_df)."""
+        p = self.params
+        out = {
+            "r_ohm": p.r_ohm.copy(),
+            "r_ct": p.r[:, 0].copy(),
+            "c_dl": p.c[:, 0].copy(),
+            "m": p.alpha[:, 0].copy(),
+            "r_df": p.r[:, 1].copy(),
+            "c_df": p.c[:, 1].copy(),
+            "n": p.alpha[:, 1].copy(),
+        }
+        if self.fast is not None and self.fast.u_df is not None:
+            out["u_df"] = self.fast.u_df.copy()
+        return out
+
+    # -- initialisation -----------------------------------------------------------------
+    def initialise(
+        self,
+        voltage_v: np.ndarray,
+        temperature_c: np.ndarray,
+        current_a: float | np.ndarray = 0.0,
+        cells: np.ndarray | None = None,
+    ) -> None:
+        """OCV-based start: SOC from the voltage (IR-corrected), σ = ``soc_init_std``."""
+        cells = np.ones(self.n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
+        temp = np.broadcast_to(np.asarray(temperature_c, float), (self.n,))
+        self._refresh_nominal(temp)
+        i = np.broadcast_to(np.asarray(current_a, float), (self.n,))
+        v = np.broadcast_to(np.asarray(voltage_v, float), (self.n,)) + self.nominal.r_ohm * i
+        soc = np.clip(self.ocv.soc_from_ocv(v, temp), 0.0, 1.0)
+        self.start(soc, cells=cells)
+        self.ocv_initialised[cells] = True
+
+    def start(self, soc: np.ndarray | float, cells: np.ndarray | None = None, soc_std: float | None = None) -> None:
+        """Start ``cells`` at a given SOC (used by evaluation: a deliberately wrong start)."""
+        cells = np.ones(self.n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
+        soc_arr = np.broadcast_to(np.asarray(soc, float), (self.n,))
+        std = self.settings.soc_init_std if soc_std is None else soc_std
+        self.ukf.reset(cells, soc_arr[cells], std, float(self.profile.hysteresis.u_h_max_v))
+        if self.fast is not None:
+            self.fast.reset(cells)
+        self.ocv_initialised[cells] = False
+
+    # -- the fast path ------------------------------------------------------------------
+    def step(
+        self,
+        dt_s: float,
+        current_a: float | np.ndarray,
+        voltage_v: np.ndarray,
+        temperature_c: np.ndarray,
+        active: np.ndarray | None = None,
+    ) -> None:
+        """Advance every cell by one sample.  Inactive (stale) cells integrate the pack
+        current in the prediction but take no voltage update; their σ grows."""
+        n = self.n
+        i = np.broadcast_to(np.asarray(current_a, float), (n,)).copy()
+        v = np.asarray(voltage_v, float)
+        temp = np.broadcast_to(np.asarray(temperature_c, float), (n,))
+        act = np.ones(n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        act = act & np.isfinite(v)
+        v = np.where(act, v, 0.0)
+        dt = float(dt_s)
+        self._refresh_nominal(np.where(np.isfinite(temp), temp, self._temp_used))
+        params = self._current_params()
+        weights = gl_weights(params.alpha, self.settings.memory_length)
+        ukf = self.ukf
+        ukf.predict(dt, i, params, weights)
+        ukf.update(v, i, temp, params, act)
+        if self.fast is not None:
+            soc_post = ukf.x[:, ukf.i_soc]
+            self.fast.update(
+                nominal=self.nominal,
+                params=params,
+                weights=weights,
+                hist=ukf.hist,
+                x_post=ukf.x,
+                soc_slope=self.ocv.slope(soc_post, temp),
+                ocv_post=self.ocv.ocv(soc_post, temp),
+                gain=ukf.gain,
+                transition=ukf.transition,
+                current_a=i,
+                dt_s=dt,
+                voltage_v=v,
+                active=act,
+            )
+        ukf.push_history()
+        if self.slow is not None:
+            u_df = self.fast.u_df if self.fast is not None and self.fast.u_df is not None else ukf.x[:, 1]
+            self.slow.record(dt, i - params.current_bias_a, u_df, ukf.soc)
+        bad = ukf.diverged()
+        if bad.any():
+            self.reset_count[bad] += 1
+            self.initialise(np.where(act, v, self.v_pred), temp, i, cells=bad & act)
+            still = bad & ~act
+            if still.any():
+                self.start(np.clip(np.nan_to_num(ukf.soc, nan=0.5), 0, 1), cells=still)
+        self.steps += 1
+
+    def slow_update(self) -> np.ndarray:
+        """Run the slow identifier if SOC has moved enough; returns which cells updated."""
+        if self.slow is None:
+            return np.zeros(self.n, dtype=bool)
+        nom = self.nominal
+        done = self.slow.update(nom.r[:, 1], nom.c[:, 1], nom.alpha[:, 1], self.ukf.soc)
+        return np.full(self.n, done)
+
+    # -- outputs ------------------------------------------------------------------------
+    @property
+    def soc(self) -> np.ndarray:
+        return self.ukf.soc
+
+    @property
+    def soc_std(self) -> np.ndarray:
+        return self.ukf.soc_std
+
+    @property
+    def v_pred(self) -> np.ndarray:
+        return self.ukf.v_pred
+
+    # -- persistence --------------------------------------------------------------------
+    def get_state(self) -> dict[str, np.ndarray]:
+        """Complete state (SOC, covariance, parameters, fractional memory) as arrays."""
+        u = self.ukf
+        st: dict[str, np.ndarray] = {
+            "state_version": np.array(STATE_VERSION),
+            "n_cells": np.array(self.n),
+            "memory_length": np.array(self.settings.memory_length),
+            "ukf_x": u.x, "ukf_P": u.P, "ukf_hist": u.hist, "ukf_var_hist": u.var_hist,
+            "ukf_innovations": u.innovations, "ukf_gains": u.gains, "ukf_nis": u.nis_ema,
+            "reset_count": self.reset_count, "ocv_initialised": self.ocv_initialised,
+        }
+        if self.fast is not None:
+            st.update(fast_z=self.fast.z, fast_P=self.fast.P, fast_D=self.fast.D)
+        if self.slow is not None:
+            st.update(slow_z=self.slow.z, slow_P=self.slow.P, slow_ring=self.slow.ring, slow_anchor=self.slow.anchor_soc)
+        return {k: np.array(v, copy=True) for k, v in st.items()}
+
+    def set_state(self, state: dict[str, np.ndarray]) -> None:
+        """Restore :meth:`get_state` output; raises ``ValueError`` if it does not fit."""
+        def need(key: str, shape: tuple[int, ...]) -> np.ndarray:
+            if key not in state:
+                raise ValueError(f"estimator state lacks '{key}'")
+            arr = np.asarray(state[key])
+            if arr.shape != shape:
+                raise ValueError(f"estimator state '{key}' has shape {arr.shape}, expected {shape}")
+            if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+                raise ValueError(f"estimator state '{key}' holds non-finite values")
+            return arr.copy()
+
+        u = self.ukf
+        if int(np.asarray(state.get("state_version", -1))) != STATE_VERSION:
+            raise ValueError("estimator state has another version")
+        x = need("ukf_x", u.x.shape)
+        P = need("ukf_P", u.P.shape)
+        hist = need("ukf_hist", u.hist.shape)
+        var_hist = need("ukf_var_hist", u.var_hist.shape)
+        innov = need("ukf_innovations", u.innovations.shape)
+        gains = need("ukf_gains", u.gains.shape)
+        nis = need("ukf_nis", u.nis_ema.shape)
+        fast = slow = None
+        if self.fast is not None:
+            fast = (need("fast_z", self.fast.z.shape), need("fast_P", self.fast.P.shape), need("fast_D", self.fast.D.shape))
+        if self.slow is not None:
+            slow = (need("slow_z", self.slow.z.shape), need("slow_P", self.slow.P.shape),
+                    need("slow_ring", self.slow.ring.shape), np.asarray(state.get("slow_anchor", self.slow.anchor_soc)))
+        u.x, u.P, u.hist, u.var_hist, u.innovations, u.gains, u.nis_ema = x, P, hist, var_hist, innov, gains, nis
+        self.reset_count = need("reset_count", self.reset_count.shape).astype(int)
+        self.ocv_initialised = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
+        if fast is not None:
+            self.fast.z, self.fast.P, self.fast.D = fast
+        if slow is not None:
+            self.slow.z, self.slow.P, self.slow.ring, self.slow.anchor_soc = slow
+            self.slow.hist0 = self.slow.ring.copy()
+            self.slow.length = 0
+
+
+# -- offline estimators (one cell, for ``socd evaluate``) ---------------------------------
+class PipelineEstimator:
+    """Runs :class:`PackEstimator` for one cell along a recording."""
+
+    def __init__(self, name: str, identification: Identification, settings: EstimatorSettings | None = None,
+                 **overrides: object) -> None:
+        self.name = name
+        self.identification = identification
+        base = settings or EstimatorSettings()
+        self.settings = base.model_copy(update=overrides) if overrides else base
+
+    def run(self, recording: Recording, profile: CellProfile, soc0: float) -> EstimateTrace:
+        est = PackEstimator(profile, 1, self.settings, self.identification)
+        est.start(np.array([soc0]))
+        T = len(recording)
+        soc = np.empty(T)
+        std = np.empty(T)
+        vp = np.empty(T)
+        params = {k: np.empty(T) for k in PARAM_NAMES}
+        dt = recording.dt_s()
+        one = np.ones(1, dtype=bool)
+        for k in range(T):
+            est.step(dt[k], recording.current_a[k], recording.voltage_v[k:k + 1], recording.temperature_c[k:k + 1], one)
+            est.slow_update()
+            soc[k], std[k], vp[k] = est.soc[0], est.soc_std[0], est.v_pred[0]
+            p = est.params
+            params["r_ohm"][k], params["r_ct"][k], params["c_dl"][k], params["m"][k] = p.r_ohm[0], p.r[0, 0], p.c[0, 0], p.alpha[0, 0]
+            params["r_df"][k], params["c_df"][k], params["n"][k] = p.r[0, 1], p.c[0, 1], p.alpha[0, 1]
+        return EstimateTrace(soc=soc, v_pred=vp, soc_std=std, params=params)
+
+
+def fomiukf(settings: EstimatorSettings | None = None) -> PipelineEstimator:
+    """The paper's full pipeline: FO-MI-UKF + multi-time-scale identification."""
+    return PipelineEstimator("fomiukf", "multi", settings)
+
+
+def foukf(settings: EstimatorSettings | None = None) -> PipelineEstimator:
+    """Single-innovation FO-UKF: the same code with the innovation window set to 1."""
+    return PipelineEstimator("foukf", "multi", settings, innovation_length=1)
+
+
+def fom_single_scale(settings: EstimatorSettings | None = None) -> PipelineEstimator:
+    """Single-time-scale identification: one EKF over all seven parameters at the sample rate."""
+    return PipelineEstimator("fom-single-scale", "single", settings)
