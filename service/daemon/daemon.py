@@ -1,0 +1,470 @@
+"""The estimator service: CAN in → decode → PackEstimator → CAN + Zenoh out (DESIGN §1, §6).
+
+One asyncio loop runs these tasks:
+
+- **receive** (:class:`~service.daemon.can_rx.CanReceiver`): every frame goes through
+  :class:`service.bus.decoder.FrameDecoder`; each :class:`PackSample` it completes steps the
+  estimator with ``dt`` from the sample timestamps.  Cells that are not ``fresh`` are
+  passed as inactive (no voltage update) and published as stale, never extrapolated as if
+  measured.  A non-positive ``dt`` is skipped and counted; a gap longer than
+  :data:`MAX_STEP_S` cannot be integrated honestly (the current during it is unknown), so
+  the cells restart from OCV with a large covariance, counted and flagged ``ocv_init``.
+- **CAN output** every ``output.can_period_s``: :class:`service.bus.encoder.OutputEncoder`
+  frames sent with ``timeout=0`` in small paced chunks; failures are counted, never awaited.
+- **Zenoh output** every ``output.zenoh_period_s``: a copied round handed to
+  :class:`~service.daemon.zenoh_pub.ZenohPublisher` (bounded queue, own thread).
+- **slow identifier** every :data:`SLOW_PERIOD_S`.
+- **checkpoint** every ``checkpoint.interval_s`` (file I/O in an executor) and once more on
+  SIGTERM/SIGINT before a clean shutdown.
+
+On start the checkpoint is restored if it is valid and matches (n_cells, cell profile);
+otherwise the reason is logged, put in the health payload, and the first complete sample
+starts every cell from OCV with σ = ``estimator.soc_init_std`` (flag ``ocv_init``, plus
+``checkpoint_corrupt`` when the file was damaged).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from service.bus.types import PackSample, PackSnapshot
+from service.cell.profile import CellProfile, load_profile
+from service.daemon.can_rx import CanReceiver, ReceiverClosed
+from service.daemon.checkpoint import load_checkpoint, profile_hash, save_checkpoint
+from service.daemon.health import HealthMonitor, wall_time_of
+from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
+
+log = logging.getLogger(__name__)
+
+#: longest sample interval the estimator integrates; a longer gap restarts from OCV
+MAX_STEP_S = 10.0
+#: period of the slow identifier task
+SLOW_PERIOD_S = 1.0
+#: an OCV start counts as converged once every cell's SOC σ is below this
+OCV_CONVERGED_STD = 0.03
+#: start from OCV with the fresh cells if a complete sample has not come within this
+INIT_WAIT_S = 5.0
+#: the receive loop yields to other tasks at least this often while it has a backlog
+RX_YIELD_S = 0.005
+#: CAN output: frames sent back to back before yielding
+CAN_TX_CHUNK = 8
+CAN_TX_GAP_S = 0.001
+
+
+class Daemon:
+    """The whole service for one pack.  ``bus`` (optional) is owned by the caller.
+
+    Without ``bus`` the daemon opens ``can.Bus(**config.bus.bus_kwargs())`` itself and
+    re-creates it after bus errors.  ``profile``, ``estimator`` and
+    ``zenoh_session_factory`` may be injected (tests, the demo).
+    """
+
+    def __init__(
+        self,
+        config: Any,
+        bus: can.BusABC | None = None,
+        *,
+        profile: CellProfile | None = None,
+        estimator: Any | None = None,
+        zenoh_session_factory: Callable[[], Any] | None = None,
+        install_signal_handlers: bool = True,
+    ) -> None:
+        from service.bus.decoder import FrameDecoder
+        from service.estimators.pipeline import PackEstimator
+
+        self.config = config
+        self.n = int(config.pack.n_cells)
+        self.profile = profile if profile is not None else load_profile(config.cell_profile)
+        self.profile_sha256 = profile_hash(self.profile)
+        self.health = HealthMonitor(pack=config.zenoh.pack_id)
+        self.decoder = FrameDecoder(config)
+        self.encoder = None
+        if config.output.can_enabled:
+            from service.bus.encoder import OutputEncoder
+
+            self.encoder = OutputEncoder(config)
+        self.estimator = estimator if estimator is not None else PackEstimator(self.profile, self.n, config.estimator)
+        b = config.bus
+        if bus is not None:
+            self.receiver = CanReceiver(self.health, bus=bus, reconnect_initial_s=b.reconnect_initial_s,
+                                        reconnect_max_s=b.reconnect_max_s)
+        else:
+            self.receiver = CanReceiver(self.health, open_bus=lambda: can.Bus(**b.bus_kwargs()),
+                                        reconnect_initial_s=b.reconnect_initial_s, reconnect_max_s=b.reconnect_max_s)
+        self.publisher: ZenohPublisher | None = None
+        if config.output.zenoh_enabled:
+            self.publisher = ZenohPublisher(config.zenoh, config.output.queue_size, self.health,
+                                            session_factory=zenoh_session_factory)
+        self._install_signals = install_signal_handlers
+
+        # estimation state
+        self.initialised = False
+        self.restored = False
+        self._last_t: float | None = None
+        self._first_sample_mono: float | None = None
+        self._last_sample: PackSample | None = None
+        self._last_sample_mono: float | None = None
+        self._last_frame_wall: float | None = None
+        self._fresh = np.zeros(self.n, dtype=bool)
+        self._resets_seen = 0
+        self.samples = 0
+        self.steps = 0
+        self.step_time_s = 0.0
+        self.can_frames_out = 0
+        self.stopping = False
+        self._started = asyncio.Event()
+
+    # -- lifecycle ---------------------------------------------------------------------
+    async def run(self, stop: asyncio.Event | None = None) -> None:
+        """Run until ``stop`` is set or SIGTERM/SIGINT; then a final checkpoint and a clean exit."""
+        stop = stop or asyncio.Event()
+        loop = asyncio.get_running_loop()
+        installed = self._add_signal_handlers(loop, stop) if self._install_signals else []
+        self.restore()
+        if self.publisher is not None:
+            self.publisher.start()
+        tasks = {
+            asyncio.create_task(self._rx_loop(), name="socd-rx"),
+            asyncio.create_task(self._periodic(SLOW_PERIOD_S, self._slow_update), name="socd-slow"),
+            asyncio.create_task(self._periodic(self.config.checkpoint.interval_s, self._checkpoint_async),
+                                name="socd-checkpoint"),
+        }
+        if self.encoder is not None:
+            tasks.add(asyncio.create_task(self._periodic(self.config.output.can_period_s, self._can_output),
+                                          name="socd-can-out"))
+        if self.publisher is not None:
+            tasks.add(asyncio.create_task(self._periodic(self.config.output.zenoh_period_s, self._zenoh_output),
+                                          name="socd-zenoh-out"))
+        stop_task = asyncio.create_task(stop.wait(), name="socd-stop")
+        self._started.set()
+        crashed: BaseException | None = None
+        try:
+            done, _ = await asyncio.wait(tasks | {stop_task}, return_when=asyncio.FIRST_COMPLETED)
+            for t in done:
+                if t is not stop_task and not t.cancelled() and t.exception() is not None:
+                    crashed = t.exception()
+                    log.critical("task %s crashed: %r", t.get_name(), crashed)
+        finally:
+            self.stopping = True
+            for t in tasks | {stop_task}:
+                t.cancel()
+            await asyncio.gather(*tasks, stop_task, return_exceptions=True)
+            self.save_checkpoint()
+            if self.publisher is not None:
+                self.publisher.stop()
+            self.receiver.close()
+            for sig in installed:
+                loop.remove_signal_handler(sig)
+        if crashed is not None:
+            raise crashed
+
+    @staticmethod
+    def _add_signal_handlers(loop: asyncio.AbstractEventLoop, stop: asyncio.Event) -> list[int]:
+        installed = []
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            try:
+                loop.add_signal_handler(sig, stop.set)
+                installed.append(sig)
+            except (NotImplementedError, RuntimeError, ValueError):
+                pass  # not the main thread, or a platform without signals
+        return installed
+
+    async def wait_started(self) -> None:
+        await self._started.wait()
+
+    async def _periodic(self, period_s: float, fn: Callable[[], Any]) -> None:
+        loop = asyncio.get_running_loop()
+        next_at = loop.time() + period_s
+        while True:
+            await asyncio.sleep(max(0.0, next_at - loop.time()))
+            next_at = max(next_at + period_s, loop.time())
+            try:
+                res = fn()
+                if asyncio.iscoroutine(res):
+                    await res
+            except asyncio.CancelledError:
+                raise
+            except Exception:  # noqa: BLE001 - one bad round must not stop the service
+                self.health.count("internal_errors")
+                log.exception("periodic task %s failed", getattr(fn, "__name__", fn))
+
+    # -- checkpoint --------------------------------------------------------------------
+    def restore(self) -> str:
+        """Load the checkpoint if it is usable; return the outcome ("restored" or a reason)."""
+        path = Path(self.config.checkpoint.path)
+        res = load_checkpoint(path, n_cells=self.n, profile_sha256=self.profile_sha256)
+        if res.ok:
+            try:
+                self.estimator.set_state(res.state)
+            except (ValueError, KeyError, TypeError) as exc:
+                res.reason, res.detail = "mismatch", f"{path}: state does not fit this estimator: {exc}"
+        if res.ok:
+            self.initialised = self.restored = True
+            self.health.set_flag("checkpoint_restored", True)
+            self.health.count("checkpoint_restored")
+            self.health.checkpoint_state = "restored"
+            log.info("restored estimator state from %s (saved at frame time %s)", path, res.meta.get("t_s"))
+            return "restored"
+        self.health.checkpoint_state = f"{res.reason}: {res.detail}"
+        self.health.count(f"checkpoint_{res.reason}")
+        if res.reason == "corrupt":
+            self.health.set_flag("checkpoint_corrupt", True)
+        if res.reason in ("corrupt", "mismatch"):
+            self._quarantine(path, res.reason)
+        log.warning("no usable checkpoint (%s); will start from OCV with a large covariance", res.detail)
+        return res.reason
+
+    def _quarantine(self, path: Path, reason: str) -> None:
+        # Keep the evidence: the next save would overwrite it.
+        target = path.with_name(f"{path.name}.{reason}-{int(time.time())}")
+        try:
+            path.replace(target)
+            log.warning("moved unusable checkpoint to %s", target)
+        except OSError as exc:
+            log.warning("could not move unusable checkpoint %s: %s", path, exc)
+
+    def _checkpoint_args(self) -> dict | None:
+        if not self.initialised:
+            return None
+        return dict(
+            path=self.config.checkpoint.path,
+            state=self.estimator.get_state(),
+            n_cells=self.n,
+            profile_sha256=self.profile_sha256,
+            t_s=self._last_t,
+        )
+
+    def save_checkpoint(self) -> bool:
+        """Write a checkpoint now (blocking); False if there is nothing to save or it failed."""
+        args = self._checkpoint_args()
+        if args is None:
+            return False
+        return self._save(args)
+
+    def _save(self, args: dict) -> bool:
+        try:
+            save_checkpoint(**args)
+        except (OSError, ValueError) as exc:
+            self.health.count("checkpoint_write_failed")
+            log.error("checkpoint write failed: %s", exc)
+            return False
+        self.health.count("checkpoints_saved")
+        self.health.set_flag("checkpoint_corrupt", False)
+        return True
+
+    async def _checkpoint_async(self) -> None:
+        args = self._checkpoint_args()  # state copied on the loop, written off it
+        if args is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self._save, args)
+
+    # -- receive + estimate ------------------------------------------------------------------
+    async def _rx_loop(self) -> None:
+        last_yield = time.perf_counter()
+        while True:
+            try:
+                msg = await self.receiver.recv()
+            except ReceiverClosed:
+                return
+            arrival = time.time()
+            try:
+                samples = self.decoder.feed(msg)
+                for s in samples:
+                    self.on_sample(s, wall_time_of(msg.timestamp, arrival))
+            except Exception:  # noqa: BLE001 - bad input must never stop the service
+                self.health.count("internal_errors")
+                log.exception("frame %s could not be processed", msg)
+            now = time.perf_counter()
+            if now - last_yield > RX_YIELD_S:
+                # a non-empty queue returns without suspending: let timers and signals run
+                await asyncio.sleep(0)
+                last_yield = time.perf_counter()
+
+    def on_sample(self, s: PackSample, frame_wall_s: float | None = None) -> None:
+        """Advance the estimator by one decoded sample (the receive task calls this)."""
+        self.samples += 1
+        mono = time.monotonic()
+        fresh = np.asarray(s.fresh, dtype=bool)
+        self._fresh = fresh
+        self._last_sample = s
+        self._last_sample_mono = mono
+        if frame_wall_s is not None:
+            self._last_frame_wall = frame_wall_s
+        if not np.isfinite(s.current_a):
+            self.health.count("sample_no_current")
+            return
+        if not self.initialised:
+            self._try_initialise(s, fresh, mono)
+            return
+        if self._last_t is None:  # first sample after a restore: nothing to integrate yet
+            self._last_t = s.t_s
+            return
+        dt = s.t_s - self._last_t
+        if not np.isfinite(dt) or dt <= 0.0:
+            self.health.count("dt_nonpositive")
+            return
+        self._last_t = s.t_s
+        if dt > MAX_STEP_S:
+            self.health.count("dt_gap_reinit")
+            log.warning("%.1f s without samples: restarting fresh cells from OCV", dt)
+            if fresh.any():
+                self.estimator.initialise(self._filled(s.voltage_v, fresh), self._filled(s.temperature_c, fresh),
+                                          s.current_a, cells=fresh)
+            return
+        t0 = time.perf_counter()
+        self.estimator.step(dt, s.current_a, s.voltage_v, s.temperature_c, fresh)
+        self.step_time_s += time.perf_counter() - t0
+        self.steps += 1
+        self._after_step(s, fresh, frame_wall_s)
+
+    def _after_step(self, s: PackSample, fresh: np.ndarray, frame_wall_s: float | None) -> None:
+        est = self.estimator
+        resets = int(np.sum(est.reset_count))
+        if resets > self._resets_seen:
+            self.health.count("filter_resets", resets - self._resets_seen, flag="filter_reset")
+            self.health.raise_flag("diverged")
+            self._resets_seen = resets
+        soc = est.soc
+        bad = ~(np.isfinite(soc) & np.isfinite(est.soc_std))
+        if bad.any():  # belt and braces: a NaN must never be published as a SOC
+            self.health.count("nonfinite_estimate_reinit", int(bad.sum()), flag="filter_reset")
+            cells = bad & fresh
+            if cells.any():
+                est.initialise(self._filled(s.voltage_v, fresh), self._filled(s.temperature_c, fresh),
+                               s.current_a, cells=cells)
+        if frame_wall_s is not None:
+            self.health.record_latency("estimate", time.time() - frame_wall_s)
+
+    def _try_initialise(self, s: PackSample, fresh: np.ndarray, mono: float) -> None:
+        if self._first_sample_mono is None:
+            self._first_sample_mono = mono
+        complete = bool(fresh.all())
+        if not complete and (mono - self._first_sample_mono < INIT_WAIT_S or not fresh.any()):
+            self.health.count("init_waiting_for_cells")
+            return
+        v = self._filled(s.voltage_v, fresh)
+        t = self._filled(s.temperature_c, fresh)
+        self.estimator.initialise(v, t, s.current_a)
+        self._resets_seen = int(np.sum(self.estimator.reset_count))
+        self.initialised = True
+        self._last_t = s.t_s
+        self.health.count("ocv_init")
+        log.info("started %d cells from OCV (%d without fresh inputs)", self.n, int((~fresh).sum()))
+
+    @staticmethod
+    def _filled(x: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+        """Values for cells without fresh inputs: the mean of the fresh ones (they stay stale)."""
+        x = np.asarray(x, dtype=float)
+        ok = fresh & np.isfinite(x)
+        if ok.all():
+            return x
+        fill = float(np.mean(x[ok])) if ok.any() else 25.0
+        return np.where(ok, x, fill)
+
+    async def _slow_update(self) -> None:
+        if self.initialised and self.steps:
+            done = self.estimator.slow_update()
+            if np.any(done):
+                self.health.count("slow_updates")
+
+    # -- outputs -------------------------------------------------------------------------
+    def stale_mask(self) -> np.ndarray:
+        """Cells whose inputs are not fresh; all of them when samples stopped arriving."""
+        if self._last_sample_mono is None or time.monotonic() - self._last_sample_mono > self.config.mapping.stale_after_s:
+            return np.ones(self.n, dtype=bool)
+        return ~self._fresh
+
+    def status_flags(self, stale: np.ndarray | None = None) -> dict[str, bool]:
+        stale = self.stale_mask() if stale is None else stale
+        self.health.absorb_decoder(self.decoder.counters)
+        flags = self.health.flags()
+        est = self.estimator
+        flags["stale_cells"] = bool(stale.any())
+        flags["no_current"] = (
+            self._last_sample_mono is None
+            or time.monotonic() - self._last_sample_mono > self.config.mapping.stale_after_s
+        )
+        ocv_started = np.asarray(getattr(est, "ocv_initialised", np.zeros(self.n, bool)), dtype=bool)
+        flags["ocv_init"] = (not self.initialised and not self.restored) or bool(
+            self.initialised and np.any(ocv_started & (np.asarray(est.soc_std) > OCV_CONVERGED_STD))
+        )
+        clamped = getattr(est, "param_clamped", None)
+        flags["param_clamped"] = bool(np.any(clamped)) if clamped is not None else False
+        if self.publisher is None:
+            flags["zenoh_down"] = False
+        for name in ("checkpoint_restored", "filter_reset", "bus_error", "zenoh_down", "publish_drops",
+                     "diverged", "counter_errors", "decode_errors", "checkpoint_corrupt"):
+            flags.setdefault(name, False)
+        return flags
+
+    def snapshot(self) -> PackSnapshot:
+        stale = self.stale_mask()
+        flags = self.status_flags(stale)
+        counters = self.health.all_counters(self.decoder.counters)
+        est = self.estimator
+        s = self._last_sample
+        voltage = np.array(s.voltage_v, dtype=float) if s is not None else np.full(self.n, np.nan)
+        return PackSnapshot(
+            t_s=float(self._last_t if self._last_t is not None else (s.t_s if s is not None else 0.0)),
+            soc=np.array(est.soc, dtype=float),
+            soc_std=np.array(est.soc_std, dtype=float),
+            voltage_v=voltage,
+            params={k: np.array(v, dtype=float) for k, v in est.parameters().items()},
+            stale=stale,
+            status_flags=flags,
+            counters={"frames_rejected": counters.get("frames_rejected", 0), "stale_cells": int(stale.sum())},
+        )
+
+    async def _can_output(self) -> None:
+        if self.encoder is None or not self.initialised:
+            return
+        frames = self.encoder.encode(self.snapshot())
+        for k in range(0, len(frames), CAN_TX_CHUNK):
+            for f in frames[k:k + CAN_TX_CHUNK]:
+                if self.receiver.send(f):
+                    self.can_frames_out += 1
+            if k + CAN_TX_CHUNK < len(frames):
+                await asyncio.sleep(CAN_TX_GAP_S)  # pace: a CAN tx queue is often only 10 frames deep
+        self.health.counters["can_frames_out"] = self.can_frames_out
+
+    def publish_round(self) -> PublishRound:
+        snap = self.snapshot()
+        flags = dict(snap.status_flags)
+        est = self.estimator
+        s = self._last_sample
+        health = self.health.payload(snap.t_s, self.decoder.counters, flags)
+        return PublishRound(
+            t_s=snap.t_s,
+            soc=snap.soc,
+            soc_std=snap.soc_std,
+            voltage_v=snap.voltage_v,
+            stale=np.array(snap.stale, dtype=bool),
+            params=snap.params,
+            health=health,
+            status_flags=flags,
+            current_a=None if s is None else float(s.current_a),
+            v_pred=np.array(est.v_pred, dtype=float),
+            resets=np.array(est.reset_count, dtype=int),
+            frame_wall_s=self._last_frame_wall if self.initialised else None,
+            initialised=self.initialised,
+        )
+
+    async def _zenoh_output(self) -> None:
+        if self.publisher is not None:
+            self.publisher.submit(self.publish_round())
+
+    # -- figures for tools and tests --------------------------------------------------------
+    def counters(self) -> dict[str, int]:
+        out = self.health.all_counters(self.decoder.counters)
+        out["can_frames_out"] = self.can_frames_out
+        out["steps"] = self.steps
+        out["samples"] = self.samples
+        return out

@@ -1,0 +1,123 @@
+"""JSON payloads on the Zenoh key expressions (DESIGN §5), one pydantic model per key.
+
+Every payload carries ``schema_version``; a consumer should reject a major version it does
+not know.  SOC is in percent on the wire (DESIGN §3), everything else in SI units named in
+the field.  ``t_s`` is the frame timestamp of the newest sample the estimate includes.
+
+Key expressions (``<prefix>/<pack>/...``, see :func:`keys`):
+
+=========================  ===================  =====================================
+key                        model                when
+=========================  ===================  =====================================
+``cell/<i>/soc``           :class:`CellSoc`     every ``output.zenoh_period_s``
+``cell/<i>/params``        :class:`CellParams`  every ``output.zenoh_period_s``
+``summary``                :class:`Summary`     every ``output.zenoh_period_s``
+``health``                 :class:`Health`      every ``output.zenoh_period_s``
+``snapshot`` (queryable)   :class:`Snapshot`    on request: latest state of every cell
+=========================  ===================  =====================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pydantic import BaseModel, ConfigDict, Field
+
+SCHEMA_VERSION = 1
+
+
+class _Payload(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    schema_version: int = SCHEMA_VERSION
+    pack: str
+    t_s: float = Field(description="frame timestamp of the newest sample in this estimate, s")
+
+
+class CellSoc(_Payload):
+    cell: int = Field(ge=0)
+    soc_pct: float | None = Field(description="state of charge, %; null before the first estimate")
+    soc_std_pct: float | None = Field(description="1-σ uncertainty of soc_pct, %")
+    voltage_v: float | None = Field(description="last measured terminal voltage, V")
+    v_pred_v: float | None = Field(None, description="model-predicted terminal voltage, V")
+    stale: bool = Field(description="inputs older than mapping.stale_after_s: estimate not updated")
+    resets: int = Field(0, description="filter re-initialisations of this cell since start")
+
+
+class CellParams(_Payload):
+    """Identified MTS-FOM parameters (Zeng Fig. 1); C's are CPE coefficients, F·s^(α-1)."""
+
+    cell: int = Field(ge=0)
+    r_ohm: float | None = None
+    r_ct: float | None = None
+    c_dl: float | None = None
+    m: float | None = None
+    r_df: float | None = None
+    c_df: float | None = None
+    n: float | None = None
+
+
+class Summary(_Payload):
+    n_cells: int
+    soc_mean_pct: float | None
+    soc_min_pct: float | None
+    soc_max_pct: float | None
+    cell_min: int | None = Field(description="index of the cell with the lowest SOC")
+    cell_max: int | None = Field(description="index of the cell with the highest SOC")
+    soc_std_max_pct: float | None
+    current_a: float | None = Field(description="pack current, A, positive = discharge")
+    n_stale: int
+    status_flags: dict[str, bool]
+
+
+class Health(_Payload):
+    uptime_s: float
+    status_flags: dict[str, bool]
+    counters: dict[str, int] = Field(description="event counts by reason since start")
+    latency_ms: dict[str, float | None] = Field(
+        description="frame timestamp → estimate ('estimate_p50/p99') and → Zenoh put ('publish_p50/p99')"
+    )
+    checkpoint: str = Field(description="how this run started: 'restored', or the reason it could not")
+
+
+class Snapshot(_Payload):
+    """Answer of the ``snapshot`` queryable: everything a dashboard needs to join late."""
+
+    cells: list[CellSoc]
+    params: list[CellParams]
+    summary: Summary
+    health: Health
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Key expressions of one pack under a prefix."""
+
+    prefix: str
+    pack: str
+
+    @property
+    def base(self) -> str:
+        return f"{self.prefix}/{self.pack}"
+
+    def cell_soc(self, i: int) -> str:
+        return f"{self.base}/cell/{i}/soc"
+
+    def cell_params(self, i: int) -> str:
+        return f"{self.base}/cell/{i}/params"
+
+    @property
+    def summary(self) -> str:
+        return f"{self.base}/summary"
+
+    @property
+    def health(self) -> str:
+        return f"{self.base}/health"
+
+    @property
+    def snapshot(self) -> str:
+        return f"{self.base}/snapshot"
+
+
+def keys(prefix: str, pack: str) -> Keys:
+    return Keys(prefix.strip("/"), pack)
