@@ -33,6 +33,8 @@ log = logging.getLogger(__name__)
 
 #: SocketCAN error-frame class bit for bus-off (linux/can/error.h CAN_ERR_BUSOFF)
 CAN_ERR_BUSOFF = 0x40
+#: frames read per readiness callback on fd-backed buses
+FD_DRAIN_MAX = 256
 
 
 class ReceiverClosed(Exception):
@@ -98,17 +100,20 @@ class GuardedNotifier(can.Notifier):
 
     # fd-backed buses (SocketCAN) --------------------------------------------------------
     def _on_message_available(self, bus: can.BusABC) -> None:
-        try:
-            msg = bus.recv(0)
-        except Exception as exc:  # noqa: BLE001
-            self.exception = exc
+        # Drain what is ready (bounded, so one busy bus cannot starve the loop).
+        for _ in range(FD_DRAIN_MAX):
             try:
-                self._loop.remove_reader(bus.fileno())  # type: ignore[union-attr]
-            except Exception:  # noqa: BLE001 - fd may already be gone
-                pass
-            self._receive_failed(exc)
-            return
-        if msg is not None:
+                msg = bus.recv(0)
+            except Exception as exc:  # noqa: BLE001
+                self.exception = exc
+                try:
+                    self._loop.remove_reader(bus.fileno())  # type: ignore[union-attr]
+                except Exception:  # noqa: BLE001 - fd may already be gone
+                    pass
+                self._receive_failed(exc)
+                return
+            if msg is None:
+                return
             self._dispatch(msg)
 
     # common --------------------------------------------------------------------------

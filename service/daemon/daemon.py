@@ -7,8 +7,9 @@ One asyncio loop runs these tasks:
   estimator with ``dt`` from the sample timestamps.  Cells that are not ``fresh`` are
   passed as inactive (no voltage update) and published as stale, never extrapolated as if
   measured.  A non-positive ``dt`` is skipped and counted; a gap longer than
-  :data:`MAX_STEP_S` cannot be integrated honestly (the current during it is unknown), so
-  the cells restart from OCV with a large covariance, counted and flagged ``ocv_init``.
+  :data:`MAX_STEP_S` under load cannot be integrated honestly (the current during it is
+  unknown), so the cells restart from OCV with a large covariance, counted and flagged
+  ``ocv_init``; a gap with the pack at rest at both ends is integrated (and counted).
 - **CAN output** every ``output.can_period_s``: :class:`service.bus.encoder.OutputEncoder`
   frames sent with ``timeout=0`` in small paced chunks; failures are counted, never awaited.
 - **Zenoh output** every ``output.zenoh_period_s``: a copied round handed to
@@ -45,8 +46,10 @@ from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
 
 log = logging.getLogger(__name__)
 
-#: longest sample interval the estimator integrates; a longer gap restarts from OCV
+#: longest sample interval the estimator integrates under load; a longer gap restarts the
+#: cells from OCV unless the pack was at rest (|I| <= REST_C_RATE · C) at both ends of it
 MAX_STEP_S = 10.0
+REST_C_RATE = 0.05
 #: period of the slow identifier task
 SLOW_PERIOD_S = 1.0
 #: an OCV start counts as converged once every cell's SOC σ is below this
@@ -116,6 +119,7 @@ class Daemon:
         self._last_frame_wall: float | None = None
         self._fresh = np.zeros(self.n, dtype=bool)
         self._resets_seen = 0
+        self._prev_current: float | None = None
         self.samples = 0
         self.steps = 0
         self.step_time_s = 0.0
@@ -146,6 +150,12 @@ class Daemon:
                                           name="socd-zenoh-out"))
         stop_task = asyncio.create_task(stop.wait(), name="socd-stop")
         self._started.set()
+        log.info(
+            "socd running: %d cells, bus %s:%s, zenoh %s, checkpoint %s (%s)",
+            self.n, self.config.bus.interface, self.config.bus.channel,
+            ",".join(self.config.zenoh.listen) if self.publisher is not None else "off",
+            self.config.checkpoint.path, self.health.checkpoint_state,
+        )
         crashed: BaseException | None = None
         try:
             done, _ = await asyncio.wait(tasks | {stop_task}, return_when=asyncio.FIRST_COMPLETED)
@@ -306,24 +316,34 @@ class Daemon:
             return
         if self._last_t is None:  # first sample after a restore: nothing to integrate yet
             self._last_t = s.t_s
+            self._prev_current = float(s.current_a)
             return
         dt = s.t_s - self._last_t
         if not np.isfinite(dt) or dt <= 0.0:
             self.health.count("dt_nonpositive")
             return
         self._last_t = s.t_s
-        if dt > MAX_STEP_S:
+        prev_current = self._prev_current
+        self._prev_current = float(s.current_a)
+        if dt > MAX_STEP_S and not self._resting(prev_current, s.current_a):
             self.health.count("dt_gap_reinit")
             log.warning("%.1f s without samples: restarting fresh cells from OCV", dt)
             if fresh.any():
                 self.estimator.initialise(self._filled(s.voltage_v, fresh), self._filled(s.temperature_c, fresh),
                                           s.current_a, cells=fresh)
             return
+        if dt > MAX_STEP_S:
+            self.health.count("dt_gap_at_rest")
         t0 = time.perf_counter()
         self.estimator.step(dt, s.current_a, s.voltage_v, s.temperature_c, fresh)
         self.step_time_s += time.perf_counter() - t0
         self.steps += 1
         self._after_step(s, fresh, frame_wall_s)
+
+    def _resting(self, *currents: float | None) -> bool:
+        """Both ends of a gap at rest: no charge moved in between, so it can be integrated."""
+        limit = REST_C_RATE * float(self.profile.capacity_ah)
+        return all(c is not None and np.isfinite(c) and abs(c) <= limit for c in currents)
 
     def _after_step(self, s: PackSample, fresh: np.ndarray, frame_wall_s: float | None) -> None:
         est = self.estimator
@@ -356,6 +376,7 @@ class Daemon:
         self._resets_seen = int(np.sum(self.estimator.reset_count))
         self.initialised = True
         self._last_t = s.t_s
+        self._prev_current = float(s.current_a)
         self.health.count("ocv_init")
         log.info("started %d cells from OCV (%d without fresh inputs)", self.n, int((~fresh).sum()))
 
