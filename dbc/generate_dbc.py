@@ -63,6 +63,7 @@ STATUS_FLAGS = (
     ("no_current", "no pack-current frame within stale_after_s"),
     ("counter_errors", "rolling-counter jumps seen since the last status frame"),
     ("decode_errors", "frames rejected (DLC/decode/range/NaN) since the last status frame"),
+    ("checkpoint_corrupt", "a checkpoint was found unusable at start; SOC initialised from OCV instead"),
 )
 
 

@@ -67,6 +67,11 @@ class BusConfig(_Section):
     receive_own_messages: bool = False
     reconnect_initial_s: float = Field(0.5, gt=0)
     reconnect_max_s: float = Field(10.0, gt=0)
+    kwargs: dict[str, Any] = Field(
+        default_factory=dict,
+        description="extra can.Bus keyword arguments, like python-can's --bus-kwargs "
+        "(e.g. preserve_timestamps = true on a virtual bus)",
+    )
 
     @model_validator(mode="after")
     def _backoff(self) -> "BusConfig":
@@ -89,6 +94,7 @@ class BusConfig(_Section):
             kw["fd"] = True
             if self.data_bitrate is not None:
                 kw["data_bitrate"] = self.data_bitrate
+        kw.update(self.kwargs)
         return kw
 
 

@@ -71,6 +71,8 @@ def test_default_config_loads(profile):
     assert cfg.cell_profile == profile.resolve()
     assert cfg.zenoh_key("cell", 3, "soc") == "bms/pack0/cell/3/soc"
     assert cfg.estimator.memory_length >= 1
+    assert cfg.bus.bus_kwargs() == {"interface": "virtual", "channel": "vcan0", "receive_own_messages": False,
+                                    "preserve_timestamps": True}
 
 
 def test_load_config_without_path_is_default(profile):

@@ -28,6 +28,7 @@ STATUS_FLAGS: tuple[str, ...] = (
     "no_current",
     "counter_errors",
     "decode_errors",
+    "checkpoint_corrupt",
 )
 
 
