@@ -377,7 +377,7 @@ def test_kill9_then_restart_resumes_from_checkpoint(tmp_path: Path) -> None:
 
         proc, log = start_socd()
         log.wait_for("socd running", 30)
-        assert "no checkpoint" in log.wait_for("no usable checkpoint", 1)
+        assert "no checkpoint" in log.wait_for("no usable checkpoint", 1)  # logged at info
 
         # 10x real time (the 1 Hz recording: a sample every 100 ms of wall time)
         played: list = []

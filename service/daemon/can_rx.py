@@ -35,6 +35,8 @@ log = logging.getLogger(__name__)
 CAN_ERR_BUSOFF = 0x40
 #: frames read per readiness callback on fd-backed buses
 FD_DRAIN_MAX = 256
+#: frames handed to the loop in one call by the receive thread of thread-backed buses
+RX_BATCH_MAX = 256
 
 
 class ReceiverClosed(Exception):
@@ -77,18 +79,28 @@ class GuardedNotifier(can.Notifier):
     def _rx_thread(self, bus: can.BusABC) -> None:
         loop = self._loop
         assert loop is not None
-        deliver = functools.partial(loop.call_soon_threadsafe, self._dispatch)
+        # Messages already waiting go to the loop in one batch: one wake-up of the loop (and
+        # one GIL hand-over) per batch instead of per frame.
+        deliver = functools.partial(loop.call_soon_threadsafe, self._dispatch_batch)
         while not self._stopped:
+            batch: list[can.Message] = []
             try:
                 msg = bus.recv(self.timeout)
+                while msg is not None:
+                    batch.append(msg)
+                    if len(batch) >= RX_BATCH_MAX:
+                        break
+                    msg = bus.recv(0)
             except Exception as exc:  # noqa: BLE001 - every receive error is reported
                 self.exception = exc
+                if batch:
+                    self._call_on_loop(self._dispatch_batch, batch)
                 if not self._stopped:
                     self._call_on_loop(self._receive_failed, exc)
                 return
-            if msg is not None:
+            if batch:
                 try:
-                    deliver(msg)
+                    deliver(batch)
                 except RuntimeError:  # loop closed under us: shutting down
                     return
 
@@ -117,6 +129,10 @@ class GuardedNotifier(can.Notifier):
             self._dispatch(msg)
 
     # common --------------------------------------------------------------------------
+    def _dispatch_batch(self, batch: list[can.Message]) -> None:
+        for msg in batch:
+            self._dispatch(msg)
+
     def _dispatch(self, msg: can.Message) -> None:
         if self._stopped:
             return
@@ -131,10 +147,18 @@ class GuardedNotifier(can.Notifier):
 
 
 class _Reader(can.AsyncBufferedReader):
-    """AsyncBufferedReader whose ``on_error`` wakes the consumer instead of hanging it."""
+    """AsyncBufferedReader whose ``on_error`` wakes the consumer instead of hanging it.
+
+    One reader lives as long as the :class:`CanReceiver`, across reconnects, so frames
+    already received when a bus fails are still delivered; ``stop()`` (called by every
+    Notifier that stops) therefore does nothing.
+    """
 
     def on_error(self, exc: Exception) -> None:
         self.buffer.put_nowait(_ReceiveError(exc))  # type: ignore[arg-type]
+
+    def stop(self) -> None:
+        pass
 
 
 class CanReceiver:
@@ -162,6 +186,7 @@ class CanReceiver:
         self.bus: can.BusABC | None = None
         self._notifier: GuardedNotifier | None = None
         self._reader: _Reader | None = None
+        self._reader_obj = _Reader()
         self._initial = max(1e-3, reconnect_initial_s)
         self._max = max(self._initial, reconnect_max_s)
         self._delay = self._initial
@@ -179,7 +204,7 @@ class CanReceiver:
                 else:
                     assert self._open_bus is not None
                     bus = await loop.run_in_executor(None, self._open_bus)
-                reader = _Reader()
+                reader = self._reader_obj
                 notifier = GuardedNotifier(
                     bus,
                     [reader],
@@ -220,6 +245,8 @@ class CanReceiver:
                 bus.shutdown()
             except Exception as exc:  # noqa: BLE001 - a dead bus may fail to close
                 log.debug("bus shutdown: %r", exc)
+                # python-can would retry (and raise again) from BusABC.__del__
+                bus._is_shutdown = True  # type: ignore[attr-defined]
 
     async def _reconnect(self, why: str) -> None:
         self.health.count("bus_reconnects", flag="bus_error")
@@ -260,7 +287,7 @@ class CanReceiver:
 
     def backlog(self) -> int:
         """Messages received but not yet consumed."""
-        return 0 if self._reader is None else self._reader.buffer.qsize()
+        return self._reader_obj.buffer.qsize()
 
     def send(self, msg: can.Message) -> bool:
         """Send without ever blocking the loop (timeout=0); count and swallow failures."""

@@ -126,6 +126,8 @@ class Daemon:
         self.can_frames_out = 0
         self.stopping = False
         self._started = asyncio.Event()
+        #: called as ``fn(sample)`` after every estimator step (the demo scores with it)
+        self.step_listeners: list[Callable[[PackSample], None]] = []
 
     # -- lifecycle ---------------------------------------------------------------------
     async def run(self, stop: asyncio.Event | None = None) -> None:
@@ -230,7 +232,8 @@ class Daemon:
             self.health.set_flag("checkpoint_corrupt", True)
         if res.reason in ("corrupt", "mismatch"):
             self._quarantine(path, res.reason)
-        log.warning("no usable checkpoint (%s); will start from OCV with a large covariance", res.detail)
+        (log.info if res.reason == "missing" else log.warning)(
+            "no usable checkpoint (%s); will start from OCV with a large covariance", res.detail)
         return res.reason
 
     def _quarantine(self, path: Path, reason: str) -> None:
@@ -339,6 +342,8 @@ class Daemon:
         self.step_time_s += time.perf_counter() - t0
         self.steps += 1
         self._after_step(s, fresh, frame_wall_s)
+        for fn in self.step_listeners:
+            fn(s)
 
     def _resting(self, *currents: float | None) -> bool:
         """Both ends of a gap at rest: no charge moved in between, so it can be integrated."""

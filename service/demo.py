@@ -1,0 +1,336 @@
+"""The whole chain in one process, on nothing but loopback (``socd demo``).
+
+- a real drive cycle (the bundled excerpt in ``service/data/``) expanded to an N-cell pack
+  with a seeded per-cell spread of capacity, resistance and start SOC
+  (:func:`replay.pack.pack_frames`), replayed onto a python-can ``virtual`` bus whose
+  channel is unique to this run (:func:`replay.player.play`, in a thread);
+- the :class:`~service.daemon.daemon.Daemon` estimating from another Bus object on the same
+  channel, publishing CAN output frames there and Zenoh on
+  ``tcp/127.0.0.1:<free port>`` (multicast scouting off);
+- a Zenoh subscriber session counting what arrives (callbacks bridged into the loop
+  with ``loop.call_soon_threadsafe``), and a third Bus counting the CAN output frames;
+- at the end, every cell's SOC error against the replay's truth.
+
+:func:`run_demo` returns a :class:`DemoResult`; ``socd demo`` prints it and writes the
+JSON and the plot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import socket
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import can
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+DATA_DIR = Path(__file__).resolve().parent / "data"
+
+
+def bundled_recording() -> Path:
+    """The drive-cycle excerpt shipped in ``service/data`` (a ``*.csv`` recording)."""
+    found = sorted(p for p in DATA_DIR.glob("*.csv") if not p.name.endswith("_truth.csv"))
+    if not found:
+        raise FileNotFoundError(f"no bundled recording (*.csv) in {DATA_DIR}")
+    preferred = [p for p in found if any(k in p.name.lower() for k in ("drive", "us06", "udds", "la92", "cycle"))]
+    return (preferred or found)[0]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class DemoResult:
+    cells: int
+    recording: str
+    speed: float
+    seconds_replayed: float
+    wall_s: float
+    frames_in: int
+    frames_rejected: int
+    samples: int
+    steps: int
+    soc_rmse_pct: float
+    soc_mae_pct: float
+    soc_max_err_pct: float
+    soc_rmse_after_600s_pct: float | None
+    per_cell_rmse_pct: list[float]
+    final_soc_pct: list[float]
+    final_truth_pct: list[float]
+    zenoh_messages: int
+    zenoh_by_kind: dict[str, int]
+    can_frames_out: int
+    can_frames_seen: int
+    frames_per_s: float
+    latency_ms: dict[str, float | None]
+    status_flags: dict[str, bool]
+    counters: dict[str, int] = field(default_factory=dict)
+    faults: dict[str, int] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _demo_config(n_cells: int, channel: str, port: int, workdir: Path, profile_path: Path):
+    from service.config import DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config
+
+    return build_config({
+        "cell_profile": str(profile_path),
+        "dbc": {"input": str(DEFAULT_INPUT_DBC), "output": str(DEFAULT_OUTPUT_DBC)},
+        "pack": {"n_cells": n_cells},
+        "bus": {"interface": "virtual", "channel": channel},
+        "output": {"can_period_s": 0.5, "zenoh_period_s": 0.25, "queue_size": 64},
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"], "connect": [],
+                  "scouting_multicast": False, "key_prefix": "bms", "pack_id": "demo"},
+        "checkpoint": {"path": str(workdir / "demo-state.ckpt"), "interval_s": 3600.0},
+    })
+
+
+def run_demo(
+    cells: int = 8,
+    speed: float = 0.0,
+    seconds: float | None = None,
+    *,
+    recording_path: Path | None = None,
+    profile_path: Path | None = None,
+    seed: int = 0,
+    faults: Any = None,
+    status: TextIO | None = sys.stdout,
+    live: bool | None = None,
+) -> tuple[DemoResult, dict[str, np.ndarray]]:
+    """Run the demo; return the result and the traces (``t_s``, ``soc``, ``truth``) for a plot."""
+    import zenoh
+
+    from replay.pack import SpreadSpec, pack_frames
+    from replay.player import play
+    from service.bus.encoder import decode_output
+    from service.cell.profile import load_profile
+    from service.config import DEFAULT_CELL_PROFILE
+    from service.daemon.daemon import Daemon
+    from service.daemon.zenoh_pub import zenoh_config
+    from service.recording import load_recording
+
+    recording_path = Path(recording_path) if recording_path else bundled_recording()
+    profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
+    profile = load_profile(profile_path)
+    recording = load_recording(recording_path)
+    if seconds is not None:
+        stop_i = int(np.searchsorted(recording.time_s, recording.time_s[0] + float(seconds), side="right"))
+        recording = recording.slice(0, max(2, stop_i))
+
+    workdir = Path(tempfile.mkdtemp(prefix="socd-demo-"))
+    channel = f"socd-demo-{os.getpid()}-{time.monotonic_ns()}"
+    port = free_port()
+    config = _demo_config(cells, channel, port, workdir, profile_path)
+    spread = SpreadSpec(capacity=0.02, resistance=0.05, soc=0.02, temperature_c=0.5)
+    frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed)
+    if live is None:
+        live = status is not None and status.isatty()
+
+    t_hist: list[float] = []
+    soc_hist: list[np.ndarray] = []
+    zenoh_counts: Counter[str] = Counter()
+    can_seen: Counter[str] = Counter()
+    replay_stats: list[Any] = []
+
+    async def main() -> tuple[Daemon, float]:
+        loop = asyncio.get_running_loop()
+        daemon_bus = can.Bus(interface="virtual", channel=channel)
+        tx_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+        out_bus = can.Bus(interface="virtual", channel=channel)
+        out_db = config.output_db()
+
+        def on_out(msg: can.Message) -> None:
+            if msg.is_extended_id:
+                name = decode_output(msg, out_db).get("message")
+                if name:
+                    can_seen[name] += 1
+
+        out_notifier = can.Notifier(out_bus, [on_out], timeout=0.1)
+        sub_session = None
+        daemon = Daemon(config, daemon_bus, profile=profile, install_signal_handlers=False)
+        daemon.step_listeners.append(lambda s: (t_hist.append(s.t_s), soc_hist.append(daemon.estimator.soc.copy())))
+        stop = asyncio.Event()
+        run_task = asyncio.create_task(daemon.run(stop))
+        stop_replay = threading.Event()
+        try:
+            await daemon.wait_started()
+            # the dashboard side: Zenoh callbacks run on Zenoh's threads -> into the loop
+            sub_session = zenoh.open(zenoh_config("peer", [], [f"tcp/127.0.0.1:{port}"], False))
+
+            def count(key: str) -> None:
+                kind = key.rsplit("/", 1)[-1]
+                zenoh_counts[kind] += 1
+
+            sub = sub_session.declare_subscriber(
+                "bms/demo/**", lambda sample: loop.call_soon_threadsafe(count, str(sample.key_expr))
+            )
+            t0 = time.perf_counter()
+
+            def replay() -> None:
+                replay_stats.append(play(tx_bus, frames, speed=speed, faults=faults, stop_event=stop_replay,
+                                         config=config))
+
+            player = threading.Thread(target=replay, name="socd-demo-replay", daemon=True)
+            player.start()
+            last_line = 0.0
+            while True:
+                await asyncio.sleep(0.1)
+                done = not player.is_alive()
+                if done and replay_stats:
+                    sent = replay_stats[0].frames_sent
+                    if daemon.decoder.counters["frames_in"] >= sent and daemon.receiver.backlog() == 0:
+                        break
+                now = time.perf_counter()
+                if status is not None and (now - last_line > (0.25 if live else 2.0)):
+                    last_line = now
+                    _status_line(status, daemon, now - t0, len(frames), sum(zenoh_counts.values()),
+                                 sum(can_seen.values()), live)
+            # one more publication round of each kind carries the final state
+            await asyncio.sleep(max(config.output.zenoh_period_s, config.output.can_period_s) + 0.2)
+            wall = time.perf_counter() - t0
+            if status is not None:
+                _status_line(status, daemon, wall, len(frames), sum(zenoh_counts.values()),
+                             sum(can_seen.values()), live)
+                if live:
+                    status.write("\n")
+            sub.undeclare()
+        finally:
+            stop_replay.set()
+            stop.set()
+            await asyncio.wait_for(run_task, 30)
+            out_notifier.stop()
+            if sub_session is not None:
+                sub_session.close()
+            for b in (tx_bus, out_bus, daemon_bus):
+                b.shutdown()
+        return daemon, wall
+
+    daemon, wall = asyncio.run(main())
+
+    t = np.asarray(t_hist)
+    soc = np.asarray(soc_hist).reshape(len(t_hist), cells) if t_hist else np.zeros((0, cells))
+    idx = np.clip(np.searchsorted(pack.time_s, t), 0, len(pack.time_s) - 1)
+    truth = pack.truth_soc[idx] if len(t) else np.zeros((0, cells))
+    err = (soc - truth) * 100.0
+    if err.size:
+        rmse = float(np.sqrt(np.mean(err ** 2)))
+        late = t - pack.time_s[0] >= 600.0
+        rmse_late = float(np.sqrt(np.mean(err[late] ** 2))) if late.any() else None
+        per_cell = np.sqrt(np.mean(err ** 2, axis=0))
+    else:
+        rmse, rmse_late, per_cell = float("nan"), None, np.full(cells, np.nan)
+    counters = daemon.counters()
+    result = DemoResult(
+        cells=cells,
+        recording=recording_path.name,
+        speed=speed,
+        seconds_replayed=float(recording.time_s[-1] - recording.time_s[0]),
+        wall_s=round(wall, 3),
+        frames_in=int(counters.get("frames_in", 0)),
+        frames_rejected=int(counters.get("frames_rejected", 0)),
+        samples=daemon.samples,
+        steps=daemon.steps,
+        soc_rmse_pct=round(rmse, 4),
+        soc_mae_pct=round(float(np.mean(np.abs(err))) if err.size else float("nan"), 4),
+        soc_max_err_pct=round(float(np.max(np.abs(err))) if err.size else float("nan"), 4),
+        soc_rmse_after_600s_pct=None if rmse_late is None else round(rmse_late, 4),
+        per_cell_rmse_pct=[round(float(x), 4) for x in per_cell],
+        final_soc_pct=[round(100 * float(x), 3) for x in (soc[-1] if len(soc) else [])],
+        final_truth_pct=[round(100 * float(x), 3) for x in (truth[-1] if len(truth) else [])],
+        zenoh_messages=int(sum(zenoh_counts.values())),
+        zenoh_by_kind=dict(zenoh_counts),
+        can_frames_out=daemon.can_frames_out,
+        can_frames_seen=int(sum(can_seen.values())),
+        frames_per_s=round(counters.get("frames_in", 0) / wall, 1) if wall > 0 else 0.0,
+        latency_ms=daemon.health.latency_ms(),
+        status_flags=daemon.status_flags(),
+        counters=counters,
+        faults=dict(replay_stats[0].faults) if replay_stats else {},
+    )
+    traces = {"t_s": t - (pack.time_s[0] if len(pack.time_s) else 0.0), "soc": soc, "truth": truth}
+    return result, traces
+
+
+def _status_line(out: TextIO, d: Any, wall: float, total: int, zmsgs: int, can_out: int, live: bool) -> None:
+    c = d.decoder.counters
+    soc = d.estimator.soc if d.initialised else None
+    soc_txt = f"SOC {100 * float(np.mean(soc)):5.1f} % (min {100 * float(np.min(soc)):5.1f})" if soc is not None else "SOC   -  "
+    line = (
+        f"t={wall:5.1f}s frames {c['frames_in']:>7}/{total} rejected {d.decoder.rejected:>4} "
+        f"steps {d.steps:>6} {soc_txt} zenoh msgs {zmsgs:>6} can out {can_out:>5}"
+    )
+    out.write(("\r" + line) if live else (line + "\n"))
+    out.flush()
+
+
+def write_plot(path: Path, traces: dict[str, np.ndarray], result: DemoResult) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t, soc, truth = traces["t_s"], traces["soc"], traces["truth"]
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 7), sharex=True)
+    for i in range(soc.shape[1] if soc.ndim == 2 else 0):
+        line, = ax1.plot(t, 100 * soc[:, i], lw=1.0)
+        ax1.plot(t, 100 * truth[:, i], lw=0.8, ls="--", color=line.get_color())
+        ax2.plot(t, 100 * (soc[:, i] - truth[:, i]), lw=0.8, color=line.get_color())
+    ax1.set_ylabel("SOC, % (solid: estimate, dashed: truth)")
+    ax1.set_title(f"socd demo: {result.cells} cells, {result.recording}; "
+                  f"SOC RMSE {result.soc_rmse_pct:.2f} %")
+    ax2.set_ylabel("error, %")
+    ax2.set_xlabel("recording time, s")
+    ax2.axhline(0, color="k", lw=0.5)
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_json(path: Path, result: DemoResult) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result.to_json(), indent=1, default=float) + "\n")
+    return path
+
+
+def summary_text(r: DemoResult) -> str:
+    worst = int(np.argmax(r.per_cell_rmse_pct)) if r.per_cell_rmse_pct else 0
+    lines = [
+        f"replayed {r.seconds_replayed:.0f} s of {r.recording} for {r.cells} cells in {r.wall_s:.1f} s "
+        f"({r.frames_per_s:.0f} frames/s)",
+        f"frames in {r.frames_in}, rejected {r.frames_rejected}; estimator steps {r.steps}",
+        f"SOC error vs truth: RMSE {r.soc_rmse_pct:.2f} %, MAE {r.soc_mae_pct:.2f} %, max {r.soc_max_err_pct:.2f} %"
+        + (f", RMSE after 600 s {r.soc_rmse_after_600s_pct:.2f} %" if r.soc_rmse_after_600s_pct is not None else ""),
+        "per cell RMSE %: " + " ".join(f"{x:.2f}" for x in r.per_cell_rmse_pct)
+        + (f"  (worst: cell {worst})" if r.per_cell_rmse_pct else ""),
+        f"Zenoh messages received {r.zenoh_messages} {dict(sorted(r.zenoh_by_kind.items()))}; "
+        f"CAN output frames sent {r.can_frames_out}, seen {r.can_frames_seen}",
+        "latency ms (frame -> estimate / -> Zenoh put): "
+        f"p50 {r.latency_ms.get('estimate_p50')} / {r.latency_ms.get('publish_p50')}, "
+        f"p99 {r.latency_ms.get('estimate_p99')} / {r.latency_ms.get('publish_p99')}",
+    ]
+    raised = [k for k, v in r.status_flags.items() if v]
+    lines.append("status flags: " + (", ".join(sorted(raised)) if raised else "none"))
+    return "\n".join(lines)
+
