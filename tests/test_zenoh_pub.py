@@ -207,13 +207,19 @@ def test_slow_consumer_never_stalls_and_drops_are_counted(publisher) -> None:
         sub = sub_session.declare_subscriber("bms/packT/**", slow)
         pub.submit(_round(50, 0, health))
         slow.wait(lambda: slow.count() > 0)
-        worst = 0.0
+        worst = total = 0.0
         rounds = 300
         for k in range(rounds):
+            r = _round(50, k, health)
             t0 = time.perf_counter()
-            pub.submit(_round(50, k, health))
-            worst = max(worst, time.perf_counter() - t0)
-        assert worst < 0.01, f"submit blocked for {worst * 1e3:.1f} ms"
+            pub.submit(r)
+            dt = time.perf_counter() - t0
+            worst, total = max(worst, dt), total + dt
+        # The consumer needs ~0.2 s per round (102 messages x 2 ms): had publishing been
+        # synchronous, 300 submits would take a minute.  What is left is GIL scheduling
+        # between this thread and the publisher's (switch interval 5 ms).
+        assert total < 0.5, f"300 submits took {total:.2f} s"
+        assert worst < 0.1, f"submit blocked for {worst * 1e3:.1f} ms"
         assert health.counters["zenoh_dropped_rounds"] > 0
         assert health.counters["zenoh_dropped"] == 102 * health.counters["zenoh_dropped_rounds"]
         assert health.flags()["publish_drops"]
