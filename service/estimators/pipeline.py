@@ -158,6 +158,7 @@ class PackEstimator:
         ukf.update(v, i, temp, params, act)
         if self.fast is not None:
             soc_post = ukf.x[:, ukf.i_soc]
+            identify = act & (ukf.soc_std < self.settings.identify_below_soc_std)
             self.fast.update(
                 nominal=self.nominal,
                 params=params,
@@ -171,7 +172,7 @@ class PackEstimator:
                 current_a=i,
                 dt_s=dt,
                 voltage_v=v,
-                active=act,
+                active=identify,
             )
         ukf.push_history()
         if self.slow is not None:
@@ -191,6 +192,8 @@ class PackEstimator:
         if self.slow is None:
             return np.zeros(self.n, dtype=bool)
         nom = self.nominal
+        if not (self.ukf.soc_std < self.settings.identify_below_soc_std).any():
+            return np.zeros(self.n, dtype=bool)
         done = self.slow.update(nom.r[:, 1], nom.c[:, 1], nom.alpha[:, 1], self.ukf.soc)
         return np.full(self.n, done)
 

@@ -24,6 +24,10 @@ class EstimatorSettings(BaseModel):
     )
     fast_identifier: bool = Field(True, description="run the fast-rate EKF over [R_ohm, R_ct, C_dl, m, U_df]")
     slow_identifier: bool = Field(True, description="run the slow-rate EKF over [R_df, C_df, n]")
+    identify_below_soc_std: float = Field(
+        0.02, gt=0, description="identifiers adapt a cell only once its SOC σ is below this (SOC and "
+        "parameters are confounded while SOC is still converging)"
+    )
     slow_soc_delta: float = Field(0.005, gt=0, le=0.5, description="SOC movement that triggers a slow update")
     voltage_noise_v: float = Field(0.004, gt=0, description="measurement noise σ of the SOC filter")
     current_noise_a: float = Field(0.02, ge=0, description="current-sensor noise σ driving SOC process noise")

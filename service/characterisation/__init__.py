@@ -1,0 +1,1 @@
+"""Offline characterisation of a cell (``socd fit``): OCV, capacity, model parameters."""

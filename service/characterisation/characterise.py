@@ -1,0 +1,199 @@
+"""Characterise a cell from recordings whose SOC is known: the engine of ``socd fit``.
+
+1. OCV(SOC) at the reference temperature: an OCV table (``--ocv``), else a slow OCV
+   test among the recordings, else a joint fit to the dynamic recordings (the OCV is
+   refined from the SOC-binned residual of the fitted model, alternating with the
+   parameter fit, and kept monotone).
+2. OCV at other temperatures: the reference curve shifted to the relaxed voltages at
+   the end of long rests (HPPC tests) at that temperature.
+3. MTS-FOM parameters per temperature group with :func:`service.cell.fitting.fit_parameters`
+   (scipy differential evolution, then least squares).  Long tests are cut into
+   segments that start at the end of a rest (relaxed branches, SOC known by coulomb
+   counting) so pulses are fitted at full time resolution.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.cell.fitting import FitSegment, fit_parameters
+from service.cell.model import simulate
+from service.cell.ocv import GRID_POINTS, make_monotone
+from service.cell.profile import CellProfile, HysteresisSpec, OcvSpec, ParameterPoint
+from service.characterisation.ocv_sources import (
+    REST_CURRENT_C,
+    initial_ocv_from_drive,
+    is_ocv_test,
+    ocv_correction_from_residual,
+    ocv_from_test,
+    ocv_row_from_rests,
+    rest_points,
+)
+from service.evaluation.truth import coulomb_soc, truth_and_start
+from service.recording import Recording
+
+TEMP_GROUP_C = 5.0
+MAX_FIT_SAMPLES = 16000
+SEGMENT_REST_S = 300.0
+#: segments starting below this SOC are not fitted: near empty the cell is strongly
+#: non-linear and a few samples there would dominate the squared error
+MIN_FIT_SOC = 0.1
+
+
+@dataclass
+class FitReport:
+    lines: list[str] = field(default_factory=list)
+
+    def say(self, msg: str) -> None:
+        self.lines.append(msg)
+        print(f"[fit] {msg}", file=sys.stderr, flush=True)
+
+
+def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest_s: float = SEGMENT_REST_S) -> list[FitSegment]:
+    """Segments of ``rec`` that each start at the end of a rest of ``min_rest_s`` (or the start)."""
+    resting = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah
+    starts = [0]
+    k, n = 0, resting.size
+    while k < n:
+        if resting[k]:
+            j = k
+            while j + 1 < n and resting[j + 1]:
+                j += 1
+            if rec.time_s[j] - rec.time_s[k] >= min_rest_s and j > 0:
+                starts.append(j)
+            k = j + 1
+        else:
+            k += 1
+    starts = sorted(set(starts)) + [n]
+    segs = []
+    for a, b in zip(starts[:-1], starts[1:]):
+        if b - a >= 5 and np.abs(rec.current_a[a:b]).max() > 5 * REST_CURRENT_C * capacity_ah:
+            segs.append(FitSegment(rec.time_s[a:b], rec.current_a[a:b], rec.voltage_v[a:b],
+                                   rec.temperature_c[a:b], float(soc[a])))
+    return segs
+
+
+def select_segments(segs: list[FitSegment], budget: int) -> list[FitSegment]:
+    """Keep whole segments, spread evenly over the list, within a sample budget."""
+    total = sum(len(s) for s in segs)
+    if total <= budget:
+        return segs
+    order = np.linspace(0, len(segs) - 1, len(segs)).astype(int)
+    keep, used = [], 0
+    stride = max(1, int(np.ceil(total / budget)))
+    for i in order[::stride]:
+        keep.append(segs[i])
+        used += len(segs[i])
+    return keep or segs[:1]
+
+
+def characterise(
+    recordings: list[Recording],
+    capacity_ah: float,
+    full_at: list[str | float | None],
+    ocv_table: tuple[np.ndarray, np.ndarray] | None = None,
+    fit_hysteresis: bool = False,
+    max_seconds: float = 60.0,
+    memory_length: int = 16,
+    name: str = "cell",
+    seed: int = 0,
+) -> tuple[CellProfile, FitReport]:
+    rep = FitReport()
+    ocv_tests = [r for r in recordings if is_ocv_test(r, capacity_ah)]
+    dynamic = [(r, fa) for r, fa in zip(recordings, full_at) if not is_ocv_test(r, capacity_ah)]
+    if not dynamic:
+        raise ValueError("socd fit needs at least one dynamic recording (drive cycle or HPPC) to fit the model")
+    grid = np.linspace(0.0, 1.0, GRID_POINTS)
+    base: np.ndarray | None = None
+    if ocv_table is not None:
+        base = make_monotone(np.interp(grid, *ocv_table))
+        rep.say("OCV: from the given table")
+    elif ocv_tests:
+        base = np.mean([ocv_from_test(r, grid)[1] for r in ocv_tests], axis=0)
+        rep.say(f"OCV: from OCV test(s) {', '.join(r.name for r in ocv_tests)}")
+
+    # dynamic recordings grouped by temperature, cut from their full-charge point
+    groups: dict[float, list[tuple[Recording, np.ndarray]]] = defaultdict(list)
+    for rec, fa in dynamic:
+        part, soc = truth_and_start(rec, capacity_ah, fa)
+        key = float(TEMP_GROUP_C * np.round(np.median(part.temperature_c) / TEMP_GROUP_C))
+        groups[key].append((part, soc))
+    temps = sorted(groups)
+    ref_t = min(temps, key=lambda t: abs(t - 25.0))
+    rep.say(f"temperature groups: {', '.join(f'{t:g} °C ({len(groups[t])} rec.)' for t in temps)}; reference {ref_t:g} °C")
+
+    def segments_of(t: float) -> list[FitSegment]:
+        segs: list[FitSegment] = []
+        for part, soc in groups[t]:
+            segs += [s for s in split_at_rests(part, soc, capacity_ah) if s.soc0 >= MIN_FIT_SOC]
+        return select_segments(segs, MAX_FIT_SAMPLES)
+
+    def template(ocv_rows: dict[float, np.ndarray]) -> CellProfile:
+        ts = sorted(ocv_rows)
+        return CellProfile(
+            name=name, capacity_ah=capacity_ah,
+            ocv=OcvSpec(soc=grid.tolist(), temps_c=ts, ocv_v=[ocv_rows[t].tolist() for t in ts]),
+            parameters=[ParameterPoint(r_ohm=0.02, r_ct=0.01, c_dl=500, m=0.8, r_df=0.02, c_df=5000, n=0.6)],
+        )
+
+    # rest points per group → OCV rows
+    ocv_rows: dict[float, np.ndarray] = {}
+    points_by_t = {t: [p for part, soc in groups[t] for p in rest_points(part, capacity_ah, float(soc[0]))] for t in temps}
+    if base is not None:
+        for t in temps:
+            ocv_rows[t] = ocv_row_from_rests(grid, base, points_by_t[t])
+            if len(points_by_t[t]) >= 3:
+                rep.say(f"OCV at {t:g} °C: shifted to {len(points_by_t[t])} relaxed rest voltages")
+    points: dict[float, ParameterPoint] = {}
+    hyst: HysteresisSpec | None = None
+
+    if base is None:
+        # joint OCV + parameter fit at the reference temperature
+        rep.say("OCV: no table or OCV test given: fitting it jointly with the model to the drive cycle(s)")
+        segs = segments_of(ref_t)
+        grid41, guess = initial_ocv_from_drive([coulomb_soc(s.time_s, s.current_a, capacity_ah, s.soc0) for s in segs],
+                                               [s.voltage_v for s in segs], [s.current_a for s in segs], 0.05)
+        ocv_rows[ref_t] = make_monotone(np.interp(grid, grid41, guess))
+        for it in range(4):
+            prof = template({ref_t: ocv_rows[ref_t]})
+            res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis,
+                                 max_seconds=max_seconds / 4, seed=seed)
+            prof = prof.model_copy(update={"parameters": [res.point]})
+            socs, resid = [], []
+            for s in segs:
+                v, soc = simulate(prof, s.time_s, s.current_a, s.temperature_c, s.soc0, memory_length=memory_length)
+                socs.append(soc)
+                resid.append(s.voltage_v - v)
+            corr = ocv_correction_from_residual(np.concatenate(socs), np.concatenate(resid), grid)
+            ocv_rows[ref_t] = make_monotone(ocv_rows[ref_t] + corr)
+            rep.say(f"joint OCV iteration {it + 1}: model RMSE {res.rmse_mv:.1f} mV, mean |ΔOCV| {1000 * np.mean(np.abs(corr)):.1f} mV")
+        base = ocv_rows[ref_t]
+        for t in temps:
+            if t != ref_t:
+                ocv_rows[t] = ocv_row_from_rests(grid, base, points_by_t[t])
+
+    prof = template(ocv_rows)
+    previous: ParameterPoint | None = None
+    for t in sorted(temps, key=lambda t: abs(t - ref_t)):
+        segs = segments_of(t)
+        rep.say(f"fitting parameters at {t:g} °C on {len(segs)} segment(s), {sum(len(s) for s in segs)} samples "
+                f"(≤ {max_seconds:g} s)...")
+        res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis and t == ref_t,
+                             max_seconds=max_seconds, seed=seed, x0=previous)
+        pt = res.point.model_copy(update={"temp_c": t})
+        points[t] = pt
+        previous = pt
+        if res.hysteresis is not None:
+            hyst = res.hysteresis
+        rep.say(f"  {t:g} °C: R_ohm {pt.r_ohm * 1e3:.1f} mΩ, R_ct {pt.r_ct * 1e3:.1f} mΩ, m {pt.m:.2f}, "
+                f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}; fit RMSE {res.rmse_mv:.1f} mV")
+    profile = prof.model_copy(update={
+        "parameters": [points[t] for t in sorted(points)],
+        "hysteresis": hyst or HysteresisSpec(),
+        "notes": {"fitted_from": ", ".join(r.name for r in recordings), "memory_length": str(memory_length)},
+    })
+    return CellProfile.model_validate(profile.model_dump()), rep

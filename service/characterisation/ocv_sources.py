@@ -1,0 +1,114 @@
+"""Where an OCV(SOC) curve comes from: an OCV test, the rests of an HPPC test, or a
+joint fit to a drive cycle when nothing better exists."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.cell.ocv import GRID_POINTS, make_monotone
+from service.evaluation.truth import coulomb_soc
+from service.recording import Recording
+
+REST_CURRENT_C = 0.01  # |I| below this fraction of 1C counts as rest
+REST_MIN_S = 600.0
+OCV_TEST_MAX_C = 0.1
+
+
+def is_ocv_test(rec: Recording, capacity_ah: float) -> bool:
+    """A slow (≤ C/10) full charge/discharge: a pseudo-OCV test."""
+    return bool(np.max(np.abs(rec.current_a)) <= OCV_TEST_MAX_C * capacity_ah and np.ptp(rec.voltage_v) > 0.3)
+
+
+def ocv_from_test(rec: Recording, grid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Average of the discharge and charge branches of a slow OCV test.
+
+    Each branch is coulomb counted and normalised by its own throughput (discharge:
+    SOC = 1 − Q/Q_dis, charge: SOC = Q/Q_chg); a single branch is used as it is.
+    """
+    grid = np.linspace(0, 1, GRID_POINTS) if grid is None else grid
+    dt = np.diff(rec.time_s, prepend=rec.time_s[0])
+    branches = []
+    for sign in (1.0, -1.0):
+        mask = sign * rec.current_a > 0.2 * np.max(np.abs(rec.current_a))
+        if mask.sum() < 20:
+            continue
+        q = np.cumsum(np.where(mask, sign * rec.current_a * dt, 0.0))[mask] / 3600.0
+        v = rec.voltage_v[mask]
+        soc = 1.0 - q / q[-1] if sign > 0 else q / q[-1]
+        order = np.argsort(soc)
+        branches.append(np.interp(grid, soc[order], make_monotone(v[order], 0.0)))
+    if not branches:
+        raise ValueError(f"{rec.path}: no slow charge or discharge found for an OCV test")
+    return grid, make_monotone(np.mean(branches, axis=0))
+
+
+@dataclass
+class RestPoint:
+    soc: float
+    ocv_v: float
+    temp_c: float
+
+
+def rest_points(rec: Recording, capacity_ah: float, soc0: float = 1.0, min_rest_s: float = REST_MIN_S) -> list[RestPoint]:
+    """Relaxed voltages at the end of every rest of at least ``min_rest_s``.
+
+    SOC at each rest from coulomb counting from ``soc0`` at the recording's first
+    sample (backward zero-order hold, which matches the testers' Ah counters).
+    """
+    soc = coulomb_soc(rec.time_s, rec.current_a, capacity_ah, soc0)
+    resting = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah
+    points: list[RestPoint] = []
+    k, n = 0, resting.size
+    while k < n:
+        if not resting[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < n and resting[j + 1]:
+            j += 1
+        if rec.time_s[j] - rec.time_s[k] >= min_rest_s:
+            points.append(RestPoint(float(soc[j]), float(rec.voltage_v[j]), float(rec.temperature_c[j])))
+        k = j + 1
+    return points
+
+
+def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[RestPoint]) -> np.ndarray:
+    """Base curve shifted by the (smoothly interpolated) offset of the rest points."""
+    pts = sorted((p for p in points if -0.02 <= p.soc <= 1.02), key=lambda p: p.soc)
+    if len(pts) < 3:
+        return base_ocv
+    s = np.array([p.soc for p in pts])
+    off = np.array([p.ocv_v for p in pts]) - np.interp(s, base_soc, base_ocv)
+    return make_monotone(base_ocv + np.interp(base_soc, s, off))
+
+
+def initial_ocv_from_drive(segments_soc: list[np.ndarray], segments_v: list[np.ndarray],
+                           segments_i: list[np.ndarray], r_guess: float) -> tuple[np.ndarray, np.ndarray]:
+    """First OCV guess from a drive cycle: SOC-binned mean of ``V + R·I``."""
+    soc = np.concatenate(segments_soc)
+    v = np.concatenate(segments_v) + r_guess * np.concatenate(segments_i)
+    grid = np.linspace(0, 1, 41)
+    idx = np.clip(np.round(soc * 40).astype(int), 0, 40)
+    sums = np.bincount(idx, v, minlength=41)
+    counts = np.bincount(idx, minlength=41)
+    have = counts > 0
+    ocv = np.interp(grid, grid[have], sums[have] / counts[have])
+    return grid, make_monotone(ocv, 1e-5)
+
+
+def ocv_correction_from_residual(soc: np.ndarray, residual: np.ndarray, grid: np.ndarray,
+                                 weight: np.ndarray | None = None) -> np.ndarray:
+    """SOC-binned mean residual on ``grid`` (bins without data: nearest neighbour)."""
+    nb = grid.size - 1
+    idx = np.clip(np.round(soc * nb).astype(int), 0, nb)
+    w = np.ones_like(residual) if weight is None else weight
+    sums = np.bincount(idx, residual * w, minlength=grid.size)
+    counts = np.bincount(idx, w, minlength=grid.size)
+    have = counts > 0
+    if not have.any():
+        return np.zeros_like(grid)
+    corr = np.interp(grid, grid[have], sums[have] / counts[have])
+    # light smoothing (3-point) so the correction does not chase noise
+    return np.convolve(np.pad(corr, 1, mode="edge"), np.ones(3) / 3, mode="valid")

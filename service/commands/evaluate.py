@@ -1,0 +1,132 @@
+"""``socd evaluate``: score estimators on recordings with the protocol of DESIGN §7."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from service.cell.profile import ProfileError, load_profile
+from service.cli import UserError
+from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
+from service.estimators.settings import EstimatorSettings
+from service.evaluation.metrics import score
+from service.evaluation.truth import truth_and_start, wrong_start
+from service.recording import load_recording
+
+DEFAULT_ESTIMATORS = list(ESTIMATORS)
+
+
+def add_subparser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "evaluate",
+        help="score estimators on recordings (SOC RMSE/MAE/max, convergence, voltage RMSE)",
+        description=(
+            "Run estimators on recordings with a cell profile from 'socd fit' and score them against "
+            "truth SOC: the recording's soc_true column, else coulomb counting from a full-charge "
+            "point. Estimation starts at that point with the SOC wrong by --init-soc-error."
+        ),
+    )
+    p.add_argument("recordings", nargs="+", metavar="RECORDING", help="CSV: time_s,current_a,voltage_v,temperature_c[,soc_true]")
+    p.add_argument("--cell", required=True, metavar="CELL_FILE", help="cell profile (TOML/JSON) from 'socd fit'")
+    p.add_argument("--estimator", action="append", metavar="NAME",
+                   help=f"estimator to run (repeatable; default all: {', '.join(DEFAULT_ESTIMATORS)})")
+    p.add_argument("--full-at", action="append", metavar="S",
+                   help="time [s] of the full-charge point, or 'auto' to detect the end of the CC-CV charge; "
+                        "give once for all recordings or once per recording (default: the file's start)")
+    p.add_argument("--init-soc-error", type=float, default=0.20, metavar="E",
+                   help="initial SOC error (default 0.20; subtracted where truth starts above 0.8)")
+    p.add_argument("--settings", metavar="TOML", help="pipeline settings (EstimatorSettings fields) to override")
+    p.add_argument("--json", metavar="OUT", help="write results as JSON")
+    p.add_argument("--plots", metavar="DIR", help="write PNG plots per recording")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=run)
+
+
+def load_settings(path: str | None) -> EstimatorSettings:
+    if path is None:
+        return EstimatorSettings()
+    import tomllib
+
+    from pydantic import ValidationError
+
+    try:
+        raw = tomllib.loads(Path(path).read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise UserError(f"{path}: cannot read settings: {exc}") from exc
+    try:
+        return EstimatorSettings.model_validate(raw.get("estimator", raw))
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise UserError(f"{path}: field '{'.'.join(map(str, err['loc']))}': {err['msg']}") from exc
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        profile = load_profile(args.cell)
+    except ProfileError as exc:
+        raise UserError(str(exc)) from exc
+    if not 0.0 <= args.init_soc_error < 1.0:
+        raise UserError(f"--init-soc-error must be in [0, 1), got {args.init_soc_error}")
+    names = args.estimator or DEFAULT_ESTIMATORS
+    settings = load_settings(args.settings)
+    try:
+        estimators = [create(n, settings) for n in names]
+    except UnknownEstimator as exc:
+        raise UserError(str(exc)) from exc
+    full = args.full_at or [None]
+    if len(full) not in (1, len(args.recordings)):
+        raise UserError(f"--full-at given {len(full)} times for {len(args.recordings)} recordings: give it once or once per recording")
+    full = full * len(args.recordings) if len(full) == 1 else full
+    recordings = [load_recording(p) for p in args.recordings]  # validate all before the long work
+    results = []
+    capacity = profile.capacity_ah * profile.extensions.capacity_scale
+    for rec, fa in zip(recordings, full):
+        part, truth = truth_and_start(rec, capacity, fa)
+        soc0 = wrong_start(float(truth[0]), args.init_soc_error)
+        traces = {}
+        for est in estimators:
+            if not args.quiet:
+                print(f"[evaluate] {rec.name}: {est.name} ({len(part)} samples)...", file=sys.stderr, flush=True)
+            t0 = time.perf_counter()
+            trace = est.run(part, profile, soc0)
+            us = 1e6 * (time.perf_counter() - t0) / len(part)
+            traces[est.name] = trace
+            s = score(part.time_s, trace.soc, truth, trace.v_pred, part.voltage_v)
+            results.append({
+                "recording": rec.name,
+                "estimator": est.name,
+                "soc_rmse_pct": s.soc_rmse_pct,
+                "soc_mae_pct": s.soc_mae_pct,
+                "soc_max_pct": s.soc_max_pct,
+                "soc_rmse_after_600s_pct": s.soc_rmse_after_600s_pct,
+                "convergence_s": s.convergence_s,
+                "v_rmse_mv": s.v_rmse_mv,
+                "us_per_step": us,
+            })
+        if args.plots:
+            from service.evaluation.plots import plot_recording
+
+            plot_recording(Path(args.plots), rec.name, part.time_s, truth, part.voltage_v, traces)
+    print_table(results)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"results": results, "cell": str(args.cell),
+                                               "init_soc_error": args.init_soc_error}, indent=1))
+    return 0
+
+
+def _fmt(v: float | None, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def print_table(results: list[dict]) -> None:
+    head = f"{'recording':34s} {'estimator':17s} {'RMSE%':>6s} {'MAE%':>6s} {'max%':>6s} {'RMSE>600s%':>10s} {'conv s':>7s} {'V mV':>6s} {'us/step':>8s}"
+    print(head)
+    print("-" * len(head))
+    for r in results:
+        print(f"{r['recording'][:34]:34s} {r['estimator']:17s} {r['soc_rmse_pct']:6.2f} {r['soc_mae_pct']:6.2f} "
+              f"{r['soc_max_pct']:6.2f} {_fmt(r['soc_rmse_after_600s_pct'], '10.2f')} {_fmt(r['convergence_s'], '7.0f')} "
+              f"{_fmt(r['v_rmse_mv'], '6.1f')} {r['us_per_step']:8.1f}")

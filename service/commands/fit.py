@@ -1,0 +1,64 @@
+"""``socd fit``: characterise a cell from recordings and write a cell profile."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from service.cell.ocv import load_ocv_csv
+from service.cell.profile import save_profile
+from service.cli import UserError
+from service.recording import load_recording
+
+
+def add_subparser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "fit",
+        help="characterise a cell (OCV, parameters per temperature) and write a cell profile",
+        description=(
+            "Fit a cell profile from recordings whose SOC is known: an OCV test, HPPC tests or lab drive "
+            "cycles that start from a full charge. OCV comes from --ocv, else an OCV test among the "
+            "recordings, else a joint fit; recordings at several temperatures give OCV(SOC, T) and "
+            "temperature-dependent parameters (scipy differential evolution + least squares)."
+        ),
+    )
+    p.add_argument("recordings", nargs="+", metavar="RECORDING")
+    p.add_argument("--capacity-ah", type=float, required=True, metavar="X", help="cell capacity [Ah]")
+    p.add_argument("--full-at", action="append", metavar="S",
+                   help="time [s] of the full-charge point ('auto' to detect; once, or once per recording; default: file start)")
+    p.add_argument("--ocv", metavar="OCV_CSV", help="OCV table CSV: soc + ocv_v (or ocv_avg_v/...)")
+    p.add_argument("--hysteresis", action="store_true", help="also fit the one-state hysteresis (LFP cells)")
+    p.add_argument("--max-seconds", type=float, default=60.0, help="optimiser time per temperature (default 60)")
+    p.add_argument("--memory-length", type=int, default=16, help="G-L memory length used in the fit (default 16)")
+    p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", help="profile to write (.toml or .json)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.characterisation.characterise import characterise
+
+    if not args.capacity_ah > 0:
+        raise UserError(f"--capacity-ah must be > 0, got {args.capacity_ah}")
+    recs = [load_recording(p) for p in args.recordings]
+    full = args.full_at or [None]
+    if len(full) not in (1, len(recs)):
+        raise UserError(f"--full-at given {len(full)} times for {len(recs)} recordings: give it once or once per recording")
+    full = full * len(recs) if len(full) == 1 else full
+    table = None
+    if args.ocv:
+        try:
+            table = load_ocv_csv(args.ocv)
+        except ValueError as exc:
+            raise UserError(str(exc)) from exc
+    out = Path(args.output)
+    try:
+        profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis, args.max_seconds,
+                                       args.memory_length, args.name or out.stem, args.seed)
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
+    save_profile(profile, out)
+    print(f"wrote {out}: {len(profile.parameters)} temperature(s) "
+          f"{', '.join(f'{p.temp_c:g} °C' for p in profile.parameters)}, capacity {profile.capacity_ah:g} Ah")
+    return 0

@@ -1,0 +1,1 @@
+"""Offline evaluation: truth SOC, metrics and the scoring protocol of DESIGN §7."""

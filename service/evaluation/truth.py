@@ -1,0 +1,60 @@
+"""Truth SOC for scoring (DESIGN §7): ``soc_true`` if recorded, else coulomb counting
+from a known full-charge point with the characterised capacity."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.cli import UserError
+from service.recording import Recording
+
+
+def coulomb_soc(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float, soc0: float) -> np.ndarray:
+    """Backward zero-order hold: row k's current flowed over (t_{k-1}, t_k]."""
+    dq = np.concatenate([[0.0], current_a[1:] * np.diff(time_s)]) / 3600.0
+    return soc0 - np.cumsum(dq) / capacity_ah
+
+
+def find_full_charge(rec: Recording) -> int:
+    """Index of the end of the last CC-CV charge before the first discharge after it.
+
+    The end of CV is the last charging sample within 10 mV of the recording's maximum
+    voltage.  Raises :class:`UserError` if the recording holds no such charge.
+    """
+    v_top = rec.voltage_v.max() - 0.010
+    charging_top = np.flatnonzero((rec.current_a < -0.005) & (rec.voltage_v >= v_top))
+    if charging_top.size == 0:
+        raise UserError(f"{rec.path}: --full-at auto: no CC-CV charge found (no charging sample near max voltage)")
+    # the CV phase ends where it is followed by a non-charging stretch
+    first = charging_top[0]
+    after = np.flatnonzero(rec.current_a[first:] > 0.05)
+    limit = first + (after[0] if after.size else rec.current_a.size - first)
+    in_phase = charging_top[charging_top < limit]
+    return int(in_phase[-1])
+
+
+def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
+    """The part of ``rec`` to score and its truth SOC.
+
+    ``full_at``: seconds of the full-charge point, ``"auto"`` to detect the end of the
+    CC-CV charge, or ``None`` (the file's start; with ``soc_true`` the recorded truth).
+    """
+    if full_at is None:
+        start = 0
+    elif full_at == "auto":
+        start = find_full_charge(rec)
+    else:
+        t = float(full_at)
+        if not rec.time_s[0] <= t <= rec.time_s[-1]:
+            raise UserError(f"{rec.path}: --full-at {t:g} s is outside the recording "
+                            f"({rec.time_s[0]:g}..{rec.time_s[-1]:g} s)")
+        start = int(np.searchsorted(rec.time_s, t))
+    part = rec.slice(start)
+    if part.soc_true is not None:
+        return part, part.soc_true
+    return part, coulomb_soc(part.time_s, part.current_a, capacity_ah, 1.0)
+
+
+def wrong_start(truth0: float, error: float) -> float:
+    """Initial SOC off by ``error``: added, or subtracted where truth starts above 0.8."""
+    return truth0 - error if truth0 > 0.8 else truth0 + error
