@@ -18,12 +18,18 @@ at fixed ``tau``, which decouples the coordinates, and ``tau_df = tau_ct * ratio
 Procedure:
 
 1. global search: :func:`scipy.optimize.differential_evolution` (seeded, vectorised
-   over the population, time-bounded) on a block-averaged copy of the data
-   (:func:`decimate`, charge-preserving) of at most ``global_points`` samples;
+   over the population, time-bounded) on a full-rate window of at most
+   ``global_points`` samples per segment (:func:`excited_window`);
 2. local polish: :func:`scipy.optimize.least_squares` (``trf``, bounds) on the data at
-   full rate, or block-averaged to at most ``polish_points`` samples for very long
-   recordings (Panasonic HPPC: ~100k rows).  Its Jacobian is a forward difference
-   evaluated as one vectorised simulation of ``p + 1`` candidates.
+   full rate (windowed to at most ``polish_points`` samples for very long recordings,
+   e.g. Panasonic HPPC ~100k rows).  Its Jacobian is a forward difference evaluated as
+   one vectorised simulation of ``p + 1`` candidates.
+
+Why windows and not a subsampled grid: the short-memory G-L step (Zeng Eq. 2) keeps
+``L`` *samples* of history, so the model's response depends on the sampling period;
+parameters fitted on a coarser grid do not transfer to the rate the estimator runs at
+(measured: a fit at 4x block averaging scored 6.8 mV on its grid and 23 mV at full
+rate on an HPPC recording).  The fit therefore always runs at the recording's rate.
 """
 
 from __future__ import annotations
@@ -31,11 +37,14 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 from scipy.optimize import differential_evolution, least_squares
 
-from service.cell.model import DEFAULT_MEMORY_LENGTH, simulate
+from service.cell.fractional import cpe_step, push_history
+from service.cell.hysteresis import hysteresis_step
+from service.cell.model import DEFAULT_MEMORY_LENGTH, MtsFom, kinetic_overpotential, soc_step, terminal_voltage
 from service.cell.profile import CellParameters, CellProfile, HysteresisSpec, ParameterPoint
 
 #: bounds of the search coordinates (see module docstring)
@@ -138,6 +147,32 @@ def decimate(seg: FitSegment, max_points: int) -> FitSegment:
     )
 
 
+def excited_window(seg: FitSegment, max_points: int, capacity_ah: float) -> FitSegment:
+    """A full-rate window of at most ``max_points`` samples with the most current variation.
+
+    Windows start at the segment's start or at the end of a rest (so the CPE branches
+    are near zero); the window's SOC0 is coulomb-counted from the segment's.  Hysteresis
+    state is carried only by a window at the segment's start.
+    """
+    n = len(seg)
+    if n <= max_points:
+        return seg
+    rest = np.abs(seg.current_a) < 0.01 * capacity_ah
+    ends = np.flatnonzero(rest[:-1] & ~rest[1:]) + 1
+    starts = np.unique(np.concatenate([[0], ends[ends <= n - max_points]]))
+    if starts.size > 200:
+        starts = starts[np.linspace(0, starts.size - 1, 200).astype(int)]
+    csum = np.concatenate([[0.0], np.cumsum(seg.current_a)])
+    csq = np.concatenate([[0.0], np.cumsum(seg.current_a**2)])
+    var = (csq[starts + max_points] - csq[starts]) / max_points - ((csum[starts + max_points] - csum[starts]) / max_points) ** 2
+    a = int(starts[int(np.argmax(var))])
+    dt = np.diff(seg.time_s, prepend=seg.time_s[0])
+    soc_a = seg.soc0 - float(np.sum(seg.current_a[1:a + 1] * dt[1:a + 1])) / (3600.0 * capacity_ah)
+    sl = slice(a, a + max_points)
+    return FitSegment(seg.time_s[sl], seg.current_a[sl], seg.voltage_v[sl], seg.temperature_c[sl], soc0=soc_a,
+                      u_h0=seg.u_h0 if a == 0 else 0.0)
+
+
 def estimate_r_ohm(segments: list[FitSegment]) -> float | None:
     """Median instantaneous resistance ``-dV/dI`` over large current steps (first guess)."""
     vals = []
@@ -151,6 +186,70 @@ def estimate_r_ohm(segments: list[FitSegment]) -> float | None:
         return None
     r = float(np.median(np.concatenate(vals)))
     return r if r > 0 else None
+
+
+# -- the model, batched ---------------------------------------------------------------------
+def simulate_batch(
+    profile: CellProfile,
+    time_s: np.ndarray,
+    current_a: np.ndarray,
+    temp_c: np.ndarray,
+    soc0: np.ndarray,
+    params: CellParameters,
+    memory_length: int = DEFAULT_MEMORY_LENGTH,
+    u_h0: np.ndarray | float = 0.0,
+    params_at: Callable[[float], CellParameters] | None = None,
+    temp_update_k: float = 0.2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`service.cell.model.simulate` for ``N`` candidates, about twice as fast.
+
+    The same parts of :class:`MtsFom` in the same order (SOC, hysteresis, CPE branches,
+    Zeng Eq. 6, Butler-Volmer); only the OCV lookup, which feeds no state, is done once
+    for the whole trajectory after the loop.  ``params_at(T)`` (optional) gives the
+    candidates' parameters at temperature ``T``; they are updated when the temperature
+    moves by more than ``temp_update_k`` (the rule of ``simulate``).  Equality with
+    ``simulate`` is checked in the tests.
+    """
+    n = params.r.shape[0]
+    soc0 = np.broadcast_to(np.asarray(soc0, dtype=float), (n,))
+    t0 = float(temp_c[0])
+    p = params_at(t0) if params_at is not None else params
+    model = MtsFom(profile, p, soc0, memory_length, np.broadcast_to(u_h0, (n,)))
+    dt = np.diff(time_s, prepend=time_s[0])
+    size = time_s.size
+    branch_v = np.empty((size, n))
+    ohm_v = np.empty((size, n))
+    u_h = np.empty((size, n))
+    soc = np.empty((size, n))
+    i_true = np.empty((size, n))
+    last_t = t0
+    hyst = bool(np.any(p.u_h_max != 0))
+    with np.errstate(all="ignore"):
+        for k in range(size):
+            if params_at is not None and abs(temp_c[k] - last_t) > temp_update_k:
+                model.set_params(params_at(float(temp_c[k])))
+                p = model.params
+                last_t = float(temp_c[k])
+            i = current_a[k] - p.current_bias_a
+            model.soc = soc_step(model.soc, i, dt[k], p.capacity_ah)
+            if hyst:
+                model.u_h = hysteresis_step(model.u_h, i, dt[k], p.u_h_max, p.hyst_rate, p.capacity_ah)
+            u = cpe_step(model.history, i[:, None], dt[k], p.r, p.c, p.alpha, model._weights)
+            push_history(model.history, u)
+            branch_v[k] = u.sum(axis=-1)
+            ohm_v[k] = p.r_ohm * i
+            u_h[k] = model.u_h
+            soc[k] = model.soc
+            i_true[k] = i
+        temp_tn = np.broadcast_to(np.asarray(temp_c, dtype=float)[:, None], soc.shape)
+        saved = model.soc
+        model.soc = soc
+        ocv = model.open_circuit(temp_tn)
+        model.soc = saved
+        v = terminal_voltage(ocv, u_h, 1.0, ohm_v, branch_v)
+        if np.any(np.isfinite(p.kinetics_i0_a)):
+            v = v - kinetic_overpotential(i_true, p.kinetics_i0_a[None, :], temp_tn)
+    return v, soc
 
 
 # -- parameter coding ---------------------------------------------------------------------
@@ -219,8 +318,8 @@ class _Objective:
         params = decode(x, self.profile, self.temp_c, self.fit_hysteresis)
         out = []
         for s in self.segments:
-            v, _ = simulate(
-                self.profile, s.time_s, s.current_a, s.temperature_c, s.soc0, params=params,
+            v, _ = simulate_batch(
+                self.profile, s.time_s, s.current_a, s.temperature_c, s.soc0, params,
                 memory_length=self.memory_length, u_h0=s.u_h0,
             )
             out.append(v.T - s.voltage_v[None, :])
@@ -241,15 +340,18 @@ def fit_parameters(
     fit_hysteresis: bool = False,
     max_seconds: float = 120.0,
     seed: int = 0,
-    global_points: int = 1500,
+    global_points: int = 1200,
     polish_points: int = 20000,
     x0: ParameterPoint | None = None,
+    de_maxiter: int = 200,
 ) -> FitResult:
     """Fit R_ohm, R_ct, C_dl, m, R_df, C_df, n (and U_H, rate) to ``segments``.
 
     ``profile`` supplies the OCV, capacity and extensions (kept as they are); its
     parameters are only a template.  ``x0`` (a point) seeds the search.  The global
-    stage gets about 60 % of ``max_seconds``, the polish the rest.
+    stage gets about 60 % of ``max_seconds`` or ``de_maxiter`` generations, whichever
+    ends first (set ``de_maxiter`` for a result that does not depend on machine load);
+    the polish gets the rest of the time.
     """
     if not segments:
         raise ValueError("fit_parameters needs at least one segment")
@@ -272,8 +374,9 @@ def fit_parameters(
         guess = np.concatenate([guess, [0.01, math.log(30.0)]])
     guess = np.clip(guess, lo + 1e-9, hi - 1e-9)
 
-    # 1. global search on a block-averaged copy
-    coarse = [decimate(s, max(50, int(global_points * len(s) / total))) for s in segments]
+    # 1. global search on full-rate windows
+    cap = profile.capacity_ah * profile.extensions.capacity_scale
+    coarse = [excited_window(s, max(200, int(global_points * len(s) / total)), cap) for s in segments]
     obj_g = _Objective(profile, coarse, memory_length, fit_hysteresis, temp_c)
     g_deadline = t_start + 0.6 * max_seconds
 
@@ -285,14 +388,14 @@ def fit_parameters(
         return time.perf_counter() > g_deadline
 
     de = differential_evolution(
-        cost, bounds, seed=seed, popsize=max(6, 60 // p), maxiter=200, tol=1e-4, mutation=(0.5, 1.0),
+        cost, bounds, seed=seed, popsize=max(6, 60 // p), maxiter=de_maxiter, tol=1e-4, mutation=(0.5, 1.0),
         recombination=0.8, polish=False, vectorized=True, updating="deferred", x0=guess, callback=stop,
         init="sobol",
     )
     x_best = np.clip(de.x, lo, hi)
 
     # 2. local polish on (nearly) full-rate data
-    fine = [decimate(s, max(50, int(polish_points * len(s) / total))) for s in segments]
+    fine = [excited_window(s, max(200, int(polish_points * len(s) / total)), cap) for s in segments]
     obj = _Objective(profile, fine, memory_length, fit_hysteresis, temp_c)
     steps = np.full(p, 1e-4)
     best = {"x": x_best, "cost": np.inf}
