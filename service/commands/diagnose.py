@@ -1,0 +1,123 @@
+"""``socd diagnose``: where model and recording differ, which physics is missing, and the fix.
+
+    socd diagnose RECORDING [--cell CELL_FILE | --ocv OCV_CSV --capacity-ah X]
+                  [--json OUT] [--report DIR] [--save-profile OUT]
+
+Prints a summary; ``--json`` writes ``{"verdict", "effects": [...], "located": [...], ...}``
+(``-`` for stdout), ``--report`` a markdown report with PNG plots, ``--save-profile`` the
+cell profile extended with the verdict's physics (the base profile when the verdict is
+``none``) for ``socd evaluate`` and the service.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from service.cli import UserError
+
+
+def add_subparser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "diagnose",
+        help="locate model/recording mismatch, name the missing physics, refit and score it held-out",
+        description=__doc__.split("\n\n")[0],
+    )
+    p.add_argument("recording", help="recording CSV (time_s,current_a,voltage_v,temperature_c)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--cell", help="cell profile (TOML/JSON) to start from")
+    src.add_argument("--ocv", help="OCV(SOC) table CSV (soc + ocv_v/ocv_avg_v/...); needs --capacity-ah")
+    p.add_argument("--capacity-ah", type=float, help="capacity in Ah (with --ocv)")
+    p.add_argument("--json", help="write the result as JSON here ('-' = stdout)")
+    p.add_argument("--report", help="write report.md and PNG plots into this directory")
+    p.add_argument("--save-profile", help="write the extended cell profile here (.json or .toml)")
+    p.add_argument("--fit-fraction", type=float, default=0.6, help="share of the duration fitted (default 0.6)")
+    p.add_argument("--effects", help="comma-separated subset of candidate effects to try (default: all)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=run)
+
+
+def _profile_from_args(args):
+    from service.cell.ocv import load_ocv_csv
+    from service.cell.profile import CellProfile, OcvSpec, ParameterPoint, ProfileError, load_profile
+
+    if args.cell:
+        try:
+            return load_profile(args.cell), False
+        except ProfileError as exc:
+            raise UserError(str(exc)) from exc
+    if args.capacity_ah is None:
+        raise UserError("--ocv needs --capacity-ah (the cell's capacity in Ah)")
+    if not args.capacity_ah > 0:
+        raise UserError(f"--capacity-ah must be positive, got {args.capacity_ah:g}")
+    try:
+        soc, ocv = load_ocv_csv(args.ocv)
+    except FileNotFoundError as exc:
+        raise UserError(f"{args.ocv}: no such OCV table") from exc
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
+    try:
+        profile = CellProfile(
+            name=Path(args.ocv).stem, capacity_ah=args.capacity_ah,
+            ocv=OcvSpec(soc=[float(s) for s in soc], ocv_v=[[float(v) for v in ocv]]),
+            # a placeholder: diagnose fits the base parameters itself
+            parameters=[ParameterPoint(r_ohm=0.02, r_ct=0.01, c_dl=100.0, m=0.9, r_df=0.01, c_df=1000.0, n=0.8)],
+        )
+        profile.ocv_table()
+    except ValueError as exc:
+        raise UserError(f"{args.ocv}: unusable OCV table: {exc}") from exc
+    return profile, True
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.cell.profile import save_profile
+    from service.diagnosis.effects import EFFECTS
+    from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
+    from service.recording import load_recording
+
+    profile, fit_base = _profile_from_args(args)
+    rec = load_recording(args.recording)
+    if not 0.2 <= args.fit_fraction <= 0.9:
+        raise UserError(f"--fit-fraction must be in [0.2, 0.9], got {args.fit_fraction:g}")
+    effects = tuple(EFFECTS)
+    if args.effects:
+        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+        bad = [e for e in effects if e not in EFFECTS]
+        if bad:
+            raise UserError(f"--effects: unknown effect(s) {', '.join(bad)}; choose from {', '.join(EFFECTS)}")
+    if len(rec) < 100:
+        raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
+    opt = DiagnoseOptions(fit_fraction=args.fit_fraction, effects=effects,
+                          seed=args.seed, fit_base=fit_base)
+    say = (lambda m: None) if args.quiet else (lambda m: print(f"socd diagnose: {m}", file=sys.stderr, flush=True))
+    try:
+        dg = run_diagnosis(rec, profile, opt, progress=say)
+    except ValueError as exc:
+        raise UserError(f"{rec.path}: {exc}") from exc
+    result = dg.to_json()
+    if args.json:
+        text = json.dumps(result, indent=1)
+        if args.json == "-":
+            print(text)
+        else:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(text)
+    if args.report:
+        from service.diagnosis.report import write_report
+
+        path = write_report(dg, args.report)
+        say(f"report: {path}")
+    if args.save_profile:
+        save_profile(dg.best_profile(), args.save_profile)
+        say(f"profile: {args.save_profile}")
+    if args.json != "-":
+        print(f"verdict: {dg.verdict}")
+        for e in dg.effects:
+            flag = "*" if e.significant else " "
+            print(f" {flag} {e.name:13s} held-out RMSE {e.rmse_before_mv:7.2f} -> {e.rmse_after_mv:7.2f} mV "
+                  f"({100 * e.score:+6.1f} %)  dBIC {e.delta_bic:8.1f}")
+        print(f"({dg.seconds:.0f} s)")
+    return 0

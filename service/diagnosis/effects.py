@@ -1,0 +1,354 @@
+"""The library of candidate physics the base model may have left out.
+
+Each :class:`Effect` is a named, pluggable part of the estimator's model (PyBaMM-style
+submodels): its search coordinates and bounds, how it modifies the model for ``N``
+candidates (:meth:`Effect.apply`), how it is written into a :class:`CellProfile`
+(:meth:`Effect.to_profile`) so ``socd evaluate`` and the service run it, and a
+detection statistic computed from the base model's residual and the inputs alone
+(:meth:`Effect.detect`; reported as a pointer, the verdict rests on the refit).
+
+Registry :data:`EFFECTS` maps the names of the issue's vocabulary to the parts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from service.cell.profile import (
+    FARADAY,
+    GAS_CONSTANT,
+    KELVIN,
+    ArrheniusSpec,
+    BranchSpec,
+    CellProfile,
+    HysteresisSpec,
+    OcvCorrectionSpec,
+)
+from service.diagnosis.simulation import Mods
+
+
+@dataclass
+class Context:
+    """What the effects see: the recording (full rate), base residual and SOC, the cell."""
+
+    time_s: np.ndarray
+    current_a: np.ndarray
+    temperature_c: np.ndarray
+    residual_v: np.ndarray  # measured - simulated, base model
+    soc: np.ndarray  # base model SOC
+    ocv_slope: np.ndarray  # dOCV/dSOC along soc
+    capacity_ah: float
+    ref_temp_c: float
+    soc_range: tuple[float, float]
+    base_tau_df_s: float
+    base_r_sum_ohm: float
+
+
+def _corr(a: np.ndarray, b: np.ndarray) -> float:
+    a = a - a.mean()
+    b = b - b.mean()
+    den = math.sqrt(float(a @ a) * float(b @ b))
+    return 0.0 if den == 0 else float(a @ b) / den
+
+
+def _lowpass(x: np.ndarray, t: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order low-pass of ``x`` with time constant ``tau_s`` on a non-uniform grid."""
+    y = np.empty_like(x)
+    acc = 0.0
+    dt = np.diff(t, prepend=t[0])
+    a = np.exp(-dt / tau_s)
+    for k in range(x.size):
+        acc = a[k] * acc + (1.0 - a[k]) * x[k]
+        y[k] = acc
+    return y
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One candidate extension (see module docstring)."""
+
+    name: str
+    title: str
+    params: tuple[str, ...]  # names of the physical parameters reported
+    bounds: tuple[tuple[float, float], ...]  # search coordinates
+    starts: Callable[[Context], list[tuple[float, ...]]]
+    apply: Callable[[np.ndarray, Mods, Context], None]
+    physical: Callable[[np.ndarray, Context], dict[str, float]]
+    to_profile: Callable[[dict[str, float], CellProfile, Context], CellProfile]
+    detect: Callable[[Context], float]
+    feature: Callable[[Context], tuple[str, np.ndarray]]  # for the "residual vs feature" plot
+
+    @property
+    def k(self) -> int:
+        return len(self.bounds)
+
+
+def _ext(profile: CellProfile, **changes) -> CellProfile:
+    ext = profile.extensions.model_copy(update=changes)
+    return profile.model_copy(update={"extensions": ext})
+
+
+# -- hysteresis (Zeng Eq. 1) ------------------------------------------------------------------
+def _hyst_apply(th, mods, ctx):
+    mods.params.u_h_max = th[:, 0].copy()
+    mods.params.hyst_rate = np.exp(th[:, 1])
+    mods.u_h0 = th[:, 2] * th[:, 0]
+
+
+def _hyst_phys(th, ctx):
+    return {"u_h_max_v": float(th[0]), "rate": float(math.exp(th[1])), "u_h0_v": float(th[2] * th[0])}
+
+
+def _hyst_profile(ph, profile, ctx):
+    return profile.model_copy(update={"hysteresis": HysteresisSpec(u_h_max_v=ph["u_h_max_v"], rate=ph["rate"])})
+
+
+def _direction_state(ctx: Context, rate: float = 30.0) -> np.ndarray:
+    """The Eq.-1 hysteresis state for U_H = 1: +1 after charge, -1 after discharge."""
+    from service.cell.hysteresis import hysteresis_step
+
+    u = np.zeros(ctx.time_s.size)
+    h = 0.0
+    dt = np.diff(ctx.time_s, prepend=ctx.time_s[0])
+    for k in range(u.size):
+        h = float(hysteresis_step(np.array(h), np.array(ctx.current_a[k]), dt[k], 1.0, rate, ctx.capacity_ah))
+        u[k] = h
+    return u
+
+
+def _hyst_feature(ctx):
+    return "hysteresis state (Eq. 1, U_H = 1)", _direction_state(ctx)
+
+
+HYSTERESIS = Effect(
+    name="hysteresis",
+    title="one-state hysteresis (Zeng Eq. 1)",
+    params=("u_h_max_v", "rate", "u_h0_v"),
+    bounds=((0.0, 0.15), (math.log(1.0), math.log(2000.0)), (-1.0, 1.0)),
+    starts=lambda ctx: [(0.01, math.log(r), s) for r in (10.0, 60.0, 300.0) for s in (-0.8, 0.0, 0.8)],
+    apply=_hyst_apply,
+    physical=_hyst_phys,
+    to_profile=_hyst_profile,
+    detect=lambda ctx: abs(_corr(ctx.residual_v, _hyst_feature(ctx)[1])),
+    feature=_hyst_feature,
+)
+
+
+# -- temperature: Arrhenius resistances / time constants, entropic OCV ---------------------
+def _temp_apply(th, mods, ctx):
+    mods.ea_r_ohm = th[:, 0] * 1e4
+    mods.ea_r_ct = th[:, 1] * 1e4
+    mods.ea_r_df = th[:, 1] * 1e4
+    mods.entropic_v_per_k = th[:, 2] * 1e-3
+
+
+def _temp_phys(th, ctx):
+    return {"ea_r_ohm_j_mol": float(th[0] * 1e4), "ea_r_pol_j_mol": float(th[1] * 1e4),
+            "entropic_v_per_k": float(th[2] * 1e-3), "ref_temp_c": ctx.ref_temp_c}
+
+
+def _temp_profile(ph, profile, ctx):
+    return _ext(profile, arrhenius=ArrheniusSpec(
+        ref_temp_c=ctx.ref_temp_c, ea_r_ohm_j_mol=ph["ea_r_ohm_j_mol"], ea_r_ct_j_mol=ph["ea_r_pol_j_mol"],
+        ea_r_df_j_mol=ph["ea_r_pol_j_mol"], entropic_v_per_k=ph["entropic_v_per_k"]))
+
+
+def _temp_feature(ctx):
+    return "current x (T - T_ref), A K", ctx.current_a * (ctx.temperature_c - ctx.ref_temp_c)
+
+
+def _temp_detect(ctx):
+    dT = ctx.temperature_c - ctx.ref_temp_c
+    return max(abs(_corr(ctx.residual_v, ctx.current_a * dT)), abs(_corr(ctx.residual_v, dT)))
+
+
+TEMPERATURE = Effect(
+    name="temperature",
+    title="temperature dependence (Arrhenius R and time constants, entropic OCV)",
+    params=("ea_r_ohm_j_mol", "ea_r_pol_j_mol", "entropic_v_per_k", "ref_temp_c"),
+    bounds=((0.0, 8.0), (0.0, 8.0), (-1.0, 1.0)),
+    starts=lambda ctx: [(2.0, 3.0, 0.0), (0.5, 0.5, 0.0), (4.0, 6.0, 0.0)],
+    apply=_temp_apply,
+    physical=_temp_phys,
+    to_profile=_temp_profile,
+    detect=_temp_detect,
+    feature=_temp_feature,
+)
+
+
+# -- a missing slow diffusion time constant (extra CPE branch) --------------------------------
+def _diff_apply(th, mods, ctx):
+    r = np.exp(th[:, 0])
+    tau = np.exp(th[:, 1])
+    alpha = th[:, 2]
+    mods.add_branch(r, tau**alpha / r, alpha)
+
+
+def _diff_phys(th, ctx):
+    r, tau, alpha = math.exp(th[0]), math.exp(th[1]), float(th[2])
+    return {"r_ohm": r, "tau_s": tau, "alpha": alpha, "c": tau**alpha / r}
+
+
+def _diff_profile(ph, profile, ctx):
+    branch = BranchSpec(r=ph["r_ohm"], c=ph["c"], alpha=min(ph["alpha"], 1.0))
+    return _ext(profile, extra_branches=list(profile.extensions.extra_branches) + [branch])
+
+
+def _diff_feature(ctx):
+    return "current low-passed at 10 x tau_df, A", _lowpass(ctx.current_a, ctx.time_s, max(10 * ctx.base_tau_df_s, 600.0))
+
+
+DIFFUSION = Effect(
+    name="diffusion",
+    title="slow diffusion time constant (extra CPE branch)",
+    params=("r_ohm", "tau_s", "alpha", "c"),
+    bounds=((math.log(1e-5), math.log(1.0)), (math.log(30.0), math.log(30000.0)), (0.5, 1.0)),
+    starts=lambda ctx: [(math.log(max(0.3 * ctx.base_r_sum_ohm, 2e-5)), math.log(t), 0.9)
+                        for t in (300.0, 1500.0, 6000.0)],
+    apply=_diff_apply,
+    physical=_diff_phys,
+    to_profile=_diff_profile,
+    detect=lambda ctx: abs(_corr(ctx.residual_v, _diff_feature(ctx)[1])),
+    feature=_diff_feature,
+)
+
+
+# -- capacity error / fade ---------------------------------------------------------------------
+def _cap_apply(th, mods, ctx):
+    mods.params.capacity_ah = mods.params.capacity_ah * th[:, 0]
+
+
+def _cap_feature(ctx):
+    dt = np.diff(ctx.time_s, prepend=ctx.time_s[0])
+    ah = np.cumsum(ctx.current_a * dt) / 3600.0
+    return "dOCV/dSOC x discharged Ah, V Ah", ctx.ocv_slope * ah
+
+
+CAPACITY = Effect(
+    name="capacity",
+    title="capacity error or fade (capacity scale)",
+    params=("capacity_scale", "capacity_ah"),
+    bounds=((0.5, 1.5),),
+    starts=lambda ctx: [(1.0,), (0.9,), (1.1,)],
+    apply=_cap_apply,
+    physical=lambda th, ctx: {"capacity_scale": float(th[0]), "capacity_ah": float(th[0]) * ctx.capacity_ah},
+    to_profile=lambda ph, profile, ctx: _ext(profile, capacity_scale=ph["capacity_scale"] * profile.extensions.capacity_scale),
+    detect=lambda ctx: abs(_corr(ctx.residual_v, _cap_feature(ctx)[1])),
+    feature=_cap_feature,
+)
+
+
+# -- current-sensor bias -------------------------------------------------------------------------
+def _bias_apply(th, mods, ctx):
+    mods.params.current_bias_a = mods.params.current_bias_a + th[:, 0] * ctx.capacity_ah / 100.0
+
+
+def _bias_feature(ctx):
+    return "dOCV/dSOC x elapsed hours, V h", ctx.ocv_slope * (ctx.time_s - ctx.time_s[0]) / 3600.0
+
+
+CURRENT_BIAS = Effect(
+    name="current_bias",
+    title="current-sensor offset (measured = true + bias)",
+    params=("current_bias_a", "bias_frac_1c"),
+    bounds=((-5.0, 5.0),),  # percent of 1C
+    starts=lambda ctx: [(0.0,), (-1.0,), (1.0,)],
+    apply=_bias_apply,
+    physical=lambda th, ctx: {"current_bias_a": float(th[0]) * ctx.capacity_ah / 100.0, "bias_frac_1c": float(th[0]) / 100.0},
+    to_profile=lambda ph, profile, ctx: _ext(profile, current_bias_a=profile.extensions.current_bias_a + ph["current_bias_a"]),
+    detect=lambda ctx: abs(_corr(ctx.residual_v, _bias_feature(ctx)[1])),
+    feature=_bias_feature,
+)
+
+
+# -- current-dependent resistance (Butler-Volmer) -----------------------------------------------
+def _kin_apply(th, mods, ctx):
+    mods.params.kinetics_i0_a = np.exp(th[:, 0]) * ctx.capacity_ah
+
+
+def _kin_feature(ctx):
+    vt = 2.0 * GAS_CONSTANT * (ctx.ref_temp_c + KELVIN) / FARADAY
+    x = ctx.current_a / max(ctx.capacity_ah, 1e-6)
+    return "BV non-linearity asinh(I/C) - I/C (x 2RT/F), V", vt * (np.arcsinh(x) - x)
+
+
+KINETICS = Effect(
+    name="kinetics",
+    title="current-dependent charge-transfer resistance (Butler-Volmer)",
+    params=("kinetics_i0_a",),
+    bounds=((math.log(0.02), math.log(50.0)),),  # i0 / (1C current)
+    starts=lambda ctx: [(math.log(0.2),), (math.log(1.0),), (math.log(5.0),)],
+    apply=_kin_apply,
+    physical=lambda th, ctx: {"kinetics_i0_a": float(math.exp(th[0]) * ctx.capacity_ah)},
+    to_profile=lambda ph, profile, ctx: _ext(profile, kinetics_i0_a=ph["kinetics_i0_a"]),
+    detect=lambda ctx: abs(_corr(ctx.residual_v, _kin_feature(ctx)[1])),
+    feature=_kin_feature,
+)
+
+
+# -- OCV-curve error -------------------------------------------------------------------------------
+OCV_KNOTS = 6
+
+
+def _ocv_knots(ctx: Context) -> np.ndarray:
+    lo, hi = ctx.soc_range
+    return np.linspace(lo, hi, OCV_KNOTS)
+
+
+def _ocv_apply(th, mods, ctx):
+    mods.ocv_knots_soc = _ocv_knots(ctx)
+    mods.ocv_delta_v = th * 1e-3
+
+
+def _ocv_phys(th, ctx):
+    out = {}
+    for s, d in zip(_ocv_knots(ctx), th):
+        out[f"delta_v_at_soc_{s:.2f}"] = float(d) * 1e-3
+    return out
+
+
+def _ocv_profile(ph, profile, ctx):
+    knots = _ocv_knots(ctx)
+    delta = [ph[f"delta_v_at_soc_{s:.2f}"] for s in knots]
+    # hold the end values out to SOC 0 and 1 (what np.interp does inside the fit)
+    soc = [0.0] + list(knots) + [1.0] if knots[0] > 0 and knots[-1] < 1 else list(knots)
+    dv = [delta[0]] + delta + [delta[-1]] if len(soc) > len(knots) else delta
+    return _ext(profile, ocv_correction=OcvCorrectionSpec(soc=[float(s) for s in soc], delta_v=[float(d) for d in dv]))
+
+
+def _ocv_feature(ctx):
+    return "model SOC", ctx.soc
+
+
+def _ocv_detect(ctx):
+    """Share of residual variance explained by a function of SOC (binned means)."""
+    bins = np.linspace(ctx.soc_range[0], ctx.soc_range[1], 11)
+    idx = np.clip(np.digitize(ctx.soc, bins) - 1, 0, 9)
+    means = np.array([ctx.residual_v[idx == b].mean() if np.any(idx == b) else 0.0 for b in range(10)])
+    r = ctx.residual_v - ctx.residual_v.mean()
+    var = float(r @ r)
+    fitted = means[idx] - ctx.residual_v.mean()
+    return 0.0 if var == 0 else float(fitted @ fitted) / var
+
+
+OCV = Effect(
+    name="ocv",
+    title="OCV-curve error (additive correction at 6 SOC knots)",
+    params=tuple(f"delta_v_at_knot_{j}" for j in range(OCV_KNOTS)),
+    bounds=tuple((-150.0, 150.0) for _ in range(OCV_KNOTS)),  # mV
+    starts=lambda ctx: [tuple(0.0 for _ in range(OCV_KNOTS))],
+    apply=_ocv_apply,
+    physical=_ocv_phys,
+    to_profile=_ocv_profile,
+    detect=_ocv_detect,
+    feature=_ocv_feature,
+)
+
+#: name -> part, in the issue's vocabulary order
+EFFECTS: dict[str, Effect] = {
+    e.name: e for e in (HYSTERESIS, TEMPERATURE, DIFFUSION, CAPACITY, CURRENT_BIAS, KINETICS, OCV)
+}

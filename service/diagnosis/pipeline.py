@@ -1,0 +1,338 @@
+"""``socd diagnose``: simulate, locate, name, model, refit, show.
+
+Protocol (stated in every report and JSON):
+
+* **Initial state** from the recording alone: the SOC whose OCV (plus the candidate's
+  hysteresis / OCV offsets) equals the voltage at the end of the opening rest (or the
+  first voltage corrected by ``R_ohm·I`` if the recording opens under load).  No
+  ``soc_true``.
+* **Split**: the first ``fit_fraction`` of the recording's *duration* is fitted, the
+  rest is held out.  Chronological, because what an estimator needs is a model that
+  predicts forward, and because drifting errors (capacity, sensor offset) only show
+  their signature by extrapolation; the model is always simulated over the whole
+  recording (its state runs through the split), only the samples scored differ.
+* **Fit at full rate**: base and extended models are fitted on the same fit part at
+  the recording's own sampling rate (the short G-L memory counts samples, so a
+  subsampled fit would not transfer).  The held-out RMSEs come from
+  :func:`service.cell.model.simulate` on the saved profiles.
+* **Evidence** for each effect, comparable across effects:
+  held-out relative RMSE gain ``1 - after/before`` (the score); ``ΔBIC`` on the fit
+  part with an effective sample count ``n_eff = n / τ_int`` (τ_int the integrated
+  autocorrelation time of the base residual, so correlated residuals are not counted as
+  independent); residual whiteness (lag-1 autocorrelation) before/after.
+* **Significant** when the held-out gain is at least ``min_rel_gain``, the held-out RMSE
+  falls by at least ``min_abs_gain_noise`` times the voltage noise (estimated from the
+  recording's rests) and ``ΔBIC >= min_delta_bic``.  The verdict is the best significant
+  effect, else ``none``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.cell.fitting import FitSegment, encode_point, estimate_r_ohm, fit_parameters
+from service.cell.model import simulate
+from service.cell.profile import CellProfile
+from service.diagnosis.effects import EFFECTS, Context, Effect
+from service.diagnosis.locate import locate
+from service.diagnosis.refit import Problem, parameter_std, refit
+from service.diagnosis.simulation import initial_soc
+from service.recording import Recording
+
+VOCABULARY = ("hysteresis", "temperature", "diffusion", "capacity", "current_bias", "kinetics", "ocv", "none")
+
+
+@dataclass
+class DiagnoseOptions:
+    fit_fraction: float = 0.6
+    base_seconds: float = 25.0
+    effect_seconds: float = 20.0
+    memory_length: int = 16
+    seed: int = 0
+    effects: tuple[str, ...] = tuple(EFFECTS)
+    fit_base: bool = True
+    # significance thresholds (see module docstring)
+    min_rel_gain: float = 0.25
+    min_delta_bic: float = 10.0
+    min_abs_gain_noise: float = 0.5
+
+
+@dataclass
+class EffectOutcome:
+    name: str
+    title: str
+    score: float
+    significant: bool
+    rmse_before_mv: float
+    rmse_after_mv: float
+    params: dict
+    params_std: dict
+    delta_bic: float
+    detection: float
+    whiteness_before: float
+    whiteness_after: float
+    rmse_fit_after_mv: float
+    fit_seconds: float
+    profile: CellProfile
+    v_sim: np.ndarray
+    u_h0: float = 0.0
+    reasons: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return {
+            "name": self.name, "score": round(self.score, 4), "significant": self.significant,
+            "rmse_before_mv": round(self.rmse_before_mv, 3), "rmse_after_mv": round(self.rmse_after_mv, 3),
+            "params": self.params, "params_std": self.params_std, "title": self.title,
+            "delta_bic": round(self.delta_bic, 2), "detection": round(self.detection, 4),
+            "whiteness_lag1_before": round(self.whiteness_before, 4),
+            "whiteness_lag1_after": round(self.whiteness_after, 4),
+            "rmse_fit_after_mv": round(self.rmse_fit_after_mv, 3), "fit_seconds": round(self.fit_seconds, 2),
+            "not_significant_because": self.reasons,
+        }
+
+
+@dataclass
+class Diagnosis:
+    verdict: str
+    effects: list[EffectOutcome]
+    located: list[dict]
+    located_full: dict
+    base_profile: CellProfile
+    base: dict
+    thresholds: dict
+    protocol: dict
+    recording: Recording
+    v_base: np.ndarray
+    soc_base: np.ndarray
+    held_mask: np.ndarray
+    seconds: float
+
+    def to_json(self) -> dict:
+        return {
+            "verdict": self.verdict,
+            "effects": [e.to_json() for e in self.effects],
+            "located": self.located,
+            "located_all": self.located_full,
+            "base": self.base,
+            "thresholds": self.thresholds,
+            "protocol": self.protocol,
+            "recording": str(self.recording.path),
+            "seconds": round(self.seconds, 1),
+        }
+
+    def best_profile(self) -> CellProfile:
+        """The extended profile of the verdict (the base profile when the verdict is none)."""
+        for e in self.effects:
+            if e.name == self.verdict:
+                return e.profile
+        return self.base_profile
+
+
+# -- statistics ---------------------------------------------------------------------------------
+def noise_sigma(rec: Recording, capacity_ah: float) -> float:
+    """Voltage noise σ from consecutive differences inside rests (robust, MAD)."""
+    rest = np.abs(rec.current_a) < 0.01 * capacity_ah
+    both = rest[1:] & rest[:-1]
+    d = np.diff(rec.voltage_v)[both]
+    if d.size < 20:
+        d = np.diff(rec.voltage_v)
+    # second differences cancel slow relaxation; var(d2) = 6 σ² for white noise
+    d2 = np.diff(d) if d.size > 3 else d
+    mad = float(np.median(np.abs(d2 - np.median(d2))))
+    return max(1.4826 * mad / math.sqrt(6.0), 1e-5)
+
+
+def integrated_autocorr_time(r: np.ndarray, max_lag: int = 400) -> float:
+    x = r - r.mean()
+    var = float(x @ x)
+    if var == 0:
+        return 1.0
+    tau = 1.0
+    for lag in range(1, min(max_lag, x.size // 4)):
+        rho = float(x[:-lag] @ x[lag:]) / var
+        if rho < 0.05:
+            break
+        tau += 2.0 * rho
+    return tau
+
+
+def lag1(r: np.ndarray) -> float:
+    x = r - r.mean()
+    var = float(x @ x)
+    return 0.0 if var == 0 else float(x[:-1] @ x[1:]) / var
+
+
+def rmse_mv(r: np.ndarray) -> float:
+    return 1000.0 * float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+
+
+# -- the pipeline ----------------------------------------------------------------------------------
+def initial_rest_voltage(rec: Recording, capacity_ah: float, r_guess: float) -> tuple[float, float]:
+    """Voltage that stands for the OCV at the start, and the temperature there."""
+    rest = np.abs(rec.current_a) < 0.01 * capacity_ah
+    if rest[0]:
+        end = int(np.argmin(rest)) if not rest.all() else rest.size
+        end = max(end, 1)
+        lo = max(0, end - 5)
+        return float(np.mean(rec.voltage_v[lo:end])), float(rec.temperature_c[0])
+    return float(rec.voltage_v[0] + r_guess * rec.current_a[0]), float(rec.temperature_c[0])
+
+
+def _score_profile(profile: CellProfile, rec: Recording, v_rest0: float, u_h0: float, memory_length: int,
+                   ref_temp_c: float) -> tuple[np.ndarray, np.ndarray]:
+    """Full-rate simulation of a (possibly extended) profile with the standard model."""
+    ocv = profile.ocv_table()
+    arr = profile.extensions.arrhenius
+    target = v_rest0 - u_h0
+    if arr is not None:
+        target -= arr.entropic_v_per_k * (rec.temperature_c[0] - arr.ref_temp_c)
+    soc0 = float(initial_soc(ocv, target, float(rec.temperature_c[0]))[0])
+    v, soc = simulate(profile, rec.time_s, rec.current_a, rec.temperature_c, soc0, memory_length=memory_length,
+                      u_h0=u_h0)
+    return v, soc
+
+
+def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions | None = None,
+                  progress=None) -> Diagnosis:
+    opt = options or DiagnoseOptions()
+    t_start = time.perf_counter()
+    say = progress or (lambda _msg: None)
+    unknown = [e for e in opt.effects if e not in EFFECTS]
+    if unknown:
+        raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+    cap = profile.capacity_ah * profile.extensions.capacity_scale
+    full = FitSegment(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, soc0=0.0)
+    r_guess = estimate_r_ohm([full]) or 0.02
+    v_rest0, _ = initial_rest_voltage(rec, cap, r_guess)
+    t_split = rec.time_s[0] + opt.fit_fraction * (rec.time_s[-1] - rec.time_s[0])
+    fit_full = rec.time_s <= t_split
+    held = ~fit_full
+    if fit_full.sum() < 20 or held.sum() < 20:
+        raise ValueError(f"recording too short to split ({len(rec)} samples)")
+
+    temp_fit = float(np.mean(rec.temperature_c[fit_full]))
+    # the base point sits at the fit part's mean temperature (the Arrhenius reference)
+    soc0 = float(initial_soc(profile.ocv_table(), v_rest0, float(rec.temperature_c[0]))[0])
+    seg_fit = FitSegment(rec.time_s[fit_full], rec.current_a[fit_full], rec.voltage_v[fit_full],
+                         rec.temperature_c[fit_full], soc0=soc0)
+    # fitted at the recording's own rate (the G-L memory counts samples; see service.cell.fitting);
+    # samples after the split cannot change the fit part's simulation, so they are not simulated
+    grid = seg_fit
+    fit_mask = np.ones(len(grid), dtype=bool)
+    n_fit_grid = len(grid)
+    seed_point = None
+    if not opt.fit_base or profile.parameters:
+        seed_point = min(profile.parameters, key=lambda p: abs(p.temp_c - temp_fit))
+    say("fitting the base model on the fit part")
+    base_fit = fit_parameters(profile, [seg_fit], memory_length=opt.memory_length, max_seconds=opt.base_seconds,
+                              seed=opt.seed, polish_points=n_fit_grid, x0=seed_point if not opt.fit_base else None)
+    point = base_fit.point.model_copy(update={"temp_c": temp_fit})
+    base_profile = profile.model_copy(update={"parameters": [point]})
+    problem = Problem(profile=base_profile, grid=grid, fit_mask=fit_mask, v_rest0=v_rest0, temp_c=temp_fit,
+                      memory_length=opt.memory_length)
+    x0 = encode_point(point)
+    base_ref = refit(problem, x0, None, max_seconds=opt.effect_seconds, max_nfev=15)
+    x_base = base_ref.x
+    from service.cell.fitting import point_from_x
+
+    point = point_from_x(x_base, temp_fit)
+    base_profile = profile.model_copy(update={"parameters": [point]})
+    problem.profile = base_profile
+
+    v_base, soc_base = _score_profile(base_profile, rec, v_rest0, 0.0, opt.memory_length, temp_fit)
+    r_base = rec.voltage_v - v_base
+    sigma = noise_sigma(rec, cap)
+    rmse_before = rmse_mv(r_base[held])
+    # effective samples on the fit grid from the base residual's autocorrelation
+    r_grid_base = problem.residuals(x_base, None)[0]
+    tau_int = integrated_autocorr_time(r_grid_base)
+    n_eff = max(r_grid_base.size / tau_int, 2.0)
+    ocv = base_profile.ocv_table()
+    soc_lo, soc_hi = float(np.clip(soc_base.min(), 0, 1)), float(np.clip(soc_base.max(), 0, 1))
+    tau_df = (point.r_df * point.c_df) ** (1 / point.n)
+    problem.ctx = Context(
+        time_s=grid.time_s, current_a=grid.current_a, temperature_c=grid.temperature_c,
+        residual_v=np.zeros(len(grid)), soc=np.zeros(len(grid)), ocv_slope=np.zeros(len(grid)),
+        capacity_ah=cap, ref_temp_c=temp_fit, soc_range=(soc_lo, max(soc_hi, soc_lo + 0.05)),
+        base_tau_df_s=float(tau_df), base_r_sum_ohm=point.r_ct + point.r_df,
+    )
+    full_ctx = Context(
+        time_s=rec.time_s, current_a=rec.current_a, temperature_c=rec.temperature_c, residual_v=r_base,
+        soc=soc_base, ocv_slope=ocv.slope(soc_base, rec.temperature_c), capacity_ah=cap, ref_temp_c=temp_fit,
+        soc_range=problem.ctx.soc_range, base_tau_df_s=float(tau_df), base_r_sum_ohm=point.r_ct + point.r_df,
+    )
+
+    outcomes: list[EffectOutcome] = []
+    for name in opt.effects:
+        eff: Effect = EFFECTS[name]
+        say(f"refitting with {name}")
+        res = refit(problem, x_base, eff, max_seconds=opt.effect_seconds)
+        th = res.x[7:]
+        phys = eff.physical(th, problem.ctx)
+        ext_point = point_from_x(res.x, temp_fit)
+        prof = eff.to_profile(phys, base_profile.model_copy(update={"parameters": [ext_point]}), problem.ctx)
+        u_h0 = phys.get("u_h0_v", 0.0)
+        v_ext, _ = _score_profile(prof, rec, v_rest0, u_h0, opt.memory_length, temp_fit)
+        r_ext = rec.voltage_v - v_ext
+        after = rmse_mv(r_ext[held])
+        score = 1.0 - after / rmse_before if rmse_before > 0 else 0.0
+        dbic = n_eff * math.log(max(base_ref.rss, 1e-300) / max(res.rss, 1e-300)) - eff.k * math.log(n_eff)
+        std = parameter_std(res, n_eff)
+        params_std = {}
+        if std is not None:
+            # propagate the coordinates' standard errors to the physical parameters numerically
+            for j in range(eff.k):
+                th2 = th.copy()
+                lo_b, hi_b = eff.bounds[j]
+                th2[j] = min(th2[j] + std[7 + j], hi_b) if th2[j] + std[7 + j] <= hi_b else max(th2[j] - std[7 + j], lo_b)
+                ph2 = eff.physical(th2, problem.ctx)
+                for key, val in ph2.items():
+                    d = abs(val - phys[key])
+                    params_std[key] = float(math.hypot(params_std.get(key, 0.0), d))
+        reasons = []
+        if score < opt.min_rel_gain:
+            reasons.append(f"held-out gain {score:.1%} < {opt.min_rel_gain:.0%}")
+        if rmse_before - after < opt.min_abs_gain_noise * 1000 * sigma:
+            reasons.append(f"held-out RMSE drop {rmse_before - after:.2f} mV < {opt.min_abs_gain_noise:g} x noise "
+                           f"({1000 * sigma:.2f} mV)")
+        if dbic < opt.min_delta_bic:
+            reasons.append(f"dBIC {dbic:.1f} < {opt.min_delta_bic:g}")
+        outcomes.append(EffectOutcome(
+            name=name, title=eff.title, score=score, significant=not reasons, rmse_before_mv=rmse_before,
+            rmse_after_mv=after, params={k: float(v) for k, v in phys.items()}, params_std=params_std,
+            delta_bic=dbic, detection=eff.detect(full_ctx), whiteness_before=lag1(r_base[held]),
+            whiteness_after=lag1(r_ext[held]), rmse_fit_after_mv=rmse_mv(r_ext[fit_full]), fit_seconds=res.seconds,
+            profile=prof, v_sim=v_ext, u_h0=u_h0, reasons=reasons,
+        ))
+    outcomes.sort(key=lambda o: (not o.significant, -o.score))
+    verdict = outcomes[0].name if outcomes and outcomes[0].significant else "none"
+
+    loc = locate(rec.time_s, rec.current_a, rec.temperature_c, soc_base, r_base, cap)
+    located = [w for w in loc["windows"] if w["flagged"]] + [g for g in loc["regions"] if g["flagged"]]
+    located.sort(key=lambda g: -g["concentration"])
+    thresholds = {
+        "min_rel_gain": opt.min_rel_gain, "min_delta_bic": opt.min_delta_bic,
+        "min_abs_gain_noise": opt.min_abs_gain_noise, "noise_sigma_mv": round(1000 * sigma, 3),
+        "min_abs_gain_mv": round(opt.min_abs_gain_noise * 1000 * sigma, 3),
+        "concentration_flag": 1.5,
+    }
+    base = {
+        "point": point.model_dump(), "rmse_fit_mv": round(rmse_mv(r_base[fit_full]), 3),
+        "rmse_heldout_mv": round(rmse_before, 3), "soc0": round(soc0, 4), "v_rest0": v_rest0,
+        "tau_int_samples": round(tau_int, 2), "n_eff": round(n_eff, 1), "fit_samples": len(grid),
+        "base_fit_evaluations": base_fit.n_evaluations,
+    }
+    protocol = {
+        "split": "chronological", "fit_fraction": opt.fit_fraction, "t_split_s": float(t_split),
+        "fit_samples": int(fit_full.sum()), "heldout_samples": int(held.sum()),
+        "initial_state": "SOC from OCV at the opening rest voltage (no soc_true)",
+    }
+    return Diagnosis(
+        verdict=verdict, effects=outcomes, located=located, located_full=loc, base_profile=base_profile, base=base,
+        thresholds=thresholds, protocol=protocol, recording=rec, v_base=v_base, soc_base=soc_base, held_mask=held,
+        seconds=time.perf_counter() - t_start,
+    )

@@ -1,0 +1,112 @@
+"""Base-parameter fitting recovers what the model was simulated with."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from service.cell.fitting import FitSegment, excited_window, fit_parameters, simulate_batch
+from service.cell.model import simulate
+from service.cell.profile import (
+    ArrheniusSpec,
+    CellProfile,
+    Extensions,
+    HysteresisSpec,
+    OcvSpec,
+    ParameterPoint,
+)
+
+TRUE = ParameterPoint(r_ohm=0.030, r_ct=0.015, c_dl=300.0, m=0.9, r_df=0.020, c_df=9000.0, n=0.85)
+
+
+def nmc_like_ocv() -> OcvSpec:
+    soc = np.linspace(0, 1, 41)
+    ocv = 3.3 + 0.75 * soc + 0.12 * np.tanh((soc - 0.08) / 0.05) - 0.06 * np.exp(-((soc - 0.55) / 0.1) ** 2)
+    return OcvSpec(soc=soc.tolist(), ocv_v=[ocv.tolist()])
+
+
+def profile(point: ParameterPoint = TRUE, **kw) -> CellProfile:
+    return CellProfile(capacity_ah=2.0, ocv=nmc_like_ocv(), parameters=[point], **kw)
+
+
+def pulse_current(n: int, capacity_ah: float, seed: int, dt_s: float = 1.0) -> np.ndarray:
+    """Steps of 10-120 s between -0.5C and 2C with rests; net discharge."""
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < n:
+        level = rng.choice([2.0, 1.5, 1.0, 0.5, 0.0, 0.0, -0.5]) * capacity_ah
+        out += [level] * int(rng.integers(10, 120) / dt_s)
+    cur = np.array(out[:n], dtype=float)
+    cur[: int(60 / dt_s)] = 0.0
+    return cur
+
+
+def test_batch_simulation_equals_model():
+    prof = profile(
+        hysteresis=HysteresisSpec(u_h_max_v=0.02, rate=40.0),
+        extensions=Extensions(current_bias_a=0.03, capacity_scale=0.9, kinetics_i0_a=1.5,
+                              arrhenius=ArrheniusSpec(ref_temp_c=25.0, ea_r_ohm_j_mol=2e4, ea_r_ct_j_mol=4e4)),
+    )
+    n = 800
+    t = np.arange(n, dtype=float)
+    i = pulse_current(n, 2.0, 3)
+    temp = np.linspace(10.0, 35.0, n)
+    v_ref, soc_ref = simulate(prof, t, i, temp, 0.9, u_h0=0.01)
+    params = prof.parameters_at(float(temp[0]), n_cells=2)
+    v, soc = simulate_batch(prof, t, i, temp, np.full(2, 0.9), params, u_h0=0.01,
+                            params_at=lambda tc: prof.parameters_at(tc, n_cells=2))
+    assert np.max(np.abs(v[:, 1] - v_ref)) < 1e-12
+    assert np.max(np.abs(soc[:, 0] - soc_ref)) < 1e-12
+
+
+def test_fit_recovers_known_parameters():
+    n = 2400
+    t = np.arange(n, dtype=float)
+    i = pulse_current(n, 2.0, 1)
+    temp = np.full(n, 25.0)
+    v, _ = simulate(profile(), t, i, temp, 0.95)
+    v = v + np.random.default_rng(2).normal(0, 0.001, n)
+    start = profile(ParameterPoint(r_ohm=0.01, r_ct=0.01, c_dl=100, m=0.8, r_df=0.01, c_df=1000, n=0.8))
+    res = fit_parameters(start, [FitSegment(t, i, v, temp, soc0=0.95)], max_seconds=120, seed=0, de_maxiter=30)
+    assert res.rmse_mv < 1.3  # the noise is 1 mV
+    p = res.point
+    assert p.r_ohm == pytest.approx(TRUE.r_ohm, rel=0.1)
+    # the instantaneous + charge-transfer resistance (what a 10 s pulse sees) is identified well
+    assert p.r_ohm + p.r_ct == pytest.approx(TRUE.r_ohm + TRUE.r_ct, rel=0.1)
+    tau = (p.r_ct * p.c_dl) ** (1 / p.m)
+    tau_true = (TRUE.r_ct * TRUE.c_dl) ** (1 / TRUE.m)
+    assert 0.5 < tau / tau_true < 2.0
+    assert 0.3 <= p.m <= 1.0 and 0.3 <= p.n <= 1.0
+    assert res.n_evaluations > 0
+
+
+def test_fit_hysteresis_recovers_u_h():
+    n = 2400
+    t = np.arange(n, dtype=float)
+    i = pulse_current(n, 2.0, 5)
+    temp = np.full(n, 25.0)
+    prof = profile(hysteresis=HysteresisSpec(u_h_max_v=0.025, rate=30.0))
+    v, _ = simulate(prof, t, i, temp, 0.95, u_h0=0.025)
+    v = v + np.random.default_rng(3).normal(0, 0.001, n)
+    res = fit_parameters(profile(), [FitSegment(t, i, v, temp, soc0=0.95, u_h0=0.025)], fit_hysteresis=True,
+                         max_seconds=120, x0=TRUE, de_maxiter=15)
+    assert res.hysteresis is not None
+    assert res.hysteresis.u_h_max_v == pytest.approx(0.025, abs=0.006)
+    assert res.rmse_mv < 1.5
+
+
+def test_segment_validation_and_window():
+    with pytest.raises(ValueError, match="voltage_v"):
+        FitSegment(np.arange(5.0), np.zeros(5), np.zeros(4), np.zeros(5), soc0=0.5)
+    with pytest.raises(ValueError, match="increase"):
+        FitSegment(np.array([0.0, 1, 1, 2]), np.zeros(4), np.zeros(4), np.zeros(4), soc0=0.5)
+    n = 3000
+    i = pulse_current(n, 2.0, 7)
+    seg = FitSegment(np.arange(n, dtype=float), i, np.full(n, 3.7), np.full(n, 25.0), soc0=0.9)
+    w = excited_window(seg, 1000, 2.0)
+    assert len(w) == 1000
+    a = int(w.time_s[0])
+    assert w.soc0 == pytest.approx(0.9 - float(np.sum(i[1:a + 1])) / 7200.0)
+    assert math.isfinite(w.soc0)
