@@ -110,7 +110,7 @@ def run_demo(
     profile_path: Path | None = None,
     seed: int = 0,
     faults: Any = None,
-    status: TextIO | None = sys.stdout,
+    status: TextIO | bool | None = True,
     live: bool | None = None,
 ) -> tuple[DemoResult, dict[str, np.ndarray]]:
     """Run the demo; return the result and the traces (``t_s``, ``soc``, ``truth``) for a plot."""
@@ -139,6 +139,10 @@ def run_demo(
     config = _demo_config(cells, channel, port, workdir, profile_path)
     spread = SpreadSpec(capacity=0.02, resistance=0.05, soc=0.02, temperature_c=0.5)
     frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed)
+    if status is True:
+        status = sys.stdout  # looked up now: the caller may have redirected it
+    elif status is False:
+        status = None
     if live is None:
         live = status is not None and status.isatty()
 
