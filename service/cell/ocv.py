@@ -149,3 +149,37 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
         soc_a = soc_a / 100.0
     order = np.argsort(soc_a)
     return soc_a[order], ocv_a[order]
+
+
+class CellOcv:
+    """OCV rows of a table evaluated once at each cell's temperature, for fast lookups.
+
+    ``rows[n, s]`` is the cell ``n``'s OCV on the uniform SOC grid; lookups take SOC of
+    shape ``[N]`` or ``[N, ...]`` (one leading axis per cell).
+    """
+
+    def __init__(self, table: OcvTable, temp_c: np.ndarray) -> None:
+        temp_c = np.asarray(temp_c, float)
+        k0, k1, f = table._rows_at(temp_c)
+        self.rows = table.ocv_v[k0] + f[:, None] * (table.ocv_v[k1] - table.ocv_v[k0])
+        self.steps = np.diff(self.rows, axis=1)  # [N, G-1]
+        self._rows_flat = self.rows.ravel()
+        self._steps_flat = self.steps.ravel()
+        self._row_offset = (np.arange(self.rows.shape[0]) * GRID_POINTS)[:, None]
+        self._step_offset = (np.arange(self.rows.shape[0]) * (GRID_POINTS - 1))[:, None]
+
+    def _index(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = GRID_POINTS - 1
+        flat = soc.reshape(soc.shape[0], -1)
+        x = flat * n
+        i0 = np.clip(x.astype(int) - (x < 0), 0, n - 1)
+        return flat, i0, x - i0
+
+    def ocv(self, soc: np.ndarray) -> np.ndarray:
+        flat, i0, u = self._index(soc)
+        v = self._rows_flat[i0 + self._row_offset] + u * self._steps_flat[i0 + self._step_offset]
+        return v.reshape(soc.shape)
+
+    def slope(self, soc: np.ndarray) -> np.ndarray:
+        flat, i0, _ = self._index(soc)
+        return (self._steps_flat[i0 + self._step_offset] * (GRID_POINTS - 1)).reshape(soc.shape)

@@ -144,7 +144,7 @@ class CellProfile(_Strict):
         def interp(name: str, log: bool) -> np.ndarray:
             vals = np.array([getattr(p, name) for p in self.parameters])
             if log:
-                return np.exp(np.interp(temp, grid, np.log(vals)))
+                return np.exp(arrhenius_interp(temp, grid, np.log(vals)))
             return np.interp(temp, grid, vals)
 
         r_ohm, r_ct, r_df = interp("r_ohm", True), interp("r_ct", True), interp("r_df", True)
@@ -176,6 +176,26 @@ class CellProfile(_Strict):
     @property
     def n_branches(self) -> int:
         return 2 + len(self.extensions.extra_branches)
+
+
+#: how far beyond the fitted temperatures parameters are extrapolated
+EXTRAPOLATE_C = 15.0
+
+
+def arrhenius_interp(temp_c: np.ndarray, grid_c: np.ndarray, log_values: np.ndarray) -> np.ndarray:
+    """Piecewise-linear in 1/T (Arrhenius) between fitted temperatures; beyond them the
+    end segment is extended by at most :data:`EXTRAPOLATE_C`, then held."""
+    if grid_c.size == 1:
+        return np.full(np.shape(temp_c), log_values[0])
+    inv = 1.0 / (grid_c + KELVIN)  # decreasing with T
+    t = np.clip(temp_c, grid_c[0] - EXTRAPOLATE_C, grid_c[-1] + EXTRAPOLATE_C)
+    x = 1.0 / (t + KELVIN)
+    out = np.interp(x, inv[::-1], log_values[::-1])
+    lo_slope = (log_values[1] - log_values[0]) / (inv[1] - inv[0])
+    hi_slope = (log_values[-1] - log_values[-2]) / (inv[-1] - inv[-2])
+    out = np.where(x > inv[0], log_values[0] + lo_slope * (x - inv[0]), out)
+    out = np.where(x < inv[-1], log_values[-1] + hi_slope * (x - inv[-1]), out)
+    return out
 
 
 @dataclass

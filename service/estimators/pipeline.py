@@ -18,6 +18,7 @@ from typing import Literal
 import numpy as np
 
 from service.cell.fractional import gl_weights
+from service.cell.ocv import CellOcv
 from service.cell.profile import CellParameters, CellProfile
 from service.estimators.base import EstimateTrace
 from service.estimators.fomiukf import FoMiUkf
@@ -52,7 +53,8 @@ class PackEstimator:
         self.ocv = profile.ocv_table()
         self.n_branches = profile.n_branches
         self.ukf = FoMiUkf(self.ocv, self.n, self.n_branches, s)
-        self._temp_used = np.full(self.n, np.nan)
+        self._temp_used = np.full(self.n, 25.0)
+        self.cell_ocv = CellOcv(self.ocv, self._temp_used)
         self.nominal = profile.parameters_at(25.0, n_cells=self.n)
         self.params = self.nominal.copy()
         nx = self.n_branches + 2
@@ -69,11 +71,12 @@ class PackEstimator:
         self.steps = 0
 
     # -- parameters ---------------------------------------------------------------------
-    def _refresh_nominal(self, temp_c: np.ndarray) -> None:
-        moved = ~(np.abs(temp_c - self._temp_used) < TEMP_REFRESH_C)
+    def _refresh_nominal(self, temp_c: np.ndarray, force: bool = False) -> None:
+        moved = ~(np.abs(temp_c - self._temp_used) < TEMP_REFRESH_C) | force
         if moved.any():
             self.nominal = self.profile.parameters_at(np.where(moved, temp_c, self._temp_used))
             self._temp_used = np.where(moved, temp_c, self._temp_used)
+            self.cell_ocv = CellOcv(self.ocv, self._temp_used)
 
     def _current_params(self) -> CellParameters:
         p = self.params
@@ -114,7 +117,7 @@ class PackEstimator:
         """OCV-based start: SOC from the voltage (IR-corrected), σ = ``soc_init_std``."""
         cells = np.ones(self.n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
         temp = np.broadcast_to(np.asarray(temperature_c, float), (self.n,))
-        self._refresh_nominal(temp)
+        self._refresh_nominal(temp, force=not self.steps)
         i = np.broadcast_to(np.asarray(current_a, float), (self.n,))
         v = np.broadcast_to(np.asarray(voltage_v, float), (self.n,)) + self.nominal.r_ohm * i
         soc = np.clip(self.ocv.soc_from_ocv(v, temp), 0.0, 1.0)
@@ -155,7 +158,7 @@ class PackEstimator:
         weights = gl_weights(params.alpha, self.settings.memory_length)
         ukf = self.ukf
         ukf.predict(dt, i, params, weights)
-        ukf.update(v, i, temp, params, act)
+        ukf.update(v, i, temp, params, act, self.cell_ocv)
         if self.fast is not None:
             soc_post = ukf.x[:, ukf.i_soc]
             identify = act & (ukf.soc_std < self.settings.identify_below_soc_std)
@@ -165,8 +168,8 @@ class PackEstimator:
                 weights=weights,
                 hist=ukf.hist,
                 x_post=ukf.x,
-                soc_slope=self.ocv.slope(soc_post, temp),
-                ocv_post=self.ocv.ocv(soc_post, temp),
+                soc_slope=self.cell_ocv.slope(soc_post),
+                ocv_post=self.cell_ocv.ocv(soc_post),
                 gain=ukf.gain,
                 transition=ukf.transition,
                 current_a=i,
@@ -177,7 +180,7 @@ class PackEstimator:
         ukf.push_history()
         if self.slow is not None:
             u_df = self.fast.u_df if self.fast is not None and self.fast.u_df is not None else ukf.x[:, 1]
-            self.slow.record(dt, i - params.current_bias_a, u_df, ukf.soc)
+            self.slow.record(dt, i - params.current_bias_a, u_df, params.capacity_ah)
         bad = ukf.diverged()
         if bad.any():
             self.reset_count[bad] += 1
@@ -194,7 +197,7 @@ class PackEstimator:
         nom = self.nominal
         if not (self.ukf.soc_std < self.settings.identify_below_soc_std).any():
             return np.zeros(self.n, dtype=bool)
-        done = self.slow.update(nom.r[:, 1], nom.c[:, 1], nom.alpha[:, 1], self.ukf.soc)
+        done = self.slow.update(nom.r[:, 1], nom.c[:, 1], nom.alpha[:, 1])
         return np.full(self.n, done)
 
     # -- outputs ------------------------------------------------------------------------
@@ -225,7 +228,7 @@ class PackEstimator:
         if self.fast is not None:
             st.update(fast_z=self.fast.z, fast_P=self.fast.P, fast_D=self.fast.D)
         if self.slow is not None:
-            st.update(slow_z=self.slow.z, slow_P=self.slow.P, slow_ring=self.slow.ring, slow_anchor=self.slow.anchor_soc)
+            st.update(slow_z=self.slow.z, slow_P=self.slow.P, slow_ring=self.slow.ring, slow_moved=self.slow.moved)
         return {k: np.array(v, copy=True) for k, v in st.items()}
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
@@ -255,14 +258,14 @@ class PackEstimator:
             fast = (need("fast_z", self.fast.z.shape), need("fast_P", self.fast.P.shape), need("fast_D", self.fast.D.shape))
         if self.slow is not None:
             slow = (need("slow_z", self.slow.z.shape), need("slow_P", self.slow.P.shape),
-                    need("slow_ring", self.slow.ring.shape), np.asarray(state.get("slow_anchor", self.slow.anchor_soc)))
+                    need("slow_ring", self.slow.ring.shape), need("slow_moved", self.slow.moved.shape))
         u.x, u.P, u.hist, u.var_hist, u.innovations, u.gains, u.nis_ema = x, P, hist, var_hist, innov, gains, nis
         self.reset_count = need("reset_count", self.reset_count.shape).astype(int)
         self.ocv_initialised = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast
         if slow is not None:
-            self.slow.z, self.slow.P, self.slow.ring, self.slow.anchor_soc = slow
+            self.slow.z, self.slow.P, self.slow.ring, self.slow.moved = slow
             self.slow.hist0 = self.slow.ring.copy()
             self.slow.length = 0
 

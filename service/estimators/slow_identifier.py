@@ -1,7 +1,8 @@
 """Slow-rate EKF over the diffusion branch ``[R_df, C_df, n]`` (Zeng §2.2.3, Eqs. 14-16, Table 2).
 
 The measurement is the fast identifier's ``U_df`` (Zeng Eq. 14).  The filter updates
-only once SOC has moved by ``slow_soc_delta`` since its last update.  At an update it
+only once SOC has moved by ``slow_soc_delta`` since its last update, measured as
+charge throughput ``Σ|I|h/3600Q`` (the SOC filter's own corrections do not count).  At an update it
 re-simulates the diffusion branch over the samples since the last update (from the
 fast filter's ``U_df`` history as initial memory) with the current ``θ_slow`` and with
 each parameter perturbed, compares the simulation with the fast ``U_df`` at a few
@@ -48,16 +49,15 @@ class SlowIdentifier:
         self.length = 0
         self.ring = np.zeros((n_cells, memory_length))  # fast U_df, newest first
         self.hist0 = np.zeros((n_cells, memory_length))
-        self.anchor_soc = np.full(n_cells, np.nan)
+        self.moved = np.zeros(n_cells)
         self.updates = 0
 
     def reset(self, cells: np.ndarray) -> None:
         self.z[cells] = np.array([1.0, 1.0, 0.0])
 
-    def record(self, dt_s: float, current_a: np.ndarray, u_df_meas: np.ndarray, soc: np.ndarray) -> None:
+    def record(self, dt_s: float, current_a: np.ndarray, u_df_meas: np.ndarray, capacity_ah: np.ndarray) -> None:
         """Buffer one sample of the fast path (cheap; called every step)."""
-        if np.isnan(self.anchor_soc).any():
-            self.anchor_soc = np.where(np.isnan(self.anchor_soc), soc, self.anchor_soc)
+        self.moved += np.abs(current_a) * dt_s / (3600.0 * capacity_ah)
         if self.length == self.capacity:  # long rest: restart the interval here
             self.hist0 = self.ring.copy()
             self.length = 0
@@ -68,12 +68,12 @@ class SlowIdentifier:
         self.length += 1
         push_history(self.ring, u_df_meas)
 
-    def due(self, soc: np.ndarray) -> bool:
-        return self.length >= 2 and bool(np.nanmax(np.abs(soc - self.anchor_soc)) >= self.soc_delta)
+    def due(self) -> bool:
+        return self.length >= 2 and bool(self.moved.max() >= self.soc_delta)
 
-    def update(self, r_df: np.ndarray, c_df: np.ndarray, n: np.ndarray, soc: np.ndarray) -> bool:
+    def update(self, r_df: np.ndarray, c_df: np.ndarray, n: np.ndarray) -> bool:
         """Run one slow update if due; ``r_df, c_df, n`` are the profile values at T."""
-        if not self.due(soc):
+        if not self.due():
             return False
         steps = self.length
         z = self.z
@@ -109,6 +109,6 @@ class SlowIdentifier:
         self.z[:, 2] = np.clip(self.z[:, 2], ORDER_LIMITS[0] - n, ORDER_LIMITS[1] - n)
         self.hist0 = self.ring.copy()
         self.length = 0
-        self.anchor_soc = soc.copy()
+        self.moved[:] = 0.0
         self.updates += 1
         return True

@@ -1,0 +1,106 @@
+"""``socd bench``: throughput of the full pipeline, vectorised across a pack vs a per-cell loop."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from service.cli import UserError
+
+
+def add_subparser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "bench",
+        help="cell-steps per second of the full pipeline on one core (pack-vectorised vs per-cell loop)",
+        description=(
+            "Measure cell-steps/s of the full pipeline (FO-MI-UKF + fast and slow identifiers, default "
+            "settings) for a pack of --cells cells on one core, and of the same code run as a plain "
+            "per-cell loop (one single-cell estimator per cell) as the reference. The process is pinned "
+            "to one CPU. Inputs are a simulated drive (1 s steps) so the numbers do not depend on files."
+        ),
+    )
+    p.add_argument("--cells", type=int, default=200, help="cells in the pack (default 200)")
+    p.add_argument("--steps", type=int, default=400, help="time steps for the pack run (default 400)")
+    p.add_argument("--reference-steps", type=int, default=40, help="time steps for the per-cell loop (default 40)")
+    p.add_argument("--cell", metavar="CELL_FILE", help="cell profile (default: the bundled Panasonic 18650PF)")
+    p.add_argument("--json", metavar="OUT", help="write results as JSON")
+    p.set_defaults(func=run)
+
+
+def _inputs(n_cells: int, steps: int, profile, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A pack drive: shared current, per-cell voltages from the model with a spread of SOC."""
+    from service.cell.model import MtsFom
+
+    rng = np.random.default_rng(seed)
+    current = np.repeat(rng.normal(0.5, 1.5, steps // 10 + 1), 10)[:steps]
+    soc0 = rng.uniform(0.6, 0.9, n_cells)
+    temp = np.full(n_cells, 25.0)
+    model = MtsFom(profile, profile.parameters_at(temp), soc0)
+    volts = np.empty((steps, n_cells))
+    for k in range(steps):
+        volts[k] = model.step(1.0, np.full(n_cells, current[k]), temp) + rng.normal(0, 0.002, n_cells)
+    return current, volts, temp
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.cell.profile import ProfileError, load_profile
+    from service.commands.demo_assets import default_profile_path
+    from service.estimators.pipeline import PackEstimator
+    from service.estimators.settings import EstimatorSettings
+
+    if args.cells < 1 or args.steps < 10 or args.reference_steps < 2:
+        raise UserError("--cells must be ≥ 1, --steps ≥ 10 and --reference-steps ≥ 2")
+    try:
+        profile = load_profile(args.cell or default_profile_path())
+    except ProfileError as exc:
+        raise UserError(str(exc)) from exc
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    settings = EstimatorSettings()
+    n = args.cells
+    current, volts, temp = _inputs(n, max(args.steps, args.reference_steps), profile)
+
+    def pack_run(steps: int) -> float:
+        est = PackEstimator(profile, n, settings)
+        est.initialise(volts[0], temp)
+        t0 = time.perf_counter()
+        for k in range(steps):
+            est.step(1.0, current[k], volts[k], temp)
+            est.slow_update()
+        return time.perf_counter() - t0
+
+    def loop_run(steps: int) -> float:
+        ests = [PackEstimator(profile, 1, settings) for _ in range(n)]
+        for c, e in enumerate(ests):
+            e.initialise(volts[0, c:c + 1], temp[c:c + 1])
+        t0 = time.perf_counter()
+        for k in range(steps):
+            for c, e in enumerate(ests):
+                e.step(1.0, current[k], volts[k, c:c + 1], temp[c:c + 1])
+                e.slow_update()
+        return time.perf_counter() - t0
+
+    pack_run(5)  # warm-up
+    pack_s = min(pack_run(args.steps) for _ in range(3))
+    ref_s = loop_run(args.reference_steps)
+    result = {
+        "cell_steps_per_s": n * args.steps / pack_s,
+        "reference_cell_steps_per_s": n * args.reference_steps / ref_s,
+        "cells": n,
+        "memory_length": settings.memory_length,
+        "innovation_length": settings.innovation_length,
+        "us_per_pack_step": 1e6 * pack_s / args.steps,
+    }
+    result["ratio"] = result["cell_steps_per_s"] / result["reference_cell_steps_per_s"]
+    print(f"pack of {n} cells, L={settings.memory_length}, p={settings.innovation_length}, one core")
+    print(f"  vectorised pipeline : {result['cell_steps_per_s']:12,.0f} cell-steps/s  ({result['us_per_pack_step']:.0f} µs per pack step)")
+    print(f"  per-cell loop (ref.): {result['reference_cell_steps_per_s']:12,.0f} cell-steps/s")
+    print(f"  ratio               : {result['ratio']:12.1f} x")
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1))
+    return 0

@@ -1,0 +1,37 @@
+"""Coulomb counting: the baseline every model-based estimator must beat.
+
+    SOC_k = SOC_{k-1} - I_k dt_k / (3600 Q)
+
+(Zeng Eq. 4 with the sample period and 3600 s/h restored; backward zero-order hold:
+the current of row ``k`` flowed over ``(t_{k-1}, t_k]``, first sample ``dt = 0``.)
+``Q`` is the profile capacity times its ``capacity_scale`` extension.  Nothing else
+of the profile is used: no current-bias correction, no clipping, no voltage — an
+error in ``soc0`` or in the current sensor stays in the estimate for good.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.cell.profile import CellProfile
+from service.estimators.base import EstimateTrace
+from service.recording import Recording
+
+
+def coulomb_count(
+    time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float, soc0: float
+) -> np.ndarray:
+    """SOC along ``time_s`` by backward-ZOH charge integration from ``soc0``."""
+    dt = np.diff(time_s, prepend=time_s[0])
+    return soc0 - np.cumsum(current_a * dt) / (3600.0 * capacity_ah)
+
+
+class CoulombCounter:
+    """Pure coulomb counting from ``soc0`` (name ``"coulomb"``); no voltage, no v_pred."""
+
+    name = "coulomb"
+
+    def run(self, recording: Recording, profile: CellProfile, soc0: float) -> EstimateTrace:
+        capacity = profile.capacity_ah * profile.extensions.capacity_scale
+        soc = coulomb_count(recording.time_s, recording.current_a, capacity, soc0)
+        return EstimateTrace(soc=soc, v_pred=None, soc_std=None, params={})
