@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import signal
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -120,6 +121,9 @@ class Daemon:
         self._fresh = np.zeros(self.n, dtype=bool)
         self._resets_seen = 0
         self._prev_current: float | None = None
+        self._ckpt_seq = 0
+        self._ckpt_saved_seq = 0
+        self._ckpt_lock = threading.Lock()
         self.samples = 0
         self.steps = 0
         self.step_time_s = 0.0
@@ -248,7 +252,9 @@ class Daemon:
     def _checkpoint_args(self) -> dict | None:
         if not self.initialised:
             return None
+        self._ckpt_seq += 1
         return dict(
+            seq=self._ckpt_seq,
             path=self.config.checkpoint.path,
             state=self.estimator.get_state(),
             n_cells=self.n,
@@ -264,12 +270,20 @@ class Daemon:
         return self._save(args)
 
     def _save(self, args: dict) -> bool:
-        try:
-            save_checkpoint(**args)
-        except (OSError, ValueError) as exc:
-            self.health.count("checkpoint_write_failed")
-            log.error("checkpoint write failed: %s", exc)
-            return False
+        args = dict(args)
+        seq = args.pop("seq")
+        # A periodic save still running in the executor must not overwrite a newer state
+        # (the final one on shutdown): saves are serialised and never go backwards.
+        with self._ckpt_lock:
+            if seq <= self._ckpt_saved_seq:
+                return False
+            try:
+                save_checkpoint(**args)
+            except (OSError, ValueError) as exc:
+                self.health.count("checkpoint_write_failed")
+                log.error("checkpoint write failed: %s", exc)
+                return False
+            self._ckpt_saved_seq = seq
         self.health.count("checkpoints_saved")
         self.health.set_flag("checkpoint_corrupt", False)
         return True
