@@ -218,8 +218,9 @@ def test_replay_to_can_and_zenoh_outputs_with_bounded_soc_error(tmp_path: Path, 
     err = chain.errors_pct(pack)
     late = np.asarray(chain.t_hist) - pack.time_s[0] > 300.0
     rmse_late = float(np.sqrt(np.mean(err[late] ** 2)))
-    assert rmse_late < 5.0, f"SOC RMSE after 300 s {rmse_late:.2f} %"
-    assert np.max(np.abs(err[late])) < 25.0
+    print(f"e2e SOC RMSE after 300 s {rmse_late:.2f} %, max {np.max(np.abs(err[late])):.2f} %")
+    assert rmse_late < 4.5, f"SOC RMSE after 300 s {rmse_late:.2f} %"
+    assert np.max(np.abs(err[late])) < 12.0
     lat = d.health.latency_ms()
     assert lat["estimate_p50"] is not None and lat["publish_p50"] is not None
     assert Path(d.config.checkpoint.path).is_file()  # final checkpoint on shutdown
