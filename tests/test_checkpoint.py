@@ -22,14 +22,18 @@ import can
 import numpy as np
 import pytest
 
-from service.cell.profile import load_profile, save_profile
+from service.cell.profile import load_profile
 from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config
 from service.daemon import checkpoint as ck
-from service.daemon.checkpoint import decode_checkpoint, load_checkpoint, profile_hash, save_checkpoint
+from service.daemon.checkpoint import (
+    decode_checkpoint,
+    load_checkpoint,
+    profile_hash,
+    save_checkpoint,
+)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "panasonic_18650pf"
 RECORDING = DATA / "pan18650pf_25C_US06.csv"
-OCV_TABLE = DATA.parent / "ocv" / "ocv_pan18650pf_25C_soc_table.csv"
 
 
 def _state(n: int = 4) -> dict:
@@ -135,28 +139,8 @@ def test_decode_rejects_pickles(tmp_path: Path) -> None:
 
 
 # -- the daemon's reaction ---------------------------------------------------------------
-_FALLBACK: list[Path] = []
-
-
 def _profile_path() -> Path:
-    """The bundled Panasonic profile; until it exists, one built from the shared C/20 OCV test."""
-    if DEFAULT_CELL_PROFILE.is_file():
-        return DEFAULT_CELL_PROFILE
-    if not _FALLBACK:
-        import tempfile
-
-        from service.cell.profile import CellProfile
-
-        table = np.loadtxt(OCV_TABLE, delimiter=",", skiprows=1, usecols=(0, 3))
-        profile = CellProfile(
-            name="panasonic_18650pf (test fallback)", capacity_ah=2.9,
-            ocv={"soc": table[:, 0].tolist(), "ocv_v": [table[:, 1].tolist()]},
-            parameters=[dict(r_ohm=0.025, r_ct=0.012, c_dl=120.0, m=0.8, r_df=0.02, c_df=3000.0, n=0.6)],
-        )
-        path = Path(tempfile.mkdtemp(prefix="socd-profile-")) / "profile.toml"
-        save_profile(profile, path)
-        _FALLBACK.append(path)
-    return _FALLBACK[0]
+    return DEFAULT_CELL_PROFILE  # the bundled Panasonic NCR18650PF profile
 
 
 def _config(tmp_path: Path, n_cells: int = 8, **extra):

@@ -17,7 +17,6 @@ import os
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections import Counter
@@ -43,7 +42,6 @@ from service.recording import load_recording
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 RECORDING = DATA / "panasonic_18650pf" / "pan18650pf_25C_US06.csv"
-OCV_TABLE = DATA / "ocv" / "ocv_pan18650pf_25C_soc_table.csv"
 N_CELLS = 8
 
 pytestmark = pytest.mark.skipif(not RECORDING.is_file(), reason=f"{RECORDING} not present")
@@ -55,26 +53,8 @@ def _port() -> int:
         return s.getsockname()[1]
 
 
-_PROFILE: list[Path] = []
-
-
 def _profile_path() -> Path:
-    """The bundled Panasonic profile; until it exists, one built from the shared C/20 OCV test."""
-    if DEFAULT_CELL_PROFILE.is_file():
-        return DEFAULT_CELL_PROFILE
-    if not _PROFILE:
-        from service.cell.profile import CellProfile, save_profile
-
-        table = np.loadtxt(OCV_TABLE, delimiter=",", skiprows=1, usecols=(0, 3))
-        profile = CellProfile(
-            name="panasonic_18650pf (test fallback)", capacity_ah=2.9,
-            ocv={"soc": table[:, 0].tolist(), "ocv_v": [table[:, 1].tolist()]},
-            parameters=[dict(r_ohm=0.025, r_ct=0.012, c_dl=120.0, m=0.8, r_df=0.02, c_df=3000.0, n=0.6)],
-        )
-        path = Path(tempfile.mkdtemp(prefix="socd-profile-")) / "profile.toml"
-        save_profile(profile, path)
-        _PROFILE.append(path)
-    return _PROFILE[0]
+    return DEFAULT_CELL_PROFILE  # the bundled Panasonic NCR18650PF profile
 
 
 def _config(tmp_path: Path, **bus):
@@ -356,7 +336,7 @@ def test_receive_error_reconnects_with_backoff() -> None:
         while len(got) < 20 and time.monotonic() < end:
             try:
                 msg = await asyncio.wait_for(rx.recv(), 0.5)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 continue
             got.append(msg.data[0])
         await st

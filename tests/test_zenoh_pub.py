@@ -13,7 +13,6 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -27,8 +26,6 @@ from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTP
 from service.daemon.health import HealthMonitor
 from service.daemon.payloads import SCHEMA_VERSION, CellParams, CellSoc, Health, Snapshot, Summary
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher, zenoh_config
-
-OCV_TABLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "ocv" / "ocv_pan18650pf_25C_soc_table.csv"
 
 
 def _port() -> int:
@@ -231,19 +228,7 @@ def test_slow_consumer_never_stalls_and_drops_are_counted(publisher) -> None:
 
 # -- the daemon: peer absent, then back ------------------------------------------------------
 def _profile_path() -> Path:
-    if DEFAULT_CELL_PROFILE.is_file():
-        return DEFAULT_CELL_PROFILE
-    from service.cell.profile import CellProfile, save_profile
-
-    table = np.loadtxt(OCV_TABLE, delimiter=",", skiprows=1, usecols=(0, 3))
-    profile = CellProfile(
-        name="panasonic_18650pf (test fallback)", capacity_ah=2.9,
-        ocv={"soc": table[:, 0].tolist(), "ocv_v": [table[:, 1].tolist()]},
-        parameters=[dict(r_ohm=0.025, r_ct=0.012, c_dl=120.0, m=0.8, r_df=0.02, c_df=3000.0, n=0.6)],
-    )
-    path = Path(tempfile.mkdtemp(prefix="socd-profile-")) / "profile.toml"
-    save_profile(profile, path)
-    return path
+    return DEFAULT_CELL_PROFILE  # the bundled Panasonic NCR18650PF profile
 
 
 def test_peer_absent_then_back_estimation_continues(tmp_path: Path) -> None:

@@ -279,7 +279,7 @@ class CanReceiver:
                 self._delay = self._initial
             return item
 
-    def __aiter__(self) -> "CanReceiver":
+    def __aiter__(self) -> CanReceiver:
         return self
 
     async def __anext__(self) -> can.Message:
