@@ -34,6 +34,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--report", help="write report.md and PNG plots into this directory")
     p.add_argument("--save-profile", help="write the extended cell profile here (.json or .toml)")
     p.add_argument("--fit-fraction", type=float, default=0.6, help="share of the duration fitted (default 0.6)")
+    p.add_argument("--split", choices=("chronological", "interleaved"), default="chronological",
+                   help="held-out protocol: the last 40 %% of the duration (default), or blocks 2,4,7,9 of 10")
     p.add_argument("--effects", help="comma-separated subset of candidate effects to try (default: all)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -90,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--effects: unknown effect(s) {', '.join(bad)}; choose from {', '.join(EFFECTS)}")
     if len(rec) < 100:
         raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
-    opt = DiagnoseOptions(fit_fraction=args.fit_fraction, effects=effects,
+    opt = DiagnoseOptions(fit_fraction=args.fit_fraction, split=args.split, effects=effects,
                           seed=args.seed, fit_base=fit_base)
     say = (lambda m: None) if args.quiet else (lambda m: print(f"socd diagnose: {m}", file=sys.stderr, flush=True))
     try:

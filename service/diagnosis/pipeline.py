@@ -49,15 +49,17 @@ VOCABULARY = ("hysteresis", "temperature", "diffusion", "capacity", "current_bia
 @dataclass
 class DiagnoseOptions:
     fit_fraction: float = 0.6
+    split: str = "chronological"  # or "interleaved": 10 blocks, blocks 1,3,6,8 held out
     base_seconds: float = 25.0
+    base_de_maxiter: int = 200
     effect_seconds: float = 20.0
     memory_length: int = 16
     seed: int = 0
     effects: tuple[str, ...] = tuple(EFFECTS)
     fit_base: bool = True
     # significance thresholds (see module docstring)
-    min_rel_gain: float = 0.25
-    min_delta_bic: float = 10.0
+    min_rel_gain: float = 0.30
+    min_delta_bic: float = 2.0
     min_abs_gain_noise: float = 0.5
 
 
@@ -209,33 +211,47 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     r_guess = estimate_r_ohm([full]) or 0.02
     v_rest0, _ = initial_rest_voltage(rec, cap, r_guess)
     t_split = rec.time_s[0] + opt.fit_fraction * (rec.time_s[-1] - rec.time_s[0])
-    fit_full = rec.time_s <= t_split
-    held = ~fit_full
+    if opt.split == "interleaved":
+        block = np.minimum(((rec.time_s - rec.time_s[0]) / (rec.time_s[-1] - rec.time_s[0]) * 10).astype(int), 9)
+        held = np.isin(block % 5, (1, 3))
+    elif opt.split == "chronological":
+        held = rec.time_s > t_split
+    else:
+        raise ValueError(f"split '{opt.split}' not recognised; choose chronological or interleaved")
+    fit_full = ~held
     if fit_full.sum() < 20 or held.sum() < 20:
         raise ValueError(f"recording too short to split ({len(rec)} samples)")
 
     temp_fit = float(np.mean(rec.temperature_c[fit_full]))
     # the base point sits at the fit part's mean temperature (the Arrhenius reference)
     soc0 = float(initial_soc(profile.ocv_table(), v_rest0, float(rec.temperature_c[0]))[0])
-    seg_fit = FitSegment(rec.time_s[fit_full], rec.current_a[fit_full], rec.voltage_v[fit_full],
-                         rec.temperature_c[fit_full], soc0=soc0)
+    last_fit = int(np.flatnonzero(fit_full)[-1]) + 1
+    seg_fit = FitSegment(rec.time_s[:last_fit], rec.current_a[:last_fit], rec.voltage_v[:last_fit],
+                         rec.temperature_c[:last_fit], soc0=soc0)
     # fitted at the recording's own rate (the G-L memory counts samples; see service.cell.fitting);
-    # samples after the split cannot change the fit part's simulation, so they are not simulated
+    # the model runs through held-out blocks (its state is continuous), they only leave the loss;
+    # samples after the last fitted one cannot change the fit, so they are not simulated
     grid = seg_fit
-    fit_mask = np.ones(len(grid), dtype=bool)
+    fit_mask = fit_full[:last_fit]
     n_fit_grid = len(grid)
     seed_point = None
     if not opt.fit_base or profile.parameters:
         seed_point = min(profile.parameters, key=lambda p: abs(p.temp_c - temp_fit))
     say("fitting the base model on the fit part")
-    base_fit = fit_parameters(profile, [seg_fit], memory_length=opt.memory_length, max_seconds=opt.base_seconds,
-                              seed=opt.seed, polish_points=n_fit_grid, x0=seed_point if not opt.fit_base else None)
+    # global search + polish on the first contiguous fitted stretch (held-out samples never
+    # enter a loss), then a masked polish over all fitted samples below
+    first_held = int(np.argmax(held)) if held.any() else len(rec)
+    seg_base = FitSegment(rec.time_s[:first_held], rec.current_a[:first_held], rec.voltage_v[:first_held],
+                          rec.temperature_c[:first_held], soc0=soc0)
+    base_fit = fit_parameters(profile, [seg_base], memory_length=opt.memory_length, max_seconds=opt.base_seconds,
+                              seed=opt.seed, polish_points=n_fit_grid, de_maxiter=opt.base_de_maxiter, x0=seed_point if not opt.fit_base else None)
     point = base_fit.point.model_copy(update={"temp_c": temp_fit})
     base_profile = profile.model_copy(update={"parameters": [point]})
     problem = Problem(profile=base_profile, grid=grid, fit_mask=fit_mask, v_rest0=v_rest0, temp_c=temp_fit,
                       memory_length=opt.memory_length)
     x0 = encode_point(point)
-    base_ref = refit(problem, x0, None, max_seconds=opt.effect_seconds, max_nfev=15)
+    base_ref = refit(problem, x0, None, max_seconds=opt.effect_seconds,
+                     max_nfev=15 if opt.split == "chronological" else 40)
     x_base = base_ref.x
     from service.cell.fitting import point_from_x
 
@@ -327,7 +343,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         "base_fit_evaluations": base_fit.n_evaluations,
     }
     protocol = {
-        "split": "chronological", "fit_fraction": opt.fit_fraction, "t_split_s": float(t_split),
+        "split": opt.split, "fit_fraction": float(fit_full.mean()), "t_split_s": float(t_split),
         "fit_samples": int(fit_full.sum()), "heldout_samples": int(held.sum()),
         "initial_state": "SOC from OCV at the opening rest voltage (no soc_true)",
     }

@@ -126,10 +126,11 @@ def write_report(dg, out_dir: str | Path) -> Path:
             f" ({100 * dg.effects[0].score:.1f} % lower)"),
         "",
         "## Protocol",
-        f"- Split: chronological; the first {100 * dg.protocol['fit_fraction']:.0f} % of the duration "
-        f"({dg.protocol['fit_samples']} samples, up to t = {dg.protocol['t_split_s']:.0f} s) is fitted, "
-        f"the remaining {dg.protocol['heldout_samples']} samples are held out. The model runs through the "
-        "whole recording; only the scored samples differ.",
+        (f"- Split: chronological; the first {100 * dg.protocol['fit_fraction']:.0f} % of the duration "
+         f"(up to t = {dg.protocol['t_split_s']:.0f} s) is fitted" if dg.protocol["split"] == "chronological" else
+         "- Split: interleaved; the duration is cut into 10 blocks and blocks 2, 4, 7, 9 are held out")
+        + f" ({dg.protocol['fit_samples']} samples fitted, {dg.protocol['heldout_samples']} held out). The model "
+        "runs through the whole recording; only the scored samples differ.",
         f"- Initial state: {dg.protocol['initial_state']}; SOC0 = {dg.base['soc0']:.3f} "
         f"from {dg.base['v_rest0']:.4f} V.",
         "- Every model is fitted at the recording's own rate; held-out RMSEs come from "
