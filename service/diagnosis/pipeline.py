@@ -59,7 +59,7 @@ class DiagnoseOptions:
     fit_base: bool = True
     # significance thresholds (see module docstring)
     min_rel_gain: float = 0.30
-    min_delta_bic: float = 2.0
+    min_delta_bic: float = 0.0
     min_abs_gain_noise: float = 0.5
 
 
