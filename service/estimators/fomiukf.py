@@ -138,7 +138,8 @@ class FoMiUkf:
         )
         y_hat = y @ self.wm
         dy = y - y_hat[:, None]
-        p_yy = (dy * dy) @ self.wc + self.settings.voltage_noise_v**2
+        st = self.settings
+        p_yy = (dy * dy) @ self.wc + st.voltage_noise_v**2 + (st.voltage_noise_per_amp_v * i) ** 2
         p_xy = np.einsum("s,nsi,ns->ni", self.wc, X - self.x[:, None, :], dy)
         k = p_xy / p_yy[:, None]
         e = np.where(active, voltage_v - y_hat, 0.0)

@@ -29,7 +29,10 @@ class EstimatorSettings(BaseModel):
         "parameters are confounded while SOC is still converging)"
     )
     slow_soc_delta: float = Field(0.005, gt=0, le=0.5, description="SOC movement that triggers a slow update")
-    voltage_noise_v: float = Field(0.02, gt=0, description="measurement noise σ of the SOC filter: sensor noise plus model error")
+    voltage_noise_v: float = Field(0.01, gt=0, description="measurement noise σ of the SOC filter: sensor noise plus model error")
+    voltage_noise_per_amp_v: float = Field(
+        0.02, ge=0, description="model error that grows with current: σ_v² = σ² + (k·|I|)²"
+    )
     current_noise_a: float = Field(0.02, ge=0, description="current-sensor noise σ driving SOC process noise")
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
     ukf_alpha: float = Field(1.0, gt=0, le=1)
