@@ -1,0 +1,321 @@
+"""PackEstimator and the offline pipeline estimators: convergence, batch = single, stale
+cells, state round trip, divergence handling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.cell.model import MtsFom
+from service.estimators.pipeline import PackEstimator, fom_single_scale, fomiukf, foukf
+from service.estimators.settings import EstimatorSettings
+from service.recording import load_recording
+
+ESTIMATORS = {"fomiukf": fomiukf, "foukf": foukf, "fom-single-scale": fom_single_scale}
+
+
+def _rmse_after(err: np.ndarray, time_s: np.ndarray, after_s: float = 600.0) -> float:
+    return float(np.sqrt(np.mean(err[time_s - time_s[0] >= after_s] ** 2)))
+
+
+# -- convergence -------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", list(ESTIMATORS))
+def test_converges_from_wrong_start(nmc_recording, nmc_profile, name: str) -> None:
+    rec = nmc_recording(duration_s=1200, seed=0, soc0=0.9)
+    trace = ESTIMATORS[name]().run(load_recording(rec.path), nmc_profile, 0.7)
+    err = trace.soc - rec.soc_true
+    assert _rmse_after(err, rec.time_s) < 0.03
+    assert abs(err[-1]) < 0.03
+    assert np.all(np.isfinite(trace.soc_std)) and trace.soc_std[-1] < trace.soc_std[0]
+    assert np.all(np.isfinite(trace.v_pred))
+
+
+def test_single_scale_converges_at_mid_soc(nmc_recording, nmc_profile) -> None:
+    rec = nmc_recording(duration_s=1200, seed=0, soc0=0.5)
+    trace = fom_single_scale().run(load_recording(rec.path), nmc_profile, 0.7)
+    assert _rmse_after(trace.soc - rec.soc_true, rec.time_s) < 0.03
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="full pipeline on exact-model data started at the true parameters: the fast "
+    "identifier's lagging U_df random-walk parameter drives R_ohm/R_ct and (through the slow "
+    "identifier, which is fed that U_df) R_df to their RELATIVE_LIMITS bounds",
+)
+def test_full_pipeline_parameters_stay_near_truth(nmc_recording, nmc_profile, nmc_true_parameters) -> None:
+    rec = nmc_recording(duration_s=1200, seed=0, soc0=0.5)
+    trace = fomiukf().run(load_recording(rec.path), nmc_profile, 0.7)
+    for name in ("r_ohm", "r_ct", "r_df"):
+        ratio = trace.params[name][-1] / nmc_true_parameters[name]
+        assert 0.5 < ratio < 2.0, (name, ratio)
+
+
+# -- a pack: batch = single cells -----------------------------------------------------------------
+def _pack_data(profile, n_cells: int, steps: int, seed: int):
+    """Per-cell currents (different pulse trains and scales), cells differing in R_ohm
+    and SOC, voltages simulated by the model with 2 mV noise."""
+    rng = np.random.default_rng(seed)
+    levels = np.array([4.0, 2.0, 1.0, 0.0, 0.0, -1.0, -2.0])
+    current = np.empty((steps, n_cells))
+    for c in range(n_cells):
+        k = 0
+        while k < steps:
+            hold = int(rng.integers(5, 60))
+            current[k : k + hold, c] = rng.choice(levels) * rng.uniform(0.3, 1.2)
+            k += hold
+    current[:5] = 0.0
+    params = profile.parameters_at(25.0, n_cells=n_cells)
+    params.r_ohm = params.r_ohm * rng.uniform(0.8, 1.2, n_cells)
+    soc0 = rng.uniform(0.3, 0.95, n_cells)
+    model = MtsFom(profile, params, soc0)
+    temp = np.full(n_cells, 25.0)
+    voltage = np.empty((steps, n_cells))
+    soc = np.empty((steps, n_cells))
+    for k in range(steps):
+        voltage[k] = model.step(1.0 if k else 0.0, current[k], temp)
+        soc[k] = model.soc
+    voltage += rng.normal(0.0, 0.002, voltage.shape)
+    start = np.clip(soc0 + rng.choice([-0.1, 0.1], n_cells), 0.0, 1.0)
+    return current, voltage, temp, start, soc
+
+
+def _batch_vs_single(profile, settings: EstimatorSettings, cells: list[int], n_cells: int = 200, steps: int = 300):
+    current, voltage, temp, start, _ = _pack_data(profile, n_cells, steps, seed=5)
+    pack = PackEstimator(profile, n_cells, settings)
+    pack.start(start)
+    for k in range(steps):
+        pack.step(1.0 if k else 0.0, current[k], voltage[k], temp)
+        pack.slow_update()
+    singles = []
+    for c in cells:
+        one = PackEstimator(profile, 1, settings)
+        one.start(start[c : c + 1])
+        for k in range(steps):
+            one.step(1.0 if k else 0.0, current[k, c : c + 1], voltage[k, c : c + 1], temp[:1])
+            one.slow_update()
+        singles.append(one)
+    return pack, singles
+
+
+def test_pack_batch_equals_single_cell_runs(nmc_profile) -> None:
+    """200 cells with different currents and voltages, estimated together, give the same
+    SOC and σ as each cell estimated on its own (checked on a spread of cells: 200 single
+    runs would dominate the suite's runtime).  Slow identifier off: see the xfail below."""
+    cells = [0, 1, 37, 99, 150, 198, 199]
+    pack, singles = _batch_vs_single(nmc_profile, EstimatorSettings(slow_identifier=False), cells)
+    for c, one in zip(cells, singles):
+        assert pack.soc[c] == pytest.approx(one.soc[0], rel=1e-9, abs=1e-10), c
+        assert pack.soc_std[c] == pytest.approx(one.soc_std[0], rel=1e-7, abs=1e-12), c
+        assert pack.v_pred[c] == pytest.approx(one.v_pred[0], abs=1e-9), c
+        for name, values in pack.parameters().items():
+            assert values[c] == pytest.approx(one.parameters()[name][0], rel=1e-7, abs=1e-12), (c, name)
+    assert not pack.reset_count.any()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="SlowIdentifier couples the cells of a pack: due() fires when ANY cell's throughput "
+    "reaches slow_soc_delta, update() then updates every cell and clears every cell's interval, and "
+    "PackEstimator.slow_update gates on any() cell's σ; a cell in a batch is therefore identified "
+    "on other intervals than the same cell alone (SOC differs by up to ~0.7 % after 300 s)",
+)
+def test_pack_batch_equals_single_cell_runs_with_slow_identifier(nmc_profile) -> None:
+    cells = [1, 199]
+    pack, singles = _batch_vs_single(nmc_profile, EstimatorSettings(), cells)
+    for c, one in zip(cells, singles):
+        assert pack.soc[c] == pytest.approx(one.soc[0], rel=1e-9, abs=1e-10), c
+
+
+# -- stale cells -----------------------------------------------------------------------------------
+def test_stale_cells_take_no_voltage_update_and_their_sigma_grows(nmc_profile) -> None:
+    N, warm, stale = 4, 200, 150
+    current, voltage, temp, start, _ = _pack_data(nmc_profile, N, warm + stale, seed=2)
+    s = EstimatorSettings()
+    a, b, ref, all_active = (PackEstimator(nmc_profile, N, s) for _ in range(4))
+    for est in (a, b, ref, all_active):
+        est.start(start)
+    active = np.array([True, False, True, True])
+    rng = np.random.default_rng(0)
+    stds = []
+    for k in range(warm + stale):
+        dt = 1.0 if k else 0.0
+        if k < warm:
+            for est in (a, b, ref, all_active):
+                est.step(dt, current[k], voltage[k], temp)
+            continue
+        all_active.step(dt, current[k], voltage[k], temp)
+        garbage = voltage[k].copy()
+        garbage[1] = rng.uniform(0.0, 10.0)  # what a stale cell's frame might hold
+        nan_v = voltage[k].copy()
+        nan_v[1] = np.nan  # a missing value is stale too
+        a.step(dt, current[k], voltage[k], temp, active)
+        b.step(dt, current[k], garbage, temp, active)
+        ref.step(dt, current[k], nan_v, temp)
+        stds.append(a.soc_std[1])
+    # the stale cell's voltage is not used at all
+    for est in (b, ref):
+        np.testing.assert_array_equal(est.soc, a.soc)
+        np.testing.assert_array_equal(est.soc_std, a.soc_std)
+    # its σ grows every step, above what it would be had its voltage kept coming
+    stds = np.array(stds)
+    assert np.all(np.diff(stds) > 0)
+    assert a.soc_std[1] > all_active.soc_std[1]
+    assert not a.reset_count.any()
+    # the other cells are estimated exactly as if cell 1 were not there
+    solo = PackEstimator(nmc_profile, 3, s)
+    solo.start(start[[0, 2, 3]])
+    for k in range(warm + stale):
+        solo.step(1.0 if k else 0.0, current[k, [0, 2, 3]], voltage[k, [0, 2, 3]], temp[:3])
+    np.testing.assert_allclose(a.soc[[0, 2, 3]], solo.soc, rtol=1e-10, atol=1e-12)
+
+
+def test_stale_cell_soc_follows_current(nmc_profile) -> None:
+    s = EstimatorSettings(innovation_length=1, fast_identifier=False, slow_identifier=False)
+    est = PackEstimator(nmc_profile, 2, s)
+    est.start(np.array([0.6, 0.6]))
+    before = est.soc.copy()
+    for _ in range(100):
+        est.step(2.0, np.array([1.5, 1.5]), np.array([np.nan, np.nan]), np.full(2, 25.0), np.array([False, False]))
+    expected = before - 1.5 * 200.0 / (3600.0 * nmc_profile.capacity_ah)
+    np.testing.assert_allclose(est.soc, expected, atol=1e-12)
+
+
+# -- persistence -----------------------------------------------------------------------------------
+def _warm_pack(profile, settings=None, n_cells: int = 3, steps: int = 250, identification="multi"):
+    current, voltage, temp, start, _ = _pack_data(profile, n_cells, steps + 5, seed=9)
+    est = PackEstimator(profile, n_cells, settings, identification)
+    est.start(start)
+    for k in range(steps):
+        est.step(1.0 if k else 0.0, current[k], voltage[k], temp)
+        est.slow_update()
+    return est, (current, voltage, temp)
+
+
+@pytest.mark.parametrize("identification", ["multi", "single", "none"])
+def test_state_round_trip_reproduces_next_step(nmc_profile, identification) -> None:
+    s = EstimatorSettings()
+    est, (current, voltage, temp) = _warm_pack(nmc_profile, s, identification=identification)
+    state = est.get_state()
+    restored = PackEstimator(nmc_profile, est.n, s, identification)
+    restored.set_state(state)
+    k = 250
+    for e in (est, restored):
+        e.step(1.0, current[k], voltage[k], temp)
+    np.testing.assert_array_equal(restored.soc, est.soc)
+    np.testing.assert_array_equal(restored.soc_std, est.soc_std)
+    np.testing.assert_array_equal(restored.v_pred, est.v_pred)
+    after_a, after_b = est.get_state(), restored.get_state()
+    assert after_a.keys() == after_b.keys()
+    for key in after_a:
+        np.testing.assert_array_equal(after_a[key], after_b[key], err_msg=key)
+    # the state is a copy, not a view on the estimator
+    state["ukf_x"][:] = 0.0
+    assert np.all(est.ukf.x[:, est.ukf.i_soc] != 0.0)
+
+
+def _corrupt(state: dict, key: str, how: str) -> dict:
+    st = {k: np.array(v, copy=True) for k, v in state.items()}
+    if how == "nan":
+        st[key] = st[key].astype(float)
+        st[key].flat[0] = np.nan
+    elif how == "inf":
+        st[key].flat[-1] = np.inf
+    elif how == "shape":
+        st[key] = st[key][:-1]
+    elif how == "missing":
+        del st[key]
+    return st
+
+
+@pytest.mark.parametrize(
+    "key, how",
+    [
+        ("ukf_x", "nan"),
+        ("ukf_P", "inf"),
+        ("ukf_hist", "nan"),
+        ("ukf_x", "shape"),
+        ("ukf_P", "shape"),
+        ("ukf_gains", "shape"),
+        ("fast_z", "nan"),
+        ("fast_P", "shape"),
+        ("slow_z", "shape"),
+        ("slow_ring", "nan"),
+        ("ukf_nis", "missing"),
+        ("fast_D", "missing"),
+    ],
+)
+def test_set_state_rejects_bad_state(nmc_profile, key: str, how: str) -> None:
+    est, _ = _warm_pack(nmc_profile, steps=30)
+    good = est.get_state()
+    before = est.get_state()
+    with pytest.raises(ValueError, match=key):
+        est.set_state(_corrupt(good, key, how))
+    after = est.get_state()  # a rejected state changes nothing
+    for k in before:
+        np.testing.assert_array_equal(after[k], before[k], err_msg=k)
+
+
+def test_set_state_rejects_other_pack_size_and_version(nmc_profile) -> None:
+    est, _ = _warm_pack(nmc_profile, steps=20)
+    state = est.get_state()
+    with pytest.raises(ValueError):
+        PackEstimator(nmc_profile, 4).set_state(state)
+    with pytest.raises(ValueError, match="version"):
+        est.set_state({**state, "state_version": np.array(99)})
+    with pytest.raises(ValueError):
+        PackEstimator(nmc_profile, 3, EstimatorSettings(memory_length=8)).set_state(state)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="PackEstimator.set_state validates reset_count/ocv_initialised only after it has "
+    "already replaced the UKF state, so a rejected state is partly applied",
+)
+def test_set_state_rejection_is_atomic_for_counters(nmc_profile) -> None:
+    est, _ = _warm_pack(nmc_profile, steps=30)
+    before = est.get_state()
+    bad = _corrupt(before, "reset_count", "shape")
+    bad["ukf_x"] = bad["ukf_x"] + 0.01
+    with pytest.raises(ValueError, match="reset_count"):
+        est.set_state(bad)
+    np.testing.assert_array_equal(est.get_state()["ukf_x"], before["ukf_x"])
+
+
+# -- divergence ------------------------------------------------------------------------------------
+def test_divergence_is_detected_and_cell_reinitialised(nmc_profile) -> None:
+    N = 3
+    current, voltage, temp, start, soc_true = _pack_data(nmc_profile, N, 400, seed=4)
+    est = PackEstimator(nmc_profile, N, EstimatorSettings())
+    est.start(start)
+    for k in range(200):
+        est.step(1.0 if k else 0.0, current[k], voltage[k], temp)
+    assert not est.reset_count.any()
+    for k in range(200, 203):
+        v = voltage[k].copy()
+        v[2] = 9.0  # absurd
+        est.step(1.0, current[k], v, temp)
+    assert est.reset_count[2] >= 1
+    assert est.reset_count[0] == est.reset_count[1] == 0
+    assert est.ocv_initialised[2] and not est.ocv_initialised[:2].any()
+    # re-initialised from the (absurd) voltage: SOC clipped to the table, σ back to the start value
+    assert 0.0 <= est.soc[2] <= 1.0
+    assert est.soc_std[2] > 0.05
+    assert np.all(np.isfinite(est.ukf.x)) and np.all(np.isfinite(est.ukf.P))
+    count = est.reset_count[2]
+    # sane data again: no further resets, the cell re-converges
+    for k in range(203, 400):
+        est.step(1.0, current[k], voltage[k], temp)
+    assert est.reset_count[2] == count
+    assert est.soc_std[2] < 0.05
+    assert abs(est.soc[2] - soc_true[-1, 2]) < 0.03
+
+
+@pytest.mark.filterwarnings("ignore:invalid value encountered in cast:RuntimeWarning")
+def test_non_finite_filter_state_counts_as_divergence(nmc_profile) -> None:
+    est = PackEstimator(nmc_profile, 2)
+    est.start(np.array([0.5, 0.5]))
+    est.step(1.0, 1.0, np.array([3.7, 3.7]), np.full(2, 25.0))
+    est.ukf.x[0, 0] = np.nan
+    est.step(1.0, 1.0, np.array([3.7, 3.7]), np.full(2, 25.0))
+    assert est.reset_count.tolist() == [1, 0]
+    assert np.all(np.isfinite(est.ukf.x))
