@@ -36,6 +36,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--fit-fraction", type=float, default=0.6, help="share of the duration fitted (default 0.6)")
     p.add_argument("--split", choices=("chronological", "interleaved"), default="chronological",
                    help="held-out protocol: the last 40 %% of the duration (default), or blocks 2,4,7,9 of 10")
+    p.add_argument("--soc0", type=float, help="known initial SOC in [0, 1] (default: from the opening rest voltage)")
     p.add_argument("--effects", help="comma-separated subset of candidate effects to try (default: all)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -92,7 +93,9 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--effects: unknown effect(s) {', '.join(bad)}; choose from {', '.join(EFFECTS)}")
     if len(rec) < 100:
         raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
-    opt = DiagnoseOptions(fit_fraction=args.fit_fraction, split=args.split, effects=effects,
+    if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
+        raise UserError(f"--soc0 must be in [0, 1], got {args.soc0:g}")
+    opt = DiagnoseOptions(fit_fraction=args.fit_fraction, split=args.split, soc0=args.soc0, effects=effects,
                           seed=args.seed, fit_base=fit_base)
     say = (lambda m: None) if args.quiet else (lambda m: print(f"socd diagnose: {m}", file=sys.stderr, flush=True))
     try:

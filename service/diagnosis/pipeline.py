@@ -57,6 +57,7 @@ class DiagnoseOptions:
     seed: int = 0
     effects: tuple[str, ...] = tuple(EFFECTS)
     fit_base: bool = True
+    soc0: float | None = None  # known initial SOC (e.g. the run starts at full charge); else from the opening rest
     # significance thresholds (see module docstring)
     min_rel_gain: float = 0.30
     min_delta_bic: float = 0.0
@@ -210,6 +211,9 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     full = FitSegment(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, soc0=0.0)
     r_guess = estimate_r_ohm([full]) or 0.02
     v_rest0, _ = initial_rest_voltage(rec, cap, r_guess)
+    if opt.soc0 is not None:
+        # a user-given initial SOC stands in for the rest voltage: its OCV on the table
+        v_rest0 = float(profile.ocv_table().ocv(np.array(opt.soc0), float(rec.temperature_c[0])))
     t_split = rec.time_s[0] + opt.fit_fraction * (rec.time_s[-1] - rec.time_s[0])
     if opt.split == "interleaved":
         block = np.minimum(((rec.time_s - rec.time_s[0]) / (rec.time_s[-1] - rec.time_s[0]) * 10).astype(int), 9)
