@@ -75,4 +75,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # run through the importable module so UserError is the class the commands raise
+    from service.cli import main as _main
+
+    sys.exit(_main())

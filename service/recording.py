@@ -51,6 +51,21 @@ class Recording:
         )
 
 
+def _first_unparsable(path: Path, idx: list[int], cols: list[str]) -> str | None:
+    """'row N: column C: ...' for the first value that is not a number (N = file line)."""
+    with path.open(newline="") as fh:
+        reader = csv.reader(fh)
+        next(reader, None)
+        for line, row in enumerate(reader, start=2):
+            for i, name in zip(idx, cols):
+                cell = row[i] if i < len(row) else ""
+                try:
+                    float(cell)
+                except ValueError:
+                    return f"row {line}: column {name}: {cell!r} is not a number"
+    return None
+
+
 def load_recording(path: str | Path) -> Recording:
     """Read and validate a recording; raise :class:`UserError` naming file, row or column."""
     path = Path(path)
@@ -72,7 +87,7 @@ def load_recording(path: str | Path) -> Recording:
     try:
         data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=idx, ndmin=2, dtype=float)
     except ValueError as exc:
-        raise UserError(f"{path}: unparsable value: {exc}") from exc
+        raise UserError(f"{path}: {_first_unparsable(path, idx, cols) or f'unparsable value: {exc}'}") from exc
     if data.shape[0] < 2:
         raise UserError(f"{path}: needs at least 2 data rows, has {data.shape[0]}")
     bad = ~np.isfinite(data)

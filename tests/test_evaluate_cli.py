@@ -146,12 +146,6 @@ def test_unparsable_value_names_file(tmp_path: Path, nmc_profile_file, capsys) -
         assert str(rec) in err and "row" in err
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="load_recording passes numpy.loadtxt's own row number through for unparsable values "
-    "(0-based data row for a bad number, 1-based for a short row) while its other errors name the "
-    "file line ('row k+2'): the bad value on line 4 is reported as 'row 2'",
-)
 def test_unparsable_value_names_the_file_line(tmp_path: Path, nmc_profile_file, capsys) -> None:
     rows = _good_rows(6)
     rows[2] = "2,1.0,abc,25"  # line 4 of the file
@@ -278,12 +272,6 @@ def test_fit_bad_recording_names_file(tmp_path: Path, capsys) -> None:
     assert str(rec) in err and "row 3" in err and "time_s" in err
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="cli.py's `if __name__ == '__main__'` path: run as `python -m service.cli`, main() "
-    "catches __main__.UserError while commands raise service.cli.UserError, so user errors escape "
-    "as tracebacks with exit status 1",
-)
 def test_python_dash_m_reports_user_errors(tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-m", "service.cli", "evaluate", str(tmp_path / "absent.csv"),
                            "--cell", str(tmp_path / "absent.toml")], capture_output=True, text=True, timeout=120, check=False)

@@ -92,12 +92,6 @@ def test_parameter_ekf_recovers_resistances(nmc_recording, nmc_profile_factory, 
     assert abs(est.soc[0] - rec.soc_true[-1]) < 0.01
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="pipeline fast identifier: U_df as a random-walk parameter (ParameterEkf, z starts at 0, "
-    "σ 1 mV/step) lags the true diffusion voltage; R_ohm/R_ct/C_dl/m absorb the lag and are "
-    "driven to RELATIVE_LIMITS/ORDER_LIMITS even when started at the true values",
-)
 def test_pipeline_fast_identifier_stays_near_truth(nmc_recording, nmc_profile, truth) -> None:
     true_r_ohm, true_r_ct = truth["r_ohm"], truth["r_ct"]
     rec = nmc_recording(duration_s=1500, seed=0, soc0=0.9)

@@ -36,12 +36,6 @@ def test_single_scale_converges_at_mid_soc(nmc_recording, nmc_profile) -> None:
     assert _rmse_after(trace.soc - rec.soc_true, rec.time_s) < 0.03
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="full pipeline on exact-model data started at the true parameters: the fast "
-    "identifier's lagging U_df random-walk parameter drives R_ohm/R_ct and (through the slow "
-    "identifier, which is fed that U_df) R_df to their RELATIVE_LIMITS bounds",
-)
 def test_full_pipeline_parameters_stay_near_truth(nmc_recording, nmc_profile, nmc_true_parameters) -> None:
     rec = nmc_recording(duration_s=1200, seed=0, soc0=0.5)
     trace = fomiukf().run(load_recording(rec.path), nmc_profile, 0.7)
@@ -266,11 +260,6 @@ def test_set_state_rejects_other_pack_size_and_version(nmc_profile) -> None:
         PackEstimator(nmc_profile, 3, EstimatorSettings(memory_length=8)).set_state(state)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="PackEstimator.set_state validates reset_count/ocv_initialised only after it has "
-    "already replaced the UKF state, so a rejected state is partly applied",
-)
 def test_set_state_rejection_is_atomic_for_counters(nmc_profile) -> None:
     est, _ = _warm_pack(nmc_profile, steps=30)
     before = est.get_state()

@@ -184,22 +184,12 @@ def test_robust_cholesky_alone_does_not_need_repair_for_pd() -> None:
     np.testing.assert_allclose(L @ np.swapaxes(L, 1, 2), P, rtol=1e-14)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="robust_cholesky symmetrises into a new array, so the repair its docstring says is "
-    "'written back' never reaches the caller's matrix",
-)
 def test_robust_cholesky_writes_the_repair_back() -> None:
     P = np.array([np.eye(3), np.diag([1.0, -0.5, 2.0])])
     robust_cholesky(P)
     assert np.linalg.eigvalsh(P[1]).min() > 0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="FoMiUkf.update repairs P only for its sigma points: self.P stays indefinite, and "
-    "since predict is now F P F^T (no Cholesky) the indefinite covariance is never repaired",
-)
 def test_ukf_covariance_is_repaired_after_an_indefinite_one(nmc_profile: CellProfile) -> None:
     s = EstimatorSettings()
     ukf = FoMiUkf(nmc_profile.ocv_table(), 1, 2, s)

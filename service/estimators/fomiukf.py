@@ -139,7 +139,10 @@ class FoMiUkf:
         y_hat = y @ self.wm
         dy = y - y_hat[:, None]
         st = self.settings
-        p_yy = (dy * dy) @ self.wc + st.voltage_noise_v**2 + (st.voltage_noise_per_amp_v * i) ** 2
+        model_err = st.voltage_noise_per_amp_v * i
+        if st.voltage_noise_rel_overpotential:
+            model_err = np.hypot(model_err, st.voltage_noise_rel_overpotential * i * (params.r_ohm + params.r.sum(axis=1)))
+        p_yy = (dy * dy) @ self.wc + st.voltage_noise_v**2 + model_err**2
         p_xy = np.einsum("s,nsi,ns->ni", self.wc, X - self.x[:, None, :], dy)
         k = p_xy / p_yy[:, None]
         e = np.where(active, voltage_v - y_hat, 0.0)
@@ -156,14 +159,24 @@ class FoMiUkf:
         if p == 1:
             self.x = self.x + k * e[:, None]
         else:
-            gam = np.abs(gl_weights(params.alpha[:, min(1, b - 1)], p - 1))  # [N, p]
-            if self.settings.innovation_weighting == "normalized":
-                gam = gam / gam.sum(axis=1, keepdims=True)
+            gam = self._innovation_weights(params.alpha[:, min(1, b - 1)], p)
             self.x = self.x + np.einsum("np,npi,np->ni", gam, self.gains, self.innovations)
         self.P = self.P - p_yy[:, None, None] * k[:, :, None] * k[:, None, :]
         self.x[:, self.i_soc] = np.clip(self.x[:, self.i_soc], *SOC_LIMITS)
         nis = np.where(active, e * e / p_yy, 1.0)
         self.nis_ema = 0.98 * self.nis_ema + 0.02 * nis
+
+    def _innovation_weights(self, order: np.ndarray, p: int) -> np.ndarray:
+        """``γ_i = |w_{i-1}(n)|`` (Zeng Eq. 20), normalised if so configured; cached
+        while the diffusion order is unchanged (it moves only at slow updates)."""
+        cached = getattr(self, "_gam_cache", None)
+        if cached is not None and np.array_equal(cached[0], order):
+            return cached[1]
+        gam = np.abs(gl_weights(order, p - 1))
+        if self.settings.innovation_weighting == "normalized":
+            gam = gam / gam.sum(axis=1, keepdims=True)
+        self._gam_cache = (order.copy(), gam)
+        return gam
 
     def push_history(self) -> None:
         """Store this step's posterior branch means and variances in the G-L memory."""

@@ -86,20 +86,21 @@ class HuWangSettings:
     """Settings of the two-time-scale identifier (defaults chosen on Panasonic 25 °C drive cycles)."""
 
     base_period_s: float = 1.0
-    hp_cutoff_hz: float = 0.005
-    hp_order: int = 1
-    lp_cutoff_hz: float = 0.002
+    hp_cutoff_hz: float = 0.01
+    hp_order: int = 2
+    lp_cutoff_hz: float = 0.0005
     lp_order: int = 2
     downsample: int = 10
     fast_forgetting: float = 0.9995
     slow_forgetting: float = 0.999
-    fast_p0: float = 1.0
-    slow_p0: float = 1.0
-    max_trace: float = 100.0
-    gain_consistency: bool = True
+    fast_p0: float = 1e4
+    slow_p0: float = 1e6
+    max_trace: float = 1e8
+    gain_consistency: bool = False
     init_from_profile: bool = True
     tau_fast_bounds_s: tuple[float, float] = (0.2, 200.0)
     tau_slow_bounds_s: tuple[float, float] = (20.0, 20000.0)
+    lag_compensation: bool = False
     fuse_tau_s: float | None = None
 
     def __post_init__(self) -> None:
@@ -232,6 +233,7 @@ class HuWangIdentifier:
         self._x_comb = np.zeros(self.n)  # diffusion-RC state of the combined model (Eq. 18)
         self._vf_comb = np.zeros(self.n)  # fast-model output on the raw current
         self._i_prev = np.zeros(self.n)
+        self._q_unfiltered = np.zeros(self.n)  # ∫(I - I_filt) dt, charge the low-pass has not passed yet
 
     # -- initial guesses ----------------------------------------------------------------
     def _initial_theta(self, temp_c: np.ndarray, v0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -246,7 +248,8 @@ class HuWangIdentifier:
             tau_f = np.full(self.n, np.sqrt(np.prod(s.tau_fast_bounds_s)))
             tau_s = np.full(self.n, np.sqrt(np.prod(s.tau_slow_bounds_s)))
         alpha = _pole(tau_f, ts)
-        theta_f = np.stack([alpha, -(r0 + r1 * (1 - alpha)), alpha * r0], axis=1)
+        k = _V_SCALE
+        theta_f = np.stack([alpha, -k * (r0 + r1 * (1 - alpha)), k * alpha * r0], axis=1)
         lam = _pole(tau_s, tss)
         c = -(r0 + r1)
         slope = self.ocv.slope(self.ocv.soc_from_ocv(v0, temp_c), temp_c)
@@ -255,9 +258,9 @@ class HuWangIdentifier:
         b0 = c + a_int + b_rc
         b1 = -c * (1 + lam) - a_int * lam - b_rc
         if s.gain_consistency:
-            theta_s = np.stack([1 + lam, b0, b1], axis=1)
+            theta_s = np.stack([1 + lam, k * b0, k * b1], axis=1)
         else:
-            theta_s = np.stack([1 + lam, b0, b1, c * lam], axis=1)
+            theta_s = np.stack([1 + lam, k * b0, k * b1, k * c * lam], axis=1)
         return theta_f, theta_s
 
     # -- derived model --------------------------------------------------------------------
@@ -265,6 +268,7 @@ class HuWangIdentifier:
         """Fast-dynamics parameters from the Eq. 13 coefficients (clipped pole)."""
         ts = self.s.base_period_s
         alpha_raw, beta0, beta1 = self.rls_fast.theta.T
+        beta0, beta1 = beta0 / _V_SCALE, beta1 / _V_SCALE
         tau = _tau(alpha_raw, ts, self.s.tau_fast_bounds_s)
         alpha = _pole(tau, ts)
         r0 = beta1 / alpha
@@ -276,13 +280,13 @@ class HuWangIdentifier:
         """Slow-dynamics parameters from the Eq. 14 coefficients (partial fractions)."""
         tss = self.ts_slow
         th = self.rls_slow.theta
-        a1, b0, b1 = th[:, 0], th[:, 1], th[:, 2]
+        a1, b0, b1 = th[:, 0], th[:, 1] / _V_SCALE, th[:, 2] / _V_SCALE
         lam_raw = a1 - 1.0
         if self.s.gain_consistency:
             c = fast["dc_gain"]
             b2 = lam_raw * c
         else:
-            b2 = th[:, 3]
+            b2 = th[:, 3] / _V_SCALE
             c = b2 / np.where(np.abs(lam_raw) > 1e-9, lam_raw, 1e-9)
         tau = _tau(lam_raw, tss, self.s.tau_slow_bounds_s)
         lam = _pole(tau, tss)
@@ -312,7 +316,8 @@ class HuWangIdentifier:
         s = self.s
         ts = s.base_period_s
         # fast dynamics: high-pass, RLS on Eq. 13
-        i_hp, v_hp = self.hp_i.step(i), self.hp_v.step(v)
+        v_mv = v * _V_SCALE
+        i_hp, v_hp = self.hp_i.step(i), self.hp_v.step(v_mv)
         if self._fast_prev is not None:
             v_hp1, i_hp1 = self._fast_prev
             self.rls_fast.update(np.stack([v_hp1, i_hp, i_hp1], axis=1), v_hp)
@@ -320,12 +325,12 @@ class HuWangIdentifier:
         fast = self.fast_model()
 
         # slow dynamics: low-pass, downsample, RLS on Eq. 14 (with Eq. 15 if set)
-        i_lp, v_lp = self.lp_i.step(i), self.lp_v.step(v)
+        i_lp, v_lp = self.lp_i.step(i), self.lp_v.step(v_mv)
         if self._grid_count % s.downsample == 0:
             if len(self._slow_hist) == 2:
                 (v2, i2), (v1, i1) = self._slow_hist
                 if s.gain_consistency:
-                    c = fast["dc_gain"]
+                    c = fast["dc_gain"] * _V_SCALE
                     y = v_lp - v2 + c * i2
                     phi = np.stack([v1 - v2 + c * i2, i_lp, i1], axis=1)
                 else:
@@ -341,8 +346,11 @@ class HuWangIdentifier:
         self._x_ov = lam_b * self._x_ov + b_b * i_lp
         v_ov = slow["c"] * i_lp + self._x_ov
         soc_prev = self.soc.copy()
-        self.ocv_est = v_lp - v_ov
+        self.ocv_est = v_lp / _V_SCALE - v_ov
         self.soc_ocv = self.ocv.soc_from_ocv(self.ocv_est, temp_c)
+        if s.lag_compensation:
+            self._q_unfiltered += (i - i_lp) * ts
+            self.soc_ocv = self.soc_ocv - self._q_unfiltered / (3600.0 * self.capacity)
         if s.fuse_tau_s is None:
             self.soc = self.soc_ocv
         else:

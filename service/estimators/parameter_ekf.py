@@ -65,7 +65,7 @@ def branch_step_and_derivatives(
     """Implicit G-L branch step ``U_k`` and ``∂U_k/∂R, ∂U_k/∂C, ∂U_k/∂α`` (all ``[N]``).
 
     ``U = (g I - M)/(1 + g/R)``, ``g = h^α/C``, ``M = Σ_{j≥1} w_j U_{k-j}``.  The α
-    derivative is a central difference (the weights depend on α too).
+    derivative is a forward difference (the weights depend on α too).
     """
     h = max(dt_s, 1e-9)
 
@@ -78,9 +78,9 @@ def branch_step_and_derivatives(
     u = (g * i - np.einsum("nj,nj->n", weights[:, 1:], hist)) / den
     du_dr = u * g / (den * r * r)
     du_dc = (-g * i / c) / den + u * g / (r * c * den)
-    d = 1e-5
+    d = 1e-6  # forward difference: one extra weight evaluation per step
     L = hist.shape[-1]
-    du_da = (step(alpha + d, gl_weights(alpha + d, L)) - step(alpha - d, gl_weights(alpha - d, L))) / (2 * d)
+    du_da = (step(alpha + d, gl_weights(alpha + d, L)) - u) / d
     return u, du_dr, du_dc, du_da
 
 
@@ -142,6 +142,10 @@ class ParameterEkf:
         n_b = params.r.shape[1]
         i_soc, i_uh = n_b, n_b + 1
         i = current_a - params.current_bias_a
+        if self._volt:
+            # Zeng Eq. 12 makes U_df a random walk, which lags the diffusion voltage and lets
+            # R_ohm/R_ct absorb the lag; its prediction is the SOC filter's diffusion state.
+            self.z[:, self._volt[0]] = x_post[:, 1]
         # explicit output and derivatives
         h = ocv_post + x_post[:, i_uh] - params.r_ohm * i
         dh = np.zeros((self.n, self.np))

@@ -195,10 +195,9 @@ class PackEstimator:
         if self.slow is None:
             return np.zeros(self.n, dtype=bool)
         nom = self.nominal
-        if not (self.ukf.soc_std < self.settings.identify_below_soc_std).any():
-            return np.zeros(self.n, dtype=bool)
-        done = self.slow.update(nom.r[:, 1], nom.c[:, 1], nom.alpha[:, 1])
-        return np.full(self.n, done)
+        converged = self.ukf.soc_std < self.settings.identify_below_soc_std
+        done = self.slow.update(nom.r[:, 1], nom.c[:, 1], nom.alpha[:, 1], cells=converged)
+        return converged if done else np.zeros(self.n, dtype=bool)
 
     # -- outputs ------------------------------------------------------------------------
     @property
@@ -259,9 +258,10 @@ class PackEstimator:
         if self.slow is not None:
             slow = (need("slow_z", self.slow.z.shape), need("slow_P", self.slow.P.shape),
                     need("slow_ring", self.slow.ring.shape), need("slow_moved", self.slow.moved.shape))
+        resets = need("reset_count", self.reset_count.shape).astype(int)
+        ocv_init = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
         u.x, u.P, u.hist, u.var_hist, u.innovations, u.gains, u.nis_ema = x, P, hist, var_hist, innov, gains, nis
-        self.reset_count = need("reset_count", self.reset_count.shape).astype(int)
-        self.ocv_initialised = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
+        self.reset_count, self.ocv_initialised = resets, ocv_init
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast
         if slow is not None:

@@ -33,6 +33,10 @@ class EstimatorSettings(BaseModel):
     voltage_noise_per_amp_v: float = Field(
         0.02, ge=0, description="model error that grows with current: σ_v² = σ² + (k·|I|)²"
     )
+    voltage_noise_rel_overpotential: float = Field(
+        0.0, ge=0, description="model error as a fraction of the modelled overpotential "
+        "|I|·(R_ohm + ΣR_b): scales with the cell's resistance at its temperature"
+    )
     current_noise_a: float = Field(0.02, ge=0, description="current-sensor noise σ driving SOC process noise")
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
     ukf_alpha: float = Field(1.0, gt=0, le=1)

@@ -25,6 +25,7 @@ def robust_cholesky(p: np.ndarray, floor: float = 1e-12) -> tuple[np.ndarray, np
     eigenvalues at ``floor`` (the repaired matrix is written back).  Returns the
     factor and a boolean mask of repaired cells, so callers can count repairs.
     """
+    caller = p
     p = 0.5 * (p + np.swapaxes(p, -1, -2))
     try:
         return np.linalg.cholesky(p), np.zeros(p.shape[0], dtype=bool)
@@ -35,6 +36,7 @@ def robust_cholesky(p: np.ndarray, floor: float = 1e-12) -> tuple[np.ndarray, np
     w = np.where(np.isfinite(w), np.maximum(w, floor), 1.0)
     fixed = np.einsum("...ij,...j,...kj->...ik", v, w, v)
     p[bad] = fixed[bad]
+    caller[bad] = p[bad]
     return np.linalg.cholesky(0.5 * (p + np.swapaxes(p, -1, -2))), bad
 
 

@@ -71,8 +71,13 @@ class SlowIdentifier:
     def due(self) -> bool:
         return self.length >= 2 and bool(self.moved.max() >= self.soc_delta)
 
-    def update(self, r_df: np.ndarray, c_df: np.ndarray, n: np.ndarray) -> bool:
-        """Run one slow update if due; ``r_df, c_df, n`` are the profile values at T."""
+    def update(self, r_df: np.ndarray, c_df: np.ndarray, n: np.ndarray, cells: np.ndarray | None = None) -> bool:
+        """Run one slow update if due; ``r_df, c_df, n`` are the profile values at T.
+
+        The update fires pack-wide when the cell that has passed the most charge reaches
+        ``soc_delta`` (in a series pack every cell passes the same charge); only ``cells``
+        (default all) take the correction.
+        """
         if not self.due():
             return False
         steps = self.length
@@ -100,6 +105,8 @@ class SlowIdentifier:
         S = H @ P @ np.swapaxes(H, 1, 2) + self.R * np.eye(idx.size)
         K = P @ np.swapaxes(H, 1, 2) @ np.linalg.inv(S)
         ok = np.isfinite(K).all(axis=(1, 2)) & np.isfinite(e).all(axis=1)
+        if cells is not None:
+            ok &= cells
         dz = np.einsum("nij,nj->ni", K, np.where(np.isfinite(e), e, 0.0))
         self.z = np.where(ok[:, None], z + dz, z)
         newP = P - K @ S @ np.swapaxes(K, 1, 2)
