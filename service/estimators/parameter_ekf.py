@@ -108,6 +108,8 @@ class ParameterEkf:
         q = np.array([process_rel if PARAMETERS[k][1] != "volt" else 1e-3 for k in names])
         self.Q = np.diag(q**2)
         self.R = voltage_noise_v**2
+        self.measurement = "level"
+        self._prev: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.D = np.zeros((n_cells, n_states, self.np))  # dx+/dθ
         self.updates = 0
         self._volt = [c for c, k in enumerate(names) if PARAMETERS[k][1] == "volt"]
@@ -192,9 +194,23 @@ class ParameterEkf:
         # EKF (Zeng Eqs. 12-13): random walk, then correction with this sample's innovation
         self.P = self.P + self.Q
         pc = np.einsum("nij,nj->ni", self.P, c_row)
+        e = voltage_v - h
+        if self.measurement == "difference":
+            # feature separation: the change of voltage from one sample to the next carries
+            # the fast dynamics but almost none of the (slowly varying) OCV, so SOC errors do
+            # not leak into R_ohm, R_ct, C_dl, m.
+            prev = self._prev
+            self._prev = (voltage_v.copy(), h.copy(), c_row.copy(), active.copy())
+            if prev is None:
+                active = np.zeros_like(active)
+            else:
+                e = e - (prev[0] - prev[1])
+                c_row = c_row - prev[2]
+                active = active & prev[3]
+            pc = np.einsum("nij,nj->ni", self.P, c_row)
         s = np.einsum("ni,ni->n", c_row, pc) + self.R
         k = pc / s[:, None]
-        e = np.where(active, voltage_v - h, 0.0)
+        e = np.where(active, e, 0.0)
         k = np.where(active[:, None], k, 0.0)
         self.z = self.z + k * e[:, None]
         self.P = self.P - s[:, None, None] * k[:, :, None] * k[:, None, :]

@@ -64,6 +64,8 @@ class PackEstimator:
             self.fast = ParameterEkf(FAST_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v)
         elif identification == "single" and s.fast_identifier:
             self.fast = ParameterEkf(SINGLE_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v)
+        if self.fast is not None:
+            self.fast.measurement = s.fast_identifier_input
         if identification == "multi" and s.slow_identifier:
             self.slow = SlowIdentifier(self.n, s.memory_length, s.slow_soc_delta, s.slow_param_process_rel)
         self.reset_count = np.zeros(self.n, dtype=int)

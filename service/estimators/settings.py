@@ -23,6 +23,10 @@ class EstimatorSettings(BaseModel):
         "innovations are not counted twice",
     )
     fast_identifier: bool = Field(True, description="run the fast-rate EKF over [R_ohm, R_ct, C_dl, m, U_df]")
+    fast_identifier_input: Literal["level", "difference"] = Field(
+        "level", description="'level': the voltage itself (Zeng Eq. 13); 'difference': sample-to-sample "
+        "voltage change, which separates the fast dynamics from the OCV (and the SOC error)"
+    )
     slow_identifier: bool = Field(True, description="run the slow-rate EKF over [R_df, C_df, n]")
     identify_below_soc_std: float = Field(
         0.02, gt=0, description="identifiers adapt a cell only once its SOC σ is below this (SOC and "
