@@ -183,3 +183,26 @@ def test_each_extension_is_the_estimator_model(name):
     v_std, _ = _score_profile(ext, rec, v_rest0, eff.physical(th, ctx).get("u_h0_v", 0.0), 16, 25.0)
     # exact, except the OCV correction: regridded into the table and a 3-step SOC0 fixed point (< 1 mV)
     assert np.max(np.abs(v_fit[:, 0] - v_std)) < (1e-3 if name == "ocv" else 1e-9)
+
+
+def _thermal_trace(ambient: np.ndarray, current: np.ndarray, seed: int = 3) -> np.ndarray:
+    """First-order self-heating around a given ambient, with 0.1 K sensor noise."""
+    temp = np.empty_like(ambient)
+    x = ambient[0]
+    for k in range(ambient.size):
+        x += (ambient[k] + 3.0 * (current[k] / CAP) ** 2 - x) / 700.0
+        temp[k] = x
+    return temp + np.random.default_rng(seed).normal(0.0, 0.1, ambient.size)
+
+
+def test_temperature_signature_needs_a_moving_ambient():
+    """Self-heating at a constant ambient does not nominate 'temperature'; a cooling ambient does."""
+    from service.diagnosis.signatures import signatures
+
+    t = np.arange(0.0, 9000.0)
+    i = np.repeat(current_profile(3), 10)[: t.size]
+    i = np.resize(i, t.size)
+    still = signatures(t, i, _thermal_trace(np.full(t.size, 25.0), i), CAP)["temperature"]
+    cooling = signatures(t, i, _thermal_trace(25.0 - 8.0 * (1 - np.exp(-t / 4000.0)), i), CAP)["temperature"]
+    assert not still["nominated"] and still["statistic"] < 0.2
+    assert cooling["nominated"] and cooling["statistic"] > 2 * still["statistic"]

@@ -34,7 +34,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--report", help="write report.md and PNG plots into this directory")
     p.add_argument("--save-profile", help="write the extended cell profile here (.json or .toml)")
     p.add_argument("--fit-fraction", type=float, default=0.6, help="share of the duration fitted (default 0.6)")
-    p.add_argument("--split", choices=("chronological", "interleaved"), default="chronological",
+    p.add_argument("--split", choices=("chronological", "interleaved", "blocks"), default="chronological",
                    help="held-out protocol: the last 40 %% of the duration (default), or blocks 2,4,7,9 of 10")
     p.add_argument("--soc0", type=float, help="known initial SOC in [0, 1] (default: from the opening rest voltage)")
     p.add_argument("--effects", help="comma-separated subset of candidate effects to try (default: all)")
