@@ -9,10 +9,13 @@ lookup is linear; outside the table's temperatures it holds the nearest row.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 GRID_POINTS = 201
+#: outside [0, 1] the OCV continues with the mean slope over this much SOC at each end
+EXTRAPOLATION_SPAN = 0.1
 
 
 @dataclass(frozen=True)
@@ -63,26 +66,44 @@ class OcvTable:
         return k0, k1, f
 
     def ocv(self, soc: np.ndarray, temp_c: np.ndarray | float = 25.0) -> np.ndarray:
-        """OCV at ``soc`` and ``temp_c`` (broadcast together)."""
+        """OCV at ``soc`` and ``temp_c`` (broadcast together).  Outside [0, 1] it continues
+        with the mean slope of the outer 10 % of SOC (:data:`EXTRAPOLATION_SPAN`), not the
+        often near-vertical last segment."""
         soc, temp_c = np.broadcast_arrays(np.asarray(soc, float), np.asarray(temp_c, float))
         k0, k1, f = self._rows_at(temp_c)
         n = GRID_POINTS - 1
-        x = soc * n
+        inside = np.clip(soc, 0.0, 1.0)
+        x = inside * n
         i0 = np.clip(np.floor(x).astype(int), 0, n - 1)
-        u = x - i0  # may be <0 or >1 outside [0, 1]: linear extrapolation of the end segment
+        u = x - i0
         lo = self.ocv_v[k0, i0] + u * (self.ocv_v[k0, i0 + 1] - self.ocv_v[k0, i0])
         hi = self.ocv_v[k1, i0] + u * (self.ocv_v[k1, i0 + 1] - self.ocv_v[k1, i0])
-        return lo + f * (hi - lo)
+        v = lo + f * (hi - lo)
+        lo_s, hi_s = self.extrapolation_slopes
+        lo_ext = lo_s[k0] + f * (lo_s[k1] - lo_s[k0])
+        hi_ext = hi_s[k0] + f * (hi_s[k1] - hi_s[k0])
+        return v + lo_ext * np.minimum(soc, 0.0) + hi_ext * np.maximum(soc - 1.0, 0.0)
+
+    @cached_property
+    def extrapolation_slopes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-row slopes (V per unit SOC) used below 0 and above 1."""
+        k = int(round(EXTRAPOLATION_SPAN * (GRID_POINTS - 1)))
+        lo = (self.ocv_v[:, k] - self.ocv_v[:, 0]) / EXTRAPOLATION_SPAN
+        hi = (self.ocv_v[:, -1] - self.ocv_v[:, -1 - k]) / EXTRAPOLATION_SPAN
+        return lo, hi
 
     def slope(self, soc: np.ndarray, temp_c: np.ndarray | float = 25.0) -> np.ndarray:
         """dOCV/dSOC (V per unit SOC) at ``soc``, ``temp_c``."""
         soc, temp_c = np.broadcast_arrays(np.asarray(soc, float), np.asarray(temp_c, float))
         k0, k1, f = self._rows_at(temp_c)
         n = GRID_POINTS - 1
-        i0 = np.clip(np.floor(soc * n).astype(int), 0, n - 1)
+        i0 = np.clip(np.floor(np.clip(soc, 0.0, 1.0) * n).astype(int), 0, n - 1)
         d0 = (self.ocv_v[k0, i0 + 1] - self.ocv_v[k0, i0]) * n
         d1 = (self.ocv_v[k1, i0 + 1] - self.ocv_v[k1, i0]) * n
-        return d0 + f * (d1 - d0)
+        lo_s, hi_s = self.extrapolation_slopes
+        lo_ext = lo_s[k0] + f * (lo_s[k1] - lo_s[k0])
+        hi_ext = hi_s[k0] + f * (hi_s[k1] - hi_s[k0])
+        return np.where(soc < 0.0, lo_ext, np.where(soc > 1.0, hi_ext, d0 + f * (d1 - d0)))
 
     def soc_from_ocv(self, ocv_v: np.ndarray, temp_c: np.ndarray | float = 25.0) -> np.ndarray:
         """Inverse map: SOC in [0, 1] whose OCV at ``temp_c`` is ``ocv_v``."""
@@ -166,20 +187,26 @@ class CellOcv:
         self._rows_flat = self.rows.ravel()
         self._steps_flat = self.steps.ravel()
         self._row_offset = (np.arange(self.rows.shape[0]) * GRID_POINTS)[:, None]
+        lo_s, hi_s = table.extrapolation_slopes
+        self._lo_ext = (lo_s[k0] + f * (lo_s[k1] - lo_s[k0]))[:, None]
+        self._hi_ext = (hi_s[k0] + f * (hi_s[k1] - hi_s[k0]))[:, None]
         self._step_offset = (np.arange(self.rows.shape[0]) * (GRID_POINTS - 1))[:, None]
 
     def _index(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = GRID_POINTS - 1
         flat = soc.reshape(soc.shape[0], -1)
-        x = flat * n
-        i0 = np.clip(x.astype(int) - (x < 0), 0, n - 1)
+        x = np.clip(flat, 0.0, 1.0) * n
+        i0 = np.minimum(x.astype(int), n - 1)
         return flat, i0, x - i0
 
     def ocv(self, soc: np.ndarray) -> np.ndarray:
         flat, i0, u = self._index(soc)
         v = self._rows_flat[i0 + self._row_offset] + u * self._steps_flat[i0 + self._step_offset]
+        v = v + self._lo_ext * np.minimum(flat, 0.0) + self._hi_ext * np.maximum(flat - 1.0, 0.0)
         return v.reshape(soc.shape)
 
     def slope(self, soc: np.ndarray) -> np.ndarray:
         flat, i0, _ = self._index(soc)
-        return (self._steps_flat[i0 + self._step_offset] * (GRID_POINTS - 1)).reshape(soc.shape)
+        d = self._steps_flat[i0 + self._step_offset] * (GRID_POINTS - 1)
+        d = np.where(flat < 0.0, self._lo_ext, np.where(flat > 1.0, self._hi_ext, d))
+        return d.reshape(soc.shape)
