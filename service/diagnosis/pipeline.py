@@ -20,6 +20,11 @@ Protocol (stated in every report and JSON):
   part with an effective sample count ``n_eff = n / τ_int`` (τ_int the integrated
   autocorrelation time of the base residual, so correlated residuals are not counted as
   independent); residual whiteness (lag-1 autocorrelation) before/after.
+* **Signatures** (:mod:`service.diagnosis.signatures`): evidence outside the voltage fit
+  that an effect's departure is present (temperature: the ambient moves).  A nominated
+  effect needs only ``min_rel_gain_nominated``; flexible extensions also absorb the
+  generic mismatch between the equivalent circuit and a real cell, so without a signature
+  the full ``min_rel_gain`` applies.
 * **Significant** when the held-out gain is at least ``min_rel_gain``, the held-out RMSE
   falls by at least ``min_abs_gain_noise`` times the voltage noise (estimated from the
   recording's rests) and ``ΔBIC >= min_delta_bic``.  The verdict is the best significant

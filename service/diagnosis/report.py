@@ -128,6 +128,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
         "## Protocol",
         (f"- Split: chronological; the first {100 * dg.protocol['fit_fraction']:.0f} % of the duration "
          f"(up to t = {dg.protocol['t_split_s']:.0f} s) is fitted" if dg.protocol["split"] == "chronological" else
+         "- Split: alternating blocks of about 10 min; every second block is held out"
+         if dg.protocol["split"] == "blocks" else
          "- Split: interleaved; the duration is cut into 10 blocks and blocks 2, 4, 7, 9 are held out")
         + f" ({dg.protocol['fit_samples']} samples fitted, {dg.protocol['heldout_samples']} held out). The model "
         "runs through the whole recording; only the scored samples differ.",
@@ -135,7 +137,10 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"from {dg.base['v_rest0']:.4f} V.",
         "- Every model is fitted at the recording's own rate; held-out RMSEs come from "
         "`service.cell.model.simulate` on the saved profiles (the model `socd evaluate` runs).",
-        f"- Significance (all required): held-out gain ≥ {100 * th['min_rel_gain']:.0f} %; held-out RMSE drop ≥ "
+        f"- Significance (all required): held-out gain ≥ {100 * th['min_rel_gain']:.0f} % "
+        f"({100 * th.get('min_rel_gain_nominated', th['min_rel_gain']):.0f} % for an effect its own signature "
+        f"nominates: {', '.join(k for k, v in dg.signatures.items() if v.get('nominated')) or 'none here'}); "
+        f"held-out RMSE drop ≥ "
         f"{th['min_abs_gain_noise']:g} × voltage noise ({th['noise_sigma_mv']:.2f} mV, from rests) = "
         f"{th['min_abs_gain_mv']:.2f} mV; ΔBIC ≥ {th['min_delta_bic']:g} on the fit part with "
         f"n_eff = {dg.base['n_eff']:.0f} (n / τ_int, τ_int = {dg.base['tau_int_samples']:.1f} samples).",
