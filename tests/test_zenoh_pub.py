@@ -79,7 +79,7 @@ class _Collector:
         with self.lock:
             return sum(len(v) for v in self.by_key.values())
 
-    def wait(self, pred, timeout: float = 10.0) -> None:
+    def wait(self, pred, timeout: float = 30.0) -> None:
         end = time.monotonic() + timeout
         while not pred():
             if time.monotonic() > end:
