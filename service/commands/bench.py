@@ -61,7 +61,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
-    settings = EstimatorSettings()
+    from service.estimators.pipeline import PAPER_INNOVATION_LENGTH
+
+    # the paper's full pipeline: multi-innovation window on (heavier than the service default)
+    settings = EstimatorSettings(innovation_length=PAPER_INNOVATION_LENGTH)
     n = args.cells
     current, volts, temp = _inputs(n, max(args.steps, args.reference_steps), profile)
 

@@ -303,9 +303,15 @@ class PipelineEstimator:
         return EstimateTrace(soc=soc, v_pred=vp, soc_std=std, params=params)
 
 
+#: innovation window of the paper's FO-MI-UKF when the settings ask for a single innovation
+PAPER_INNOVATION_LENGTH = 4
+
+
 def fomiukf(settings: EstimatorSettings | None = None) -> PipelineEstimator:
-    """The paper's full pipeline: FO-MI-UKF + multi-time-scale identification."""
-    return PipelineEstimator("fomiukf", "multi", settings)
+    """The paper's full pipeline: FO-MI-UKF (window ``PAPER_INNOVATION_LENGTH`` unless the
+    settings give a longer one) + multi-time-scale identification."""
+    base = settings or EstimatorSettings()
+    return PipelineEstimator("fomiukf", "multi", base, innovation_length=max(base.innovation_length, PAPER_INNOVATION_LENGTH))
 
 
 def foukf(settings: EstimatorSettings | None = None) -> PipelineEstimator:
@@ -314,5 +320,7 @@ def foukf(settings: EstimatorSettings | None = None) -> PipelineEstimator:
 
 
 def fom_single_scale(settings: EstimatorSettings | None = None) -> PipelineEstimator:
-    """Single-time-scale identification: one EKF over all seven parameters at the sample rate."""
-    return PipelineEstimator("fom-single-scale", "single", settings)
+    """Single-time-scale identification: one EKF over all seven parameters at the sample rate
+    (with the paper's multi-innovation window, so it differs from ``fomiukf`` only there)."""
+    base = settings or EstimatorSettings()
+    return PipelineEstimator("fom-single-scale", "single", base, innovation_length=max(base.innovation_length, PAPER_INNOVATION_LENGTH))
