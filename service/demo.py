@@ -77,6 +77,8 @@ class DemoResult:
     can_frames_out: int
     can_frames_seen: int
     frames_per_s: float
+    #: CPU time of the whole demo process (daemon, replay thread, Zenoh subscriber) per wall time
+    cpu_pct: float
     latency_ms: dict[str, float | None]
     status_flags: dict[str, bool]
     counters: dict[str, int] = field(default_factory=dict)
@@ -185,6 +187,7 @@ def run_demo(
                 "bms/demo/**", lambda sample: loop.call_soon_threadsafe(count, str(sample.key_expr))
             )
             t0 = time.perf_counter()
+            cpu0 = time.process_time()
 
             def replay() -> None:
                 replay_stats.append(play(tx_bus, frames, speed=speed, faults=faults, stop_event=stop_replay,
@@ -208,6 +211,7 @@ def run_demo(
             # one more publication round of each kind carries the final state
             await asyncio.sleep(max(config.output.zenoh_period_s, config.output.can_period_s) + 0.2)
             wall = time.perf_counter() - t0
+            cpu = time.process_time() - cpu0
             if status is not None:
                 _status_line(status, daemon, wall, len(frames), sum(zenoh_counts.values()),
                              sum(can_seen.values()), live)
@@ -223,9 +227,9 @@ def run_demo(
                 sub_session.close()
             for b in (tx_bus, out_bus, daemon_bus):
                 b.shutdown()
-        return daemon, wall
+        return daemon, wall, cpu
 
-    daemon, wall = asyncio.run(main())
+    daemon, wall, cpu = asyncio.run(main())
 
     t = np.asarray(t_hist)
     soc = np.asarray(soc_hist).reshape(len(t_hist), cells) if t_hist else np.zeros((0, cells))
@@ -262,6 +266,7 @@ def run_demo(
         can_frames_out=daemon.can_frames_out,
         can_frames_seen=int(sum(can_seen.values())),
         frames_per_s=round(counters.get("frames_in", 0) / wall, 1) if wall > 0 else 0.0,
+        cpu_pct=round(100.0 * cpu / wall, 1) if wall > 0 else 0.0,
         latency_ms=daemon.health.latency_ms(),
         status_flags=daemon.status_flags(),
         counters=counters,
@@ -322,7 +327,7 @@ def summary_text(r: DemoResult) -> str:
     worst = int(np.argmax(r.per_cell_rmse_pct)) if r.per_cell_rmse_pct else 0
     lines = [
         f"replayed {r.seconds_replayed:.0f} s of {r.recording} for {r.cells} cells in {r.wall_s:.1f} s "
-        f"({r.frames_per_s:.0f} frames/s)",
+        f"({r.frames_per_s:.0f} frames/s, CPU {r.cpu_pct:.0f} % of one core)",
         f"frames in {r.frames_in}, rejected {r.frames_rejected}; estimator steps {r.steps}",
         f"SOC error vs truth: RMSE {r.soc_rmse_pct:.2f} %, MAE {r.soc_mae_pct:.2f} %, max {r.soc_max_err_pct:.2f} %"
         + (f", RMSE after 600 s {r.soc_rmse_after_600s_pct:.2f} %" if r.soc_rmse_after_600s_pct is not None else ""),
