@@ -2,10 +2,10 @@
 
 Model, per cell, in this project's convention (current positive = discharge)::
 
-    SOC_k = SOC_{k-1} - I_k dt_k / (3600 Q)                         (Zeng Eq. 4, h and 3600 restored)
-    U_b,k = a_b U_b,k-1 + R_b (1 - a_b) I_k,   a_b = exp(-dt_k / τ_b)  (Hu & Wang Eq. 2, exact for
-                                                                      a current held over (t_{k-1}, t_k])
-    V_k   = OCV(SOC_k, T_k) - R0 I_k - U_1,k - U_2,k                 (Zeng Eq. 6 without U_h)
+    SOC_k = SOC_{k-1} - I_k dt_k / (3600 Q)                  (Zeng Eq. 4, h and 3600 restored)
+    U_b,k = a_b U_b,k-1 + R_b (1 - a_b) I_k,                    (Hu & Wang Eq. 2, exact for a
+            a_b = exp(-dt_k / τ_b)                             current held over (t_{k-1}, t_k])
+    V_k   = OCV(SOC_k, T_k) - R0 I_k - U_1,k - U_2,k          (Zeng Eq. 6 without U_h)
 
 with state ``x = [SOC, U_1, U_2]`` and the actual interval ``dt_k`` of every sample.
 
@@ -68,7 +68,9 @@ class EkfTuning:
 
 
 def ecm_parameters(profile: CellProfile, temp_c: np.ndarray) -> dict[str, np.ndarray]:
-    """2-RC parameters at ``temp_c [N]``: ``r0 [N]``, ``r [N,2]``, ``tau [N,2]``, ``capacity [N]``, ``bias [N]``.
+    """2-RC parameters at ``temp_c [N]``.
+
+    Returns ``r0 [N]``, ``r [N,2]``, ``tau [N,2]``, ``capacity [N]`` and ``bias [N]``.
 
     ``τ = (R C)^(1/α)``: the CPE branch's characteristic time (its impedance
     ``R / (1 + R C (jω)^α)`` has its corner at ``ω = (R C)^(-1/α)``).
@@ -103,7 +105,9 @@ class Ecm2RcEkfBank:
         self.x = np.zeros((n, N_STATES))
         self.x[:, 0] = np.broadcast_to(np.asarray(soc0, dtype=float), (n,))
         t = self.tuning
-        self.P = np.broadcast_to(np.diag([t.soc0_std**2, t.u0_std_v**2, t.u0_std_v**2]), (n, 3, 3)).copy()
+        self.P = np.broadcast_to(
+            np.diag([t.soc0_std**2, t.u0_std_v**2, t.u0_std_v**2]), (n, 3, 3)
+        ).copy()
         self._temp_params = np.broadcast_to(np.asarray(temp0_c, dtype=float), (n,)).copy()
         self._params = ecm_parameters(profile, self._temp_params)
 
@@ -139,7 +143,7 @@ class Ecm2RcEkfBank:
         voltage_v: np.ndarray,
         temp_c: np.ndarray,
     ) -> np.ndarray:
-        """Predict over ``dt_s`` and correct with ``voltage_v``; return the a-priori voltage ``[N]``."""
+        """Predict over ``dt_s``, correct with ``voltage_v``; return the prior voltage ``[N]``."""
         n = self.n_cells
         t = self.tuning
         dt = np.broadcast_to(np.asarray(dt_s, dtype=float), (n,))
@@ -160,7 +164,9 @@ class Ecm2RcEkfBank:
         P = f[:, :, None] * self.P * f[:, None, :]
         g = np.concatenate([g_soc[:, None], b], axis=1)  # input column [N, 3]
         P += t.current_noise_a**2 * g[:, :, None] * g[:, None, :]
-        q_diag = np.array([t.soc_noise_per_sqrt_s**2, t.u_noise_v_per_sqrt_s**2, t.u_noise_v_per_sqrt_s**2])
+        q_diag = np.array(
+            [t.soc_noise_per_sqrt_s**2, t.u_noise_v_per_sqrt_s**2, t.u_noise_v_per_sqrt_s**2]
+        )
         P += dt[:, None, None] * np.eye(N_STATES)[None] * q_diag[None, :, None]
 
         # -- correct --------------------------------------------------------------------
@@ -189,11 +195,13 @@ class Ecm2RcEkf:
 
     name = "ecm2rc-ekf"
 
-    def __init__(self, **tuning: float) -> None:
+    def __init__(self, **tuning: object) -> None:
         known = {f.name for f in fields(EkfTuning)}
         unknown = set(tuning) - known
         if unknown:
-            raise TypeError(f"unknown EKF tuning option(s) {sorted(unknown)}; known: {sorted(known)}")
+            raise TypeError(
+                f"unknown EKF tuning option(s) {sorted(unknown)}; known: {sorted(known)}"
+            )
         self.tuning = EkfTuning(**tuning)
 
     def run(self, recording: Recording, profile: CellProfile, soc0: float) -> EstimateTrace:
@@ -207,7 +215,12 @@ class Ecm2RcEkf:
         r0 = np.empty(n)
         tau = np.empty((n, 2))
         for k in range(n):
-            v_pred[k] = bank.step(dt[k], recording.current_a[k : k + 1], recording.voltage_v[k : k + 1], temp[k : k + 1])[0]
+            v_pred[k] = bank.step(
+                dt[k],
+                recording.current_a[k : k + 1],
+                recording.voltage_v[k : k + 1],
+                temp[k : k + 1],
+            )[0]
             soc[k] = bank.soc[0]
             std[k] = bank.soc_std[0]
             r0[k] = bank.params["r0"][0]

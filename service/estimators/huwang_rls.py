@@ -131,13 +131,18 @@ class HuWangSettings:
     def __post_init__(self) -> None:
         nyq = 0.5 / self.base_period_s
         if not 0 < self.hp_cutoff_hz < nyq:
-            raise ValueError(f"hp_cutoff_hz must be in (0, {nyq:g}) Hz for base_period_s={self.base_period_s}")
+            raise ValueError(
+                f"hp_cutoff_hz must be in (0, {nyq:g}) Hz for base_period_s={self.base_period_s}"
+            )
         if not 0 < self.lp_cutoff_hz < nyq / self.downsample:
             raise ValueError(
-                f"lp_cutoff_hz must be below the downsampled Nyquist frequency {nyq / self.downsample:g} Hz"
+                "lp_cutoff_hz must be below the downsampled Nyquist frequency "
+                f"{nyq / self.downsample:g} Hz"
             )
         if self.hp_order not in (1, 2) or self.lp_order not in (1, 2):
-            raise ValueError("Hu & Wang use first- or second-order Butterworth filters: order must be 1 or 2")
+            raise ValueError(
+                "Hu & Wang use first- or second-order Butterworth filters: order must be 1 or 2"
+            )
         if self.downsample < 1:
             raise ValueError("downsample must be >= 1")
 
@@ -155,7 +160,7 @@ class StreamingFilter:
         self.z: np.ndarray | None = None
 
     @classmethod
-    def butter(cls, order: int, cutoff_hz: float, btype: str, fs_hz: float) -> "StreamingFilter":
+    def butter(cls, order: int, cutoff_hz: float, btype: str, fs_hz: float) -> StreamingFilter:
         b, a = signal.butter(order, cutoff_hz, btype=btype, fs=fs_hz)
         return cls(b, a)
 
@@ -188,7 +193,9 @@ class GridResampler:
         self.charge: np.ndarray | None = None
         self.v_prev: np.ndarray | None = None
 
-    def push(self, dt_s: float, current_a: np.ndarray, voltage_v: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    def push(
+        self, dt_s: float, current_a: np.ndarray, voltage_v: np.ndarray
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
         i = np.asarray(current_a, dtype=float)
         v = np.asarray(voltage_v, dtype=float)
         if self.v_prev is None:
@@ -260,7 +267,9 @@ class HuWangIdentifier:
         self._x_comb = np.zeros(self.n)  # diffusion-RC state of the combined model (Eq. 18)
         self._vf_comb = np.zeros(self.n)  # fast-model output on the raw current
         self._i_prev = np.zeros(self.n)
-        self._q_unfiltered = np.zeros(self.n)  # ∫(I - I_filt) dt, charge the low-pass has not passed yet
+        self._q_unfiltered = np.zeros(
+            self.n
+        )  # ∫(I - I_filt) dt, charge the low-pass has not passed yet
 
     # -- initial guesses ----------------------------------------------------------------
     def _initial_theta(self, temp_c: np.ndarray, v0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -299,13 +308,22 @@ class HuWangIdentifier:
         """
         ts = self.s.base_period_s
         r_lo, r_hi = self.s.resistance_bounds_ohm
-        alpha_raw, beta0, beta1 = self.rls_fast.theta.T / np.array([1.0, _V_SCALE, _V_SCALE])[:, None]
+        alpha_raw, beta0, beta1 = (
+            self.rls_fast.theta.T / np.array([1.0, _V_SCALE, _V_SCALE])[:, None]
+        )
         tau = _tau(alpha_raw, ts, self.s.tau_fast_bounds_s)
         alpha = _pole(tau, ts)
         r0 = np.clip(beta1 / alpha, r_lo, r_hi)
         r1 = np.clip(-(beta0 + beta1) / (1.0 - alpha) - r0, r_lo, r_hi)
-        return {"alpha": alpha, "beta0": -(r0 + r1 * (1.0 - alpha)), "beta1": alpha * r0, "tau": tau,
-                "r0": r0, "r1": r1, "dc_gain": -(r0 + r1)}  # dc_gain: corrected Eq. 15 right-hand side
+        return {
+            "alpha": alpha,
+            "beta0": -(r0 + r1 * (1.0 - alpha)),
+            "beta1": alpha * r0,
+            "tau": tau,
+            "r0": r0,
+            "r1": r1,
+            "dc_gain": -(r0 + r1),
+        }  # dc_gain: corrected Eq. 15 right-hand side
 
     def slow_model(self, fast: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Slow-dynamics parameters from the Eq. 14 coefficients (partial fractions), clipped."""
@@ -326,12 +344,20 @@ class HuWangIdentifier:
         b_rc = b0 - c - a_int
         r2 = np.clip(-b_rc / (1.0 - lam), r_lo, r_hi)
         c_clipped = -np.clip(-c, 2 * r_lo, 2 * r_hi)
-        return {"lam": lam, "tau": tau, "c": c_clipped, "a_int": a_int, "r2": r2,
-                "docv_dsoc": -a_int * 3600.0 * self.capacity / tss,
-                "gain_mismatch": fast["dc_gain"] - c}
+        return {
+            "lam": lam,
+            "tau": tau,
+            "c": c_clipped,
+            "a_int": a_int,
+            "r2": r2,
+            "docv_dsoc": -a_int * 3600.0 * self.capacity / tss,
+            "gain_mismatch": fast["dc_gain"] - c,
+        }
 
     # -- streaming ------------------------------------------------------------------------
-    def step(self, dt_s: float, current_a: np.ndarray, voltage_v: np.ndarray, temp_c: np.ndarray) -> None:
+    def step(
+        self, dt_s: float, current_a: np.ndarray, voltage_v: np.ndarray, temp_c: np.ndarray
+    ) -> None:
         """Take one (possibly non-uniformly spaced) sample for all cells."""
         current_a = np.broadcast_to(np.asarray(current_a, dtype=float), (self.n,))
         voltage_v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (self.n,))
@@ -397,7 +423,9 @@ class HuWangIdentifier:
             self.soc = self._soc_cc - self._cc_offset
 
         # combined model (Eq. 18, series form G_s · G_f / G_f(1)) for the voltage prediction
-        self._vf_comb = fast["alpha"] * self._vf_comb + fast["beta0"] * i + fast["beta1"] * self._i_prev
+        self._vf_comb = (
+            fast["alpha"] * self._vf_comb + fast["beta0"] * i + fast["beta1"] * self._i_prev
+        )
         self._i_prev = i
         i_eff = self._vf_comb / np.minimum(fast["dc_gain"], -1e-6)
         self._x_comb = lam_b * self._x_comb + b_b * i_eff
@@ -431,7 +459,7 @@ class HuWangRls:
 
     name = "huwang-rls"
 
-    def __init__(self, **settings) -> None:
+    def __init__(self, **settings: object) -> None:
         known = {f.name for f in fields(HuWangSettings)}
         unknown = set(settings) - known
         if unknown:

@@ -24,7 +24,7 @@ import numpy as np
 
 
 class Rls:
-    """RLS with forgetting over ``N`` problems of ``p`` parameters: ``θ [N, p]``, ``P [N, p, p]``."""
+    """RLS with forgetting over ``N`` problems of ``p`` parameters: ``θ [N,p]``, ``P [N,p,p]``."""
 
     def __init__(
         self,
