@@ -60,7 +60,7 @@ def test_evaluate_writes_json_table_and_plots(tmp_path: Path, nmc_recording, nmc
         assert r["recording"] == "drive"
         for key in ("soc_rmse_pct", "soc_mae_pct", "soc_max_pct", "soc_rmse_after_600s_pct", "us_per_step"):
             assert isinstance(r[key], float) and np.isfinite(r[key]) and r[key] >= 0, key
-        assert r["soc_mae_pct"] <= r["soc_rmse_pct"] <= r["soc_max_pct"]
+        assert r["soc_mae_pct"] <= r["soc_rmse_pct"] + 1e-9 <= r["soc_max_pct"] + 2e-9  # equal up to rounding for a constant error
     fo, cc = doc["results"]
     # started 20 % wrong (truth 0.9 > 0.8: subtracted): coulomb counting keeps that error
     assert cc["soc_max_pct"] == pytest.approx(20.0, abs=1e-6)

@@ -13,7 +13,7 @@ from service.cli import UserError
 from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
 from service.estimators.settings import EstimatorSettings
 from service.evaluation.metrics import score
-from service.evaluation.truth import truth_and_start, wrong_start
+from service.evaluation.truth import per_recording, truth_and_start, wrong_start
 from service.recording import load_recording
 
 DEFAULT_ESTIMATORS = list(ESTIMATORS)
@@ -76,10 +76,7 @@ def run(args: argparse.Namespace) -> int:
         estimators = [create(n, settings) for n in names]
     except UnknownEstimator as exc:
         raise UserError(str(exc)) from exc
-    full = args.full_at or [None]
-    if len(full) not in (1, len(args.recordings)):
-        raise UserError(f"--full-at given {len(full)} times for {len(args.recordings)} recordings: give it once or once per recording")
-    full = full * len(args.recordings) if len(full) == 1 else full
+    full = per_recording(args.full_at, len(args.recordings), "--full-at")
     recordings = [load_recording(p) for p in args.recordings]  # validate all before the long work
     results = []
     capacity = profile.capacity_ah * profile.extensions.capacity_scale

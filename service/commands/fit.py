@@ -8,6 +8,7 @@ from pathlib import Path
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cli import UserError
+from service.evaluation.truth import per_recording
 from service.recording import load_recording
 
 
@@ -42,10 +43,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.capacity_ah > 0:
         raise UserError(f"--capacity-ah must be > 0, got {args.capacity_ah}")
     recs = [load_recording(p) for p in args.recordings]
-    full = args.full_at or [None]
-    if len(full) not in (1, len(recs)):
-        raise UserError(f"--full-at given {len(full)} times for {len(recs)} recordings: give it once or once per recording")
-    full = full * len(recs) if len(full) == 1 else full
+    full = per_recording(args.full_at, len(recs), "--full-at")
     table = None
     if args.ocv:
         try:

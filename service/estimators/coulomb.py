@@ -16,14 +16,7 @@ import numpy as np
 from service.cell.profile import CellProfile
 from service.estimators.base import EstimateTrace
 from service.recording import Recording
-
-
-def coulomb_count(
-    time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float, soc0: float
-) -> np.ndarray:
-    """SOC along ``time_s`` by backward-ZOH charge integration from ``soc0``."""
-    dt = np.diff(time_s, prepend=time_s[0])
-    return soc0 - np.cumsum(current_a * dt) / (3600.0 * capacity_ah)
+from service.evaluation.truth import coulomb_soc
 
 
 class CoulombCounter:
@@ -33,5 +26,5 @@ class CoulombCounter:
 
     def run(self, recording: Recording, profile: CellProfile, soc0: float) -> EstimateTrace:
         capacity = profile.capacity_ah * profile.extensions.capacity_scale
-        soc = coulomb_count(recording.time_s, recording.current_a, capacity, soc0)
+        soc = coulomb_soc(recording.time_s, recording.current_a, capacity, soc0)
         return EstimateTrace(soc=soc, v_pred=None, soc_std=None, params={})

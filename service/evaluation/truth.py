@@ -15,6 +15,14 @@ def coulomb_soc(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float, s
     return soc0 - np.cumsum(dq) / capacity_ah
 
 
+def per_recording(values: list[str] | None, n: int, flag: str) -> list[str | None]:
+    """A flag given once (applies to all) or once per recording, expanded to ``n`` values."""
+    values = values or [None]
+    if len(values) not in (1, n):
+        raise UserError(f"{flag} given {len(values)} times for {n} recordings: give it once or once per recording")
+    return values * n if len(values) == 1 else list(values)
+
+
 def find_full_charge(rec: Recording) -> int:
     """Index of the end of the last CC-CV charge before the first discharge after it.
 
