@@ -29,7 +29,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--recording", type=Path, default=None, help="a recording CSV instead of the bundled one")
     parser.add_argument("--seed", type=int, default=0, help="seed of the per-cell spread (default 0)")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the figures as JSON")
-    parser.add_argument("--plot", type=Path, default=None, metavar="FILE", help="write a PNG of SOC vs truth")
+    parser.add_argument("--plot", type=Path, default=Path("socd-demo.png"), metavar="FILE", help="PNG of SOC vs truth (default socd-demo.png)")
     parser.add_argument("--log-level", default="warning", choices=("debug", "info", "warning", "error"))
     parser.set_defaults(func=_demo)
 
