@@ -88,12 +88,33 @@ class DemoResult:
         return asdict(self)
 
 
+SHIPPED_DBC_CELLS = 96
+
+
+def _generated_input_dbc(n_cells: int, workdir: Path, dbc_dir: Path) -> Path:
+    """A BMS DBC for a pack larger than the shipped one, made by ``dbc/generate_dbc.py``
+    (same layout: 4 cells per voltage frame, one temperature sensor per 4 cells)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("socd_generate_dbc", dbc_dir / "generate_dbc.py")
+    if spec is None or spec.loader is None:
+        raise FileNotFoundError(f"{dbc_dir / 'generate_dbc.py'} is needed for more than {SHIPPED_DBC_CELLS} cells")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    path = workdir / f"bms_pack_{n_cells}.dbc"
+    path.write_text(gen.bms_database(n_cells, -(-n_cells // 4)).as_dbc_string())
+    return path
+
+
 def _demo_config(n_cells: int, channel: str, port: int, workdir: Path, profile_path: Path):
     from service.config import DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config
 
+    input_dbc = DEFAULT_INPUT_DBC
+    if n_cells > SHIPPED_DBC_CELLS:
+        input_dbc = _generated_input_dbc(n_cells, workdir, DEFAULT_INPUT_DBC.parent)
     return build_config({
         "cell_profile": str(profile_path),
-        "dbc": {"input": str(DEFAULT_INPUT_DBC), "output": str(DEFAULT_OUTPUT_DBC)},
+        "dbc": {"input": str(input_dbc), "output": str(DEFAULT_OUTPUT_DBC)},
         "pack": {"n_cells": n_cells},
         "bus": {"interface": "virtual", "channel": channel},
         "output": {"can_period_s": 0.5, "zenoh_period_s": 0.25, "queue_size": 64},

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from service.cli import UserError
 
-MAX_DEMO_CELLS = 96  # cells the shipped input DBC maps
+MAX_DEMO_CELLS = 256  # the output DBC's cell index is 8 bits; above 96 an input DBC is generated
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -41,7 +41,7 @@ def _demo(args: argparse.Namespace) -> int:
     logging.basicConfig(level=getattr(logging, args.log_level.upper()),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if not 1 <= args.cells <= MAX_DEMO_CELLS:
-        raise UserError(f"--cells must be 1..{MAX_DEMO_CELLS} (the shipped DBC maps {MAX_DEMO_CELLS}), got {args.cells}")
+        raise UserError(f"--cells must be 1..{MAX_DEMO_CELLS}, got {args.cells}")
     if args.speed < 0:
         raise UserError(f"--speed must be >= 0, got {args.speed}")
     if args.seconds is not None and args.seconds <= 0:
