@@ -130,6 +130,7 @@ def run_demo(
     seconds: float | None = None,
     *,
     recording_path: Path | None = None,
+    start_soc: float | None = None,
     profile_path: Path | None = None,
     seed: int = 0,
     faults: Any = None,
@@ -148,7 +149,11 @@ def run_demo(
     from service.daemon.zenoh_pub import zenoh_config
     from service.recording import load_recording
 
-    recording_path = Path(recording_path) if recording_path else bundled_recording()
+    if recording_path is None:
+        recording_path = bundled_recording()
+        if start_soc is None:
+            start_soc = 1.0  # the bundled drive starts at the end of a CC-CV charge (data README)
+    recording_path = Path(recording_path)
     profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
     profile = load_profile(profile_path)
     recording = load_recording(recording_path)
@@ -161,7 +166,7 @@ def run_demo(
     port = free_port()
     config = _demo_config(cells, channel, port, workdir, profile_path)
     spread = SpreadSpec(capacity=0.02, resistance=0.05, soc=0.02, temperature_c=0.5)
-    frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed)
+    frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc)
     if status is True:
         status = sys.stdout  # looked up now: the caller may have redirected it
     elif status is False:

@@ -27,6 +27,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--seconds", type=float, default=None, metavar="S",
                         help="replay only the first S seconds of the recording")
     parser.add_argument("--recording", type=Path, default=None, help="a recording CSV instead of the bundled one")
+    parser.add_argument("--start-soc", type=float, default=None, metavar="SOC",
+                        help="true SOC at the recording's first sample, 0-1 (default: 1.0 for the bundled "
+                             "drive, which starts fully charged; else estimated from the first rest voltage)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the per-cell spread (default 0)")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the figures as JSON")
     parser.add_argument("--plot", type=Path, default=Path("socd-demo.png"), metavar="FILE", help="PNG of SOC vs truth (default socd-demo.png)")
@@ -46,11 +49,13 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(f"--speed must be >= 0, got {args.speed}")
     if args.seconds is not None and args.seconds <= 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
+    if args.start_soc is not None and not 0.0 <= args.start_soc <= 1.0:
+        raise UserError(f"--start-soc must be in [0, 1], got {args.start_soc}")
     if args.recording is not None and not args.recording.is_file():
         raise UserError(f"{args.recording}: no such recording")
     try:
         result, traces = run_demo(args.cells, args.speed, args.seconds, recording_path=args.recording,
-                                  seed=args.seed)
+                                  start_soc=args.start_soc, seed=args.seed)
     except (FileNotFoundError, ProfileError) as exc:
         raise UserError(str(exc)) from None
     print(summary_text(result))
