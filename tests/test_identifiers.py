@@ -148,7 +148,7 @@ def test_slow_identifier_waits_for_charge_throughput() -> None:
         assert not slow.update(*nom), k
     slow.record(1.0, np.full(1, -2.0), np.full(1, 0.005), np.full(1, 2.0))  # charge counts too
     assert slow.update(*nom)
-    assert slow.updates == 1 and slow.length == 0
+    assert slow.updates == 1 and slow.start[0] == slow.length and slow.moved[0] == 0  # new interval begins here
 
 
 @pytest.mark.xfail(

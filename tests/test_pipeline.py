@@ -106,13 +106,6 @@ def test_pack_batch_equals_single_cell_runs(nmc_profile) -> None:
     assert not pack.reset_count.any()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="SlowIdentifier couples the cells of a pack: due() fires when ANY cell's throughput "
-    "reaches slow_soc_delta, update() then updates every cell and clears every cell's interval, and "
-    "PackEstimator.slow_update gates on any() cell's σ; a cell in a batch is therefore identified "
-    "on other intervals than the same cell alone (SOC differs by up to ~0.7 % after 300 s)",
-)
 def test_pack_batch_equals_single_cell_runs_with_slow_identifier(nmc_profile) -> None:
     cells = [1, 199]
     pack, singles = _batch_vs_single(nmc_profile, EstimatorSettings(), cells)

@@ -198,8 +198,7 @@ class PackEstimator:
             return np.zeros(self.n, dtype=bool)
         nom = self.nominal
         converged = self.ukf.soc_std < self.settings.identify_below_soc_std
-        done = self.slow.update(nom.r[:, 1], nom.c[:, 1], nom.alpha[:, 1], cells=converged)
-        return converged if done else np.zeros(self.n, dtype=bool)
+        return self.slow.update(nom.r[:, 1], nom.c[:, 1], nom.alpha[:, 1], cells=converged)
 
     # -- outputs ------------------------------------------------------------------------
     @property
@@ -270,6 +269,7 @@ class PackEstimator:
             self.slow.z, self.slow.P, self.slow.ring, self.slow.moved = slow
             self.slow.hist0 = self.slow.ring.copy()
             self.slow.length = 0
+            self.slow.start[:] = 0
 
 
 # -- offline estimators (one cell, for ``socd evaluate``) ---------------------------------

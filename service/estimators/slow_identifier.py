@@ -24,6 +24,10 @@ _PERTURB = np.array([0.02, 0.02, 0.01])
 
 
 class SlowIdentifier:
+    """Per-cell slow EKF.  Samples are buffered once for the pack; every cell keeps its own
+    interval (start index and initial memory), so a cell identified in a pack gets exactly
+    the numbers it would get alone."""
+
     def __init__(
         self,
         n_cells: int,
@@ -47,6 +51,7 @@ class SlowIdentifier:
         self.i = np.zeros((capacity, n_cells))
         self.meas = np.zeros((capacity, n_cells))
         self.length = 0
+        self.start = np.zeros(n_cells, dtype=int)  # each cell's interval start in the buffer
         self.ring = np.zeros((n_cells, memory_length))  # fast U_df, newest first
         self.hist0 = np.zeros((n_cells, memory_length))
         self.moved = np.zeros(n_cells)
@@ -55,12 +60,28 @@ class SlowIdentifier:
     def reset(self, cells: np.ndarray) -> None:
         self.z[cells] = np.array([1.0, 1.0, 0.0])
 
+    def _restart(self, cells: np.ndarray) -> None:
+        """Begin a new interval for ``cells`` at the end of the buffer."""
+        self.hist0[cells] = self.ring[cells]
+        self.start[cells] = self.length
+        self.moved[cells] = 0.0
+
     def record(self, dt_s: float, current_a: np.ndarray, u_df_meas: np.ndarray, capacity_ah: np.ndarray) -> None:
         """Buffer one sample of the fast path (cheap; called every step)."""
+        if self.length == self.capacity:  # drop what no cell needs; a cell stuck at 0 restarts
+            first = int(self.start.min())
+            if first == 0:
+                stuck = self.start == 0
+                self.hist0[stuck] = self.ring[stuck]
+                self.start[stuck] = self.length
+                first = int(self.start.min())
+            keep = self.length - first
+            self.dt[:keep] = self.dt[first:self.length]
+            self.i[:keep] = self.i[first:self.length]
+            self.meas[:keep] = self.meas[first:self.length]
+            self.start -= first
+            self.length = keep
         self.moved += np.abs(current_a) * dt_s / (3600.0 * capacity_ah)
-        if self.length == self.capacity:  # long rest: restart the interval here
-            self.hist0 = self.ring.copy()
-            self.length = 0
         k = self.length
         self.dt[k] = dt_s
         self.i[k] = current_a
@@ -68,54 +89,74 @@ class SlowIdentifier:
         self.length += 1
         push_history(self.ring, u_df_meas)
 
-    def due(self) -> bool:
-        return self.length >= 2 and bool(self.moved.max() >= self.soc_delta)
+    def due_cells(self) -> np.ndarray:
+        """Cells whose interval has passed ``soc_delta`` of charge (and holds ≥ 2 samples)."""
+        return (self.moved >= self.soc_delta) & (self.length - self.start >= 2)
 
-    def update(self, r_df: np.ndarray, c_df: np.ndarray, n: np.ndarray, cells: np.ndarray | None = None) -> bool:
-        """Run one slow update if due; ``r_df, c_df, n`` are the profile values at T.
+    def update(self, r_df: np.ndarray, c_df: np.ndarray, n: np.ndarray, cells: np.ndarray | None = None) -> np.ndarray:
+        """Run the slow update for every due cell; ``r_df, c_df, n`` are the profile values at T.
 
-        The update fires pack-wide when the cell that has passed the most charge reaches
-        ``soc_delta`` (in a series pack every cell passes the same charge); only ``cells``
-        (default all) take the correction.
+        Due cells outside ``cells`` (default all) start a new interval without a correction.
+        Returns the mask of corrected cells.
         """
-        if not self.due():
-            return False
-        steps = self.length
-        z = self.z
+        due = self.due_cells()
+        if not due.any():
+            return np.zeros(self.n, dtype=bool)
+        allowed = np.ones(self.n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
+        fit = due & allowed
+        corrected = np.zeros(self.n, dtype=bool)
+        if fit.any():
+            idx_cells = np.flatnonzero(fit)
+            corrected[idx_cells] = self._correct(idx_cells, r_df, c_df, n)
+        self._restart(due)
+        self.updates += int(fit.any())
+        return corrected
+
+    def _correct(self, cells: np.ndarray, r_df: np.ndarray, c_df: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """EKF correction of ``cells`` from a re-simulation of each one's own interval."""
+        m = cells.size
+        z = self.z[cells]
         zs = np.repeat(z[:, None, :], 4, axis=1)
         for j in range(3):
             zs[:, j + 1, j] += _PERTURB[j]
-        r = r_df[:, None] * zs[..., 0]
-        c = c_df[:, None] * zs[..., 1]
-        a = np.clip(n[:, None] + zs[..., 2], *ORDER_LIMITS)
+        r = r_df[cells, None] * zs[..., 0]
+        c = c_df[cells, None] * zs[..., 1]
+        a = np.clip(n[cells, None] + zs[..., 2], *ORDER_LIMITS)
         w = gl_weights(a, self.L)
-        hist = np.repeat(self.hist0[:, None, :], 4, axis=1)
-        idx = np.unique(np.linspace(steps // 3, steps - 1, self.points).astype(int))
-        pred = np.empty((self.n, 4, idx.size))
-        want = {int(k): col for col, k in enumerate(idx)}
-        for k in range(steps):
-            u = cpe_step(hist, self.i[k][:, None], self.dt[k], r, c, a, w)
-            push_history(hist, u)
-            if k in want:
-                pred[:, :, want[k]] = u
-        meas = self.meas[idx].T  # [N, M]
-        H = np.swapaxes((pred[:, 1:, :] - pred[:, :1, :]) / _PERTURB[None, :, None], 1, 2)  # [N, M, 3]
+        hist = np.repeat(self.hist0[cells][:, None, :], 4, axis=1)
+        first = self.start[cells]
+        k0 = int(first.min())
+        steps = self.length - first  # per cell
+        # sample points: evenly spaced over the last two thirds of each cell's own interval
+        frac = np.linspace(0.0, 1.0, self.points)
+        pts = (first[:, None] + (steps // 3)[:, None] + frac[None, :] * (steps - 1 - steps // 3)[:, None]).astype(int)
+        pred = np.empty((m, 4, self.points))
+        for k in range(k0, self.length):
+            live = k >= first
+            u = cpe_step(hist, self.i[k, cells][:, None], self.dt[k], r, c, a, w)
+            if live.all():
+                push_history(hist, u)
+            else:
+                pushed = hist.copy()
+                push_history(pushed, u)
+                hist = np.where(live[:, None, None], pushed, hist)
+            hit = pts == k
+            if hit.any():
+                ci, pi = np.nonzero(hit)
+                pred[ci, :, pi] = u[ci]
+        meas = self.meas[pts, cells[:, None]]  # [m, M]
+        H = np.swapaxes((pred[:, 1:, :] - pred[:, :1, :]) / _PERTURB[None, :, None], 1, 2)  # [m, M, 3]
         e = meas - pred[:, 0, :]
-        P = self.P + self.Q
-        S = H @ P @ np.swapaxes(H, 1, 2) + self.R * np.eye(idx.size)
+        P = self.P[cells] + self.Q
+        S = H @ P @ np.swapaxes(H, 1, 2) + self.R * np.eye(self.points)
         K = P @ np.swapaxes(H, 1, 2) @ np.linalg.inv(S)
         ok = np.isfinite(K).all(axis=(1, 2)) & np.isfinite(e).all(axis=1)
-        if cells is not None:
-            ok &= cells
         dz = np.einsum("nij,nj->ni", K, np.where(np.isfinite(e), e, 0.0))
-        self.z = np.where(ok[:, None], z + dz, z)
+        znew = np.where(ok[:, None], z + dz, z)
         newP = P - K @ S @ np.swapaxes(K, 1, 2)
-        self.P = np.where(ok[:, None, None], 0.5 * (newP + np.swapaxes(newP, 1, 2)), P)
-        self.z[:, 0] = np.clip(self.z[:, 0], *RELATIVE_LIMITS)
-        self.z[:, 1] = np.clip(self.z[:, 1], *RELATIVE_LIMITS)
-        self.z[:, 2] = np.clip(self.z[:, 2], ORDER_LIMITS[0] - n, ORDER_LIMITS[1] - n)
-        self.hist0 = self.ring.copy()
-        self.length = 0
-        self.moved[:] = 0.0
-        self.updates += 1
-        return True
+        self.P[cells] = np.where(ok[:, None, None], 0.5 * (newP + np.swapaxes(newP, 1, 2)), P)
+        znew[:, 0] = np.clip(znew[:, 0], *RELATIVE_LIMITS)
+        znew[:, 1] = np.clip(znew[:, 1], *RELATIVE_LIMITS)
+        znew[:, 2] = np.clip(znew[:, 2], ORDER_LIMITS[0] - n[cells], ORDER_LIMITS[1] - n[cells])
+        self.z[cells] = znew
+        return ok
