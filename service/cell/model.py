@@ -125,8 +125,8 @@ def simulate(
     dt = np.diff(time_s, prepend=time_s[0])
     v = np.empty((time_s.size, n))
     soc = np.empty((time_s.size, n))
-    multi_temp = single and temperature_dependent and len(profile.parameters) > 1 or (
-        single and profile.extensions.arrhenius is not None
+    multi_temp = single and (
+        (temperature_dependent and len(profile.parameters) > 1) or profile.extensions.arrhenius is not None
     )
     last_t = float(temp_c[0])
     for k in range(time_s.size):

@@ -79,10 +79,13 @@ class OcvTable:
         lo = self.ocv_v[k0, i0] + u * (self.ocv_v[k0, i0 + 1] - self.ocv_v[k0, i0])
         hi = self.ocv_v[k1, i0] + u * (self.ocv_v[k1, i0 + 1] - self.ocv_v[k1, i0])
         v = lo + f * (hi - lo)
-        lo_s, hi_s = self.extrapolation_slopes
-        lo_ext = lo_s[k0] + f * (lo_s[k1] - lo_s[k0])
-        hi_ext = hi_s[k0] + f * (hi_s[k1] - hi_s[k0])
+        lo_ext, hi_ext = self._extrapolation_at(k0, k1, f)
         return v + lo_ext * np.minimum(soc, 0.0) + hi_ext * np.maximum(soc - 1.0, 0.0)
+
+    def _extrapolation_at(self, k0: np.ndarray, k1: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Extrapolation slopes below 0 and above 1, interpolated between temperature rows."""
+        lo_s, hi_s = self.extrapolation_slopes
+        return lo_s[k0] + f * (lo_s[k1] - lo_s[k0]), hi_s[k0] + f * (hi_s[k1] - hi_s[k0])
 
     @cached_property
     def extrapolation_slopes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -100,9 +103,7 @@ class OcvTable:
         i0 = np.clip(np.floor(np.clip(soc, 0.0, 1.0) * n).astype(int), 0, n - 1)
         d0 = (self.ocv_v[k0, i0 + 1] - self.ocv_v[k0, i0]) * n
         d1 = (self.ocv_v[k1, i0 + 1] - self.ocv_v[k1, i0]) * n
-        lo_s, hi_s = self.extrapolation_slopes
-        lo_ext = lo_s[k0] + f * (lo_s[k1] - lo_s[k0])
-        hi_ext = hi_s[k0] + f * (hi_s[k1] - hi_s[k0])
+        lo_ext, hi_ext = self._extrapolation_at(k0, k1, f)
         return np.where(soc < 0.0, lo_ext, np.where(soc > 1.0, hi_ext, d0 + f * (d1 - d0)))
 
     def soc_from_ocv(self, ocv_v: np.ndarray, temp_c: np.ndarray | float = 25.0) -> np.ndarray:
@@ -187,9 +188,8 @@ class CellOcv:
         self._rows_flat = self.rows.ravel()
         self._steps_flat = self.steps.ravel()
         self._row_offset = (np.arange(self.rows.shape[0]) * GRID_POINTS)[:, None]
-        lo_s, hi_s = table.extrapolation_slopes
-        self._lo_ext = (lo_s[k0] + f * (lo_s[k1] - lo_s[k0]))[:, None]
-        self._hi_ext = (hi_s[k0] + f * (hi_s[k1] - hi_s[k0]))[:, None]
+        lo_ext, hi_ext = table._extrapolation_at(k0, k1, f)
+        self._lo_ext, self._hi_ext = lo_ext[:, None], hi_ext[:, None]
         self._step_offset = (np.arange(self.rows.shape[0]) * (GRID_POINTS - 1))[:, None]
 
     def _index(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
