@@ -46,6 +46,9 @@ class Context:
     soc_range: tuple[float, float]
     base_tau_df_s: float
     base_r_sum_ohm: float
+    # current offset measured in rests (signatures.rest_current_offset), when there are rests
+    bias_rest_a: float | None = None
+    bias_rest_se_a: float | None = None
 
 
 def _corr(a: np.ndarray, b: np.ndarray) -> float:
@@ -243,8 +246,21 @@ CAPACITY = Effect(
 
 
 # -- current-sensor bias -------------------------------------------------------------------------
+def _bias_a(th, ctx):
+    """The offset (A) for coordinate ``th``: with rests, the rest measurement ± ``th`` standard
+    errors (the voltage fit refines it inside that interval); without, ``th`` % of 1C."""
+    if ctx.bias_rest_a is not None and ctx.bias_rest_se_a is not None and np.isfinite(ctx.bias_rest_se_a):
+        return ctx.bias_rest_a + th * ctx.bias_rest_se_a
+    return th * ctx.capacity_ah / 100.0
+
+
 def _bias_apply(th, mods, ctx):
-    mods.params.current_bias_a = mods.params.current_bias_a + th[:, 0] * ctx.capacity_ah / 100.0
+    mods.params.current_bias_a = mods.params.current_bias_a + _bias_a(th[:, 0], ctx)
+
+
+def _bias_phys(th, ctx):
+    b = float(_bias_a(float(th[0]), ctx))
+    return {"current_bias_a": b, "bias_frac_1c": b / ctx.capacity_ah}
 
 
 def _bias_feature(ctx):
@@ -255,10 +271,10 @@ CURRENT_BIAS = Effect(
     name="current_bias",
     title="current-sensor offset (measured = true + bias)",
     params=("current_bias_a", "bias_frac_1c"),
-    bounds=((-5.0, 5.0),),  # percent of 1C
+    bounds=((-5.0, 5.0),),  # rest-measurement standard errors, or percent of 1C without rests
     starts=lambda ctx: [(0.0,), (-1.0,), (1.0,)],
     apply=_bias_apply,
-    physical=lambda th, ctx: {"current_bias_a": float(th[0]) * ctx.capacity_ah / 100.0, "bias_frac_1c": float(th[0]) / 100.0},
+    physical=_bias_phys,
     to_profile=lambda ph, profile, ctx: _ext(profile, current_bias_a=profile.extensions.current_bias_a + ph["current_bias_a"]),
     detect=lambda ctx: abs(_corr(ctx.residual_v, _bias_feature(ctx)[1])),
     feature=_bias_feature,

@@ -24,7 +24,11 @@ Protocol (stated in every report and JSON):
   that an effect's departure is present (temperature: the ambient moves).  A nominated
   effect needs only ``min_rel_gain_nominated``; flexible extensions also absorb the
   generic mismatch between the equivalent circuit and a real cell, so without a signature
-  the full ``min_rel_gain`` applies.
+  the full ``min_rel_gain`` applies.  A signature that *measures* the departure directly
+  (``current_bias``: the mean measured current in rests, where the true current is zero)
+  makes its effect significant when the held-out RMSE does not get worse
+  (``min_rel_gain_direct`` = 0); the voltage channel then only has to agree, because a
+  sensor offset changes the voltage only through a slow SOC drift.
 * **Significant** when the held-out gain is at least ``min_rel_gain``, the held-out RMSE
   falls by at least ``min_abs_gain_noise`` times the voltage noise (estimated from the
   recording's rests) and ``ΔBIC >= min_delta_bic``.  The verdict is the best significant
@@ -69,6 +73,9 @@ class DiagnoseOptions:
     min_rel_gain: float = 0.30
     # an effect nominated by its own signature (service.cell.diagnosis.signatures) needs less
     min_rel_gain_nominated: float = 0.10
+    # an effect whose signature is a direct measurement (current_bias: the rest current) needs
+    # only that the held-out RMSE does not get worse
+    min_rel_gain_direct: float = 0.0
     min_delta_bic: float = 0.0
     min_abs_gain_noise: float = 0.5
 
@@ -293,19 +300,22 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     ocv = base_profile.ocv_table()
     soc_lo, soc_hi = float(np.clip(soc_base.min(), 0, 1)), float(np.clip(soc_base.max(), 0, 1))
     tau_df = (point.r_df * point.c_df) ** (1 / point.n)
+    sig = signatures(rec.time_s, rec.current_a, rec.temperature_c, cap)
+    bias_sig = sig.get("current_bias", {})
+    bias_rest = (bias_sig.get("offset_a"), bias_sig.get("se_a")) if bias_sig.get("n_rest_samples") and bias_sig.get("se_a") else (None, None)
     problem.ctx = Context(
         time_s=grid.time_s, current_a=grid.current_a, temperature_c=grid.temperature_c,
         residual_v=np.zeros(len(grid)), soc=np.zeros(len(grid)), ocv_slope=np.zeros(len(grid)),
         capacity_ah=cap, ref_temp_c=temp_fit, soc_range=(soc_lo, max(soc_hi, soc_lo + 0.05)),
         base_tau_df_s=float(tau_df), base_r_sum_ohm=point.r_ct + point.r_df,
+        bias_rest_a=bias_rest[0], bias_rest_se_a=bias_rest[1],
     )
     full_ctx = Context(
         time_s=rec.time_s, current_a=rec.current_a, temperature_c=rec.temperature_c, residual_v=r_base,
         soc=soc_base, ocv_slope=ocv.slope(soc_base, rec.temperature_c), capacity_ah=cap, ref_temp_c=temp_fit,
         soc_range=problem.ctx.soc_range, base_tau_df_s=float(tau_df), base_r_sum_ohm=point.r_ct + point.r_df,
+        bias_rest_a=bias_rest[0], bias_rest_se_a=bias_rest[1],
     )
-
-    sig = signatures(rec.time_s, rec.current_a, rec.temperature_c, cap)
     outcomes: list[EffectOutcome] = []
     for name in opt.effects:
         eff: Effect = EFFECTS[name]
@@ -335,14 +345,18 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
                     params_std[key] = float(math.hypot(params_std.get(key, 0.0), d))
         reasons = []
         nominated = bool(sig.get(name, {}).get("nominated", False))
-        bar = opt.min_rel_gain_nominated if nominated else opt.min_rel_gain
+        direct = nominated and bool(sig.get(name, {}).get("direct", False))
+        bar = opt.min_rel_gain_direct if direct else opt.min_rel_gain_nominated if nominated else opt.min_rel_gain
         if score < bar:
             reasons.append(f"held-out gain {score:.1%} < {bar:.0%}"
-                           + (" (nominated by its signature)" if nominated else " (no signature of its own)"))
-        if rmse_before - after < opt.min_abs_gain_noise * 1000 * sigma:
+                           + (" (measured directly by its signature)" if direct else
+                              " (nominated by its signature)" if nominated else " (no signature of its own)"))
+        if direct:
+            pass  # the signature measured the departure; the held-out voltage only has to agree
+        elif rmse_before - after < opt.min_abs_gain_noise * 1000 * sigma:
             reasons.append(f"held-out RMSE drop {rmse_before - after:.2f} mV < {opt.min_abs_gain_noise:g} x noise "
                            f"({1000 * sigma:.2f} mV)")
-        if dbic < opt.min_delta_bic:
+        if not direct and dbic < opt.min_delta_bic:
             reasons.append(f"dBIC {dbic:.1f} < {opt.min_delta_bic:g}")
         outcomes.append(EffectOutcome(
             name=name, title=eff.title, score=score, significant=not reasons, rmse_before_mv=rmse_before,
@@ -359,6 +373,9 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     located.sort(key=lambda g: -g["concentration"])
     thresholds = {
         "min_rel_gain": opt.min_rel_gain, "min_rel_gain_nominated": opt.min_rel_gain_nominated,
+        "min_rel_gain_direct": opt.min_rel_gain_direct,
+        "signatures": {k: {kk: v[kk] for kk in ("threshold", "min_drift_soc", "min_frac_1c") if kk in v}
+                       for k, v in sig.items()},
         "min_delta_bic": opt.min_delta_bic,
         "min_abs_gain_noise": opt.min_abs_gain_noise, "noise_sigma_mv": round(1000 * sigma, 3),
         "min_abs_gain_mv": round(opt.min_abs_gain_noise * 1000 * sigma, 3),

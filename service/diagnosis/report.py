@@ -9,7 +9,9 @@ import numpy as np
 from service.diagnosis.effects import EFFECTS, Context
 
 
-def _fmt(v: float) -> str:
+def _fmt(v: float | None) -> str:
+    if v is None:
+        return "–"
     if v == 0 or not np.isfinite(v):
         return f"{v:g}"
     a = abs(v)
@@ -143,8 +145,25 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"held-out RMSE drop ≥ "
         f"{th['min_abs_gain_noise']:g} × voltage noise ({th['noise_sigma_mv']:.2f} mV, from rests) = "
         f"{th['min_abs_gain_mv']:.2f} mV; ΔBIC ≥ {th['min_delta_bic']:g} on the fit part with "
-        f"n_eff = {dg.base['n_eff']:.0f} (n / τ_int, τ_int = {dg.base['tau_int_samples']:.1f} samples).",
+        f"n_eff = {dg.base['n_eff']:.0f} (n / τ_int, τ_int = {dg.base['tau_int_samples']:.1f} samples). "
+        f"An effect whose signature measures it directly (current_bias: the rest current) needs only a held-out "
+        f"gain ≥ {100 * th.get('min_rel_gain_direct', 0.0):.0f} %.",
         "",
+        "## Signatures (evidence outside the voltage fit)",
+        "",
+        "| effect | nominated | statistic | threshold | what |",
+        "|---|---|---|---|---|",
+        *[f"| {k} | {'**yes**' if v.get('nominated') else 'no'} | {v.get('statistic')} | {v.get('threshold')} | "
+          f"{v.get('what', '')} |" for k, v in dg.signatures.items()],
+        "",
+        *([f"Rest current (true current 0): {1000 * dg.signatures['current_bias']['offset_a']:+.2f} ± "
+           f"{1000 * dg.signatures['current_bias']['se_a']:.2f} mA over {dg.signatures['current_bias']['n_rests']} "
+           f"rests ({dg.signatures['current_bias']['n_rest_samples']} samples), a Coulomb-count drift of "
+           f"{100 * dg.signatures['current_bias']['drift_soc']:.2f} % SOC over the recording; rule: |z| ≥ "
+           f"{dg.signatures['current_bias']['threshold']:g}, drift ≥ "
+           f"{100 * dg.signatures['current_bias']['min_drift_soc']:.1f} % SOC and |offset| ≥ "
+           f"{100 * dg.signatures['current_bias']['min_frac_1c']:.2f} % of 1C.", ""]
+          if dg.signatures.get("current_bias", {}).get("se_a") else []),
         "## Base model (MTS-FOM, refitted on the fit part)",
         "",
         "| " + " | ".join(k for k in dg.base["point"]) + " |",

@@ -13,6 +13,20 @@ departure the effect describes is present.  An effect whose signature fires is
   a constant ambient, ``τ dT/dt = T_amb + a (I/C)² - T``.  Its fit to the recorded
   temperature (RMS misfit, K) is a few tenths of a kelvin with self-heating only and
   degrees when the ambient moves; the voltage never enters.
+* ``current_bias`` — in a rest the true current is exactly zero, so the mean of the
+  *measured* current over rest samples is the sensor offset itself (:func:`rest_current_offset`).
+  Rests are runs of at least :data:`REST_MIN_SAMPLES` samples with ``|I| < REST_MAX_C · C``
+  (3 % of 1C: above any offset worth naming, so a biased rest is still a rest) whose
+  current is *constant* (robust spread within :data:`REST_SPREAD_FACTOR` of the pooled
+  rest noise) and whose level agrees with the other rests (a trickle or a low load step is
+  not a rest).  The offset's standard error is corrected for autocorrelation
+  (``σ·sqrt(τ_int/n)``).  Nominated when ``|z| >= BIAS_MIN_Z`` (5: not a noise
+  fluctuation) **and** the Coulomb-count drift it causes over the recording,
+  ``|b|·duration / C``, is at least :data:`BIAS_MIN_DRIFT_SOC` (0.1 % SOC) **and** ``|b|``
+  is at least :data:`BIAS_MIN_FRAC_1C` of the 1C current (0.05 %, a current-sensor
+  accuracy scale): large enough to matter to an estimator.  Spikes inside a rest (beyond
+  :data:`REST_OUTLIER_SIGMA` pooled σ of the rest's median) are left out.  This is a direct measurement, not a pattern in a fit, so the
+  pipeline treats it as such (see :mod:`service.diagnosis.pipeline`).
 """
 
 from __future__ import annotations
@@ -24,6 +38,22 @@ from scipy.optimize import least_squares
 
 #: RMS misfit of the constant-ambient thermal model above which the ambient is taken to move
 AMBIENT_DRIFT_K = 0.5
+#: rest detection: |I| below this multiple of the 1C current ...
+REST_MAX_C = 0.03
+#: ... for at least this many consecutive samples
+REST_MIN_SAMPLES = 10
+#: samples dropped at each end of a rest run (a step may straddle a sample)
+REST_EDGE_SAMPLES = 2
+#: a run's robust current spread must stay below this multiple of the pooled rest noise
+REST_SPREAD_FACTOR = 3.0
+#: offset z-score (autocorrelation-corrected) needed to nominate current_bias
+BIAS_MIN_Z = 5.0
+#: Coulomb-count drift over the recording (fraction of SOC) needed to nominate current_bias
+BIAS_MIN_DRIFT_SOC = 0.001
+#: and the offset as a fraction of the 1C current (a sensor-accuracy scale)
+BIAS_MIN_FRAC_1C = 5e-4
+#: rest samples further than this many pooled noise σ from their run's median are spikes
+REST_OUTLIER_SIGMA = 6.0
 
 
 def _thermal_sim(th: np.ndarray, time_s: np.ndarray, load: np.ndarray, t0: float) -> np.ndarray:
@@ -75,10 +105,111 @@ def ambient_drift_k(time_s: np.ndarray, current_a: np.ndarray, temperature_c: np
             "range_k": float(temp.max() - temp.min()), "t_amb_c": float(best.x[0])}
 
 
+def _runs(mask: np.ndarray, min_len: int) -> list[tuple[int, int]]:
+    """``[start, stop)`` of the runs of True in ``mask`` at least ``min_len`` long."""
+    m = np.concatenate([[False], mask.astype(bool), [False]])
+    d = np.diff(m.astype(np.int8))
+    starts, stops = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+    return [(int(a), int(b)) for a, b in zip(starts, stops) if b - a >= min_len]
+
+
+def _robust_sd(x: np.ndarray) -> float:
+    return 1.4826 * float(np.median(np.abs(x - np.median(x))))
+
+
+def _autocorr_time(x: np.ndarray, max_lag: int = 200) -> float:
+    x = x - x.mean()
+    var = float(x @ x)
+    if var == 0 or x.size < 8:
+        return 1.0
+    tau = 1.0
+    for lag in range(1, min(max_lag, x.size // 4)):
+        rho = float(x[:-lag] @ x[lag:]) / var
+        if rho < 0.05:
+            break
+        tau += 2.0 * rho
+    return tau
+
+
+def rest_runs(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> list[tuple[int, int]]:
+    """Rests: near-zero, constant-current runs whose level agrees with the other rests.
+
+    Returns ``[start, stop)`` index pairs with :data:`REST_EDGE_SAMPLES` trimmed at each end.
+    """
+    near = np.abs(current_a) < REST_MAX_C * capacity_ah
+    runs = [(a + REST_EDGE_SAMPLES, b - REST_EDGE_SAMPLES)
+            for a, b in _runs(near, REST_MIN_SAMPLES + 2 * REST_EDGE_SAMPLES)]
+    if not runs:
+        return []
+    spreads = np.array([_robust_sd(current_a[a:b]) for a, b in runs])
+    noise = max(float(np.median(spreads)), 1e-4)
+    runs = [r for r, sd in zip(runs, spreads) if sd <= REST_SPREAD_FACTOR * noise]
+    if not runs:
+        return []
+    # a common level: runs whose median sits far from the median of run medians are not rests
+    meds = np.array([np.median(current_a[a:b]) for a, b in runs])
+    lens = np.array([b - a for a, b in runs])
+    centre = float(np.median(np.repeat(meds, lens)))
+    tol = 5.0 * noise / np.sqrt(lens) + 1e-3 * capacity_ah
+    return [r for r, m, t in zip(runs, meds, tol) if abs(m - centre) <= t]
+
+
+def _rest_samples(current_a: np.ndarray, runs: list[tuple[int, int]]) -> list[np.ndarray]:
+    """Per rest, its current samples without spikes (beyond REST_OUTLIER_SIGMA pooled σ of its median)."""
+    noise = max(float(np.median([_robust_sd(current_a[a:b]) for a, b in runs])), 1e-4)
+    out = []
+    for a, b in runs:
+        x = current_a[a:b]
+        keep = np.abs(x - np.median(x)) <= REST_OUTLIER_SIGMA * noise
+        if keep.sum() >= 3:
+            out.append(x[keep])
+    return out
+
+
+def rest_current_offset(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> dict:
+    """Current-sensor offset measured in rests (true current 0): mean, SE, z, drift."""
+    runs = rest_runs(time_s, current_a, capacity_ah)
+    duration_h = float(time_s[-1] - time_s[0]) / 3600.0
+    out = {"nominated": False, "direct": True, "statistic": 0.0, "offset_a": 0.0, "se_a": None, "n_rest_samples": 0,
+           "n_rests": len(runs), "drift_soc": 0.0, "what": "z-score of the mean measured current in rests "
+           "(true current 0), autocorrelation-corrected", "threshold": BIAS_MIN_Z,
+           "min_drift_soc": BIAS_MIN_DRIFT_SOC}
+    if not runs:
+        return out
+    per_rest = _rest_samples(current_a, runs)
+    if not per_rest:
+        return out
+    vals = np.concatenate(per_rest)
+    n = vals.size
+    mean = float(vals.mean())
+    # autocorrelation inside runs (pooled deviations from each run's own mean)
+    dev = np.concatenate([x - x.mean() for x in per_rest])
+    tau = _autocorr_time(dev)
+    sd = float(vals.std(ddof=1)) if n > 1 else 0.0
+    if sd == 0.0:  # quantised to exact zeros: only the resolution bounds the offset
+        diffs = np.abs(np.diff(np.unique(current_a)))
+        sd = float(diffs[diffs > 0].min()) / math.sqrt(12.0) if np.any(diffs > 0) else 1e-6
+    se = sd * math.sqrt(tau / n)
+    z = mean / se if se > 0 else 0.0
+    drift = abs(mean) * duration_h / capacity_ah
+    # agreement between rests (one constant offset): chi-square per degree of freedom
+    run_means = np.array([x.mean() for x in per_rest])
+    run_se = np.array([sd * math.sqrt(tau / x.size) for x in per_rest])
+    chi2 = float(np.mean(((run_means - mean) / run_se) ** 2)) if len(per_rest) > 1 else float("nan")
+    frac = abs(mean) / capacity_ah
+    out.update(nominated=bool(abs(z) >= BIAS_MIN_Z and drift >= BIAS_MIN_DRIFT_SOC and frac >= BIAS_MIN_FRAC_1C),
+               statistic=round(abs(z), 2), offset_frac_1c=round(mean / capacity_ah, 6), min_frac_1c=BIAS_MIN_FRAC_1C,
+               offset_a=mean, se_a=se, n_rest_samples=int(n), drift_soc=round(drift, 5), tau_int=round(tau, 2),
+               rest_seconds=round(float(sum(time_s[b - 1] - time_s[a] for a, b in runs)), 1),
+               chi2_per_rest=None if not np.isfinite(chi2) else round(chi2, 2))
+    return out
+
+
 def signatures(time_s: np.ndarray, current_a: np.ndarray, temperature_c: np.ndarray, capacity_ah: float) -> dict:
     """``{effect: {"nominated": bool, "statistic": float, ...}}`` for the effects that have one."""
     amb = ambient_drift_k(time_s, current_a, temperature_c, capacity_ah)
     return {
+        "current_bias": rest_current_offset(time_s, current_a, capacity_ah),
         "temperature": {"nominated": bool(amb["rms_k"] >= AMBIENT_DRIFT_K), "statistic": round(amb["rms_k"], 3),
                         "what": "RMS misfit (K) of a constant-ambient self-heating model to the temperature",
                         "threshold": AMBIENT_DRIFT_K, **{k: round(v, 3) for k, v in amb.items()}},
