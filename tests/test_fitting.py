@@ -110,3 +110,55 @@ def test_segment_validation_and_window():
     a = int(w.time_s[0])
     assert w.soc0 == pytest.approx(0.9 - float(np.sum(i[1:a + 1])) / 7200.0)
     assert math.isfinite(w.soc0)
+
+
+def test_fit_kinetics_recovers_exchange_current():
+    """Pulses at several currents separate the Butler-Volmer i0 from the linear R_ct."""
+    n = 2400
+    t = np.arange(n, dtype=float)
+    i = pulse_current(n, 2.0, 7) * 2.0  # up to 4C, where a 1 A exchange current bends the curve
+    temp = np.full(n, 0.0)
+    truth = TRUE.model_copy(update={"temp_c": 0.0, "i0_a": 1.0})
+    v, _ = simulate(profile(truth), t, i, temp, 0.95)
+    v = v + np.random.default_rng(4).normal(0, 0.001, n)
+    start = profile(ParameterPoint(temp_c=0.0, r_ohm=0.01, r_ct=0.01, c_dl=100, m=0.8, r_df=0.01, c_df=1000, n=0.8))
+    linear = fit_parameters(start, [FitSegment(t, i, v, temp, soc0=0.95)], max_seconds=60, x0=truth, de_maxiter=10)
+    res = fit_parameters(start, [FitSegment(t, i, v, temp, soc0=0.95)], fit_kinetics=True, max_seconds=120,
+                         x0=truth.model_copy(update={"i0_a": 5.0}), de_maxiter=20)
+    assert res.point.i0_a == pytest.approx(1.0, rel=0.25)
+    assert res.rmse_mv < 1.3  # the noise is 1 mV
+    assert linear.point.i0_a is None and linear.rmse_mv > 2 * res.rmse_mv
+
+
+def test_i0_interpolates_like_a_resistance_and_is_all_or_none():
+    pts = [TRUE.model_copy(update={"temp_c": 0.0, "i0_a": 0.5}), TRUE.model_copy(update={"temp_c": 25.0, "i0_a": 2.0})]
+    prof = profile(pts[0]).model_copy(update={"parameters": pts})
+    i0 = prof.parameters_at(np.array([0.0, 12.0, 25.0])).kinetics_i0_a
+    assert i0[0] == pytest.approx(0.5) and i0[2] == pytest.approx(2.0)
+    assert 0.5 < i0[1] < 2.0
+    # the diagnose extension, when set, is added on top and takes precedence
+    ext = prof.model_copy(update={"extensions": Extensions(kinetics_i0_a=3.0)})
+    assert ext.parameters_at(12.0).kinetics_i0_a[0] == pytest.approx(3.0)
+    with pytest.raises(ValueError, match="i0_a must be given at every temperature"):
+        CellProfile(capacity_ah=2.0, ocv=nmc_like_ocv(),
+                    parameters=[pts[0], TRUE.model_copy(update={"temp_c": 25.0})])
+
+
+def test_resistances_bounded_by_the_neighbouring_temperatures():
+    n = 1200
+    t = np.arange(n, dtype=float)
+    i = pulse_current(n, 2.0, 1)
+    temp = np.full(n, 25.0)
+    v, _ = simulate(profile(), t, i, temp, 0.95)
+    seg = [FitSegment(t, i, v, temp, soc0=0.95)]
+    # a warmer point with larger resistances than this data: the fit may not go below them
+    warm = TRUE.model_copy(update={"temp_c": 40.0, "r_ohm": 0.04, "r_ct": 0.02, "r_df": 0.03})
+    res = fit_parameters(profile(), seg, max_seconds=30, x0=TRUE, de_maxiter=5, warmer=warm)
+    p = res.point
+    assert p.r_ohm >= 0.04 * (1 - 1e-9) and p.r_ct >= 0.02 * (1 - 1e-9) and p.r_df >= 0.03 * (1 - 1e-9)
+    cold = TRUE.model_copy(update={"temp_c": 0.0, "r_ohm": 0.02, "r_ct": 0.01, "r_df": 0.01})
+    p = fit_parameters(profile(), seg, max_seconds=30, x0=TRUE, de_maxiter=5, colder=cold).point
+    assert p.r_ohm <= 0.02 * (1 + 1e-9) and p.r_ct <= 0.01 * (1 + 1e-9) and p.r_df <= 0.01 * (1 + 1e-9)
+    # unconstrained, the same data gives the true ohmic resistance
+    free = fit_parameters(profile(), seg, max_seconds=30, x0=TRUE, de_maxiter=5).point
+    assert free.r_ohm == pytest.approx(TRUE.r_ohm, rel=0.1)

@@ -60,6 +60,10 @@ class ParameterPoint(_Strict):
     r_df: float = Field(gt=0, description="diffusion resistance, ohm")
     c_df: float = Field(gt=0, description="diffusion CPE coefficient, F s^(n-1)")
     n: float = Field(gt=0, le=1, description="diffusion CPE order")
+    i0_a: float | None = Field(
+        None, gt=0, description="Butler-Volmer exchange current at this temperature, A (the apparent "
+        "resistance falls as the current rises; None = linear charge transfer)",
+    )
 
 
 class HysteresisSpec(_Strict):
@@ -123,6 +127,10 @@ class CellProfile(_Strict):
         temps = [p.temp_c for p in v]
         if len(set(temps)) != len(temps):
             raise ValueError(f"duplicate temperatures in parameters: {temps}")
+        with_i0 = [p.i0_a is not None for p in v]
+        if any(with_i0) and not all(with_i0):
+            raise ValueError("i0_a must be given at every temperature or at none "
+                             f"(given at {[p.temp_c for p in v if p.i0_a is not None]})")
         return sorted(v, key=lambda p: p.temp_c)
 
     # -- derived objects ----------------------------------------------------------------
@@ -161,6 +169,14 @@ class CellProfile(_Strict):
         c = np.stack([interp("c_dl", True), interp("c_df", True)] + [np.full_like(temp, b.c) for b in extra], axis=-1)
         alpha = np.stack([interp("m", False), interp("n", False)] + [np.full_like(temp, b.alpha) for b in extra], axis=-1)
         ones = np.ones_like(temp)
+        if self.extensions.kinetics_i0_a is not None:
+            # added by socd diagnose on top of the base model: it takes precedence
+            i0 = self.extensions.kinetics_i0_a * ones
+        elif self.parameters[0].i0_a is not None:
+            # characterised per temperature: Arrhenius in T like the resistances (i0 ∝ 1/R_ct)
+            i0 = interp("i0_a", True)
+        else:
+            i0 = np.inf * ones
         return CellParameters(
             r_ohm=r_ohm,
             r=r,
@@ -170,7 +186,7 @@ class CellProfile(_Strict):
             hyst_rate=self.hysteresis.rate * ones,
             capacity_ah=self.capacity_ah * self.extensions.capacity_scale * ones,
             current_bias_a=self.extensions.current_bias_a * ones,
-            kinetics_i0_a=(np.inf if self.extensions.kinetics_i0_a is None else self.extensions.kinetics_i0_a) * ones,
+            kinetics_i0_a=i0,
         )
 
     @property

@@ -97,7 +97,10 @@ def characterise(
     full_at: list[str | float | None],
     ocv_table: tuple[np.ndarray, np.ndarray] | None = None,
     fit_hysteresis: bool = False,
+    fit_kinetics: bool = False,
     max_seconds: float = 60.0,
+    min_order: float | None = None,
+    monotone: bool = False,
     memory_length: int = 16,
     name: str = "cell",
     seed: int = 0,
@@ -182,15 +185,22 @@ def characterise(
         segs = segments_of(t)
         rep.say(f"fitting parameters at {t:g} °C on {len(segs)} segment(s), {sum(len(s) for s in segs)} samples "
                 f"(≤ {max_seconds:g} s)...")
+        warmer = colder = None
+        if monotone:
+            # resistances monotone in temperature: bounded by the nearest fitted warmer / colder point
+            warmer = min((p for tp, p in points.items() if tp > t), key=lambda p: p.temp_c, default=None)
+            colder = max((p for tp, p in points.items() if tp < t), key=lambda p: p.temp_c, default=None)
         res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis and t == ref_t,
-                             max_seconds=max_seconds, seed=seed, x0=previous)
+                             fit_kinetics=fit_kinetics, max_seconds=max_seconds, seed=seed, x0=previous,
+                             warmer=warmer, colder=colder, min_order=min_order)
         pt = res.point.model_copy(update={"temp_c": t})
         points[t] = pt
         previous = pt
         if res.hysteresis is not None:
             hyst = res.hysteresis
         rep.say(f"  {t:g} °C: R_ohm {pt.r_ohm * 1e3:.1f} mΩ, R_ct {pt.r_ct * 1e3:.1f} mΩ, m {pt.m:.2f}, "
-                f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}; fit RMSE {res.rmse_mv:.1f} mV")
+                f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}"
+                + (f", i0 {pt.i0_a:.2f} A" if pt.i0_a is not None else "") + f"; fit RMSE {res.rmse_mv:.1f} mV")
     profile = prof.model_copy(update={
         "parameters": [points[t] for t in sorted(points)],
         "hysteresis": hyst or HysteresisSpec(),

@@ -29,6 +29,15 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="time [s] of the full-charge point ('auto' to detect; once, or once per recording; default: file start)")
     p.add_argument("--ocv", metavar="OCV_CSV", help="OCV table CSV: soc + ocv_v (or ocv_avg_v/...)")
     p.add_argument("--hysteresis", action="store_true", help="also fit the one-state hysteresis (LFP cells)")
+    p.add_argument("--kinetics", action="store_true",
+                   help="also fit a Butler-Volmer exchange current i0 per temperature (the apparent resistance "
+                   "falls as the current rises; matters in the cold and when the recordings pulse at several currents)")
+    p.add_argument("--min-order", type=float, default=None, metavar="A",
+                   help="lower bound of the CPE orders m, n (default 0.3); the short G-L memory represents low "
+                   "orders poorly, and 0.5 measured better on the Panasonic cell (README)")
+    p.add_argument("--monotone", action="store_true",
+                   help="bound each temperature's R_ohm, R_ct, R_df by the neighbouring fitted temperatures "
+                   "(resistance rises in the cold); off by default: it measured worse on the Panasonic cell (README)")
     p.add_argument("--max-seconds", type=float, default=60.0, help="optimiser time per temperature (default 60)")
     p.add_argument("--memory-length", type=int, default=16, help="G-L memory length used in the fit (default 16)")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
@@ -52,8 +61,10 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(str(exc)) from exc
     out = Path(args.output)
     try:
-        profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis, args.max_seconds,
-                                       args.memory_length, args.name or out.stem, args.seed)
+        profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
+                                       fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
+                                       min_order=args.min_order, monotone=args.monotone,
+                                       memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     save_profile(profile, out)
