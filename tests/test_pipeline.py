@@ -301,3 +301,34 @@ def test_non_finite_filter_state_counts_as_divergence(nmc_profile) -> None:
     est.step(1.0, 1.0, np.array([3.7, 3.7]), np.full(2, 25.0))
     assert est.reset_count.tolist() == [1, 0]
     assert np.all(np.isfinite(est.ukf.x))
+
+
+# -- adaptive measurement noise (covariance matching) ---------------------------------------------
+def _adapted_variance(profile, rec, settings: EstimatorSettings) -> tuple[float, np.ndarray]:
+    data = load_recording(rec.path)
+    est = PackEstimator(profile, 1, settings, "none")
+    est.start(np.array([rec.soc_true[0]]))
+    soc = np.empty(len(data))
+    dt = data.dt_s()
+    for k in range(len(data)):
+        est.step(dt[k], data.current_a[k], data.voltage_v[k:k + 1], data.temperature_c[k:k + 1])
+        soc[k] = est.soc[0]
+    return float(est.ukf.r_adapt[0]), soc
+
+
+def test_adaptive_noise_grows_only_when_the_model_is_wrong(nmc_recording, nmc_profile_factory) -> None:
+    rec = nmc_recording(duration_s=1500, seed=3, soc0=0.8)
+    on = EstimatorSettings(adaptive_noise_samples=100)
+    right, soc_right = _adapted_variance(nmc_profile_factory(), rec, on)
+    # the filter's model has three times the true ohmic resistance: innovations under load
+    # are far beyond the predicted spread, and the matched variance says so
+    wrong, soc_wrong = _adapted_variance(nmc_profile_factory(r_ohm=0.06), rec, on)
+    assert right < 0.003**2
+    assert wrong > 10 * max(right, 1e-9) and wrong > 0.005**2
+    off, soc_off = _adapted_variance(nmc_profile_factory(r_ohm=0.06), rec, EstimatorSettings(adaptive_noise_samples=0))
+    assert off == 0.0
+    # leaning on the current integral keeps the wrong model's SOC closer to the truth
+    err_on = np.sqrt(np.mean((soc_wrong - rec.soc_true) ** 2))
+    err_off = np.sqrt(np.mean((soc_off - rec.soc_true) ** 2))
+    assert err_on < err_off
+    assert np.sqrt(np.mean((soc_right - rec.soc_true) ** 2)) < 0.01

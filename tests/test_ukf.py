@@ -60,6 +60,7 @@ def test_ukf_on_linear_model_equals_kalman_filter() -> None:
 
     rng = np.random.default_rng(2)
     true_soc = soc0 + 0.05
+    r_adapt = np.zeros(N)
     for k in range(T):
         dt = float(rng.choice([1.0, 1.0, 2.0, 5.0]))
         i = rng.normal(0.5, 2.0, N)
@@ -87,12 +88,20 @@ def test_ukf_on_linear_model_equals_kalman_filter() -> None:
             P[n] = F @ P[n] @ F.T + np.diag(q)
             y = offset + H @ x[n] - p.r_ohm[n] * i[n]
             S = H @ P[n] @ H + _measurement_variance(s, i[n])
+            e = v[n] - y
+            if s.adaptive_noise_samples:
+                # covariance matching with the Huber clip, written out (the adaptive UKF)
+                S_tot = S + r_adapt[n]
+                excess = max(min(e * e, 9.0 * S_tot) - S, 0.0)
+                r_adapt[n] = (1 - 1 / s.adaptive_noise_samples) * r_adapt[n] + excess / s.adaptive_noise_samples
+                S = S_tot
             K = P[n] @ H / S
-            x[n] = x[n] + K * (v[n] - y)
+            x[n] = x[n] + K * e
             P[n] = P[n] - S * np.outer(K, K)
         np.testing.assert_allclose(ukf.x, x, rtol=1e-9, atol=1e-12, err_msg=f"state at step {k}")
         np.testing.assert_allclose(ukf.P, P, rtol=1e-7, atol=1e-15, err_msg=f"covariance at step {k}")
     assert ukf.repairs == 0
+    assert s.adaptive_noise_samples == 0 or np.all(ukf.r_adapt > 0)  # the 0.03 tanh(i) term is model error
     assert np.all(ukf.soc_std > 0)
     # filtering has done something: SOC moved towards the truth from the 5 % error
     assert np.all(np.abs(ukf.soc - true_soc) < 0.03)

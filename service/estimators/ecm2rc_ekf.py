@@ -41,6 +41,7 @@ import numpy as np
 from service.cell.ocv import OcvTable
 from service.cell.profile import CellProfile
 from service.estimators.base import EstimateTrace
+from service.estimators.fomiukf import ADAPT_CLIP
 from service.recording import Recording
 
 N_STATES = 3
@@ -64,6 +65,10 @@ class EkfTuning:
     soc0_std: float = 0.2
     u0_std_v: float = 0.005
     temp_update_c: float = 0.5
+    #: covariance matching of the measurement noise over about this many samples (0 = off);
+    #: the same adaptive rule as the pipeline's ``adaptive_noise_samples``, so the baseline
+    #: gets every tuning aid the pipeline gets
+    adaptive_noise_samples: int = 300
     soc_clip: tuple[float, float] = (-0.05, 1.05)
 
 
@@ -110,6 +115,7 @@ class Ecm2RcEkfBank:
         ).copy()
         self._temp_params = np.broadcast_to(np.asarray(temp0_c, dtype=float), (n,)).copy()
         self._params = ecm_parameters(profile, self._temp_params)
+        self.r_adapt = np.zeros(n)
 
     @property
     def n_cells(self) -> int:
@@ -177,11 +183,20 @@ class Ecm2RcEkfBank:
         ph = np.einsum("nij,nj->ni", P, h)
         r_meas = t.voltage_noise_v**2
         s = np.einsum("ni,ni->n", h, ph) + r_meas
-        k = ph / s[:, None]
         innovation = np.asarray(voltage_v, dtype=float) - v_pred
+        if t.adaptive_noise_samples:
+            # covariance matching (Mehra 1972): the innovations' variance beyond S is model error
+            # with the pipeline's Huber-style clip (service.estimators.fomiukf.ADAPT_CLIP)
+            beta = 1.0 / t.adaptive_noise_samples
+            s_tot = s + self.r_adapt
+            excess = np.maximum(np.minimum(innovation**2, ADAPT_CLIP**2 * s_tot) - s, 0.0)
+            r_meas = r_meas + self.r_adapt
+            s = s_tot
+            self.r_adapt = (1.0 - beta) * self.r_adapt + beta * excess
+        k = ph / s[:, None]
         x += k * innovation[:, None]
         ikh = np.eye(N_STATES)[None] - k[:, :, None] * h[:, None, :]
-        P = np.einsum("nij,njk,nlk->nil", ikh, P, ikh) + r_meas * k[:, :, None] * k[:, None, :]
+        P = np.einsum("nij,njk,nlk->nil", ikh, P, ikh) + np.reshape(r_meas, (-1, 1, 1)) * k[:, :, None] * k[:, None, :]
         self.P = 0.5 * (P + np.swapaxes(P, 1, 2))
         np.clip(x[:, 0], t.soc_clip[0], t.soc_clip[1], out=x[:, 0])
         return v_pred

@@ -25,6 +25,9 @@ from service.cell.model import kinetic_overpotential
 from service.cell.ocv import CellOcv, OcvTable
 from service.cell.profile import CellParameters
 from service.estimators.settings import EstimatorSettings
+
+#: adaptive noise: one sample's squared innovation counts at most this many σ² of the spread
+ADAPT_CLIP = 3.0
 from service.estimators.sigma_points import merwe_weights, robust_cholesky, sigma_points
 
 SOC_LIMITS = (-0.1, 1.1)
@@ -51,6 +54,8 @@ class FoMiUkf:
         self.gains = np.zeros((n_cells, p, self.nx))
         self.wm, self.wc, self.gamma = merwe_weights(self.nx, settings.ukf_alpha, settings.ukf_beta, settings.ukf_kappa)
         self.nis_ema = np.ones(n_cells)
+        #: adaptive measurement variance (covariance matching), V²; 0 unless adaptive_noise_samples
+        self.r_adapt = np.zeros(n_cells)
         self.repairs = 0
         # outputs of the last step, used by the identifiers
         self.gain = np.zeros((n_cells, self.nx))
@@ -69,6 +74,7 @@ class FoMiUkf:
         self.innovations[cells] = 0.0
         self.gains[cells] = 0.0
         self.nis_ema[cells] = 1.0
+        self.r_adapt[cells] = 0.0
         diag = np.full(self.nx, 1e-4)
         diag[self.i_soc] = soc_std**2
         diag[self.i_uh] = max(u_h_std, 1e-3) ** 2
@@ -143,9 +149,19 @@ class FoMiUkf:
         if st.voltage_noise_rel_overpotential:
             model_err = np.hypot(model_err, st.voltage_noise_rel_overpotential * i * (params.r_ohm + params.r.sum(axis=1)))
         p_yy = (dy * dy) @ self.wc + st.voltage_noise_v**2 + model_err**2
+        e = np.where(active, voltage_v - y_hat, 0.0)
+        if st.adaptive_noise_samples:
+            # covariance matching (Mehra 1972; the Sage-Husa adaptive filters): E[e²] = P_yy + R_extra,
+            # so the excess of e² over the predicted spread estimates the model error's variance
+            # an outlier (a wild voltage, a divergence) must not buy itself a larger noise: each
+            # sample's e² counts at most ADAPT_CLIP² times the current spread (Huber-style)
+            beta = 1.0 / st.adaptive_noise_samples
+            p_tot = p_yy + self.r_adapt
+            excess = np.maximum(np.minimum(e * e, ADAPT_CLIP**2 * p_tot) - p_yy, 0.0)
+            p_yy = p_tot
+            self.r_adapt = np.where(active, (1.0 - beta) * self.r_adapt + beta * excess, self.r_adapt)
         p_xy = np.einsum("s,nsi,ns->ni", self.wc, X - self.x[:, None, :], dy)
         k = p_xy / p_yy[:, None]
-        e = np.where(active, voltage_v - y_hat, 0.0)
         k = np.where(active[:, None], k, 0.0)
         self.v_pred = y_hat
         self.innovation, self.innovation_var, self.gain = e, p_yy, k

@@ -139,8 +139,13 @@ class ParameterEkf:
         dt_s: float,
         voltage_v: np.ndarray,
         active: np.ndarray,
+        kinetic_v: np.ndarray | None = None,
     ) -> None:
-        """One EKF step for every cell (inactive cells only predict)."""
+        """One EKF step for every cell (inactive cells only predict).
+
+        ``kinetic_v`` is the Butler-Volmer term of the output (:func:`kinetic_overpotential`)
+        when the profile has one; it depends on no identified parameter, so it only shifts ``h``.
+        """
         n_b = params.r.shape[1]
         i_soc, i_uh = n_b, n_b + 1
         i = current_a - params.current_bias_a
@@ -150,6 +155,8 @@ class ParameterEkf:
             self.z[:, self._volt[0]] = x_post[:, 1]
         # explicit output and derivatives
         h = ocv_post + x_post[:, i_uh] - params.r_ohm * i
+        if kinetic_v is not None:
+            h = h - kinetic_v
         dh = np.zeros((self.n, self.np))
         df = np.zeros((self.n, x_post.shape[1], self.np))  # ∂f/∂θ
         branch_cols: dict[int, dict[str, int]] = {}

@@ -18,6 +18,7 @@ from typing import Literal
 import numpy as np
 
 from service.cell.fractional import gl_weights
+from service.cell.model import kinetic_overpotential
 from service.cell.ocv import CellOcv
 from service.cell.profile import CellParameters, CellProfile
 from service.estimators.base import EstimateTrace
@@ -178,6 +179,8 @@ class PackEstimator:
                 dt_s=dt,
                 voltage_v=v,
                 active=identify,
+                kinetic_v=(kinetic_overpotential(i - params.current_bias_a, params.kinetics_i0_a, temp)
+                           if np.any(np.isfinite(params.kinetics_i0_a)) else None),
             )
         ukf.push_history()
         if self.slow is not None:
@@ -223,6 +226,7 @@ class PackEstimator:
             "memory_length": np.array(self.settings.memory_length),
             "ukf_x": u.x, "ukf_P": u.P, "ukf_hist": u.hist, "ukf_var_hist": u.var_hist,
             "ukf_innovations": u.innovations, "ukf_gains": u.gains, "ukf_nis": u.nis_ema,
+            "ukf_r_adapt": u.r_adapt,
             "reset_count": self.reset_count, "ocv_initialised": self.ocv_initialised,
         }
         if self.fast is not None:
@@ -253,6 +257,8 @@ class PackEstimator:
         innov = need("ukf_innovations", u.innovations.shape)
         gains = need("ukf_gains", u.gains.shape)
         nis = need("ukf_nis", u.nis_ema.shape)
+        # older states have no adaptive noise: it starts from zero
+        r_adapt = need("ukf_r_adapt", u.r_adapt.shape) if "ukf_r_adapt" in state else np.zeros_like(u.r_adapt)
         fast = slow = None
         if self.fast is not None:
             fast = (need("fast_z", self.fast.z.shape), need("fast_P", self.fast.P.shape), need("fast_D", self.fast.D.shape))
@@ -262,6 +268,7 @@ class PackEstimator:
         resets = need("reset_count", self.reset_count.shape).astype(int)
         ocv_init = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
         u.x, u.P, u.hist, u.var_hist, u.innovations, u.gains, u.nis_ema = x, P, hist, var_hist, innov, gains, nis
+        u.r_adapt = r_adapt
         self.reset_count, self.ocv_initialised = resets, ocv_init
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast

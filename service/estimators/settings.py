@@ -43,6 +43,12 @@ class EstimatorSettings(BaseModel):
         0.0, ge=0, description="model error as a fraction of the modelled overpotential "
         "|I|·(R_ohm + ΣR_b): scales with the cell's resistance at its temperature"
     )
+    adaptive_noise_samples: int = Field(
+        300, ge=0, le=100000,
+        description="covariance matching of the measurement noise (adaptive UKF): the variance the innovations "
+        "show beyond what the filter predicts is averaged over about this many samples and added to σ_v²; the "
+        "filter then leans on the current integral where the model is poor (cold, near empty). 0 = off",
+    )
     current_noise_a: float = Field(0.02, ge=0, description="current-sensor noise σ driving SOC process noise")
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
     ukf_alpha: float = Field(1.0, gt=0, le=1)
