@@ -195,7 +195,9 @@ class CellOcv:
     def _index(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = GRID_POINTS - 1
         flat = soc.reshape(soc.shape[0], -1)
-        x = np.clip(np.nan_to_num(flat, nan=0.0), 0.0, 1.0) * n  # NaN: the caller's divergence check handles it
+        # fmin/fmax map NaN into the table (the caller's divergence check handles NaN) at a
+        # fraction of nan_to_num's cost: this runs three times per filter step
+        x = np.fmax(np.fmin(flat, 1.0), 0.0) * n
         i0 = np.minimum(x.astype(int), n - 1)
         return flat, i0, x - i0
 

@@ -136,11 +136,14 @@ class FoMiUkf:
         self.repairs += int(bad.sum())
         X = sigma_points(self.x, sqrt_p, self.gamma)
         soc_s = X[..., self.i_soc]
+        drop = params.r_ohm * i
+        if np.any(np.isfinite(params.kinetics_i0_a)):
+            drop = drop + kinetic_overpotential(i, params.kinetics_i0_a, temp_c)
         y = (
             (cell_ocv.ocv(soc_s) if cell_ocv is not None else self.ocv.ocv(soc_s, temp_c[:, None]))
             + X[..., self.i_uh]
             - X[..., :b].sum(axis=-1)
-            - (params.r_ohm * i + kinetic_overpotential(i, params.kinetics_i0_a, temp_c))[:, None]
+            - drop[:, None]
         )
         y_hat = y @ self.wm
         dy = y - y_hat[:, None]
