@@ -16,12 +16,12 @@ import pytest
 from service.cell.model import simulate
 from service.cell.profile import (
     ArrheniusSpec,
-    BranchSpec,
     CellProfile,
     Extensions,
     HysteresisSpec,
     OcvSpec,
     ParameterPoint,
+    SurfaceDiffusionSpec,
 )
 from service.cli import UserError, main
 from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
@@ -69,7 +69,8 @@ CASES = {
     # rests are exactly zero, and the recording holds the measured one
     "current_bias": {"bias_a": 0.03},
     "kinetics": {"extensions": Extensions(kinetics_i0_a=0.6)},
-    "diffusion": {"extensions": Extensions(extra_branches=[BranchSpec(r=0.03, c=1200.0 / 0.03, alpha=1.0)])},
+    # slow solid diffusion: the surface SOC lags the bulk (8 % of SOC per 1C, 10 min)
+    "diffusion": {"extensions": Extensions(diffusion_surface=SurfaceDiffusionSpec(tau_s=600.0, gain=0.08))},
     "temperature": {"extensions": Extensions(arrhenius=ArrheniusSpec(
         ref_temp_c=25.0, ea_r_ohm_j_mol=25000.0, ea_r_ct_j_mol=45000.0, ea_r_df_j_mol=45000.0)), "temp": "ramp"},
 }

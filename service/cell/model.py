@@ -5,9 +5,11 @@ diffusion ``U_df``, further branches from extensions) with their G-L memory, ``S
 and hysteresis ``U_h`` (Zeng Eq. 5).  Terminal voltage (Zeng Eq. 6, current positive
 = discharge):
 
-    U_L = OCV(SOC, T) + U_h - R_ohm I - Σ_b U_b - η_kin(I)
+    U_L = OCV(SOC - x, T) + U_h - R_ohm I - Σ_b U_b - η_kin(I)
 
-``η_kin`` is zero unless the Butler–Volmer extension is set.  SOC follows Zeng Eq. 4
+``η_kin`` is zero unless the Butler–Volmer extension is set; ``x`` (bulk − surface SOC,
+:class:`service.cell.profile.SurfaceDiffusionSpec`) is zero unless the solid-diffusion
+surface extension is set.  SOC follows Zeng Eq. 4
 with the sample period and 3600 s/h restored: ``SOC_k = SOC_{k-1} - I_k h / (3600 Q)``
 (backward zero-order hold: the current of sample k flowed over (t_{k-1}, t_k]).
 """
@@ -77,13 +79,25 @@ class MtsFom:
         entropic = profile.extensions.arrhenius
         self._entropic = 0.0 if entropic is None else entropic.entropic_v_per_k
         self._entropic_ref = 25.0 if entropic is None else entropic.ref_temp_c
+        # solid-diffusion surface lag (Extensions.diffusion_surface): None = off
+        surf = profile.extensions.diffusion_surface
+        self.surface_tau_s: np.ndarray | None = None if surf is None else np.full(n, surf.tau_s)
+        self.surface_gain: np.ndarray | None = None if surf is None else np.full(n, surf.gain)
+        self.x_surf = np.zeros(n)
+
+    def surface_step(self, i: np.ndarray, dt_s) -> None:
+        """Advance bulk − surface SOC ``x`` (see :class:`SurfaceDiffusionSpec`); no-op when off."""
+        if self.surface_tau_s is None:
+            return
+        a = np.exp(-dt_s / self.surface_tau_s)
+        self.x_surf = a * self.x_surf + (1.0 - a) * self.surface_gain * i / self.params.capacity_ah
 
     def set_params(self, params: CellParameters) -> None:
         self.params = params
         self._weights = gl_weights(params.alpha, self.memory_length)
 
-    def open_circuit(self, temp_c: np.ndarray) -> np.ndarray:
-        v = self.ocv.ocv(self.soc, temp_c)
+    def open_circuit(self, temp_c: np.ndarray, soc: np.ndarray | None = None) -> np.ndarray:
+        v = self.ocv.ocv(self.soc if soc is None else soc, temp_c)
         if self._entropic:
             v = v + self._entropic * (temp_c - self._entropic_ref)
         return v
@@ -93,10 +107,12 @@ class MtsFom:
         p = self.params
         i = current_a - p.current_bias_a
         self.soc = soc_step(self.soc, i, dt_s, p.capacity_ah)
+        self.surface_step(i, dt_s)
         self.u_h = hysteresis_step(self.u_h, i, dt_s, p.u_h_max, p.hyst_rate, p.capacity_ah)
         u = cpe_step(self.history, i[:, None], dt_s, p.r, p.c, p.alpha, self._weights)
         push_history(self.history, u)
-        v = terminal_voltage(self.open_circuit(temp_c), self.u_h, p.r_ohm, i, u.sum(axis=-1))
+        ocv = self.open_circuit(temp_c) if self.surface_tau_s is None else self.open_circuit(temp_c, self.soc - self.x_surf)
+        v = terminal_voltage(ocv, self.u_h, p.r_ohm, i, u.sum(axis=-1))
         return v - kinetic_overpotential(i, p.kinetics_i0_a, temp_c)
 
 

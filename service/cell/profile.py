@@ -98,6 +98,25 @@ class OcvCorrectionSpec(_Strict):
     delta_v: list[float]
 
 
+class SurfaceDiffusionSpec(_Strict):
+    """Solid-diffusion lag: the particle *surface* SOC trails the bulk (Coulomb-counted) SOC.
+
+    ``x`` = bulk − surface SOC follows ``τ dx/dt = gain · I/Q − x`` (``I/Q`` the C-rate,
+    positive = discharge; ``Q`` the capacity after ``capacity_scale``), and the OCV is read
+    at the surface: ``OCV(SOC − x)``.  The overpotential is therefore ``≈ dOCV/dSOC · x``:
+    it builds over ``τ``, relaxes over ``τ`` in a rest, and is large where the OCV is
+    steep (low SOC on NMC) -- the SOC dependence a constant-R branch cannot give.
+    ``gain`` is the steady-state surface deficit per 1C (fraction of SOC).  ``x`` starts
+    at 0 (a rested cell).  Simulated by :mod:`service.cell.model` and
+    :func:`service.cell.fitting.simulate_batch`; the online estimators
+    (:mod:`service.estimators`) do **not** model it yet: a profile carrying it loads and
+    runs there with the term ignored.
+    """
+
+    tau_s: float = Field(gt=0, description="surface-bulk relaxation time constant, s")
+    gain: float = Field(ge=0, description="steady-state surface SOC deficit per 1C, fraction")
+
+
 class Extensions(_Strict):
     """Model parts beyond the base MTS-FOM (added by ``socd diagnose``)."""
 
@@ -107,6 +126,7 @@ class Extensions(_Strict):
     extra_branches: list[BranchSpec] = []
     kinetics_i0_a: float | None = Field(None, gt=0, description="Butler-Volmer exchange current")
     ocv_correction: OcvCorrectionSpec | None = None
+    diffusion_surface: SurfaceDiffusionSpec | None = None
 
 
 class CellProfile(_Strict):

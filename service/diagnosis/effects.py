@@ -23,10 +23,10 @@ from service.cell.profile import (
     GAS_CONSTANT,
     KELVIN,
     ArrheniusSpec,
-    BranchSpec,
     CellProfile,
     HysteresisSpec,
     OcvCorrectionSpec,
+    SurfaceDiffusionSpec,
 )
 from service.diagnosis.simulation import Mods
 
@@ -84,6 +84,9 @@ class Effect:
     to_profile: Callable[[dict[str, float], CellProfile, Context], CellProfile]
     detect: Callable[[Context], float]
     feature: Callable[[Context], tuple[str, np.ndarray]]  # for the "residual vs feature" plot
+    # further starting points for the *base* coordinates (besides the base fit): an extension
+    # that takes over what a base part was bent to imitate needs that part reset to start from
+    base_variants: Callable[[np.ndarray, Context], list[np.ndarray]] | None = None
 
     @property
     def k(self) -> int:
@@ -183,40 +186,52 @@ TEMPERATURE = Effect(
 )
 
 
-# -- a missing slow diffusion time constant (extra CPE branch) --------------------------------
+# -- slow solid diffusion: the particle surface SOC lags the bulk --------------------------------
+# An extra constant-R CPE branch cannot describe slow solid diffusion: the overpotential it
+# causes is dOCV/dSOC x (bulk - surface SOC), so it grows where the OCV is steep (low SOC
+# on NMC) and the fit part (high SOC) would not predict the held-out part.  The extension
+# is SurfaceDiffusionSpec: a first-order surface deficit x driven by the C-rate, OCV read at
+# SOC - x.  Coordinates: ln tau, ln gain (gain = steady-state deficit per 1C).
 def _diff_apply(th, mods, ctx):
-    r = np.exp(th[:, 0])
-    tau = np.exp(th[:, 1])
-    alpha = th[:, 2]
-    mods.add_branch(r, tau**alpha / r, alpha)
+    mods.surface_tau_s = np.exp(th[:, 0])
+    mods.surface_gain = np.exp(th[:, 1])
 
 
 def _diff_phys(th, ctx):
-    r, tau, alpha = math.exp(th[0]), math.exp(th[1]), float(th[2])
-    return {"r_ohm": r, "tau_s": tau, "alpha": alpha, "c": tau**alpha / r}
+    return {"tau_s": math.exp(th[0]), "gain_soc_per_c": math.exp(th[1])}
 
 
 def _diff_profile(ph, profile, ctx):
-    branch = BranchSpec(r=ph["r_ohm"], c=ph["c"], alpha=min(ph["alpha"], 1.0))
-    return _ext(profile, extra_branches=list(profile.extensions.extra_branches) + [branch])
+    return _ext(profile, diffusion_surface=SurfaceDiffusionSpec(tau_s=ph["tau_s"], gain=ph["gain_soc_per_c"]))
 
 
 def _diff_feature(ctx):
-    return "current low-passed at 10 x tau_df, A", _lowpass(ctx.current_a, ctx.time_s, max(10 * ctx.base_tau_df_s, 600.0))
+    tau = max(3 * ctx.base_tau_df_s, 300.0)
+    crate = ctx.current_a / max(ctx.capacity_ah, 1e-6)
+    return (f"-dOCV/dSOC x C-rate low-passed at {tau:.0f} s, V",
+            -ctx.ocv_slope * _lowpass(crate, ctx.time_s, tau))
+
+
+def _diff_base_variants(x, ctx):
+    """The base fit bends its slow CPE branch (huge R_df, low order) to imitate slow diffusion;
+    restart it as a modest branch (R_df = R_ct, tau_df = 10 tau_ct, order 0.9)."""
+    y = np.array(x, dtype=float, copy=True)
+    y[4], y[5], y[6] = y[1], math.log(10.0), 0.9
+    return [y]
 
 
 DIFFUSION = Effect(
     name="diffusion",
-    title="slow diffusion time constant (extra CPE branch)",
-    params=("r_ohm", "tau_s", "alpha", "c"),
-    bounds=((math.log(1e-5), math.log(1.0)), (math.log(30.0), math.log(30000.0)), (0.5, 1.0)),
-    starts=lambda ctx: [(math.log(max(0.3 * ctx.base_r_sum_ohm, 2e-5)), math.log(t), 0.9)
-                        for t in (300.0, 1500.0, 6000.0)],
+    title="slow solid diffusion (surface SOC lags the bulk; OCV read at the surface)",
+    params=("tau_s", "gain_soc_per_c"),
+    bounds=((math.log(30.0), math.log(30000.0)), (math.log(1e-4), math.log(0.5))),
+    starts=lambda ctx: [(math.log(t), math.log(g)) for t in (300.0, 1500.0, 6000.0) for g in (0.01, 0.05)],
     apply=_diff_apply,
     physical=_diff_phys,
     to_profile=_diff_profile,
     detect=lambda ctx: abs(_corr(ctx.residual_v, _diff_feature(ctx)[1])),
     feature=_diff_feature,
+    base_variants=_diff_base_variants,
 )
 
 

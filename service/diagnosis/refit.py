@@ -62,7 +62,8 @@ def refit(problem: Problem, x_base: np.ndarray, effect: Effect | None, max_secon
     if effect is None:
         starts = np.atleast_2d(x_base)
     else:
-        starts = np.array([np.concatenate([x_base, s]) for s in effect.starts(problem.ctx)])
+        bases = [x_base] + (list(effect.base_variants(x_base, problem.ctx)) if effect.base_variants else [])
+        starts = np.array([np.concatenate([b, s]) for b in bases for s in effect.starts(problem.ctx)])
     starts = np.clip(starts, lo + 1e-9, hi - 1e-9)
     r0 = problem.residuals(starts, effect)
     x_start = starts[int(np.argmin(np.sum(r0**2, axis=1)))]

@@ -10,6 +10,8 @@ parameters.  Extensions enter exactly where :mod:`service.cell.model` and
   CPE branches are fields of :class:`CellParameters`, per candidate;
 * Arrhenius laws rescale ``R_ohm, R_ct, R_df`` when the temperature moves by more than
   0.2 K (the rule of :func:`service.cell.model.simulate`);
+* the solid-diffusion surface lag (per candidate ``τ``, gain) is passed to
+  :func:`service.cell.fitting.simulate_batch`, which applies it as :class:`MtsFom` does;
 * the entropic term and an OCV correction are additive on the OCV, hence on the
   terminal voltage, and are added to the output.
 
@@ -45,6 +47,8 @@ class Mods:
     entropic_v_per_k: np.ndarray | None = None
     ocv_knots_soc: np.ndarray | None = None
     ocv_delta_v: np.ndarray | None = None  # [N, K]
+    surface_tau_s: np.ndarray | None = None  # solid-diffusion surface lag (SurfaceDiffusionSpec)
+    surface_gain: np.ndarray | None = None
     notes: dict = field(default_factory=dict)
 
     @property
@@ -124,6 +128,7 @@ def simulate_candidates(
     v, soc = simulate_batch(
         profile, seg.time_s, seg.current_a, seg.temperature_c, soc0, mods.params, memory_length, mods.u_h0,
         params_at=(lambda t: _params_at(mods, t)) if dyn_temp else None, temp_update_k=TEMP_UPDATE_K,
+        surface=None if mods.surface_tau_s is None else (mods.surface_tau_s, mods.surface_gain),
     )
     v = v + mods.ocv_offset(soc, seg.temperature_c)
     return v, soc
