@@ -151,11 +151,6 @@ def test_slow_identifier_waits_for_charge_throughput() -> None:
     assert slow.updates == 1 and slow.start[0] == slow.length and slow.moved[0] == 0  # new interval begins here
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the pipeline's slow identifier is fed the fast identifier's lagging U_df (see "
-    "test_pipeline_fast_identifier_stays_near_truth): R_df started 30 % off is pushed away from truth",
-)
 def test_pipeline_slow_identifier_moves_r_df_toward_truth(nmc_recording, nmc_profile_factory, truth) -> None:
     true_r_df = truth["r_df"]
     rec = nmc_recording(duration_s=1500, seed=1, soc0=0.9)

@@ -118,6 +118,19 @@ class ParameterEkf:
     def reset(self, cells: np.ndarray) -> None:
         self.z[cells] = np.array([0.0 if PARAMETERS[k][1] != "mul" else 1.0 for k in self.names])
         self.D[cells] = 0.0
+        if self._prev is not None:
+            self._prev[3][cells] = False  # no voltage difference across a restart
+
+    def difference_state(self, n_cells: int) -> dict[str, np.ndarray]:
+        """The previous sample kept by the 'difference' input (zeros and inactive if none)."""
+        if self._prev is None:
+            return {"fast_prev_v": np.zeros(n_cells), "fast_prev_h": np.zeros(n_cells),
+                    "fast_prev_c": np.zeros((n_cells, self.np)), "fast_prev_active": np.zeros(n_cells, dtype=bool)}
+        v, h, c, a = self._prev
+        return {"fast_prev_v": v, "fast_prev_h": h, "fast_prev_c": c, "fast_prev_active": a}
+
+    def set_difference_state(self, v: np.ndarray, h: np.ndarray, c: np.ndarray, active: np.ndarray) -> None:
+        self._prev = (v.copy(), h.copy(), c.copy(), active.astype(bool).copy())
 
     @property
     def u_df(self) -> np.ndarray | None:

@@ -231,6 +231,7 @@ class PackEstimator:
         }
         if self.fast is not None:
             st.update(fast_z=self.fast.z, fast_P=self.fast.P, fast_D=self.fast.D)
+            st.update(self.fast.difference_state(self.n))
         if self.slow is not None:
             st.update(slow_z=self.slow.z, slow_P=self.slow.P, slow_ring=self.slow.ring, slow_moved=self.slow.moved)
         return {k: np.array(v, copy=True) for k, v in st.items()}
@@ -262,6 +263,11 @@ class PackEstimator:
         fast = slow = None
         if self.fast is not None:
             fast = (need("fast_z", self.fast.z.shape), need("fast_P", self.fast.P.shape), need("fast_D", self.fast.D.shape))
+            # the 'difference' input's previous sample (states written before it existed: none)
+            prev = ((need("fast_prev_v", (self.n,)), need("fast_prev_h", (self.n,)),
+                     need("fast_prev_c", self.fast.D.shape[:1] + self.fast.D.shape[2:]),
+                     need("fast_prev_active", (self.n,)))
+                    if "fast_prev_v" in state else None)
         if self.slow is not None:
             slow = (need("slow_z", self.slow.z.shape), need("slow_P", self.slow.P.shape),
                     need("slow_ring", self.slow.ring.shape), need("slow_moved", self.slow.moved.shape))
@@ -272,6 +278,10 @@ class PackEstimator:
         self.reset_count, self.ocv_initialised = resets, ocv_init
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast
+            if prev is not None:
+                self.fast.set_difference_state(*prev)
+            else:
+                self.fast._prev = None
         if slow is not None:
             self.slow.z, self.slow.P, self.slow.ring, self.slow.moved = slow
             self.slow.hist0 = self.slow.ring.copy()
