@@ -4,8 +4,9 @@ A profile holds the capacity, OCV(SOC, T), the MTS-FOM parameters (Zeng Fig. 1) 
 temperature grid, the hysteresis of Zeng Eq. 1, and optional model *extensions* (the
 physics ``socd diagnose`` can add: Arrhenius temperature laws, an extra diffusion
 branch, capacity scale, current-sensor bias, Butler–Volmer kinetics, an OCV
-correction).  Extensions are parts of the same model, not a fork: each one is applied
-by :meth:`CellProfile.parameters_at` or by :mod:`service.cell.model`.
+correction, a solid-diffusion surface lag).  Extensions are parts of the same model,
+not a fork: each one is applied by :meth:`CellProfile.parameters_at` or by
+:mod:`service.cell.model`.
 
 Files are TOML (``.toml``) or JSON (anything else), chosen by suffix.
 """
