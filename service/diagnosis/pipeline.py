@@ -49,7 +49,7 @@ from service.cell.profile import CellProfile
 from service.diagnosis.effects import EFFECTS, Context, Effect
 from service.diagnosis.locate import locate
 from service.diagnosis.refit import Problem, parameter_std, refit
-from service.diagnosis.signatures import signatures
+from service.diagnosis.signatures import integrated_autocorr_time, signatures
 from service.diagnosis.simulation import initial_soc
 from service.recording import Recording
 
@@ -165,20 +165,6 @@ def noise_sigma(rec: Recording, capacity_ah: float) -> float:
     d2 = np.diff(d) if d.size > 3 else d
     mad = float(np.median(np.abs(d2 - np.median(d2))))
     return max(1.4826 * mad / math.sqrt(6.0), 1e-5)
-
-
-def integrated_autocorr_time(r: np.ndarray, max_lag: int = 400) -> float:
-    x = r - r.mean()
-    var = float(x @ x)
-    if var == 0:
-        return 1.0
-    tau = 1.0
-    for lag in range(1, min(max_lag, x.size // 4)):
-        rho = float(x[:-lag] @ x[lag:]) / var
-        if rho < 0.05:
-            break
-        tau += 2.0 * rho
-    return tau
 
 
 def lag1(r: np.ndarray) -> float:

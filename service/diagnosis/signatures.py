@@ -117,10 +117,12 @@ def _robust_sd(x: np.ndarray) -> float:
     return 1.4826 * float(np.median(np.abs(x - np.median(x))))
 
 
-def _autocorr_time(x: np.ndarray, max_lag: int = 200) -> float:
-    x = x - x.mean()
+def integrated_autocorr_time(r: np.ndarray, max_lag: int = 400) -> float:
+    """``1 + 2 Σ ρ_k`` up to the first lag with ``ρ < 0.05``: how many samples one independent
+    sample is worth (used for effective sample counts and standard errors)."""
+    x = r - r.mean()
     var = float(x @ x)
-    if var == 0 or x.size < 8:
+    if var == 0:
         return 1.0
     tau = 1.0
     for lag in range(1, min(max_lag, x.size // 4)):
@@ -184,7 +186,7 @@ def rest_current_offset(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: 
     mean = float(vals.mean())
     # autocorrelation inside runs (pooled deviations from each run's own mean)
     dev = np.concatenate([x - x.mean() for x in per_rest])
-    tau = _autocorr_time(dev)
+    tau = integrated_autocorr_time(dev, max_lag=200)
     sd = float(vals.std(ddof=1)) if n > 1 else 0.0
     if sd == 0.0:  # quantised to exact zeros: only the resolution bounds the offset
         diffs = np.abs(np.diff(np.unique(current_a)))
