@@ -40,8 +40,8 @@ import numpy as np
 
 from service.cell.ocv import OcvTable
 from service.cell.profile import CellProfile
+from service.estimators.adaptive_noise import matched_noise
 from service.estimators.base import EstimateTrace
-from service.estimators.fomiukf import ADAPT_CLIP
 from service.recording import Recording
 
 N_STATES = 3
@@ -185,14 +185,9 @@ class Ecm2RcEkfBank:
         s = np.einsum("ni,ni->n", h, ph) + r_meas
         innovation = np.asarray(voltage_v, dtype=float) - v_pred
         if t.adaptive_noise_samples:
-            # covariance matching (Mehra 1972): the innovations' variance beyond S is model error
-            # with the pipeline's Huber-style clip (service.estimators.fomiukf.ADAPT_CLIP)
-            beta = 1.0 / t.adaptive_noise_samples
-            s_tot = s + self.r_adapt
-            excess = np.maximum(np.minimum(innovation**2, ADAPT_CLIP**2 * s_tot) - s, 0.0)
+            # the pipeline's covariance matching (service.estimators.adaptive_noise)
             r_meas = r_meas + self.r_adapt
-            s = s_tot
-            self.r_adapt = (1.0 - beta) * self.r_adapt + beta * excess
+            s, self.r_adapt = matched_noise(self.r_adapt, innovation, s, t.adaptive_noise_samples)
         k = ph / s[:, None]
         x += k * innovation[:, None]
         ikh = np.eye(N_STATES)[None] - k[:, :, None] * h[:, None, :]

@@ -24,10 +24,8 @@ from service.cell.hysteresis import hysteresis_decay
 from service.cell.model import kinetic_overpotential
 from service.cell.ocv import CellOcv, OcvTable
 from service.cell.profile import CellParameters
+from service.estimators.adaptive_noise import matched_noise
 from service.estimators.settings import EstimatorSettings
-
-#: adaptive noise: one sample's squared innovation counts at most this many σ² of the spread
-ADAPT_CLIP = 3.0
 from service.estimators.sigma_points import merwe_weights, robust_cholesky, sigma_points
 
 SOC_LIMITS = (-0.1, 1.1)
@@ -63,6 +61,7 @@ class FoMiUkf:
         self.innovation = np.zeros(n_cells)
         self.innovation_var = np.ones(n_cells)
         self.v_pred = np.zeros(n_cells)
+        self.kinetic_v: np.ndarray | None = None
 
     # -- initialisation -----------------------------------------------------------------
     def reset(self, cells: np.ndarray, soc: np.ndarray, soc_std: float, u_h_std: float) -> None:
@@ -137,8 +136,11 @@ class FoMiUkf:
         X = sigma_points(self.x, sqrt_p, self.gamma)
         soc_s = X[..., self.i_soc]
         drop = params.r_ohm * i
+        # the Butler-Volmer term, kept for the fast identifier's output (None: no cell has one)
+        self.kinetic_v = None
         if np.any(np.isfinite(params.kinetics_i0_a)):
-            drop = drop + kinetic_overpotential(i, params.kinetics_i0_a, temp_c)
+            self.kinetic_v = kinetic_overpotential(i, params.kinetics_i0_a, temp_c)
+            drop = drop + self.kinetic_v
         y = (
             (cell_ocv.ocv(soc_s) if cell_ocv is not None else self.ocv.ocv(soc_s, temp_c[:, None]))
             + X[..., self.i_uh]
@@ -154,15 +156,7 @@ class FoMiUkf:
         p_yy = (dy * dy) @ self.wc + st.voltage_noise_v**2 + model_err**2
         e = np.where(active, voltage_v - y_hat, 0.0)
         if st.adaptive_noise_samples:
-            # covariance matching (Mehra 1972; the Sage-Husa adaptive filters): E[e²] = P_yy + R_extra,
-            # so the excess of e² over the predicted spread estimates the model error's variance
-            # an outlier (a wild voltage, a divergence) must not buy itself a larger noise: each
-            # sample's e² counts at most ADAPT_CLIP² times the current spread (Huber-style)
-            beta = 1.0 / st.adaptive_noise_samples
-            p_tot = p_yy + self.r_adapt
-            excess = np.maximum(np.minimum(e * e, ADAPT_CLIP**2 * p_tot) - p_yy, 0.0)
-            p_yy = p_tot
-            self.r_adapt = np.where(active, (1.0 - beta) * self.r_adapt + beta * excess, self.r_adapt)
+            p_yy, self.r_adapt = matched_noise(self.r_adapt, e, p_yy, st.adaptive_noise_samples, active)
         p_xy = np.einsum("s,nsi,ns->ni", self.wc, X - self.x[:, None, :], dy)
         k = p_xy / p_yy[:, None]
         k = np.where(active[:, None], k, 0.0)

@@ -129,8 +129,13 @@ class ParameterEkf:
         v, h, c, a = self._prev
         return {"fast_prev_v": v, "fast_prev_h": h, "fast_prev_c": c, "fast_prev_active": a}
 
-    def set_difference_state(self, v: np.ndarray, h: np.ndarray, c: np.ndarray, active: np.ndarray) -> None:
-        self._prev = (v.copy(), h.copy(), c.copy(), active.astype(bool).copy())
+    def set_difference_state(self, prev: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None) -> None:
+        """Restore :meth:`difference_state`'s arrays ``(v, h, c, active)``; None = no previous sample."""
+        if prev is None:
+            self._prev = None
+        else:
+            v, h, c, active = prev
+            self._prev = (v.copy(), h.copy(), c.copy(), active.astype(bool).copy())
 
     @property
     def u_df(self) -> np.ndarray | None:

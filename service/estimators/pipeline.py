@@ -18,7 +18,6 @@ from typing import Literal
 import numpy as np
 
 from service.cell.fractional import gl_weights
-from service.cell.model import kinetic_overpotential
 from service.cell.ocv import CellOcv
 from service.cell.profile import CellParameters, CellProfile
 from service.estimators.base import EstimateTrace
@@ -179,8 +178,7 @@ class PackEstimator:
                 dt_s=dt,
                 voltage_v=v,
                 active=identify,
-                kinetic_v=(kinetic_overpotential(i - params.current_bias_a, params.kinetics_i0_a, temp)
-                           if np.any(np.isfinite(params.kinetics_i0_a)) else None),
+                kinetic_v=ukf.kinetic_v,
             )
         ukf.push_history()
         if self.slow is not None:
@@ -278,10 +276,7 @@ class PackEstimator:
         self.reset_count, self.ocv_initialised = resets, ocv_init
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast
-            if prev is not None:
-                self.fast.set_difference_state(*prev)
-            else:
-                self.fast._prev = None
+            self.fast.set_difference_state(prev)
         if slow is not None:
             self.slow.z, self.slow.P, self.slow.ring, self.slow.moved = slow
             self.slow.hist0 = self.slow.ring.copy()
