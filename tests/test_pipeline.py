@@ -200,6 +200,22 @@ def test_state_round_trip_reproduces_next_step(nmc_profile, identification) -> N
     assert np.all(est.ukf.x[:, est.ukf.i_soc] != 0.0)
 
 
+@pytest.mark.parametrize("shape", ["uniform", "load"])
+def test_adaptive_noise_state_round_trips_and_legacy_states_load(nmc_profile, shape) -> None:
+    s = EstimatorSettings(adaptive_noise_shape=shape, adaptive_noise_samples=50)
+    est, _ = _warm_pack(nmc_profile, s)
+    state = est.get_state()
+    assert np.any(state["ukf_noise_moments"] != 0.0)
+    restored = PackEstimator(nmc_profile, est.n, s, "multi")
+    restored.set_state(state)
+    np.testing.assert_array_equal(restored.ukf.noise.moments, est.ukf.noise.moments)
+    # a state written before the moments existed kept one variance per cell
+    legacy = {k: v for k, v in state.items() if k != "ukf_noise_moments"}
+    legacy["ukf_r_adapt"] = np.full(est.n, 4e-6)
+    restored.set_state(legacy)
+    np.testing.assert_array_equal(restored.ukf.r_adapt, np.full(est.n, 4e-6))
+
+
 def _corrupt(state: dict, key: str, how: str) -> dict:
     st = {k: np.array(v, copy=True) for k, v in state.items()}
     if how == "nan":
@@ -229,6 +245,8 @@ def _corrupt(state: dict, key: str, how: str) -> dict:
         ("slow_ring", "nan"),
         ("ukf_nis", "missing"),
         ("fast_D", "missing"),
+        ("ukf_noise_moments", "nan"),
+        ("ukf_noise_moments", "shape"),
     ],
 )
 def test_set_state_rejects_bad_state(nmc_profile, key: str, how: str) -> None:

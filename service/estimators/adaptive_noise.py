@@ -6,21 +6,78 @@ averaged over about ``samples`` steps, estimates the model error's variance
 ``R_extra``.  An outlier (a wild voltage, a divergence) must not buy itself a larger
 noise: each sample's ``e²`` counts at most :data:`ADAPT_CLIP`² times the current
 spread (Huber-style), so divergence detection still sees it.
+
+Two shapes of ``R_extra`` (:class:`AdaptiveNoise`):
+
+* ``uniform``: one variance for every sample, ``R ← (1-β)·R + β·excess``.
+* ``load``: ``R_extra = a + c·φ`` with ``φ = (|I|·R_total)²``, the squared modelled
+  overpotential.  An equivalent-circuit model's error is mostly under load (the
+  overpotential's shape, not the OCV), so a single variance learned from loaded samples
+  would also drown the rests, where the voltage is close to the OCV and says most about
+  SOC.  ``a`` and ``c`` are the weighted least-squares fit of the clipped excess on
+  ``[1, φ]`` from exponentially weighted moments; where ``φ`` barely varies (no rests,
+  a constant current) the fit is not determined and the uniform estimate is used.
 """
 
 from __future__ import annotations
+
+from typing import Literal
 
 import numpy as np
 
 #: one sample's squared innovation counts at most this many σ² of the spread
 ADAPT_CLIP = 3.0
+#: moments kept per cell: E[1], E[φ], E[φ²], E[excess], E[excess·φ]
+N_MOMENTS = 5
 
 
-def matched_noise(r_adapt: np.ndarray, innovation: np.ndarray, s: np.ndarray, samples: int,
-                  update: np.ndarray | bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """``(S + R_extra, new R_extra)`` for predicted innovation variance ``s`` (without the
-    adaptive part); ``R_extra`` moves only where ``update`` (e.g. cells with a measurement)."""
-    s_tot = s + r_adapt
-    excess = np.maximum(np.minimum(innovation * innovation, ADAPT_CLIP**2 * s_tot) - s, 0.0)
-    beta = 1.0 / samples
-    return s_tot, np.where(update, (1.0 - beta) * r_adapt + beta * excess, r_adapt)
+class AdaptiveNoise:
+    """Covariance-matched extra measurement variance for ``n_cells`` cells (module docstring)."""
+
+    def __init__(self, n_cells: int, samples: int, shape: Literal["uniform", "load"] = "uniform") -> None:
+        self.samples = samples
+        self.shape = shape
+        #: exponentially weighted moments, see :data:`N_MOMENTS`
+        self.moments = np.zeros((n_cells, N_MOMENTS))
+
+    def reset(self, cells: np.ndarray) -> None:
+        self.moments[cells] = 0.0
+
+    def coefficients(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(a, c)`` of ``R_extra = a + c·φ`` per cell."""
+        m0, m1, m2, y0, y1 = self.moments.T
+        if self.shape == "uniform":
+            return y0, np.zeros_like(y0)
+        det = m0 * m2 - m1 * m1
+        # enough weight and spread in φ for two coefficients; else the uniform estimate
+        ok = (m0 > 0.05) & (det > 1e-3 * m0 * m2) & (m2 > 0)
+        safe = np.where(ok, det, 1.0)
+        a = np.where(ok, (y0 * m2 - m1 * y1) / safe, y0)
+        c = np.where(ok, (m0 * y1 - m1 * y0) / safe, 0.0)
+        # non-negative variances: a constrained fit on the boundary
+        neg_c = c < 0
+        a = np.where(neg_c, y0, a)
+        c = np.where(neg_c, 0.0, c)
+        neg_a = a < 0
+        c = np.where(neg_a, np.where(m2 > 0, y1 / np.where(m2 > 0, m2, 1.0), 0.0), c)
+        a = np.where(neg_a, 0.0, a)
+        return a, c
+
+    def extra(self, phi: np.ndarray) -> np.ndarray:
+        """``R_extra`` (V²) at squared overpotential ``phi``."""
+        a, c = self.coefficients()
+        return a + c * phi
+
+    def match(self, innovation: np.ndarray, s: np.ndarray, phi: np.ndarray,
+              update: np.ndarray | bool = True) -> np.ndarray:
+        """``S + R_extra`` for predicted innovation variance ``s``; updates the moments where ``update``."""
+        s_tot = s + self.extra(phi)
+        excess = np.maximum(np.minimum(innovation * innovation, ADAPT_CLIP**2 * s_tot) - s, 0.0)
+        beta = 1.0 / self.samples
+        sample = np.stack([np.ones_like(phi), phi, phi * phi, excess, excess * phi], axis=1)
+        new = (1.0 - beta) * self.moments + beta * sample
+        self.moments = np.where(np.reshape(update, (-1, 1)) if np.ndim(update) else update, new, self.moments)
+        return s_tot
+
+    def set_moments(self, moments: np.ndarray) -> None:
+        self.moments = np.array(moments, dtype=float, copy=True)

@@ -40,7 +40,7 @@ import numpy as np
 
 from service.cell.ocv import OcvTable
 from service.cell.profile import CellProfile
-from service.estimators.adaptive_noise import matched_noise
+from service.estimators.adaptive_noise import AdaptiveNoise
 from service.estimators.base import EstimateTrace
 from service.recording import Recording
 
@@ -69,6 +69,8 @@ class EkfTuning:
     #: the same adaptive rule as the pipeline's ``adaptive_noise_samples``, so the baseline
     #: gets every tuning aid the pipeline gets
     adaptive_noise_samples: int = 300
+    #: 'uniform' or 'load' (see service.estimators.adaptive_noise), as the pipeline's setting
+    adaptive_noise_shape: str = "uniform"
     soc_clip: tuple[float, float] = (-0.05, 1.05)
 
 
@@ -115,7 +117,7 @@ class Ecm2RcEkfBank:
         ).copy()
         self._temp_params = np.broadcast_to(np.asarray(temp0_c, dtype=float), (n,)).copy()
         self._params = ecm_parameters(profile, self._temp_params)
-        self.r_adapt = np.zeros(n)
+        self.noise = AdaptiveNoise(n, max(t.adaptive_noise_samples, 1), t.adaptive_noise_shape)  # type: ignore[arg-type]
 
     @property
     def n_cells(self) -> int:
@@ -186,8 +188,10 @@ class Ecm2RcEkfBank:
         innovation = np.asarray(voltage_v, dtype=float) - v_pred
         if t.adaptive_noise_samples:
             # the pipeline's covariance matching (service.estimators.adaptive_noise)
-            r_meas = r_meas + self.r_adapt
-            s, self.r_adapt = matched_noise(self.r_adapt, innovation, s, t.adaptive_noise_samples)
+            overpotential = i * (par["r0"] + par["r"].sum(axis=1))
+            phi = overpotential * overpotential
+            r_meas = r_meas + self.noise.extra(phi)
+            s = self.noise.match(innovation, s, phi)
         k = ph / s[:, None]
         x += k * innovation[:, None]
         ikh = np.eye(N_STATES)[None] - k[:, :, None] * h[:, None, :]

@@ -24,7 +24,7 @@ from service.cell.hysteresis import hysteresis_decay
 from service.cell.model import kinetic_overpotential
 from service.cell.ocv import CellOcv, OcvTable
 from service.cell.profile import CellParameters
-from service.estimators.adaptive_noise import matched_noise
+from service.estimators.adaptive_noise import AdaptiveNoise
 from service.estimators.settings import EstimatorSettings
 from service.estimators.sigma_points import merwe_weights, robust_cholesky, sigma_points
 
@@ -52,8 +52,8 @@ class FoMiUkf:
         self.gains = np.zeros((n_cells, p, self.nx))
         self.wm, self.wc, self.gamma = merwe_weights(self.nx, settings.ukf_alpha, settings.ukf_beta, settings.ukf_kappa)
         self.nis_ema = np.ones(n_cells)
-        #: adaptive measurement variance (covariance matching), V²; 0 unless adaptive_noise_samples
-        self.r_adapt = np.zeros(n_cells)
+        #: adaptive measurement variance (covariance matching); inert unless adaptive_noise_samples
+        self.noise = AdaptiveNoise(n_cells, max(settings.adaptive_noise_samples, 1), settings.adaptive_noise_shape)
         self.repairs = 0
         # outputs of the last step, used by the identifiers
         self.gain = np.zeros((n_cells, self.nx))
@@ -73,7 +73,7 @@ class FoMiUkf:
         self.innovations[cells] = 0.0
         self.gains[cells] = 0.0
         self.nis_ema[cells] = 1.0
-        self.r_adapt[cells] = 0.0
+        self.noise.reset(cells)
         diag = np.full(self.nx, 1e-4)
         diag[self.i_soc] = soc_std**2
         diag[self.i_uh] = max(u_h_std, 1e-3) ** 2
@@ -151,12 +151,13 @@ class FoMiUkf:
         dy = y - y_hat[:, None]
         st = self.settings
         model_err = st.voltage_noise_per_amp_v * i
+        overpotential = i * (params.r_ohm + params.r.sum(axis=1))
         if st.voltage_noise_rel_overpotential:
-            model_err = np.hypot(model_err, st.voltage_noise_rel_overpotential * i * (params.r_ohm + params.r.sum(axis=1)))
+            model_err = np.hypot(model_err, st.voltage_noise_rel_overpotential * overpotential)
         p_yy = (dy * dy) @ self.wc + st.voltage_noise_v**2 + model_err**2
         e = np.where(active, voltage_v - y_hat, 0.0)
         if st.adaptive_noise_samples:
-            p_yy, self.r_adapt = matched_noise(self.r_adapt, e, p_yy, st.adaptive_noise_samples, active)
+            p_yy = self.noise.match(e, p_yy, overpotential * overpotential, active)
         p_xy = np.einsum("s,nsi,ns->ni", self.wc, X - self.x[:, None, :], dy)
         k = p_xy / p_yy[:, None]
         k = np.where(active[:, None], k, 0.0)
@@ -203,6 +204,11 @@ class FoMiUkf:
         far outside their predicted spread (EMA of the normalised innovation squared)."""
         finite = np.isfinite(self.x).all(axis=1) & np.isfinite(self.P).all(axis=(1, 2))
         return ~finite | (self.nis_ema > self.settings.divergence_sigma**2)
+
+    @property
+    def r_adapt(self) -> np.ndarray:
+        """Mean extra measurement variance the covariance matching has learned, V² per cell."""
+        return self.noise.moments[:, 3].copy()
 
     @property
     def soc(self) -> np.ndarray:

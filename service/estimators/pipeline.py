@@ -224,7 +224,7 @@ class PackEstimator:
             "memory_length": np.array(self.settings.memory_length),
             "ukf_x": u.x, "ukf_P": u.P, "ukf_hist": u.hist, "ukf_var_hist": u.var_hist,
             "ukf_innovations": u.innovations, "ukf_gains": u.gains, "ukf_nis": u.nis_ema,
-            "ukf_r_adapt": u.r_adapt,
+            "ukf_noise_moments": u.noise.moments,
             "reset_count": self.reset_count, "ocv_initialised": self.ocv_initialised,
         }
         if self.fast is not None:
@@ -256,8 +256,13 @@ class PackEstimator:
         innov = need("ukf_innovations", u.innovations.shape)
         gains = need("ukf_gains", u.gains.shape)
         nis = need("ukf_nis", u.nis_ema.shape)
-        # older states have no adaptive noise: it starts from zero
-        r_adapt = need("ukf_r_adapt", u.r_adapt.shape) if "ukf_r_adapt" in state else np.zeros_like(u.r_adapt)
+        # adaptive noise: moments; older states kept one variance per cell, or none (starts from zero)
+        if "ukf_noise_moments" in state:
+            noise_moments = need("ukf_noise_moments", u.noise.moments.shape)
+        else:
+            legacy = need("ukf_r_adapt", (self.n,)) if "ukf_r_adapt" in state else np.zeros(self.n)
+            noise_moments = np.zeros_like(u.noise.moments)
+            noise_moments[:, 3] = legacy
         fast = slow = None
         if self.fast is not None:
             fast = (need("fast_z", self.fast.z.shape), need("fast_P", self.fast.P.shape), need("fast_D", self.fast.D.shape))
@@ -272,7 +277,7 @@ class PackEstimator:
         resets = need("reset_count", self.reset_count.shape).astype(int)
         ocv_init = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
         u.x, u.P, u.hist, u.var_hist, u.innovations, u.gains, u.nis_ema = x, P, hist, var_hist, innov, gains, nis
-        u.r_adapt = r_adapt
+        u.noise.set_moments(noise_moments)
         self.reset_count, self.ocv_initialised = resets, ocv_init
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast

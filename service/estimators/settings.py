@@ -50,6 +50,10 @@ class EstimatorSettings(BaseModel):
         "show beyond what the filter predicts is averaged over about this many samples and added to σ_v²; the "
         "filter then leans on the current integral where the model is poor (cold, near empty). 0 = off",
     )
+    adaptive_noise_shape: Literal["uniform", "load"] = Field(
+        "uniform", description="'uniform': one adapted variance for every sample; 'load': a + c·(|I|·R_total)², "
+        "so the model error learned under load does not drown the rests (service.estimators.adaptive_noise)",
+    )
     current_noise_a: float = Field(0.02, ge=0, description="current-sensor noise σ driving SOC process noise")
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
     ukf_alpha: float = Field(1.0, gt=0, le=1)

@@ -1,0 +1,85 @@
+"""Covariance matching of the measurement noise (service.estimators.adaptive_noise)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.estimators.adaptive_noise import ADAPT_CLIP, AdaptiveNoise
+
+
+def _feed(noise: AdaptiveNoise, steps: int, rest_var: float, load_coeff: float, seed: int = 0) -> np.ndarray:
+    """Innovations whose variance beyond the predicted spread is ``rest_var + load_coeff·φ``."""
+    rng = np.random.default_rng(seed)
+    n = noise.moments.shape[0]
+    s = np.full(n, 1e-6)  # predicted spread (1 mV)²
+    for _ in range(steps):
+        # a drive: half the samples at rest, the rest under a load of varying size
+        load = rng.random(n) < 0.5
+        phi = np.where(load, rng.uniform(0.01, 0.2, n) ** 2, 0.0)  # (|I|·R)², V²
+        var = s + rest_var + load_coeff * phi
+        noise.match(rng.normal(0.0, np.sqrt(var)), s, phi)
+    return s
+
+
+def test_uniform_shape_is_the_one_variance_rule() -> None:
+    rng = np.random.default_rng(1)
+    noise = AdaptiveNoise(3, samples=50, shape="uniform")
+    r = np.zeros(3)
+    for _ in range(400):
+        e = rng.normal(0.0, 0.01, 3)
+        s = np.full(3, 2e-5)
+        phi = rng.uniform(0.0, 0.01, 3)
+        s_tot = noise.match(e, s, phi)
+        # the rule written out: clipped excess, exponentially averaged
+        np.testing.assert_allclose(s_tot, s + r, rtol=1e-12)
+        excess = np.maximum(np.minimum(e * e, ADAPT_CLIP**2 * (s + r)) - s, 0.0)
+        r = (1 - 1 / 50) * r + excess / 50
+    a, c = noise.coefficients()
+    np.testing.assert_allclose(a, r, rtol=1e-12)
+    assert np.all(c == 0.0)
+
+
+def test_load_shape_separates_rest_and_load_error() -> None:
+    # model error only under load: the rests must keep a small variance
+    noise = AdaptiveNoise(4, samples=300, shape="load")
+    _feed(noise, 6000, rest_var=0.0, load_coeff=0.04)  # 20 % of the overpotential
+    a, c = noise.coefficients()
+    # the load error is (0.2 · up to 200 mV)²: the rests keep under (3 mV)², a few % of it
+    assert np.all(a < (3.0e-3) ** 2), a
+    assert np.all(np.abs(c - 0.04) < 0.015), c
+    # while the one-variance rule spreads the load error over the rests too
+    uniform = AdaptiveNoise(4, samples=300, shape="uniform")
+    _feed(uniform, 6000, rest_var=0.0, load_coeff=0.04)
+    assert np.all(uniform.extra(np.zeros(4)) > 10 * np.mean(noise.extra(np.zeros(4))))
+
+
+def test_load_shape_finds_a_rest_error_too() -> None:
+    noise = AdaptiveNoise(2, samples=300, shape="load")
+    _feed(noise, 6000, rest_var=(3e-3) ** 2, load_coeff=0.0, seed=3)
+    a, c = noise.coefficients()
+    assert np.all(np.abs(np.sqrt(a) - 3e-3) < 0.6e-3), np.sqrt(a)
+    assert np.all(c < 0.01), c  # no load term invented
+
+
+def test_load_shape_without_spread_in_load_falls_back_to_one_variance() -> None:
+    noise = AdaptiveNoise(1, samples=100, shape="load")
+    rng = np.random.default_rng(4)
+    for _ in range(500):  # constant current: φ never varies, (a, c) not determined
+        noise.match(rng.normal(0.0, 0.01, 1), np.full(1, 1e-6), np.full(1, 0.01))
+    a, c = noise.coefficients()
+    assert c[0] == 0.0 and a[0] == noise.moments[0, 3]
+
+
+def test_an_outlier_cannot_buy_itself_a_large_variance() -> None:
+    noise = AdaptiveNoise(1, samples=10, shape="load")
+    s = np.full(1, 1e-6)
+    noise.match(np.array([5.0]), s, np.array([0.0]))  # a 5 V innovation
+    assert noise.moments[0, 3] <= ADAPT_CLIP**2 * 1e-6 / 10 + 1e-15
+
+
+def test_only_updated_cells_move() -> None:
+    noise = AdaptiveNoise(2, samples=10, shape="load")
+    noise.match(np.array([0.1, 0.1]), np.full(2, 1e-6), np.array([0.01, 0.01]), np.array([True, False]))
+    assert np.any(noise.moments[0] != 0.0) and np.all(noise.moments[1] == 0.0)
+    noise.reset(np.array([True, False]))
+    assert np.all(noise.moments == 0.0)
