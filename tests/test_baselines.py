@@ -120,6 +120,25 @@ def test_ekf_converges_from_020_soc_error():
     assert np.sqrt(np.mean((trace.v_pred[late] - v[late]) ** 2)) < 0.01
 
 
+def test_ekf_reads_the_kinetic_term_of_a_kinetics_profile():
+    """A profile fitted with --kinetics keeps the linear charge-transfer drop in R0 and the fall
+    of the apparent resistance at high current in the Butler-Volmer term: the EKF must subtract
+    that term, or it reads the whole linear R0 at every current."""
+    from service.cell.model import kinetic_overpotential
+
+    t, i, v_lin, soc = _noisy_2rc_drive(6000, seed=4)
+    i0 = 0.8  # A: strongly non-linear at the 2-4 A pulses
+    v = v_lin - kinetic_overpotential(i, np.full(i.size, i0), np.full(i.size, 25.0))
+    profile = make_profile(**TRUE_2RC, kinetics_i0_a=i0)
+    trace = Ecm2RcEkf().run(recording(t, i, v, soc), profile, soc0=soc[0] - 0.2)
+    late = t >= 600
+    assert np.sqrt(np.mean((trace.v_pred[late] - v[late]) ** 2)) < 0.01
+    assert np.sqrt(np.mean((trace.soc[late] - soc[late]) ** 2)) < 0.01
+    # without the term (the profile's linear R0 alone) the prediction is far off under load
+    blind = Ecm2RcEkf().run(recording(t, i, v, soc), make_profile(**TRUE_2RC), soc0=soc[0] - 0.2)
+    assert np.sqrt(np.mean((blind.v_pred[late] - v[late]) ** 2)) > 2 * np.sqrt(np.mean((trace.v_pred[late] - v[late]) ** 2))
+
+
 def test_ekf_covariance_stays_spd_over_long_irregular_run():
     rng = np.random.default_rng(2)
     n = 30000

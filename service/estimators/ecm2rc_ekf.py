@@ -5,7 +5,7 @@ Model, per cell, in this project's convention (current positive = discharge)::
     SOC_k = SOC_{k-1} - I_k dt_k / (3600 Q)                  (Zeng Eq. 4, h and 3600 restored)
     U_b,k = a_b U_b,k-1 + R_b (1 - a_b) I_k,                    (Hu & Wang Eq. 2, exact for a
             a_b = exp(-dt_k / τ_b)                             current held over (t_{k-1}, t_k])
-    V_k   = OCV(SOC_k, T_k) - R0 I_k - U_1,k - U_2,k          (Zeng Eq. 6 without U_h)
+    V_k   = OCV(SOC_k, T_k) - R0 I_k - U_1,k - U_2,k - η_kin(I_k, T_k)   (Zeng Eq. 6 without U_h)
 
 with state ``x = [SOC, U_1, U_2]`` and the actual interval ``dt_k`` of every sample.
 
@@ -14,8 +14,12 @@ at the recorded temperature, refreshed when a cell's temperature has moved more 
 ``temp_update_c``): ``R0 = r_ohm``, branch ``b``: ``R_b = r[b]``, ``τ_b = (r c)^(1/α)`` —
 the characteristic time of the CPE branch (for ``α = 1`` exactly ``R C``).  Capacity
 includes the ``capacity_scale`` extension and the ``current_bias_a`` extension is
-subtracted from the measured current; hysteresis, extra branches, Butler–Volmer
-kinetics and the entropic OCV term are not part of a 2-RC EKF and are ignored.
+subtracted from the measured current.  A profile fitted with Butler–Volmer kinetics
+(``socd fit --kinetics``) keeps the linear part of the charge-transfer drop in ``R0`` and
+the fall of the apparent resistance at high current in ``η_kin`` (a known function of the
+current, :func:`service.cell.model.kinetic_overpotential`, so the Jacobian is unchanged):
+the baseline reads the same profile as the pipeline.  Hysteresis, extra branches and the
+entropic OCV term are not part of a 2-RC EKF and are ignored.
 
 Noise model (all keyword arguments of the constructors):
 
@@ -39,6 +43,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from service.cell.ocv import OcvTable
+from service.cell.model import kinetic_overpotential
 from service.cell.profile import CellProfile
 from service.estimators.adaptive_noise import AdaptiveNoise
 from service.estimators.base import EstimateTrace
@@ -77,7 +82,8 @@ class EkfTuning:
 def ecm_parameters(profile: CellProfile, temp_c: np.ndarray) -> dict[str, np.ndarray]:
     """2-RC parameters at ``temp_c [N]``.
 
-    Returns ``r0 [N]``, ``r [N,2]``, ``tau [N,2]``, ``capacity [N]`` and ``bias [N]``.
+    Returns ``r0 [N]``, ``r [N,2]``, ``tau [N,2]``, ``capacity [N]``, ``bias [N]`` and the
+    Butler–Volmer exchange current ``i0 [N]`` (infinite: no kinetic term).
 
     ``τ = (R C)^(1/α)``: the CPE branch's characteristic time (its impedance
     ``R / (1 + R C (jω)^α)`` has its corner at ``ω = (R C)^(-1/α)``).
@@ -85,7 +91,8 @@ def ecm_parameters(profile: CellProfile, temp_c: np.ndarray) -> dict[str, np.nda
     p = profile.parameters_at(np.asarray(temp_c, dtype=float))
     r = p.r[:, :2]
     tau = np.power(p.r[:, :2] * p.c[:, :2], 1.0 / p.alpha[:, :2])
-    return {"r0": p.r_ohm, "r": r, "tau": tau, "capacity": p.capacity_ah, "bias": p.current_bias_a}
+    return {"r0": p.r_ohm, "r": r, "tau": tau, "capacity": p.capacity_ah, "bias": p.current_bias_a,
+            "i0": p.kinetics_i0_a}
 
 
 class Ecm2RcEkfBank:
@@ -117,6 +124,9 @@ class Ecm2RcEkfBank:
         ).copy()
         self._temp_params = np.broadcast_to(np.asarray(temp0_c, dtype=float), (n,)).copy()
         self._params = ecm_parameters(profile, self._temp_params)
+        #: any Butler–Volmer term in the profile (at some temperature, or the extension)
+        self._kinetic = bool(profile.extensions.kinetics_i0_a is not None
+                             or any(pt.i0_a is not None for pt in profile.parameters))
         self.noise = AdaptiveNoise(n, max(t.adaptive_noise_samples, 1), t.adaptive_noise_shape)  # type: ignore[arg-type]
 
     @property
@@ -179,6 +189,8 @@ class Ecm2RcEkfBank:
 
         # -- correct --------------------------------------------------------------------
         v_pred = self.ocv.ocv(x[:, 0], temp) - par["r0"] * i - x[:, 1] - x[:, 2]
+        if self._kinetic:
+            v_pred = v_pred - kinetic_overpotential(i, par["i0"], temp)
         h = np.empty((n, N_STATES))
         h[:, 0] = self.ocv.slope(x[:, 0], temp)
         h[:, 1:] = -1.0
