@@ -351,3 +351,19 @@ def test_score_fields() -> None:
     assert s.v_rmse_mv == pytest.approx(2.0)
     short = score(t[:500], est[:500], truth[:500])
     assert short.soc_rmse_after_600s_pct is None and short.v_rmse_mv is None
+
+
+def test_summary_puts_another_profiles_scores_beside(tmp_path, capsys):
+    from service.evaluation.summary import main as summary_main
+
+    row = {"recording": "r1", "soc_rmse_after_600s_pct": 0.5, "v_rmse_mv": 10.0}
+    a = tmp_path / "a.json"
+    b = tmp_path / "b.json"
+    a.write_text(json.dumps({"cell": "cells/x.toml", "results": [dict(row, estimator="fomiukf"),
+                                                                dict(row, estimator="ecm2rc-ekf")]}))
+    b.write_text(json.dumps({"cell": "cells/x_linear.toml",
+                             "results": [dict(row, estimator="ecm2rc-ekf", soc_rmse_after_600s_pct=0.25)]}))
+    assert summary_main([f"{a}+{b}"]) == 0
+    out = capsys.readouterr().out
+    assert "| recording | fomiukf | ecm2rc-ekf | ecm2rc-ekf (x_linear) |" in out
+    assert "| r1 | 0.50 | 0.50 | 0.25 |" in out

@@ -1,9 +1,12 @@
 """Markdown tables from ``socd evaluate --json`` files (the README's results come from here).
 
     python -m service.evaluation.summary out/eval_pan25.json [more.json ...]
+    python -m service.evaluation.summary out/eval_pan25.json+out/eval_pan25_nokin.json
 
 One row per recording, one column per estimator: SOC RMSE after 600 s in percent (the
-figure of DESIGN §7), then a row of means, then voltage RMSE means.
+figure of DESIGN §7), then a row of means, then voltage RMSE means.  ``A.json+B.json``
+puts B's estimators beside A's in one table, each labelled with B's cell profile (the
+same estimator scored with another profile).
 """
 
 from __future__ import annotations
@@ -16,13 +19,25 @@ from pathlib import Path
 ORDER = ["fomiukf", "foukf", "fom-single-scale", "ecm2rc-ekf", "huwang-rls", "coulomb"]
 
 
-def table(path: Path) -> str:
-    results = json.loads(path.read_text())["results"]
-    ests = [e for e in ORDER if any(r["estimator"] == e for r in results)]
+def _results(path: Path, label: bool) -> list[dict]:
+    doc = json.loads(path.read_text())
+    results = doc["results"]
+    if label:
+        tag = Path(str(doc.get("cell", path.stem))).stem
+        results = [dict(r, estimator=f"{r['estimator']} ({tag})") for r in results]
+    return results
+
+
+def table(spec: str) -> str:
+    parts = [Path(p) for p in spec.split("+")]
+    path = parts[0]
+    results = [r for i, p in enumerate(parts) for r in _results(p, label=i > 0)]
+    named = [r["estimator"] for r in results]
+    ests = [e for e in ORDER if e in named] + [e for e in dict.fromkeys(named) if e not in ORDER]
     by = defaultdict(dict)
     for r in results:
         by[r["recording"]][r["estimator"]] = r
-    lines = [f"`{path.name}`: SOC RMSE after 600 s [%] (voltage RMSE mean in the last row)", "",
+    lines = [f"`{'` + `'.join(p.name for p in parts)}`: SOC RMSE after 600 s [%] (voltage RMSE mean in the last row)", "",
              "| recording | " + " | ".join(ests) + " |", "|---" * (len(ests) + 1) + "|"]
     sums = defaultdict(list)
     vs = defaultdict(list)
@@ -43,11 +58,11 @@ def table(path: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    paths = [Path(p) for p in (argv if argv is not None else sys.argv[1:])]
-    if not paths:
+    specs = list(argv if argv is not None else sys.argv[1:])
+    if not specs:
         print(__doc__)
         return 2
-    print("\n\n".join(table(p) for p in paths))
+    print("\n\n".join(table(s) for s in specs))
     return 0
 
 
