@@ -216,6 +216,19 @@ def test_adaptive_noise_state_round_trips_and_legacy_states_load(nmc_profile, sh
     np.testing.assert_array_equal(restored.ukf.r_adapt, np.full(est.n, 4e-6))
 
 
+def test_soc_estimate_stays_inside_zero_one(nmc_profile) -> None:
+    """DESIGN: SOC in [0, 1]; a voltage beyond either end of the table pins it to the end."""
+    est = PackEstimator(nmc_profile, 2)
+    est.start(np.array([0.98, 0.02]))
+    ocv = nmc_profile.ocv_table()
+    hi = float(ocv.ocv(np.array(1.0), 25.0)) + 0.3
+    lo = float(ocv.ocv(np.array(0.0), 25.0)) - 0.3
+    for _ in range(30):
+        est.step(1.0, 0.0, np.array([hi, lo]), np.full(2, 25.0))
+        assert np.all((est.soc >= 0.0) & (est.soc <= 1.0))
+    assert est.soc[0] == 1.0 and est.soc[1] == 0.0
+
+
 def _corrupt(state: dict, key: str, how: str) -> dict:
     st = {k: np.array(v, copy=True) for k, v in state.items()}
     if how == "nan":

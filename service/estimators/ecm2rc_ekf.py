@@ -76,7 +76,8 @@ class EkfTuning:
     adaptive_noise_samples: int = 300
     #: 'uniform' or 'load' (see service.estimators.adaptive_noise), as the pipeline's setting
     adaptive_noise_shape: str = "uniform"
-    soc_clip: tuple[float, float] = (-0.05, 1.05)
+    #: SOC in [0, 1] (DESIGN), the same bound as the pipeline's filter
+    soc_clip: tuple[float, float] = (0.0, 1.0)
 
 
 def ecm_parameters(profile: CellProfile, temp_c: np.ndarray) -> dict[str, np.ndarray]:

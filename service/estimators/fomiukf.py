@@ -28,7 +28,9 @@ from service.estimators.adaptive_noise import AdaptiveNoise
 from service.estimators.settings import EstimatorSettings
 from service.estimators.sigma_points import merwe_weights, robust_cholesky, sigma_points
 
-SOC_LIMITS = (-0.1, 1.1)
+#: the filter's SOC mean stays in [0, 1] (DESIGN: SOC in [0, 1] internally): a cell holds
+#: neither more than full nor less than empty; sigma points may still spread beyond it
+SOC_LIMITS = (0.0, 1.0)
 
 
 class FoMiUkf:
