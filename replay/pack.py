@@ -42,7 +42,8 @@ class SpreadSpec:
     """Cell-to-cell spread (σ of a normal distribution, clipped at ±3σ).
 
     ``capacity`` and ``resistance`` are relative (0.02 = 2 %), ``soc`` absolute (0.02 =
-    2 % SOC), ``temperature_c`` absolute per sensor (°C).
+    2 % SOC), ``temperature_c`` absolute per sensor (°C).  A cell's start SOC stays in
+    [0, 1]: a pack that starts full has no cell above full.
     """
 
     capacity: float = 0.0
@@ -128,7 +129,9 @@ def expand_pack(
     i = recording.current_a
     q_ah = np.cumsum(i * recording.dt_s()) / 3600.0  # backward ZOH, first step 0
     soc_ref = soc0 - q_ah / capacity
-    truth = (soc0 + d_soc)[None, :] - q_ah[:, None] / cap_i[None, :]
+    # a cell cannot start above full or below empty (DESIGN: SOC in [0, 1])
+    soc0_i = np.clip(soc0 + d_soc, 0.0, 1.0)
+    truth = soc0_i[None, :] - q_ah[:, None] / cap_i[None, :]
 
     sensor_t = recording.temperature_c[:, None] + d_temp[None, :]
     temp_cell = sensor_t[:, sensor_of_cell]

@@ -221,3 +221,13 @@ def test_user_dbc_replay(recording, profile):
     assert len(samples) == len(recording) and dec.rejected == 0
     assert np.allclose([s.voltage_v for s in samples], pack.voltage_v, atol=6e-5)
     assert np.allclose([s.current_a for s in samples], pack.current_a, atol=0.051)
+
+
+def test_no_generated_cell_starts_above_full(recording, profile):
+    from replay.pack import expand_pack
+
+    # the recording opens at rest near full charge: a 5 % SOC spread would put half the
+    # cells above 100 % if the start were not bounded
+    pack = expand_pack(recording, profile, 64, SpreadSpec(soc=0.05), seed=3, start_soc=0.99)
+    assert pack.truth_soc[0].max() <= 1.0
+    assert pack.truth_soc[0].min() < 0.97  # the spread is still there below full
