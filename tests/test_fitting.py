@@ -144,6 +144,29 @@ def test_i0_interpolates_like_a_resistance_and_is_all_or_none():
                     parameters=[pts[0], TRUE.model_copy(update={"temp_c": 25.0})])
 
 
+def test_r_ohm_keeps_its_linear_kinetic_part_matched_to_i0_between_temperatures():
+    """A --kinetics fit stores R_ohm = R_rest + 2RT/F/(2 i0); between fitted temperatures the rest
+    and i0 are interpolated and the linear kinetic drop is added back for the interpolated i0."""
+    from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN, arrhenius_interp
+
+    def lin(t, i0):
+        return 2.0 * GAS_CONSTANT * (t + KELVIN) / FARADAY / (2.0 * i0)
+
+    rest = {0.0: 0.05, 25.0: 0.02}
+    i0 = {0.0: 0.2, 25.0: 5.0}
+    pts = [TRUE.model_copy(update={"temp_c": t, "i0_a": i0[t], "r_ohm": rest[t] + lin(t, i0[t])}) for t in (0.0, 25.0)]
+    prof = profile(pts[0]).model_copy(update={"parameters": pts})
+    temps = np.array([0.0, 12.0, 25.0])
+    par = prof.parameters_at(temps)
+    assert par.r_ohm[0] == pytest.approx(pts[0].r_ohm) and par.r_ohm[2] == pytest.approx(pts[1].r_ohm)
+    grid = np.array([0.0, 25.0])
+    rest_12 = np.exp(arrhenius_interp(np.array([12.0]), grid, np.log([0.05, 0.02])))[0]
+    assert par.r_ohm[1] == pytest.approx(rest_12 + lin(12.0, par.kinetics_i0_a[1]))
+    # interpolating R_ohm whole keeps more of the cold point's large linear kinetic drop
+    whole_12 = np.exp(arrhenius_interp(np.array([12.0]), grid, np.log([pts[0].r_ohm, pts[1].r_ohm])))[0]
+    assert par.r_ohm[1] < 0.95 * whole_12
+
+
 def test_resistances_bounded_by_the_neighbouring_temperatures():
     n = 1200
     t = np.arange(n, dtype=float)

@@ -177,6 +177,19 @@ class CellProfile(_Strict):
             return np.interp(temp, grid, vals)
 
         r_ohm, r_ct, r_df = interp("r_ohm", True), interp("r_ct", True), interp("r_df", True)
+        per_temp_i0 = self.extensions.kinetics_i0_a is None and self.parameters[0].i0_a is not None
+        if per_temp_i0:
+            # a --kinetics fit keeps the linear kinetic drop 2RT/F / (2 i0) in R_ohm (the model
+            # subtracts it again in the Butler-Volmer term): interpolate the rest of R_ohm and i0,
+            # and add the linear drop back at the cell's own temperature, so the two stay matched
+            # between fitted temperatures
+            i0_g = np.array([p.i0_a for p in self.parameters])
+            lin_g = 2.0 * GAS_CONSTANT * (grid + KELVIN) / FARADAY / (2.0 * i0_g)
+            pure_g = np.array([p.r_ohm for p in self.parameters]) - lin_g
+            if np.all(pure_g > 0):
+                i0_t = np.exp(arrhenius_interp(temp, grid, np.log(i0_g)))
+                r_ohm = (np.exp(arrhenius_interp(temp, grid, np.log(pure_g)))
+                         + 2.0 * GAS_CONSTANT * (temp + KELVIN) / FARADAY / (2.0 * i0_t))
         arr = self.extensions.arrhenius
         if arr is not None:
             # Arrhenius scaling around the nearest table temperature's value
