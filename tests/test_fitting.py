@@ -165,6 +165,9 @@ def test_r_ohm_keeps_its_linear_kinetic_part_matched_to_i0_between_temperatures(
     # interpolating R_ohm whole keeps more of the cold point's large linear kinetic drop
     whole_12 = np.exp(arrhenius_interp(np.array([12.0]), grid, np.log([pts[0].r_ohm, pts[1].r_ohm])))[0]
     assert par.r_ohm[1] < 0.95 * whole_12
+    # beyond the fitted range the non-kinetic part is held (only i0 extends)
+    warm = prof.parameters_at(np.array([35.0]))
+    assert warm.r_ohm[0] == pytest.approx(0.02 + lin(35.0, warm.kinetics_i0_a[0]))
 
 
 def test_resistances_bounded_by_the_neighbouring_temperatures():

@@ -188,7 +188,10 @@ class CellProfile(_Strict):
             pure_g = np.array([p.r_ohm for p in self.parameters]) - lin_g
             if np.all(pure_g > 0):
                 i0_t = np.exp(arrhenius_interp(temp, grid, np.log(i0_g)))
-                r_ohm = (np.exp(arrhenius_interp(temp, grid, np.log(pure_g)))
+                # the non-kinetic part is held beyond the fitted range: per-temperature fits trade
+                # it against i0, so its end segment need not fall with temperature as it should
+                inside = np.clip(temp, grid.min(), grid.max())
+                r_ohm = (np.exp(arrhenius_interp(inside, grid, np.log(pure_g)))
                          + 2.0 * GAS_CONSTANT * (temp + KELVIN) / FARADAY / (2.0 * i0_t))
         arr = self.extensions.arrhenius
         if arr is not None:
