@@ -184,15 +184,13 @@ class CellProfile(_Strict):
             # and add the linear drop back at the cell's own temperature, so the two stay matched
             # between fitted temperatures
             i0_g = np.array([p.i0_a for p in self.parameters])
-            lin_g = 2.0 * GAS_CONSTANT * (grid + KELVIN) / FARADAY / (2.0 * i0_g)
-            pure_g = np.array([p.r_ohm for p in self.parameters]) - lin_g
+            pure_g = np.array([p.r_ohm for p in self.parameters]) - kinetic_linear_ohm(i0_g, grid)
             if np.all(pure_g > 0):
                 i0_t = np.exp(arrhenius_interp(temp, grid, np.log(i0_g)))
                 # the non-kinetic part is held beyond the fitted range: per-temperature fits trade
                 # it against i0, so its end segment need not fall with temperature as it should
                 inside = np.clip(temp, grid.min(), grid.max())
-                r_ohm = (np.exp(arrhenius_interp(inside, grid, np.log(pure_g)))
-                         + 2.0 * GAS_CONSTANT * (temp + KELVIN) / FARADAY / (2.0 * i0_t))
+                r_ohm = np.exp(arrhenius_interp(inside, grid, np.log(pure_g))) + kinetic_linear_ohm(i0_t, temp)
         arr = self.extensions.arrhenius
         if arr is not None:
             # Arrhenius scaling around the nearest table temperature's value
@@ -233,6 +231,13 @@ class CellProfile(_Strict):
 
 #: how far beyond the fitted temperatures parameters are extrapolated
 EXTRAPOLATE_C = 15.0
+
+
+def kinetic_linear_ohm(i0_a: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
+    """Small-current resistance of the Butler–Volmer drop, ``2RT/F / (2 i0)``: the linear part
+    that a ``--kinetics`` fit keeps in ``R_ohm`` (:func:`service.cell.model.kinetic_overpotential`
+    subtracts it again)."""
+    return 2.0 * GAS_CONSTANT * (np.asarray(temp_c) + KELVIN) / FARADAY / (2.0 * np.asarray(i0_a))
 
 
 def arrhenius_interp(temp_c: np.ndarray, grid_c: np.ndarray, log_values: np.ndarray) -> np.ndarray:

@@ -203,8 +203,9 @@ class Ecm2RcEkfBank:
             # the pipeline's covariance matching (service.estimators.adaptive_noise)
             overpotential = i * (par["r0"] + par["r"].sum(axis=1))
             phi = overpotential * overpotential
-            r_meas = r_meas + self.noise.extra(phi)
-            s = self.noise.match(innovation, s, phi)
+            s_tot = self.noise.match(innovation, s, phi)
+            r_meas = r_meas + (s_tot - s)  # the adapted extra, for the Joseph form below
+            s = s_tot
         k = ph / s[:, None]
         x += k * innovation[:, None]
         ikh = np.eye(N_STATES)[None] - k[:, :, None] * h[:, None, :]
