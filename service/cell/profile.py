@@ -177,8 +177,13 @@ class CellProfile(_Strict):
             return np.interp(temp, grid, vals)
 
         r_ohm, r_ct, r_df = interp("r_ohm", True), interp("r_ct", True), interp("r_df", True)
-        per_temp_i0 = self.extensions.kinetics_i0_a is None and self.parameters[0].i0_a is not None
-        if per_temp_i0:
+        ones = np.ones_like(temp)
+        if self.extensions.kinetics_i0_a is not None:
+            # added by socd diagnose on top of the base model: it takes precedence
+            i0 = self.extensions.kinetics_i0_a * ones
+        elif self.parameters[0].i0_a is not None:
+            # characterised per temperature: Arrhenius in T like the resistances (i0 ∝ 1/R_ct)
+            i0 = interp("i0_a", True)
             # a --kinetics fit keeps the linear kinetic drop 2RT/F / (2 i0) in R_ohm (the model
             # subtracts it again in the Butler-Volmer term): interpolate the rest of R_ohm and i0,
             # and add the linear drop back at the cell's own temperature, so the two stay matched
@@ -186,11 +191,12 @@ class CellProfile(_Strict):
             i0_g = np.array([p.i0_a for p in self.parameters])
             pure_g = np.array([p.r_ohm for p in self.parameters]) - kinetic_linear_ohm(i0_g, grid)
             if np.all(pure_g > 0):
-                i0_t = np.exp(arrhenius_interp(temp, grid, np.log(i0_g)))
                 # the non-kinetic part is held beyond the fitted range: per-temperature fits trade
                 # it against i0, so its end segment need not fall with temperature as it should
                 inside = np.clip(temp, grid.min(), grid.max())
-                r_ohm = np.exp(arrhenius_interp(inside, grid, np.log(pure_g))) + kinetic_linear_ohm(i0_t, temp)
+                r_ohm = np.exp(arrhenius_interp(inside, grid, np.log(pure_g))) + kinetic_linear_ohm(i0, temp)
+        else:
+            i0 = np.inf * ones
         arr = self.extensions.arrhenius
         if arr is not None:
             # Arrhenius scaling around the nearest table temperature's value
@@ -203,15 +209,6 @@ class CellProfile(_Strict):
         r = np.stack([r_ct, r_df] + [np.full_like(temp, b.r) for b in extra], axis=-1)
         c = np.stack([interp("c_dl", True), interp("c_df", True)] + [np.full_like(temp, b.c) for b in extra], axis=-1)
         alpha = np.stack([interp("m", False), interp("n", False)] + [np.full_like(temp, b.alpha) for b in extra], axis=-1)
-        ones = np.ones_like(temp)
-        if self.extensions.kinetics_i0_a is not None:
-            # added by socd diagnose on top of the base model: it takes precedence
-            i0 = self.extensions.kinetics_i0_a * ones
-        elif self.parameters[0].i0_a is not None:
-            # characterised per temperature: Arrhenius in T like the resistances (i0 ∝ 1/R_ct)
-            i0 = interp("i0_a", True)
-        else:
-            i0 = np.inf * ones
         return CellParameters(
             r_ohm=r_ohm,
             r=r,
