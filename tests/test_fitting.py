@@ -61,12 +61,18 @@ def test_batch_simulation_equals_model():
     assert np.max(np.abs(soc[:, 0] - soc_ref)) < 1e-12
 
 
+def _pulse_drive(prof, n: int, seed: int, scale: float = 1.0, temp_c: float = 25.0):
+    """``(t, i, temp, v)``: a 1-s pulse drive of ``n`` samples simulated with ``prof`` from SOC 0.95."""
+    t = np.arange(n, dtype=float)
+    i = pulse_current(n, 2.0, seed) * scale
+    temp = np.full(n, temp_c)
+    v, _ = simulate(prof, t, i, temp, 0.95)
+    return t, i, temp, v
+
+
 def test_fit_recovers_known_parameters():
     n = 2400
-    t = np.arange(n, dtype=float)
-    i = pulse_current(n, 2.0, 1)
-    temp = np.full(n, 25.0)
-    v, _ = simulate(profile(), t, i, temp, 0.95)
+    t, i, temp, v = _pulse_drive(profile(), n, 1)
     v = v + np.random.default_rng(2).normal(0, 0.001, n)
     start = profile(ParameterPoint(r_ohm=0.01, r_ct=0.01, c_dl=100, m=0.8, r_df=0.01, c_df=1000, n=0.8))
     res = fit_parameters(start, [FitSegment(t, i, v, temp, soc0=0.95)], max_seconds=120, seed=0, de_maxiter=30)
@@ -115,11 +121,9 @@ def test_segment_validation_and_window():
 def test_fit_kinetics_recovers_exchange_current():
     """Pulses at several currents separate the Butler-Volmer i0 from the linear R_ct."""
     n = 2400
-    t = np.arange(n, dtype=float)
-    i = pulse_current(n, 2.0, 7) * 2.0  # up to 4C, where a 1 A exchange current bends the curve
-    temp = np.full(n, 0.0)
     truth = TRUE.model_copy(update={"temp_c": 0.0, "i0_a": 1.0})
-    v, _ = simulate(profile(truth), t, i, temp, 0.95)
+    # up to 4C, where a 1 A exchange current bends the curve
+    t, i, temp, v = _pulse_drive(profile(truth), n, 7, scale=2.0, temp_c=0.0)
     v = v + np.random.default_rng(4).normal(0, 0.001, n)
     start = profile(ParameterPoint(temp_c=0.0, r_ohm=0.01, r_ct=0.01, c_dl=100, m=0.8, r_df=0.01, c_df=1000, n=0.8))
     linear = fit_parameters(start, [FitSegment(t, i, v, temp, soc0=0.95)], max_seconds=60, x0=truth, de_maxiter=10)
@@ -171,11 +175,7 @@ def test_r_ohm_keeps_its_linear_kinetic_part_matched_to_i0_between_temperatures(
 
 
 def test_resistances_bounded_by_the_neighbouring_temperatures():
-    n = 1200
-    t = np.arange(n, dtype=float)
-    i = pulse_current(n, 2.0, 1)
-    temp = np.full(n, 25.0)
-    v, _ = simulate(profile(), t, i, temp, 0.95)
+    t, i, temp, v = _pulse_drive(profile(), 1200, 1)
     seg = [FitSegment(t, i, v, temp, soc0=0.95)]
     # a warmer point with larger resistances than this data: the fit may not go below them
     warm = TRUE.model_copy(update={"temp_c": 40.0, "r_ohm": 0.04, "r_ct": 0.02, "r_df": 0.03})
