@@ -104,12 +104,28 @@ def test_diagnose_names_the_simulated_effect(tmp_path, effect):
     dg = run_diagnosis(rec, user_profile(), OPTIONS)
     assert dg.verdict == effect, [(e.name, round(e.score, 3), e.reasons) for e in dg.effects]
     top = dg.effects[0]
+    # "none" on a clean recording means the base model explains it to within noise
+    assert dg.assessment["state"] == ("explained" if effect == "none" else "named"), dg.assessment
     if effect == "none":
         assert not any(e.significant for e in dg.effects)
     else:
         assert top.name == effect and top.significant
         assert top.rmse_after_mv < 0.6 * top.rmse_before_mv  # held-out RMSE falls clearly
         assert top.profile.model_dump() != dg.base_profile.model_dump()  # the saved profile carries it
+
+
+def test_none_with_a_large_residual_says_the_physics_is_missing(tmp_path):
+    """Hysteresis left out of the candidates: the verdict is none, and the assessment says the
+    residual is far above noise (not that the model is fine) and which candidate fitted best."""
+    rec = load_recording(simulated_recording(tmp_path, "hysteresis"))
+    opt = DiagnoseOptions(base_seconds=30.0, base_de_maxiter=25, effect_seconds=20.0, effects=("capacity", "current_bias"))
+    dg = run_diagnosis(rec, user_profile(), opt)
+    assert dg.verdict == "none"
+    a = dg.assessment
+    assert a["state"] == "unexplained", a
+    assert a["heldout_rmse_over_noise"] > a["explained_noise_factor"]
+    assert "no candidate generalises" in a["text"]
+    assert json.loads(json.dumps(dg.to_json()))["assessment"]["state"] == "unexplained"
 
 
 def test_cli_json_report_and_profile(tmp_path, capsys):

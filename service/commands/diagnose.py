@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         save_profile(dg.best_profile(), args.save_profile)
         say(f"profile: {args.save_profile}")
     if args.json != "-":
-        print(f"verdict: {dg.verdict}")
+        print(f"verdict: {dg.verdict} ({dg.assessment['state']}: {dg.assessment['text']})")
         for e in dg.effects:
             flag = "*" if e.significant else " "
             print(f" {flag} {e.name:13s} held-out RMSE {e.rmse_before_mv:7.2f} -> {e.rmse_after_mv:7.2f} mV "

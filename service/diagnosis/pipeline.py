@@ -130,10 +130,12 @@ class Diagnosis:
     held_mask: np.ndarray
     seconds: float
     signatures: dict = field(default_factory=dict)
+    assessment: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
             "verdict": self.verdict,
+            "assessment": self.assessment,
             "effects": [e.to_json() for e in self.effects],
             "located": self.located,
             "located_all": self.located_full,
@@ -165,6 +167,50 @@ def noise_sigma(rec: Recording, capacity_ah: float) -> float:
     d2 = np.diff(d) if d.size > 3 else d
     mad = float(np.median(np.abs(d2 - np.median(d2))))
     return max(1.4826 * mad / math.sqrt(6.0), 1e-5)
+
+
+#: held-out base RMSE within this multiple of the voltage noise: the model explains the recording
+EXPLAINED_NOISE_FACTOR = 3.0
+#: an extension that cuts the fit-part RMSE by at least this share but is not significant on
+#: the held-out part "fits without generalising" (reported, never a verdict)
+FIT_ONLY_GAIN = 0.30
+
+
+def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float, rmse_held_base_mv: float,
+           noise_mv: float) -> dict:
+    """What the verdict means for the user, in numbers.
+
+    ``none`` has two readings that must not be confused: the base model already explains
+    the recording to within a few noise σ (``explained``), or a large residual is left that
+    no candidate removes on the held-out part (``unexplained``): then the physics is outside
+    the candidate library or does not extrapolate from the fit part, and the extensions that
+    fit the fit part well without generalising are listed as leads, not as a verdict.
+    """
+    ratio = rmse_held_base_mv / max(noise_mv, 1e-9)
+    fit_only = []
+    for e in outcomes:
+        fit_gain = 1.0 - e.rmse_fit_after_mv / rmse_fit_base_mv if rmse_fit_base_mv > 0 else 0.0
+        if not e.significant and fit_gain >= FIT_ONLY_GAIN:
+            fit_only.append({"name": e.name, "fit_gain": round(fit_gain, 4), "heldout_gain": round(e.score, 4)})
+    fit_only.sort(key=lambda d: -d["fit_gain"])
+    if verdict != "none":
+        state = "named"
+        text = f"{verdict} is the best significant candidate"
+    elif ratio <= EXPLAINED_NOISE_FACTOR:
+        state = "explained"
+        text = (f"the base model explains the held-out part to {rmse_held_base_mv:.2f} mV, within "
+                f"{EXPLAINED_NOISE_FACTOR:g} x the voltage noise ({noise_mv:.2f} mV): nothing is missing")
+    else:
+        state = "unexplained"
+        leads = ", ".join(f"{d['name']} (fit part {100 * d['fit_gain']:.0f} % lower, held out "
+                          f"{100 * d['heldout_gain']:+.0f} %)" for d in fit_only) or "none"
+        text = (f"no candidate generalises, yet the base model leaves {rmse_held_base_mv:.2f} mV on the held-out "
+                f"part ({ratio:.0f} x the voltage noise): the missing physics is outside the candidate library or "
+                f"does not extrapolate from the fit part to the held-out one; candidates that fit the fit part "
+                f"without generalising: {leads}")
+    return {"state": state, "text": text, "heldout_rmse_over_noise": round(ratio, 2),
+            "explained_noise_factor": EXPLAINED_NOISE_FACTOR, "fit_only_gain": FIT_ONLY_GAIN,
+            "fit_without_generalising": fit_only}
 
 
 def lag1(r: np.ndarray) -> float:
@@ -378,8 +424,9 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         "fit_samples": int(fit_full.sum()), "heldout_samples": int(held.sum()),
         "initial_state": "SOC from OCV at the opening rest voltage (no soc_true)",
     }
+    assessment = assess(verdict, outcomes, rmse_mv(r_base[fit_full]), rmse_before, 1000 * sigma)
     return Diagnosis(
         verdict=verdict, effects=outcomes, located=located, located_full=loc, base_profile=base_profile, base=base,
         thresholds=thresholds, protocol=protocol, recording=rec, v_base=v_base, soc_base=soc_base, held_mask=held,
-        seconds=time.perf_counter() - t_start, signatures=sig,
+        seconds=time.perf_counter() - t_start, signatures=sig, assessment=assessment,
     )

@@ -127,6 +127,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
             f" — held-out voltage RMSE {dg.effects[0].rmse_before_mv:.2f} → {dg.effects[0].rmse_after_mv:.2f} mV"
             f" ({100 * dg.effects[0].score:.1f} % lower)"),
         "",
+        f"What it means ({dg.assessment.get('state', '')}): {dg.assessment.get('text', '')}.",
+        "",
         "## Protocol",
         (f"- Split: chronological; the first {100 * dg.protocol['fit_fraction']:.0f} % of the duration "
          f"(up to t = {dg.protocol['t_split_s']:.0f} s) is fitted" if dg.protocol["split"] == "chronological" else
@@ -189,13 +191,15 @@ def write_report(dg, out_dir: str | Path) -> Path:
     lines += [
         "## Candidate physics, best first",
         "",
-        "| effect | significant | held-out gain | RMSE before → after, mV | ΔBIC | detection | lag-1 autocorr before → after |",
-        "|---|---|---|---|---|---|---|",
+        "| effect | significant | held-out gain | RMSE before → after, mV | fit part after, mV | ΔBIC | detection "
+        "| lag-1 autocorr before → after |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for e in dg.effects:
         lines.append(
             f"| {e.name} | {'**yes**' if e.significant else 'no'} | {100 * e.score:.1f} % | "
-            f"{e.rmse_before_mv:.2f} → {e.rmse_after_mv:.2f} | {e.delta_bic:.1f} | {e.detection:.3f} | "
+            f"{e.rmse_before_mv:.2f} → {e.rmse_after_mv:.2f} | {dg.base['rmse_fit_mv']:.2f} → "
+            f"{e.rmse_fit_after_mv:.2f} | {e.delta_bic:.1f} | {e.detection:.3f} | "
             f"{e.whiteness_before:.3f} → {e.whiteness_after:.3f} |")
     lines += ["", "### Fitted parameters of each added term (± 1 s.e., inflated for residual autocorrelation)", ""]
     for e in dg.effects:
