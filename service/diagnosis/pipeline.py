@@ -205,9 +205,9 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
         leads = ", ".join(f"{d['name']} (fit part {100 * d['fit_gain']:.0f} % lower, held out "
                           f"{100 * d['heldout_gain']:+.0f} %)" for d in fit_only) or "none"
         text = (f"no candidate generalises, yet the base model leaves {rmse_held_base_mv:.2f} mV on the held-out "
-                f"part ({ratio:.0f} x the voltage noise): the missing physics is outside the candidate library or "
-                f"does not extrapolate from the fit part to the held-out one; candidates that fit the fit part "
-                f"without generalising: {leads}")
+                f"part ({ratio:.0f} x the voltage noise): the model's form, or physics outside the candidate "
+                f"library, or physics that does not extrapolate from the fit part to the held-out one; "
+                f"candidates that fit the fit part without generalising: {leads}")
     return {"state": state, "text": text, "heldout_rmse_over_noise": round(ratio, 2),
             "explained_noise_factor": EXPLAINED_NOISE_FACTOR, "fit_only_gain": FIT_ONLY_GAIN,
             "fit_without_generalising": fit_only}
