@@ -367,3 +367,15 @@ def test_summary_puts_another_profiles_scores_beside(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| recording | fomiukf | ecm2rc-ekf | ecm2rc-ekf (x_linear) |" in out
     assert "| r1 | 0.50 | 0.50 | 0.25 |" in out
+
+
+def test_a_closed_stdout_pipe_ends_quietly(tmp_path: Path) -> None:
+    """`socd ... | head`: the reader closes the pipe before socd has printed; socd stops with
+    the shell's SIGPIPE status and no traceback (a real subprocess and a real pipe)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "bench", "--cells", "2", "--steps", "10", "--reference-steps", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=Path(__file__).resolve().parents[1])
+    proc.stdout.close()  # nobody will read what it prints
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 141, err.decode()
+    assert b"Traceback" not in err and b"BrokenPipeError" not in err, err.decode()
