@@ -212,3 +212,31 @@ def test_ukf_covariance_is_repaired_after_an_indefinite_one(nmc_profile: CellPro
         ukf.push_history()
     assert ukf.repairs >= 1
     assert np.linalg.eigvalsh(ukf.P[0]).min() > 0
+
+
+@pytest.mark.parametrize("window", [1, 4])
+def test_single_innovation_posterior_kept_for_the_identifier(nmc_profile, window: int) -> None:
+    """With a multi-innovation window the state takes Σγ_i K_i e_i, but the fast identifier's
+    Table-1 sensitivity assumes x+ = x- + K e of this sample: that posterior is kept apart."""
+    N = 3
+    s = EstimatorSettings(innovation_length=window)
+    params = nmc_profile.parameters_at(25.0, n_cells=N)
+    truth = MtsFom(nmc_profile, params, np.array([0.9, 0.6, 0.3]))
+    ukf = FoMiUkf(nmc_profile.ocv_table(), N, 2, s)
+    ukf.reset(np.ones(N, bool), np.array([0.8, 0.7, 0.4]), s.soc_init_std, 0.0)
+    weights = gl_weights(params.alpha, s.memory_length)
+    temp = np.full(N, 25.0)
+    rng = np.random.default_rng(3)
+    differs = False
+    for k in range(60):
+        current = np.full(N, 2.0 if (k // 7) % 2 else -1.0)
+        v = truth.step(1.0, current, temp) + rng.normal(0, 0.002, N)
+        ukf.predict(1.0, current, params, weights)
+        prior = ukf.x.copy()
+        ukf.update(v, current, temp, params, np.ones(N, bool))
+        expected = prior + ukf.gain * ukf.innovation[:, None]
+        expected[:, ukf.i_soc] = np.clip(expected[:, ukf.i_soc], 0.0, 1.0)
+        np.testing.assert_allclose(ukf.x_single, expected, rtol=0, atol=1e-12)
+        differs |= not np.allclose(ukf.x_single, ukf.x)
+        ukf.push_history()
+    assert differs == (window > 1)

@@ -12,7 +12,9 @@ fractional coefficients ``|w_{i-1}(n)|`` of the diffusion order.  With
 ``innovation_weighting='normalized'`` the ``γ`` are scaled to sum to one, so the
 information in old innovations is not added a second time; ``'paper'`` keeps Eq. 20
 as printed.  The covariance update subtracts (Table 3 step 8 prints ``+``):
-``P+ = P- - K Pyy Kᵀ``, using the current gain only.
+``P+ = P- - K Pyy Kᵀ``, using the current gain only.  The single-innovation posterior
+``x- + K e`` is kept as ``x_single`` for the fast identifier (see
+``EstimatorSettings.identifier_sees``).
 """
 
 from __future__ import annotations
@@ -64,6 +66,9 @@ class FoMiUkf:
         self.innovation_var = np.ones(n_cells)
         self.v_pred = np.zeros(n_cells)
         self.kinetic_v: np.ndarray | None = None
+        #: this sample's single-innovation posterior ``x- + K e`` (the multi-innovation one is ``x``):
+        #: what the fast identifier's Table-1 sensitivity assumes the filter did with this sample
+        self.x_single = self.x
 
     # -- initialisation -----------------------------------------------------------------
     def reset(self, cells: np.ndarray, soc: np.ndarray, soc_std: float, u_h_std: float) -> None:
@@ -174,7 +179,10 @@ class FoMiUkf:
         p = self.innovations.shape[1]
         if p == 1:
             self.x = self.x + k * e[:, None]
+            self.x_single = self.x
         else:
+            self.x_single = self.x + k * e[:, None]
+            self.x_single[:, self.i_soc] = np.clip(self.x_single[:, self.i_soc], *SOC_LIMITS)
             gam = self._innovation_weights(params.alpha[:, min(1, b - 1)], p)
             self.x = self.x + np.einsum("np,npi,np->ni", gam, self.gains, self.innovations)
         self.P = self.P - p_yy[:, None, None] * k[:, :, None] * k[:, None, :]

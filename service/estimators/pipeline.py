@@ -162,14 +162,15 @@ class PackEstimator:
         ukf.predict(dt, i, params, weights)
         ukf.update(v, i, temp, params, act, self.cell_ocv)
         if self.fast is not None:
-            soc_post = ukf.x[:, ukf.i_soc]
+            x_id = ukf.x_single if self.settings.identifier_sees == "single" else ukf.x
+            soc_post = x_id[:, ukf.i_soc]
             identify = act & (ukf.soc_std < self.settings.identify_below_soc_std)
             self.fast.update(
                 nominal=self.nominal,
                 params=params,
                 weights=weights,
                 hist=ukf.hist,
-                x_post=ukf.x,
+                x_post=x_id,
                 soc_slope=self.cell_ocv.slope(soc_post),
                 ocv_post=self.cell_ocv.ocv(soc_post),
                 gain=ukf.gain,

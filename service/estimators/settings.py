@@ -24,6 +24,14 @@ class EstimatorSettings(BaseModel):
         description="'paper': Σ F_i K_i e_i as in Zeng Eq. 20; 'normalized': weights sum to 1 so old "
         "innovations are not counted twice",
     )
+    identifier_sees: Literal["single", "multi"] = Field(
+        "single",
+        description="which SOC-filter posterior the fast identifier's output uses with a multi-innovation "
+        "window: 'single' = prior + K·e of this sample, the posterior its Table-1 sensitivity "
+        "dx+/dθ = dx-/dθ - K·C describes; 'multi' = the multi-innovation posterior, which has taken only "
+        "part of this innovation (the rest arrives over the next samples), so the identifier reads the "
+        "untaken part as a parameter error (README). No effect with a single innovation",
+    )
     fast_identifier: bool = Field(True, description="run the fast-rate EKF over [R_ohm, R_ct, C_dl, m, U_df]")
     fast_identifier_input: Literal["level", "difference"] = Field(
         "difference", description="'level': the voltage itself (Zeng Eq. 13); 'difference': sample-to-sample "
