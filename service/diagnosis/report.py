@@ -150,6 +150,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"n_eff = {dg.base['n_eff']:.0f} (n / τ_int, τ_int = {dg.base['tau_int_samples']:.1f} samples). "
         f"An effect whose signature measures it directly (current_bias: the rest current) needs only a held-out "
         f"gain ≥ {100 * th.get('min_rel_gain_direct', 0.0):.0f} %.",
+        f"- Ranking: significant effects whose held-out RMSEs lie within {th['min_abs_gain_mv']:.2f} mV of the best "
+        "are tied (the voltage cannot tell them apart); a directly measured one goes first, then the higher ΔBIC.",
         "",
         "## Signatures (evidence outside the voltage fit)",
         "",
