@@ -353,6 +353,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     r_base = rec.voltage_v - v_base
     sigma = noise_sigma(rec, cap)
     rmse_before = rmse_mv(r_base[held])
+    rmse_fit_base = rmse_mv(r_base[fit_full])
     # effective samples on the fit grid from the base residual's autocorrelation
     r_grid_base = problem.residuals(x_base, None)[0]
     tau_int = integrated_autocorr_time(r_grid_base)
@@ -443,7 +444,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         "concentration_flag": 1.5,
     }
     base = {
-        "point": point.model_dump(), "rmse_fit_mv": round(rmse_mv(r_base[fit_full]), 3),
+        "point": point.model_dump(), "rmse_fit_mv": round(rmse_fit_base, 3),
         "rmse_heldout_mv": round(rmse_before, 3), "soc0": round(soc0, 4), "v_rest0": v_rest0,
         "tau_int_samples": round(tau_int, 2), "n_eff": round(n_eff, 1), "fit_samples": len(grid),
         "base_fit_evaluations": base_fit.n_evaluations,
@@ -453,7 +454,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         "fit_samples": int(fit_full.sum()), "heldout_samples": int(held.sum()),
         "initial_state": "SOC from OCV at the opening rest voltage (no soc_true)",
     }
-    assessment = assess(verdict, outcomes, rmse_mv(r_base[fit_full]), rmse_before, 1000 * sigma)
+    assessment = assess(verdict, outcomes, rmse_fit_base, rmse_before, 1000 * sigma)
     return Diagnosis(
         verdict=verdict, effects=outcomes, located=located, located_full=loc, base_profile=base_profile, base=base,
         thresholds=thresholds, protocol=protocol, recording=rec, v_base=v_base, soc_base=soc_base, held_mask=held,

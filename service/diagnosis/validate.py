@@ -155,11 +155,11 @@ def run_grid(effects: list[str], levels: list[str], seeds: int, workdir: Path, p
 
     say = progress or (lambda _m: None)
     rows = []
-    jobs = [(e, lv, s) for e in effects for lv in (levels if e != "none" else levels[:1]) for s in range(seeds)]
-    # clean recordings get as many runs as one effect has (levels x seeds), with their own seeds
-    jobs = [j for j in jobs if j[0] != "none"] + [("none", "-", s) for s in range(len(levels) * seeds)]
+    jobs = [(e, lv, s) for e in effects if e != "none" for lv in levels for s in range(seeds)]
+    if "none" in effects:  # clean recordings: as many drives as one effect gets (levels x seeds)
+        jobs += [("none", "-", s) for s in range(len(levels) * seeds)]
     for k, (effect, level, seed) in enumerate(jobs, 1):
-        path = write_case(workdir / f"{effect}_{level}_{seed}.csv", effect, level if effect != "none" else "clear", seed)
+        path = write_case(workdir / f"{effect}_{level}_{seed}.csv", effect, "clear" if effect == "none" else level, seed)
         t0 = time.perf_counter()
         dg = run_diagnosis(load_recording(path), user_profile(), DiagnoseOptions())
         row = Row(effect, level, seed, dg.verdict, dg.assessment["state"], dg.effects[0].name,
@@ -174,15 +174,15 @@ def table(rows: list[Row], levels: list[str]) -> str:
     """Markdown: per effect and level, right/total and the wrong verdicts."""
     effects = list(dict.fromkeys(r.effect for r in rows))
     out = ["| effect | " + " | ".join(levels) + " |", "|---|" + "---|" * len(levels)]
+    def cell(rs: list[Row]) -> str:
+        wrong = sorted({r.verdict for r in rs if not r.right})
+        return f"{sum(r.right for r in rs)}/{len(rs)}" + (f" (else: {', '.join(wrong)})" if wrong else "")
+
     for e in effects:
-        cells = []
-        for lv in levels:
-            rs = [r for r in rows if r.effect == e and (r.level == lv or e == "none")]
-            if e == "none" and lv != levels[0]:
-                cells.append("")
-                continue
-            wrong = sorted({r.verdict for r in rs if not r.right})
-            cells.append(f"{sum(r.right for r in rs)}/{len(rs)}" + (f" (else: {', '.join(wrong)})" if wrong else ""))
+        if e == "none":  # clean drives have no level: one cell over all of them
+            cells = [cell([r for r in rows if r.effect == e])] + [""] * (len(levels) - 1)
+        else:
+            cells = [cell([r for r in rows if r.effect == e and r.level == lv]) for lv in levels]
         out.append(f"| {e} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 
