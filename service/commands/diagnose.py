@@ -3,10 +3,14 @@
     socd diagnose RECORDING [--cell CELL_FILE | --ocv OCV_CSV --capacity-ah X]
                   [--json OUT] [--report DIR] [--save-profile OUT]
 
-Prints a summary; ``--json`` writes ``{"verdict", "effects": [...], "located": [...], ...}``
+Prints a summary; ``--json`` writes ``{"verdict", "assessment", "effects": [...], "located": [...], ...}``
 (``-`` for stdout), ``--report`` a markdown report with PNG plots, ``--save-profile`` the
 cell profile extended with the verdict's physics (the base profile when the verdict is
 ``none``) for ``socd evaluate`` and the service.
+
+``assessment.state`` reads the verdict: ``named``; ``explained`` (``none``, and the base model
+is within 3 x the voltage noise on the held-out part); ``unexplained`` (``none``, but a larger
+residual is left that no candidate removes; the candidates that only fit the fit part are listed).
 """
 
 from __future__ import annotations
@@ -23,7 +27,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "diagnose",
         help="locate model/recording mismatch, name the missing physics, refit and score it held-out",
-        description=__doc__.split("\n\n")[0],
+        description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[-1].strip(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recording", help="recording CSV (time_s,current_a,voltage_v,temperature_c)")
     src = p.add_mutually_exclusive_group(required=True)
