@@ -30,7 +30,6 @@ def _results(path: Path, label: bool) -> list[dict]:
 
 def table(spec: str) -> str:
     parts = [Path(p) for p in spec.split("+")]
-    path = parts[0]
     results = [r for i, p in enumerate(parts) for r in _results(p, label=i > 0)]
     named = [r["estimator"] for r in results]
     ests = [e for e in ORDER if e in named] + [e for e in dict.fromkeys(named) if e not in ORDER]
