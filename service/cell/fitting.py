@@ -235,6 +235,7 @@ def simulate_batch(
     i_true = np.empty((size, n))
     last_t = t0
     hyst = bool(np.any(p.u_h_max != 0))
+    scaled = model.soc_scale is not None
     with np.errstate(all="ignore"):
         for k in range(size):
             if params_at is not None and abs(temp_c[k] - last_t) > temp_update_k:
@@ -242,16 +243,17 @@ def simulate_batch(
                 p = model.params
                 last_t = float(temp_c[k])
             i = current_a[k] - p.current_bias_a
+            r_ohm, r, c = model.effective_resistances(np.full(n, temp_c[k])) if scaled else (p.r_ohm, p.r, p.c)
             model.soc = soc_step(model.soc, i, dt[k], p.capacity_ah)
             if surf_on:
                 model.surface_step(i, dt[k])
                 x_surf[k] = model.x_surf
             if hyst:
                 model.u_h = hysteresis_step(model.u_h, i, dt[k], p.u_h_max, p.hyst_rate, p.capacity_ah)
-            u = cpe_step(model.history, i[:, None], dt[k], p.r, p.c, p.alpha, model._weights)
+            u = cpe_step(model.history, i[:, None], dt[k], r, c, p.alpha, model._weights)
             push_history(model.history, u)
             branch_v[k] = u.sum(axis=-1)
-            ohm_v[k] = p.r_ohm * i
+            ohm_v[k] = r_ohm * i
             u_h[k] = model.u_h
             soc[k] = model.soc
             i_true[k] = i

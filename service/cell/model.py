@@ -9,7 +9,8 @@ and hysteresis ``U_h`` (Zeng Eq. 5).  Terminal voltage (Zeng Eq. 6, current posi
 
 ``η_kin`` is zero unless the Butler–Volmer extension is set; ``x`` (bulk − surface SOC,
 :class:`service.cell.profile.SurfaceDiffusionSpec`) is zero unless the solid-diffusion
-surface extension is set.  SOC follows Zeng Eq. 4
+surface extension is set; the resistances follow SOC when the profile carries
+resistance scales (:mod:`service.cell.soc_dependence`).  SOC follows Zeng Eq. 4
 with the sample period and 3600 s/h restored: ``SOC_k = SOC_{k-1} - I_k h / (3600 Q)``
 (backward zero-order hold: the current of sample k flowed over (t_{k-1}, t_k]).
 """
@@ -22,6 +23,7 @@ from service.cell.fractional import cpe_step, gl_weights, push_history
 from service.cell.hysteresis import hysteresis_step
 from service.cell.ocv import OcvTable
 from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN, CellParameters, CellProfile
+from service.cell.soc_dependence import scaled_resistances
 
 DEFAULT_MEMORY_LENGTH = 16
 
@@ -84,6 +86,16 @@ class MtsFom:
         self.surface_tau_s: np.ndarray | None = None if surf is None else np.full(n, surf.tau_s)
         self.surface_gain: np.ndarray | None = None if surf is None else np.full(n, surf.gain)
         self.x_surf = np.zeros(n)
+        # resistance scales over SOC (Extensions.soc_resistance): None = flat in SOC
+        self.soc_scale = profile.soc_scale_table()
+
+    def effective_resistances(self, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``R_ohm, R, C`` at the present SOC (:mod:`service.cell.soc_dependence`)."""
+        p = self.params
+        if self.soc_scale is None:
+            return p.r_ohm, p.r, p.c
+        g_ohm, g_pol = self.soc_scale(self.soc, temp_c)
+        return scaled_resistances(p.r_ohm, p.r, p.c, g_ohm, g_pol)
 
     def surface_step(self, i: np.ndarray, dt_s) -> None:
         """Advance bulk − surface SOC ``x`` (see :class:`SurfaceDiffusionSpec`); no-op when off."""
@@ -106,13 +118,14 @@ class MtsFom:
         """Advance every cell by ``dt_s`` under measured ``current_a``; return terminal voltage."""
         p = self.params
         i = current_a - p.current_bias_a
+        r_ohm, r, c = self.effective_resistances(temp_c)
         self.soc = soc_step(self.soc, i, dt_s, p.capacity_ah)
         self.surface_step(i, dt_s)
         self.u_h = hysteresis_step(self.u_h, i, dt_s, p.u_h_max, p.hyst_rate, p.capacity_ah)
-        u = cpe_step(self.history, i[:, None], dt_s, p.r, p.c, p.alpha, self._weights)
+        u = cpe_step(self.history, i[:, None], dt_s, r, c, p.alpha, self._weights)
         push_history(self.history, u)
         ocv = self.open_circuit(temp_c) if self.surface_tau_s is None else self.open_circuit(temp_c, self.soc - self.x_surf)
-        v = terminal_voltage(ocv, self.u_h, p.r_ohm, i, u.sum(axis=-1))
+        v = terminal_voltage(ocv, self.u_h, r_ohm, i, u.sum(axis=-1))
         return v - kinetic_overpotential(i, p.kinetics_i0_a, temp_c)
 
 

@@ -4,7 +4,8 @@ A profile holds the capacity, OCV(SOC, T), the MTS-FOM parameters (Zeng Fig. 1) 
 temperature grid, the hysteresis of Zeng Eq. 1, and optional model *extensions* (the
 physics ``socd diagnose`` can add: Arrhenius temperature laws, an extra diffusion
 branch, capacity scale, current-sensor bias, Butler–Volmer kinetics, an OCV
-correction, a solid-diffusion surface lag).  Extensions are parts of the same model,
+correction, a solid-diffusion surface lag; and the resistance scales over SOC that
+``socd fit --soc-resistance`` measures from HPPC pulses).  Extensions are parts of the same model,
 not a fork: each one is applied by :meth:`CellProfile.parameters_at` or by
 :mod:`service.cell.model`.
 
@@ -22,6 +23,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from service.cell.ocv import OcvTable
+from service.cell.soc_dependence import SocScaleTable
 
 SCHEMA_VERSION = 1
 GAS_CONSTANT = 8.314462618  # J/(mol K)
@@ -118,8 +120,37 @@ class SurfaceDiffusionSpec(_Strict):
     gain: float = Field(ge=0, description="steady-state surface SOC deficit per 1C, fraction")
 
 
+class SocResistanceSpec(_Strict):
+    """Resistance scales over SOC and temperature (:mod:`service.cell.soc_dependence`):
+    ``r_ohm_scale`` multiplies ``R_ohm``; ``r_pol_scale`` multiplies ``R_ct`` and ``R_df``
+    (and divides their ``C``, so the branch time constants stay).  Rows per temperature."""
+
+    soc: list[float]
+    temps_c: list[float]
+    r_ohm_scale: list[list[float]]
+    r_pol_scale: list[list[float]]
+
+    @model_validator(mode="after")
+    def _shape(self) -> "SocResistanceSpec":
+        if len(self.soc) < 2 or any(b <= a for a, b in zip(self.soc, self.soc[1:])):
+            raise ValueError("soc must be strictly increasing with at least 2 points")
+        if len(set(self.temps_c)) != len(self.temps_c):
+            raise ValueError(f"duplicate temperatures: {self.temps_c}")
+        for name in ("r_ohm_scale", "r_pol_scale"):
+            rows = getattr(self, name)
+            if len(rows) != len(self.temps_c):
+                raise ValueError(f"{name} has {len(rows)} rows but temps_c has {len(self.temps_c)}")
+            for k, row in enumerate(rows):
+                if len(row) != len(self.soc):
+                    raise ValueError(f"{name} row {k} has {len(row)} values, soc has {len(self.soc)}")
+                if not all(0.0 < v < 100.0 and np.isfinite(v) for v in row):
+                    raise ValueError(f"{name} row {k} holds a scale outside (0, 100)")
+        return self
+
+
 class Extensions(_Strict):
-    """Model parts beyond the base MTS-FOM (added by ``socd diagnose``)."""
+    """Model parts beyond the base MTS-FOM (added by ``socd diagnose``, or ``soc_resistance``
+    by ``socd fit --soc-resistance``)."""
 
     current_bias_a: float = 0.0
     capacity_scale: float = Field(1.0, gt=0)
@@ -128,6 +159,7 @@ class Extensions(_Strict):
     kinetics_i0_a: float | None = Field(None, gt=0, description="Butler-Volmer exchange current")
     ocv_correction: OcvCorrectionSpec | None = None
     diffusion_surface: SurfaceDiffusionSpec | None = None
+    soc_resistance: SocResistanceSpec | None = None
 
 
 class CellProfile(_Strict):
@@ -162,6 +194,13 @@ class CellProfile(_Strict):
             delta = np.interp(table.soc_grid, corr.soc, corr.delta_v)
             table = OcvTable.from_points(table.soc_grid, table.ocv_v + delta[None, :], table.temps_c)
         return table
+
+    def soc_scale_table(self) -> SocScaleTable | None:
+        """The resistance scales over SOC and T, or ``None`` (flat in SOC)."""
+        spec = self.extensions.soc_resistance
+        if spec is None:
+            return None
+        return SocScaleTable.from_points(spec.soc, spec.temps_c, spec.r_ohm_scale, spec.r_pol_scale)
 
     def parameters_at(self, temp_c: np.ndarray | float, n_cells: int | None = None) -> "CellParameters":
         """Parameters for each cell at its temperature (log-linear in T between grid points)."""

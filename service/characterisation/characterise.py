@@ -10,6 +10,9 @@
    (scipy differential evolution, then least squares).  Long tests are cut into
    segments that start at the end of a rest (relaxed branches, SOC known by coulomb
    counting) so pulses are fitted at full time resolution.
+4. Optional (``--soc-resistance``): the resistances' dependence on SOC at each temperature,
+   measured directly from the HPPC discharge pulses (:mod:`service.cell.soc_dependence`)
+   before step 3, so the parameters are fitted with it in the model.
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ import numpy as np
 
 from service.cell.fitting import FitSegment, fit_parameters
 from service.cell.model import simulate
-from service.cell.ocv import GRID_POINTS, make_monotone
-from service.cell.profile import CellProfile, HysteresisSpec, OcvSpec, ParameterPoint
+from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
+from service.cell.profile import CellProfile, HysteresisSpec, OcvSpec, ParameterPoint, SocResistanceSpec
+from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
     initial_ocv_from_drive,
@@ -42,6 +46,8 @@ SEGMENT_REST_S = 300.0
 #: segments starting below this SOC are not fitted: near empty the cell is strongly
 #: non-linear and a few samples there would dominate the squared error
 MIN_FIT_SOC = 0.1
+#: SOC points of the resistance-scale table (--soc-resistance)
+SOC_RESISTANCE_POINTS = 21
 
 
 @dataclass
@@ -91,6 +97,32 @@ def select_segments(segs: list[FitSegment], budget: int) -> list[FitSegment]:
     return keep or segs[:1]
 
 
+def measure_soc_resistance(groups: dict[float, list[tuple[Recording, np.ndarray]]], capacity_ah: float,
+                           ocv: OcvTable, rep: FitReport) -> SocResistanceSpec:
+    """Resistance scales over SOC per temperature group, measured from the discharge pulses
+    from rest of HPPC-like recordings (:func:`service.cell.soc_dependence.pulse_resistances`),
+    on a common SOC grid (end values held outside each temperature's measured range)."""
+    grid = np.round(np.linspace(0.0, 1.0, SOC_RESISTANCE_POINTS), 6)
+    temps, rows_ohm, rows_pol = [], [], []
+    for t in sorted(groups):
+        pulses = [pulse_resistances(part.time_s, part.current_a, part.voltage_v, soc, capacity_ah,
+                                    REST_CURRENT_C * capacity_ah, ocv_v=ocv.ocv(soc, part.temperature_c))
+                  for part, soc in groups[t]]
+        rows = scale_rows(np.concatenate(pulses))
+        if rows is None:
+            names = ", ".join(part.name for part, _ in groups[t])
+            raise ValueError(f"--soc-resistance: too few discharge pulses from rest at {t:g} °C in {names} "
+                             "(needs an HPPC-like test: pulses at five or more SOC levels)")
+        soc, g_ohm, g_pol = rows
+        temps.append(t)
+        rows_ohm.append(np.interp(grid, soc, g_ohm).tolist())
+        rows_pol.append(np.interp(grid, soc, g_pol).tolist())
+        rep.say(f"resistance over SOC at {t:g} °C from {sum(len(p) for p in pulses)} pulses at {soc.size} SOC levels: "
+                + ", ".join(f"{s:.2f}: x{a:.2f}/x{b:.2f}" for s, a, b in zip(soc, g_ohm, g_pol))
+                + " (R_ohm / polarisation scale)")
+    return SocResistanceSpec(soc=grid.tolist(), temps_c=temps, r_ohm_scale=rows_ohm, r_pol_scale=rows_pol)
+
+
 def characterise(
     recordings: list[Recording],
     capacity_ah: float,
@@ -101,6 +133,7 @@ def characterise(
     max_seconds: float = 60.0,
     min_order: float | None = None,
     monotone: bool = False,
+    soc_resistance: bool = False,
     memory_length: int = 16,
     name: str = "cell",
     seed: int = 0,
@@ -180,6 +213,9 @@ def characterise(
                 ocv_rows[t] = ocv_row_from_rests(grid, base, points_by_t[t])
 
     prof = template(ocv_rows)
+    if soc_resistance:
+        spec = measure_soc_resistance(groups, capacity_ah, prof.ocv_table(), rep)
+        prof = prof.model_copy(update={"extensions": prof.extensions.model_copy(update={"soc_resistance": spec})})
     previous: ParameterPoint | None = None
     for t in sorted(temps, key=lambda t: abs(t - ref_t)):
         segs = segments_of(t)

@@ -38,6 +38,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--monotone", action="store_true",
                    help="bound each temperature's R_ohm, R_ct, R_df by the neighbouring fitted temperatures "
                    "(resistance rises in the cold); off by default: it measured worse on the Panasonic cell (README)")
+    p.add_argument("--soc-resistance", action="store_true",
+                   help="measure how R_ohm and the polarisation resistances change with SOC at each temperature "
+                   "from the recordings' discharge pulses from rest (HPPC tests: pulses at five or more SOC levels) "
+                   "and fit the parameters with that table in the model")
     p.add_argument("--max-seconds", type=float, default=60.0, help="optimiser time per temperature (default 60)")
     p.add_argument("--memory-length", type=int, default=16, help="G-L memory length used in the fit (default 16)")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
@@ -63,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
                                        fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
-                                       min_order=args.min_order, monotone=args.monotone,
+                                       min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed)
     except ValueError as exc:
         raise UserError(str(exc)) from exc

@@ -18,7 +18,9 @@ subtracted from the measured current.  A profile fitted with Butler–Volmer kin
 (``socd fit --kinetics``) keeps the linear part of the charge-transfer drop in ``R0`` and
 the fall of the apparent resistance at high current in ``η_kin`` (a known function of the
 current, :func:`service.cell.model.kinetic_overpotential`, so the Jacobian is unchanged):
-the baseline reads the same profile as the pipeline.  Hysteresis, extra branches and the
+the baseline reads the same profile as the pipeline, including the resistance scales over
+SOC (``socd fit --soc-resistance``; ``R0`` and ``R_b`` scaled at the prior SOC, ``τ_b``
+kept).  Hysteresis, extra branches and the
 entropic OCV term are not part of a 2-RC EKF and are ignored.
 
 Noise model (all keyword arguments of the constructors):
@@ -128,6 +130,7 @@ class Ecm2RcEkfBank:
         #: any Butler–Volmer term in the profile (at some temperature, or the extension)
         self._kinetic = bool(profile.extensions.kinetics_i0_a is not None
                              or any(pt.i0_a is not None for pt in profile.parameters))
+        self._soc_scale = profile.soc_scale_table()
         self.noise = AdaptiveNoise(n, max(t.adaptive_noise_samples, 1), t.adaptive_noise_shape)  # type: ignore[arg-type]
 
     @property
@@ -170,10 +173,15 @@ class Ecm2RcEkfBank:
         self._refresh_params(temp)
         par = self._params
         i = np.asarray(current_a, dtype=float) - par["bias"]
+        r0, r_b = par["r0"], par["r"]
+        if self._soc_scale is not None:
+            # the profile's resistance scales over SOC, read at the prior SOC (τ unchanged)
+            g_ohm, g_pol = self._soc_scale(self.x[:, 0], temp)
+            r0, r_b = r0 * g_ohm, r_b * g_pol[:, None]
 
         # -- predict (exact exponential discretisation with the actual dt) ---------------
         a = np.exp(-dt[:, None] / par["tau"])  # [N, 2]
-        b = par["r"] * (1.0 - a)  # [N, 2]
+        b = r_b * (1.0 - a)  # [N, 2]
         g_soc = -dt / (3600.0 * par["capacity"])
         x = self.x
         x[:, 0] += g_soc * i
@@ -189,7 +197,7 @@ class Ecm2RcEkfBank:
         P += dt[:, None, None] * np.eye(N_STATES)[None] * q_diag[None, :, None]
 
         # -- correct --------------------------------------------------------------------
-        v_pred = self.ocv.ocv(x[:, 0], temp) - par["r0"] * i - x[:, 1] - x[:, 2]
+        v_pred = self.ocv.ocv(x[:, 0], temp) - r0 * i - x[:, 1] - x[:, 2]
         if self._kinetic:
             v_pred = v_pred - kinetic_overpotential(i, par["i0"], temp)
         h = np.empty((n, N_STATES))
@@ -201,7 +209,7 @@ class Ecm2RcEkfBank:
         innovation = np.asarray(voltage_v, dtype=float) - v_pred
         if t.adaptive_noise_samples:
             # the pipeline's covariance matching (service.estimators.adaptive_noise)
-            overpotential = i * (par["r0"] + par["r"].sum(axis=1))
+            overpotential = i * (r0 + r_b.sum(axis=1))
             phi = overpotential * overpotential
             s_tot = self.noise.match(innovation, s, phi)
             r_meas = r_meas + (s_tot - s)  # the adapted extra, for the Joseph form below

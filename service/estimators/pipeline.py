@@ -20,6 +20,7 @@ import numpy as np
 from service.cell.fractional import gl_weights
 from service.cell.ocv import CellOcv
 from service.cell.profile import CellParameters, CellProfile
+from service.cell.soc_dependence import scaled_resistances
 from service.estimators.base import EstimateTrace
 from service.estimators.fomiukf import FoMiUkf
 from service.estimators.parameter_ekf import PARAMETERS, ParameterEkf, apply_corrections
@@ -57,6 +58,9 @@ class PackEstimator:
         self.cell_ocv = CellOcv(self.ocv, self._temp_used)
         self.nominal = profile.parameters_at(25.0, n_cells=self.n)
         self.params = self.nominal.copy()
+        self.soc_scale = profile.soc_scale_table()
+        self._nominal_at_soc: CellParameters | None = None
+        self.nominal_now = self.nominal
         nx = self.n_branches + 2
         self.fast: ParameterEkf | None = None
         self.slow: SlowIdentifier | None = None
@@ -80,9 +84,26 @@ class PackEstimator:
             self._temp_used = np.where(moved, temp_c, self._temp_used)
             self.cell_ocv = CellOcv(self.ocv, self._temp_used)
 
+    def _soc_nominal(self) -> CellParameters:
+        """The nominal parameters at each cell's present SOC estimate (resistance scales of
+        :mod:`service.cell.soc_dependence`; the nominal itself when the profile has none).
+        The identifiers correct this scaled nominal, so their corrections stay relative."""
+        if self.soc_scale is None:
+            return self.nominal
+        nom = self.nominal
+        out = self._nominal_at_soc
+        if out is None or out.r.shape != nom.r.shape:
+            out = self._nominal_at_soc = nom.copy()
+        for k in ("alpha", "u_h_max", "hyst_rate", "capacity_ah", "current_bias_a", "kinetics_i0_a"):
+            setattr(out, k, getattr(nom, k))
+        g_ohm, g_pol = self.soc_scale(self.ukf.soc, self._temp_used)
+        out.r_ohm, out.r, out.c = scaled_resistances(nom.r_ohm, nom.r, nom.c, g_ohm, g_pol)
+        return out
+
     def _current_params(self) -> CellParameters:
         p = self.params
-        nom = self.nominal
+        nom = self._soc_nominal()
+        self.nominal_now = nom
         p.r_ohm, p.r[:], p.c[:], p.alpha[:] = nom.r_ohm, nom.r, nom.c, nom.alpha
         for k in ("u_h_max", "hyst_rate", "capacity_ah", "current_bias_a", "kinetics_i0_a"):
             setattr(p, k, getattr(nom, k))
@@ -166,7 +187,7 @@ class PackEstimator:
             soc_post = x_id[:, ukf.i_soc]
             identify = act & (ukf.soc_std < self.settings.identify_below_soc_std)
             self.fast.update(
-                nominal=self.nominal,
+                nominal=self.nominal_now,
                 params=params,
                 weights=weights,
                 hist=ukf.hist,
@@ -198,7 +219,7 @@ class PackEstimator:
         """Run the slow identifier if SOC has moved enough; returns which cells updated."""
         if self.slow is None:
             return np.zeros(self.n, dtype=bool)
-        nom = self.nominal
+        nom = self.nominal_now
         converged = self.ukf.soc_std < self.settings.identify_below_soc_std
         return self.slow.update(nom.r[:, 1], nom.c[:, 1], nom.alpha[:, 1], cells=converged)
 
