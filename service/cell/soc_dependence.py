@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 GRID_POINTS = 101
+#: how many base branches g_pol scales (1: charge transfer only; 2: and diffusion)
+POLARISATION_BRANCHES = 2
 
 
 @dataclass(frozen=True)
@@ -39,7 +41,7 @@ class SocScaleTable:
 
     @classmethod
     def from_points(cls, soc: list[float], temps_c: list[float], r_ohm_scale: list[list[float]],
-                    r_pol_scale: list[list[float]]) -> "SocScaleTable":
+                    r_pol_scale: list[list[float]]) -> SocScaleTable:
         soc_a = np.asarray(soc, dtype=float)
         temps = np.asarray(temps_c, dtype=float)
         order = np.argsort(temps)
@@ -79,7 +81,7 @@ def scaled_resistances(r_ohm: np.ndarray, r: np.ndarray, c: np.ndarray, g_ohm: n
     transfer, diffusion) only; extra branches from extensions keep their values.
     ``r_ohm``: ``[N]``; ``r, c``: ``[N, B]``; ``g_*``: ``[N]``."""
     g = np.ones(r.shape)
-    g[:, :2] = g_pol[:, None]
+    g[:, :POLARISATION_BRANCHES] = g_pol[:, None]
     return r_ohm * g_ohm, r * g, c / g
 
 
