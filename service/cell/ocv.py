@@ -18,6 +18,31 @@ GRID_POINTS = 201
 EXTRAPOLATION_SPAN = 0.1
 
 
+def temperature_rows(temps_c: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows ``k0, k1`` of a table on sorted ``temps_c`` around each ``temp_c`` and the weight
+    ``f`` of ``k1`` (linear in T; outside the table the nearest row holds)."""
+    if temps_c.size == 1:
+        z = np.zeros(np.shape(temp_c), dtype=int)
+        return z, z, np.zeros(np.shape(temp_c))
+    t = np.clip(temp_c, temps_c[0], temps_c[-1])
+    k1 = np.clip(np.searchsorted(temps_c, t, side="right"), 1, temps_c.size - 1)
+    k0 = k1 - 1
+    f = (t - temps_c[k0]) / (temps_c[k1] - temps_c[k0])
+    return k0, k1, f
+
+
+def grid_lookup(table: np.ndarray, k0: np.ndarray, k1: np.ndarray, f: np.ndarray, soc: np.ndarray) -> np.ndarray:
+    """Bilinear lookup in ``table[k, s]`` on a uniform SOC grid over [0, 1] (SOC clipped to
+    it), between rows ``k0`` and ``k1`` with weight ``f`` (:func:`temperature_rows`)."""
+    n = table.shape[1] - 1
+    x = np.clip(soc, 0.0, 1.0) * n
+    i0 = np.clip(np.floor(x).astype(int), 0, n - 1)
+    u = x - i0
+    lo = table[k0, i0] + u * (table[k0, i0 + 1] - table[k0, i0])
+    hi = table[k1, i0] + u * (table[k1, i0 + 1] - table[k1, i0])
+    return lo + f * (hi - lo)
+
+
 @dataclass(frozen=True)
 class OcvTable:
     """``ocv_v[k, s]`` at ``temps_c[k]`` and uniform ``soc[s]`` in [0, 1]."""
@@ -56,14 +81,7 @@ class OcvTable:
 
     # -- lookups ------------------------------------------------------------------------
     def _rows_at(self, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if self.temps_c.size == 1:
-            z = np.zeros(np.shape(temp_c), dtype=int)
-            return z, z, np.zeros(np.shape(temp_c))
-        t = np.clip(temp_c, self.temps_c[0], self.temps_c[-1])
-        k1 = np.clip(np.searchsorted(self.temps_c, t, side="right"), 1, self.temps_c.size - 1)
-        k0 = k1 - 1
-        f = (t - self.temps_c[k0]) / (self.temps_c[k1] - self.temps_c[k0])
-        return k0, k1, f
+        return temperature_rows(self.temps_c, temp_c)
 
     def ocv(self, soc: np.ndarray, temp_c: np.ndarray | float = 25.0) -> np.ndarray:
         """OCV at ``soc`` and ``temp_c`` (broadcast together).  Outside [0, 1] it continues
@@ -71,14 +89,7 @@ class OcvTable:
         often near-vertical last segment."""
         soc, temp_c = np.broadcast_arrays(np.asarray(soc, float), np.asarray(temp_c, float))
         k0, k1, f = self._rows_at(temp_c)
-        n = GRID_POINTS - 1
-        inside = np.clip(soc, 0.0, 1.0)
-        x = inside * n
-        i0 = np.clip(np.floor(x).astype(int), 0, n - 1)
-        u = x - i0
-        lo = self.ocv_v[k0, i0] + u * (self.ocv_v[k0, i0 + 1] - self.ocv_v[k0, i0])
-        hi = self.ocv_v[k1, i0] + u * (self.ocv_v[k1, i0 + 1] - self.ocv_v[k1, i0])
-        v = lo + f * (hi - lo)
+        v = grid_lookup(self.ocv_v, k0, k1, f, soc)
         lo_ext, hi_ext = self._extrapolation_at(k0, k1, f)
         return v + lo_ext * np.minimum(soc, 0.0) + hi_ext * np.maximum(soc - 1.0, 0.0)
 

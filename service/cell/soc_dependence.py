@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.cell.ocv import grid_lookup, temperature_rows
+
 GRID_POINTS = 101
 #: how many base branches g_pol scales (1: charge transfer only; 2: and diffusion)
 POLARISATION_BRANCHES = 2
@@ -54,25 +56,9 @@ class SocScaleTable:
     def __call__(self, soc: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(g_ohm, g_pol)`` for each cell at its SOC and temperature (arrays broadcast)."""
         soc, temp_c = np.broadcast_arrays(np.asarray(soc, float), np.asarray(temp_c, float))
-        n = GRID_POINTS - 1
-        x = np.clip(np.nan_to_num(soc, nan=0.5), 0.0, 1.0) * n
-        i0 = np.clip(np.floor(x).astype(int), 0, n - 1)
-        u = x - i0
-        if self.temps_c.size == 1:
-            k0 = k1 = np.zeros(soc.shape, dtype=int)
-            f = np.zeros(soc.shape)
-        else:
-            t = np.clip(np.nan_to_num(temp_c, nan=float(self.temps_c[0])), self.temps_c[0], self.temps_c[-1])
-            k1 = np.clip(np.searchsorted(self.temps_c, t, side="right"), 1, self.temps_c.size - 1)
-            k0 = k1 - 1
-            f = (t - self.temps_c[k0]) / (self.temps_c[k1] - self.temps_c[k0])
-
-        def look(table: np.ndarray) -> np.ndarray:
-            lo = table[k0, i0] + u * (table[k0, i0 + 1] - table[k0, i0])
-            hi = table[k1, i0] + u * (table[k1, i0 + 1] - table[k1, i0])
-            return lo + f * (hi - lo)
-
-        return look(self.g_ohm), look(self.g_pol)
+        soc = np.nan_to_num(soc, nan=0.5)
+        k0, k1, f = temperature_rows(self.temps_c, np.nan_to_num(temp_c, nan=float(self.temps_c[0])))
+        return grid_lookup(self.g_ohm, k0, k1, f, soc), grid_lookup(self.g_pol, k0, k1, f, soc)
 
 
 def scaled_resistances(r_ohm: np.ndarray, r: np.ndarray, c: np.ndarray, g_ohm: np.ndarray,
