@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from test_fitting import nmc_like_ocv, pulse_current
 
 from service.cell.fitting import simulate_batch
 from service.cell.model import simulate
@@ -16,8 +17,6 @@ from service.cell.soc_dependence import SocScaleTable, pulse_resistances, scale_
 from service.estimators.ecm2rc_ekf import Ecm2RcEkf
 from service.estimators.pipeline import fomiukf
 from service.recording import load_recording
-
-from test_fitting import nmc_like_ocv, pulse_current
 
 POINT = ParameterPoint(r_ohm=0.03, r_ct=0.015, c_dl=300.0, m=0.9, r_df=0.02, c_df=9000.0, n=0.85)
 
@@ -46,13 +45,13 @@ def test_table_interpolates_in_soc_and_temperature_and_holds_outside():
 
 
 @pytest.mark.parametrize("bad, match", [
-    (dict(soc=[0.5, 0.2]), "strictly increasing"),
-    (dict(r_ohm_scale=[[1.0, 1.0, 1.0]]), "row 0 has 3 values"),
-    (dict(r_pol_scale=[[1.0, 0.0]]), "outside"),
-    (dict(temps_c=[25.0, 25.0], r_ohm_scale=[[1.0, 1.0]] * 2, r_pol_scale=[[1.0, 1.0]] * 2), "duplicate"),
+    ({"soc": [0.5, 0.2]}, "strictly increasing"),
+    ({"r_ohm_scale": [[1.0, 1.0, 1.0]]}, "row 0 has 3 values"),
+    ({"r_pol_scale": [[1.0, 0.0]]}, "outside"),
+    ({"temps_c": [25.0, 25.0], "r_ohm_scale": [[1.0, 1.0]] * 2, "r_pol_scale": [[1.0, 1.0]] * 2}, "duplicate"),
 ])
 def test_bad_table_is_rejected_with_the_field_named(bad, match):
-    good = dict(soc=[0.2, 0.5], temps_c=[25.0], r_ohm_scale=[[1.0, 1.0]], r_pol_scale=[[1.0, 1.0]])
+    good = {"soc": [0.2, 0.5], "temps_c": [25.0], "r_ohm_scale": [[1.0, 1.0]], "r_pol_scale": [[1.0, 1.0]]}
     with pytest.raises(ValueError, match=match):
         SocResistanceSpec(**{**good, **bad})
 
@@ -171,7 +170,7 @@ def test_fit_cli_names_the_recording_without_pulses(tmp_path):
     _write(path, t, i, v)
     out = subprocess.run([sys.executable, "-m", "service.cli", "fit", str(path), "--capacity-ah", "2.0",
                           "--soc-resistance", "--max-seconds", "2", "-o", str(tmp_path / "cell.toml")],
-                         capture_output=True, text=True)
+                         capture_output=True, text=True, check=False)
     assert out.returncode != 0
     assert "--soc-resistance" in out.stderr and "constant" in out.stderr
     assert not (tmp_path / "cell.toml").exists()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import tomllib
 from dataclasses import dataclass
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -132,7 +133,7 @@ class SocResistanceSpec(_Strict):
 
     @model_validator(mode="after")
     def _shape(self) -> "SocResistanceSpec":
-        if len(self.soc) < 2 or any(b <= a for a, b in zip(self.soc, self.soc[1:])):
+        if len(self.soc) < 2 or any(b <= a for a, b in pairwise(self.soc)):
             raise ValueError("soc must be strictly increasing with at least 2 points")
         if len(set(self.temps_c)) != len(self.temps_c):
             raise ValueError(f"duplicate temperatures: {self.temps_c}")

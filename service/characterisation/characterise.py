@@ -26,7 +26,13 @@ import numpy as np
 from service.cell.fitting import FitSegment, fit_parameters
 from service.cell.model import simulate
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
-from service.cell.profile import CellProfile, HysteresisSpec, OcvSpec, ParameterPoint, SocResistanceSpec
+from service.cell.profile import (
+    CellProfile,
+    HysteresisSpec,
+    OcvSpec,
+    ParameterPoint,
+    SocResistanceSpec,
+)
 from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
