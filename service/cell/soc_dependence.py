@@ -29,8 +29,6 @@ import numpy as np
 from service.cell.ocv import grid_lookup, temperature_rows
 
 GRID_POINTS = 101
-#: how many base branches g_pol scales (1: charge transfer only; 2: and diffusion)
-POLARISATION_BRANCHES = 2
 
 
 @dataclass(frozen=True)
@@ -67,7 +65,7 @@ def scaled_resistances(r_ohm: np.ndarray, r: np.ndarray, c: np.ndarray, g_ohm: n
     transfer, diffusion) only; extra branches from extensions keep their values.
     ``r_ohm``: ``[N]``; ``r, c``: ``[N, B]``; ``g_*``: ``[N]``."""
     g = np.ones(r.shape)
-    g[:, :POLARISATION_BRANCHES] = g_pol[:, None]
+    g[:, :2] = g_pol[:, None]
     return r_ohm * g_ohm, r * g, c / g
 
 
@@ -88,13 +86,9 @@ def pulse_resistances(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.n
     out = []
     n = time_s.size
     rest = np.abs(current_a) < rest_a
-    # start of the rest that ends at each index
-    rest_start = np.empty(n)
-    last = time_s[0]
-    for k in range(n):
-        if not rest[k]:
-            last = time_s[k] if k + 1 < n else last
-        rest_start[k] = last
+    # start of the rest that ends at each index: the time of the latest sample under load
+    last_load = np.maximum.accumulate(np.where(rest, 0, np.arange(n)))
+    rest_start = time_s[last_load]
     for k in range(1, n):
         i_k = current_a[k]
         if not (rest[k - 1] and i_k > rest_a * 10 and i_k <= max_c_rate * capacity_ah):

@@ -13,6 +13,7 @@ task and the offline runner after every sample.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
 import numpy as np
@@ -59,7 +60,6 @@ class PackEstimator:
         self.nominal = profile.parameters_at(25.0, n_cells=self.n)
         self.params = self.nominal.copy()
         self.soc_scale = profile.soc_scale_table()
-        self._nominal_at_soc: CellParameters | None = None
         self.nominal_now = self.nominal
         nx = self.n_branches + 2
         self.fast: ParameterEkf | None = None
@@ -91,14 +91,9 @@ class PackEstimator:
         if self.soc_scale is None:
             return self.nominal
         nom = self.nominal
-        out = self._nominal_at_soc
-        if out is None or out.r.shape != nom.r.shape:
-            out = self._nominal_at_soc = nom.copy()
-        for k in ("alpha", "u_h_max", "hyst_rate", "capacity_ah", "current_bias_a", "kinetics_i0_a"):
-            setattr(out, k, getattr(nom, k))
         g_ohm, g_pol = self.soc_scale(self.ukf.soc, self._temp_used)
-        out.r_ohm, out.r, out.c = scaled_resistances(nom.r_ohm, nom.r, nom.c, g_ohm, g_pol)
-        return out
+        r_ohm, r, c = scaled_resistances(nom.r_ohm, nom.r, nom.c, g_ohm, g_pol)
+        return dataclasses.replace(nom, r_ohm=r_ohm, r=r, c=c)
 
     def _current_params(self) -> CellParameters:
         p = self.params
