@@ -1,11 +1,11 @@
-"""Signatures outside the voltage fit: the current-sensor offset measured in rests."""
+"""Signatures outside the voltage fit: the current-sensor offset measured in rests, the two-point capacity."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from service.diagnosis.signatures import BIAS_MIN_Z, rest_current_offset, rest_runs, signatures
+from service.diagnosis.signatures import BIAS_MIN_Z, rest_current_offset, rest_runs, signatures, two_point_capacity
 
 CAP = 5.0
 
@@ -66,3 +66,94 @@ def test_no_rests_no_measurement():
     i = 1.0 + 0.5 * np.sin(t / 50.0)
     sig = rest_current_offset(t, i, CAP)
     assert not sig["nominated"] and sig["n_rest_samples"] == 0 and sig["se_a"] is None
+
+
+# -- two-point capacity ---------------------------------------------------------------------------
+def _two_point(scale: float, tail: str = "rest", sign: float = 1.0, polarisation_error: float = 0.0,
+               ocv: "OcvSpec | None" = None, seed: int = 4) -> dict:
+    """A cell with ``scale`` x the stated capacity, discharged (``sign`` -1: charged) from a
+    relaxed opening rest; the recording ends in a 10-min rest after 70 % of the true capacity,
+    or under 2C load after 88 % (a cut-off near empty, where the OCV is steep) (``tail``).
+    The model the check is given is the true one at the *stated* capacity, with its
+    polarisation off by ``polarisation_error`` (a fraction)."""
+    from service.cell.model import simulate
+    from service.cell.profile import Extensions
+    from service.diagnosis.validate import TRUE, base_profile
+
+    stated = base_profile() if ocv is None else base_profile().model_copy(update={"ocv": ocv})
+    cap = stated.capacity_ah
+    rng = np.random.default_rng(seed)
+    soc0 = 0.95 if sign > 0 else 0.10
+    i = [0.0] * 60
+    drawn = 0.0
+    while drawn < (0.70 if tail == "rest" else 0.86) * scale * cap * 3600:
+        level = sign * float(rng.choice([2.0, 1.0, 0.5])) * cap
+        n = int(rng.integers(20, 200))
+        i += [level] * n
+        drawn += abs(level) * n
+    i += [0.0] * 600 if tail == "rest" else [sign * 2.0 * cap] * 30
+    i_true = np.array(i)
+    t = np.arange(i_true.size, dtype=float)
+    temp = np.full(t.size, 25.0)
+    cell = stated.model_copy(update={"extensions": Extensions(capacity_scale=scale)})
+    v, _ = simulate(cell, t, i_true, temp, soc0)
+    v = v + rng.normal(0.0, 0.001, t.size)
+    model = stated.model_copy(update={"parameters": [TRUE.model_copy(update={
+        "r_ct": TRUE.r_ct * (1 + polarisation_error), "r_df": TRUE.r_df * (1 + polarisation_error)})]})
+    v_model, soc_model = simulate(model, t, i_true, temp, soc0)
+    return two_point_capacity(t, i_true, v, temp, v_model, soc_model, model.ocv_table(), cap, 59, TRUE.r_ohm)
+
+
+@pytest.mark.parametrize("tail", ["rest", "load"])
+def test_two_point_capacity_measures_a_faded_cell(tail):
+    sig = _two_point(0.85, tail)
+    assert sig["nominated"], sig
+    assert sig["capacity_scale"] == pytest.approx(0.85, abs=0.015), sig
+    lo, hi = sig["capacity_scale_range"]
+    assert lo <= 0.85 <= hi
+
+
+def test_two_point_capacity_range_covers_the_truth_with_a_wrong_model():
+    """Polarisation 60 % too high in the model: the point moves, the range still holds the truth."""
+    sig = _two_point(0.85, "load", polarisation_error=0.6)
+    lo, hi = sig["capacity_scale_range"]
+    assert lo <= 0.85 <= hi, sig
+
+
+@pytest.mark.parametrize("seed", [4, 5, 6])
+def test_two_point_capacity_does_not_nominate_a_healthy_cell(seed):
+    for tail in ("rest", "load"):
+        sig = _two_point(1.0, tail, seed=seed)
+        assert not sig["nominated"], sig
+        lo, hi = sig["capacity_scale_range"]
+        assert lo <= 1.0 <= hi, sig
+
+
+def test_two_point_capacity_on_a_charge():
+    sig = _two_point(0.85, "rest", sign=-1.0)
+    assert sig["drawn_soc"] < 0 and sig["nominated"], sig
+    assert sig["capacity_scale"] == pytest.approx(0.85, abs=0.015), sig
+
+
+def test_two_point_capacity_flat_ocv_widens_the_range():
+    """An LFP-like plateau: the rest SOCs are poorly pinned, so a 5 % fade is not claimed."""
+    from service.cell.profile import OcvSpec
+
+    soc = np.linspace(0, 1, 41)
+    flat = 3.2 + 0.1 * soc + 0.25 * np.tanh((soc - 0.04) / 0.03) + 0.1 * np.tanh((soc - 0.985) / 0.01)
+    sig = _two_point(0.95, "rest", ocv=OcvSpec(soc=soc.tolist(), ocv_v=[flat.tolist()]))
+    assert not sig["nominated"], sig
+    lo, hi = sig["capacity_scale_range"]
+    assert hi - lo > 0.1 and lo <= 0.95 <= hi, sig
+
+
+def test_two_point_capacity_needs_an_opening_rest():
+    """A recording that opens under load has no OCV-anchored start: nothing is measured."""
+    t = np.arange(2000, dtype=float)
+    i = np.full(t.size, 5.0)
+    v = np.linspace(4.1, 3.4, t.size)
+    from service.diagnosis.validate import base_profile
+
+    table = base_profile().ocv_table()
+    sig = two_point_capacity(t, i, v, np.full(t.size, 25.0), v, np.linspace(0.9, 0.3, t.size), table, 2.0, 0, 0.03)
+    assert not sig["nominated"] and "opening rest" in sig["skipped"]

@@ -49,6 +49,9 @@ class Context:
     # current offset measured in rests (signatures.rest_current_offset), when there are rests
     bias_rest_a: float | None = None
     bias_rest_se_a: float | None = None
+    # capacity / stated capacity measured by the two-point check (signatures.two_point_capacity),
+    # when it nominated capacity
+    capacity_measured: float | None = None
 
 
 def _corr(a: np.ndarray, b: np.ndarray) -> float:
@@ -236,8 +239,25 @@ DIFFUSION = Effect(
 
 
 # -- capacity error / fade ---------------------------------------------------------------------
+#: how far the voltage fit may move a measured capacity scale (fraction)
+CAPACITY_REFINE = 0.01
+
+
+def _cap_scale(th, ctx):
+    """The capacity scale for coordinate ``th`` in [-1, 1]: the two-point measurement ± 1 %
+    when it nominated capacity (the voltage fit only refines it), else 1 ± 0.5 (fitted)."""
+    if ctx.capacity_measured is not None:
+        return ctx.capacity_measured * (1.0 + CAPACITY_REFINE * th)
+    return 1.0 + 0.5 * th
+
+
 def _cap_apply(th, mods, ctx):
-    mods.params.capacity_ah = mods.params.capacity_ah * th[:, 0]
+    mods.params.capacity_ah = mods.params.capacity_ah * _cap_scale(th[:, 0], ctx)
+
+
+def _cap_phys(th, ctx):
+    scale = float(_cap_scale(float(th[0]), ctx))
+    return {"capacity_scale": scale, "capacity_ah": scale * ctx.capacity_ah}
 
 
 def _cap_feature(ctx):
@@ -250,10 +270,10 @@ CAPACITY = Effect(
     name="capacity",
     title="capacity error or fade (capacity scale)",
     params=("capacity_scale", "capacity_ah"),
-    bounds=((0.5, 1.5),),
-    starts=lambda ctx: [(1.0,), (0.9,), (1.1,)],
+    bounds=((-1.0, 1.0),),  # see _cap_scale
+    starts=lambda ctx: [(0.0,)] if ctx.capacity_measured is not None else [(0.0,), (-0.2,), (0.2,)],
     apply=_cap_apply,
-    physical=lambda th, ctx: {"capacity_scale": float(th[0]), "capacity_ah": float(th[0]) * ctx.capacity_ah},
+    physical=_cap_phys,
     to_profile=lambda ph, profile, ctx: _ext(profile, capacity_scale=ph["capacity_scale"] * profile.extensions.capacity_scale),
     detect=lambda ctx: abs(_corr(ctx.residual_v, _cap_feature(ctx)[1])),
     feature=_cap_feature,

@@ -52,7 +52,7 @@ from service.cell.profile import CellProfile
 from service.diagnosis.effects import EFFECTS, Context, Effect
 from service.diagnosis.locate import locate
 from service.diagnosis.refit import Problem, parameter_std, refit
-from service.diagnosis.signatures import integrated_autocorr_time, signatures
+from service.diagnosis.signatures import integrated_autocorr_time, signatures, two_point_capacity
 from service.diagnosis.simulation import initial_soc
 from service.recording import Recording
 
@@ -252,14 +252,19 @@ def rmse_mv(r: np.ndarray) -> float:
 
 
 # -- the pipeline ----------------------------------------------------------------------------------
+def opening_rest_end(rec: Recording, capacity_ah: float) -> int:
+    """Index of the last sample of the opening rest (0 when the recording starts under load)."""
+    rest = np.abs(rec.current_a) < 0.01 * capacity_ah
+    if not rest[0]:
+        return 0
+    return (int(np.argmin(rest)) if not rest.all() else rest.size) - 1
+
+
 def initial_rest_voltage(rec: Recording, capacity_ah: float, r_guess: float) -> tuple[float, float]:
     """Voltage that stands for the OCV at the start, and the temperature there."""
-    rest = np.abs(rec.current_a) < 0.01 * capacity_ah
-    if rest[0]:
-        end = int(np.argmin(rest)) if not rest.all() else rest.size
-        end = max(end, 1)
-        lo = max(0, end - 5)
-        return float(np.mean(rec.voltage_v[lo:end])), float(rec.temperature_c[0])
+    if abs(rec.current_a[0]) < 0.01 * capacity_ah:
+        end = opening_rest_end(rec, capacity_ah) + 1
+        return float(np.mean(rec.voltage_v[max(0, end - 5):end])), float(rec.temperature_c[0])
     return float(rec.voltage_v[0] + r_guess * rec.current_a[0]), float(rec.temperature_c[0])
 
 
@@ -309,6 +314,10 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     else:
         raise ValueError(f"split '{opt.split}' not recognised; choose chronological, interleaved or blocks")
     fit_full = ~held
+    # the capacity check (signatures.two_point_capacity) reads the last sample's voltage: it
+    # is scored by no candidate, so no held-out score contains a sample a signature measured
+    held = held.copy()
+    held[-1] = False
     if fit_full.sum() < 20 or held.sum() < 20:
         raise ValueError(f"recording too short to split ({len(rec)} samples)")
 
@@ -363,6 +372,9 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     tau_df = (point.r_df * point.c_df) ** (1 / point.n)
     sig = signatures(rec.time_s, rec.current_a, rec.temperature_c, cap)
     bias_sig = sig.get("current_bias", {})
+    sig["capacity"] = two_point_capacity(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, v_base,
+                                         soc_base, ocv, cap, opening_rest_end(rec, cap), point.r_ohm, bias=bias_sig)
+    cap_sig = sig["capacity"]
     bias_rest = (bias_sig.get("offset_a"), bias_sig.get("se_a")) if bias_sig.get("n_rest_samples") and bias_sig.get("se_a") else (None, None)
     problem.ctx = Context(
         time_s=grid.time_s, current_a=grid.current_a, temperature_c=grid.temperature_c,
@@ -370,12 +382,14 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         capacity_ah=cap, ref_temp_c=temp_fit, soc_range=(soc_lo, max(soc_hi, soc_lo + 0.05)),
         base_tau_df_s=float(tau_df), base_r_sum_ohm=point.r_ct + point.r_df,
         bias_rest_a=bias_rest[0], bias_rest_se_a=bias_rest[1],
+        capacity_measured=cap_sig["capacity_scale"] if cap_sig["nominated"] else None,
     )
     full_ctx = Context(
         time_s=rec.time_s, current_a=rec.current_a, temperature_c=rec.temperature_c, residual_v=r_base,
         soc=soc_base, ocv_slope=ocv.slope(soc_base, rec.temperature_c), capacity_ah=cap, ref_temp_c=temp_fit,
         soc_range=problem.ctx.soc_range, base_tau_df_s=float(tau_df), base_r_sum_ohm=point.r_ct + point.r_df,
         bias_rest_a=bias_rest[0], bias_rest_se_a=bias_rest[1],
+        capacity_measured=problem.ctx.capacity_measured,
     )
     outcomes: list[EffectOutcome] = []
     for name in opt.effects:

@@ -9,6 +9,19 @@ import numpy as np
 from service.diagnosis.effects import EFFECTS, Context
 
 
+
+def _capacity_lines(c: dict) -> list[str]:
+    """The two-point capacity check in words."""
+    lo, hi = c["capacity_scale_range"]
+    return [f"Two-point capacity: SOC {c['soc_start']:.3f} (range {c['soc_start_range'][0]:.3f}-"
+            f"{c['soc_start_range'][1]:.3f}) at {c['t_start_s']:.0f} s and {c['soc_end']:.3f} "
+            f"({c['soc_end_range'][0]:.3f}-{c['soc_end_range'][1]:.3f}) at {c['t_end_s']:.0f} s on the OCV table "
+            f"(overpotential there {c['overpotential_start_mv']:+.1f} / {c['overpotential_end_mv']:+.1f} mV, "
+            f"{c['ohmic_end_mv']:+.1f} mV of it ohmic), {100 * c['drawn_soc']:.1f} % of the stated capacity "
+            f"drawn between them: capacity × {c['capacity_scale']:.3f} (range {lo:.3f}-{hi:.3f}); rule: the whole "
+            f"range ≥ {100 * c['threshold']:.0f} % from 1 and the points ≥ {c['min_span_soc']:.1f} SOC apart. "
+            "The last sample's voltage is read here, so no held-out score includes it.", ""]
+
 def _fmt(v: float | None) -> str:
     if v is None:
         return "–"
@@ -148,7 +161,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"{th['min_abs_gain_noise']:g} × voltage noise ({th['noise_sigma_mv']:.2f} mV, from rests) = "
         f"{th['min_abs_gain_mv']:.2f} mV; ΔBIC ≥ {th['min_delta_bic']:g} on the fit part with "
         f"n_eff = {dg.base['n_eff']:.0f} (n / τ_int, τ_int = {dg.base['tau_int_samples']:.1f} samples). "
-        f"An effect whose signature measures it directly (current_bias: the rest current) needs only a held-out "
+        f"An effect whose signature measures it directly (current_bias: the rest current; capacity: the "
+        f"two-point check) needs only a held-out "
         f"gain ≥ {100 * th.get('min_rel_gain_direct', 0.0):.0f} %.",
         f"- Ranking: significant effects whose held-out RMSEs lie within {th['min_abs_gain_mv']:.2f} mV of the best "
         "are tied (the voltage cannot tell them apart); a directly measured one goes first, then the higher ΔBIC.",
@@ -168,6 +182,7 @@ def write_report(dg, out_dir: str | Path) -> Path:
            f"{100 * dg.signatures['current_bias']['min_drift_soc']:.1f} % SOC and |offset| ≥ "
            f"{100 * dg.signatures['current_bias']['min_frac_1c']:.2f} % of 1C.", ""]
           if dg.signatures.get("current_bias", {}).get("se_a") else []),
+        *(_capacity_lines(dg.signatures["capacity"]) if "capacity_scale" in dg.signatures.get("capacity", {}) else []),
         "## Base model (MTS-FOM, refitted on the fit part)",
         "",
         "| " + " | ".join(k for k in dg.base["point"]) + " |",

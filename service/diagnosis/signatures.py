@@ -27,6 +27,20 @@ departure the effect describes is present.  An effect whose signature fires is
   accuracy scale): large enough to matter to an estimator.  Spikes inside a rest (beyond
   :data:`REST_OUTLIER_SIGMA` pooled σ of the rest's median) are left out.  This is a direct measurement, not a pattern in a fit, so the
   pipeline treats it as such (see :mod:`service.diagnosis.pipeline`).
+* ``capacity`` — the classic two-point capacity check: the charge drawn between two
+  points whose SOC the OCV table gives, over the SOC difference (:func:`two_point_capacity`).
+  Capacity is defined between ``v_min`` and ``v_max`` at equilibrium, so the ends of the
+  OCV curve anchor SOC for any cell, aged or not; the points are the opening rest (at least
+  :data:`CAPACITY_MIN_OPENING_REST_S`; a recording that opens under load is not checked) and
+  the last sample (a final rest or the cut-off).  Under load the OCV there is the voltage minus
+  the base model's overpotential ``η``; the model may be wrong, so the OCV is taken only to
+  lie between ``V − η_Ω`` and ``V − η_Ω − 2(η − η_Ω)``, where ``η_Ω = −R_Ω·I`` is the
+  ohmic drop (``R_Ω`` identified from the fit part's voltage steps) and the model's
+  polarisation ``η − η_Ω`` may be off by up to 100 %; the interval is widened by
+  :data:`CAPACITY_OCV_FLOOR_V` (hysteresis, relaxation, table error).  Nominated, as a
+  direct measurement, when the whole resulting capacity interval lies at least
+  :data:`CAPACITY_MIN_ERROR` from the stated capacity and the points are at least
+  :data:`CAPACITY_MIN_SPAN` of SOC apart; a flat OCV (LFP) widens the interval by itself.
 """
 
 from __future__ import annotations
@@ -54,6 +68,17 @@ BIAS_MIN_DRIFT_SOC = 0.001
 BIAS_MIN_FRAC_1C = 5e-4
 #: rest samples further than this many pooled noise σ from their run's median are spikes
 REST_OUTLIER_SIGMA = 6.0
+#: two-point capacity: OCV uncertainty added at each point besides the overpotential (hysteresis,
+#: unfinished relaxation, OCV-table error of a few mV to ~10 mV in Li-ion cells)
+CAPACITY_OCV_FLOOR_V = 0.010
+#: the capacity interval must clear the stated capacity by this fraction to nominate (a capacity
+#: error below ~2 % is within what a BMS capacity estimate resolves)
+CAPACITY_MIN_ERROR = 0.02
+#: and the two points must lie this far apart in SOC
+CAPACITY_MIN_SPAN = 0.3
+#: the opening point must be a rest at least this long (a recording that opens under load has
+#: no OCV-anchored start)
+CAPACITY_MIN_OPENING_REST_S = 30.0
 
 
 def _thermal_sim(th: np.ndarray, time_s: np.ndarray, load: np.ndarray, t0: float) -> np.ndarray:
@@ -204,6 +229,80 @@ def rest_current_offset(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: 
                offset_a=mean, se_a=se, n_rest_samples=int(n), drift_soc=round(drift, 5), tau_int=round(tau, 2),
                rest_seconds=round(float(sum(time_s[b - 1] - time_s[a] for a, b in runs)), 1),
                chi2_per_rest=None if not np.isfinite(chi2) else round(chi2, 2))
+    return out
+
+
+def _soc_interval(table, v: float, eta: float, temp_c: float, ohmic_v: float = 0.0) -> tuple[float, float, float]:
+    """SOC (lo, point, hi) at a point with voltage ``v`` and model overpotential ``eta``.
+
+    ``ohmic_v`` is the ohmic part of ``eta`` (``-R_ohm·I``); the rest, the model's
+    polarisation, may be off by up to 100 %.
+    """
+    ocv = v - eta
+    dyn = eta - ohmic_v
+    ends = (v - ohmic_v, v - ohmic_v - 2.0 * dyn)
+    soc = table.soc_from_ocv(np.array([min(ends) - CAPACITY_OCV_FLOOR_V, ocv, max(ends) + CAPACITY_OCV_FLOOR_V]),
+                             temp_c)
+    return float(soc[0]), float(soc[1]), float(soc[2])
+
+
+def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, temperature_c: np.ndarray,
+                       v_model: np.ndarray, soc_model: np.ndarray, table, capacity_ah: float, i_start: int,
+                       r_ohm: float, bias: dict | None = None) -> dict:
+    """Capacity from the charge between two OCV-anchored points (module docstring, ``capacity``).
+
+    ``v_model``/``soc_model`` are the base model's voltage and SOC along the recording
+    (Coulomb counting with ``capacity_ah``); ``i_start`` is the sample standing for the
+    opening OCV (the end of the opening rest); ``r_ohm`` the base model's ohmic resistance.
+    The last sample is the only held-out voltage it reads (the pipeline leaves it out of
+    every held-out score).  A current offset the rests measured
+    (``bias`` from :func:`rest_current_offset`, when nominated) is taken out of the charge.
+    """
+    out = {"nominated": False, "direct": True, "statistic": 1.0, "what": "capacity / stated capacity from the "
+           "charge between the opening and the last sample over their SOC difference on the OCV table",
+           "threshold": CAPACITY_MIN_ERROR, "min_span_soc": CAPACITY_MIN_SPAN, "ocv_floor_v": CAPACITY_OCV_FLOOR_V}
+    i_end = time_s.size - 1
+    if i_end - i_start < 10:
+        return out
+    if time_s[i_start] - time_s[0] < CAPACITY_MIN_OPENING_REST_S:
+        out["skipped"] = f"no opening rest of {CAPACITY_MIN_OPENING_REST_S:.0f} s to anchor the start"
+        return out
+    eta = v_model - table.ocv(soc_model, temperature_c)
+    s0 = _soc_interval(table, float(voltage_v[i_start]), float(eta[i_start]), float(temperature_c[i_start]))
+    # under load at the end (a cut-off) the ohmic drop is the base's R_ohm (identified from the
+    # voltage steps of the fit part) times the current; only the polarisation is uncertain
+    ohmic = -r_ohm * float(current_a[i_end])
+    if abs(ohmic) > abs(float(eta[i_end])) or ohmic * float(eta[i_end]) < 0:
+        ohmic = float(eta[i_end]) if ohmic * float(eta[i_end]) > 0 else 0.0
+    s1 = _soc_interval(table, float(voltage_v[i_end]), float(eta[i_end]), float(temperature_c[i_end]), ohmic)
+    # charge drawn in "SOC of the stated capacity", as the model counts it
+    drawn = float(soc_model[i_start] - soc_model[i_end])
+    hours = float(time_s[i_end] - time_s[i_start]) / 3600.0
+    drawn_lo = drawn_hi = drawn
+    if bias and bias.get("se_a"):
+        b = float(bias["offset_a"]) if bias.get("nominated") else 0.0
+        # measured = true + b: the true charge is the measured one minus b over the time
+        drawn -= b * hours / capacity_ah
+        spread = 3.0 * float(bias["se_a"]) * hours / capacity_ah
+        drawn_lo, drawn_hi = drawn - spread, drawn + spread
+    out.update(soc_start=round(s0[1], 4), soc_start_range=[round(s0[0], 4), round(s0[2], 4)],
+               soc_end=round(s1[1], 4), soc_end_range=[round(s1[0], 4), round(s1[2], 4)],
+               overpotential_start_mv=round(1000 * float(eta[i_start]), 1),
+               overpotential_end_mv=round(1000 * float(eta[i_end]), 1), ohmic_end_mv=round(1000 * ohmic, 1),
+               drawn_soc=round(drawn, 4),
+               t_start_s=float(time_s[i_start]), t_end_s=float(time_s[i_end]))
+    if drawn < 0:  # a charge: the same check with the points' roles swapped
+        drawn, drawn_lo, drawn_hi = -drawn, -drawn_hi, -drawn_lo
+        s0, s1 = s1, s0
+    span, span_lo, span_hi = s0[1] - s1[1], s0[0] - s1[2], s0[2] - s1[0]
+    if drawn < 1e-6 or span <= 0:
+        return out
+    ratio = drawn / span
+    lo = drawn_lo / span_hi
+    hi = drawn_hi / span_lo if span_lo > 0 else float("inf")
+    out.update(statistic=round(ratio, 4), capacity_scale=ratio, capacity_scale_range=[round(lo, 4), round(hi, 4)],
+               nominated=bool(span >= CAPACITY_MIN_SPAN and (hi <= 1.0 - CAPACITY_MIN_ERROR
+                                                            or lo >= 1.0 + CAPACITY_MIN_ERROR)))
     return out
 
 
