@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.diagnosis.signatures import BIAS_MIN_Z, rest_current_offset, rest_runs, signatures, two_point_capacity
+from service.cell.profile import OcvSpec
+from service.diagnosis.signatures import (
+    BIAS_MIN_Z,
+    capacity_end_point,
+    rest_current_offset,
+    rest_runs,
+    signatures,
+    two_point_capacity,
+)
 
 CAP = 5.0
 
@@ -70,7 +78,7 @@ def test_no_rests_no_measurement():
 
 # -- two-point capacity ---------------------------------------------------------------------------
 def _two_point(scale: float, tail: str = "rest", sign: float = 1.0, polarisation_error: float = 0.0,
-               ocv: "OcvSpec | None" = None, seed: int = 4) -> dict:
+               ocv: OcvSpec | None = None, seed: int = 4) -> dict:
     """A cell with ``scale`` x the stated capacity, discharged (``sign`` -1: charged) from a
     relaxed opening rest; the recording ends in a 10-min rest after 70 % of the true capacity,
     or under 2C load after 88 % (a cut-off near empty, where the OCV is steep) (``tail``).
@@ -91,7 +99,12 @@ def _two_point(scale: float, tail: str = "rest", sign: float = 1.0, polarisation
         n = int(rng.integers(20, 200))
         i += [level] * n
         drawn += abs(level) * n
-    i += [0.0] * 600 if tail == "rest" else [sign * 2.0 * cap] * 30
+    if tail == "rest":
+        i += [0.0] * 600
+    elif tail == "load":
+        i += [sign * 2.0 * cap] * 30
+    else:  # "pause": a minute's pause, then a last 2C burst into the cut-off
+        i += [0.0] * 60 + [sign * 2.0 * cap] * 30
     i_true = np.array(i)
     t = np.arange(i_true.size, dtype=float)
     temp = np.full(t.size, 25.0)
@@ -101,7 +114,8 @@ def _two_point(scale: float, tail: str = "rest", sign: float = 1.0, polarisation
     model = stated.model_copy(update={"parameters": [TRUE.model_copy(update={
         "r_ct": TRUE.r_ct * (1 + polarisation_error), "r_df": TRUE.r_df * (1 + polarisation_error)})]})
     v_model, soc_model = simulate(model, t, i_true, temp, soc0)
-    return two_point_capacity(t, i_true, v, temp, v_model, soc_model, model.ocv_table(), cap, 59, TRUE.r_ohm)
+    return two_point_capacity(t, i_true, v, temp, v_model, soc_model, model.ocv_table(), cap, 59,
+                              capacity_end_point(t, i_true, cap), TRUE.r_ohm)
 
 
 @pytest.mark.parametrize("tail", ["rest", "load"])
@@ -137,8 +151,6 @@ def test_two_point_capacity_on_a_charge():
 
 def test_two_point_capacity_flat_ocv_widens_the_range():
     """An LFP-like plateau: the rest SOCs are poorly pinned, so a 5 % fade is not claimed."""
-    from service.cell.profile import OcvSpec
-
     soc = np.linspace(0, 1, 41)
     flat = 3.2 + 0.1 * soc + 0.25 * np.tanh((soc - 0.04) / 0.03) + 0.1 * np.tanh((soc - 0.985) / 0.01)
     sig = _two_point(0.95, "rest", ocv=OcvSpec(soc=soc.tolist(), ocv_v=[flat.tolist()]))
@@ -155,5 +167,17 @@ def test_two_point_capacity_needs_an_opening_rest():
     from service.diagnosis.validate import base_profile
 
     table = base_profile().ocv_table()
-    sig = two_point_capacity(t, i, v, np.full(t.size, 25.0), v, np.linspace(0.9, 0.3, t.size), table, 2.0, 0, 0.03)
+    sig = two_point_capacity(t, i, v, np.full(t.size, 25.0), v, np.linspace(0.9, 0.3, t.size), table, 2.0, 0,
+                             t.size - 1, 0.03)
     assert not sig["nominated"] and "opening rest" in sig["skipped"]
+
+
+def test_two_point_capacity_end_is_the_lightest_load_before_a_cut_off():
+    """A burst into the cut-off after a pause: the check reads the pause, not the burst, so a
+    model that badly underrates the polarisation under load does not fake a fade."""
+    t = np.arange(400, dtype=float)
+    i = np.r_[np.full(250, 4.0), np.zeros(60), np.full(90, 8.0)]
+    assert capacity_end_point(t, i, 2.0) == 309  # the pause's last sample
+    assert capacity_end_point(t, np.r_[np.full(300, 4.0), np.full(100, 2.0)], 2.0) == 300  # lightest load
+    sig = _two_point(1.0, "pause", polarisation_error=-0.9)
+    assert not sig["nominated"] and sig["capacity_scale_range"][0] <= 1.0 <= sig["capacity_scale_range"][1], sig

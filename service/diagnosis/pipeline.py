@@ -52,7 +52,13 @@ from service.cell.profile import CellProfile
 from service.diagnosis.effects import EFFECTS, Context, Effect
 from service.diagnosis.locate import locate
 from service.diagnosis.refit import Problem, parameter_std, refit
-from service.diagnosis.signatures import integrated_autocorr_time, signatures, two_point_capacity
+from service.diagnosis.signatures import (
+    REST_MAX_C,
+    capacity_end_point,
+    integrated_autocorr_time,
+    signatures,
+    two_point_capacity,
+)
 from service.diagnosis.simulation import initial_soc
 from service.recording import Recording
 
@@ -253,8 +259,11 @@ def rmse_mv(r: np.ndarray) -> float:
 
 # -- the pipeline ----------------------------------------------------------------------------------
 def opening_rest_end(rec: Recording, capacity_ah: float) -> int:
-    """Index of the last sample of the opening rest (0 when the recording starts under load)."""
-    rest = np.abs(rec.current_a) < 0.01 * capacity_ah
+    """Index of the last sample of the opening rest (0 when the recording starts under load).
+
+    A rest is ``|I| < REST_MAX_C`` · 1C, the rest test of the signatures: on a small cell the
+    current sensor's noise alone can exceed 1 % of 1C and would cut the rest short."""
+    rest = np.abs(rec.current_a) < REST_MAX_C * capacity_ah
     if not rest[0]:
         return 0
     return (int(np.argmin(rest)) if not rest.all() else rest.size) - 1
@@ -262,8 +271,8 @@ def opening_rest_end(rec: Recording, capacity_ah: float) -> int:
 
 def initial_rest_voltage(rec: Recording, capacity_ah: float, r_guess: float) -> tuple[float, float]:
     """Voltage that stands for the OCV at the start, and the temperature there."""
-    if abs(rec.current_a[0]) < 0.01 * capacity_ah:
-        end = opening_rest_end(rec, capacity_ah) + 1
+    end = opening_rest_end(rec, capacity_ah) + 1
+    if abs(rec.current_a[0]) < REST_MAX_C * capacity_ah:
         return float(np.mean(rec.voltage_v[max(0, end - 5):end])), float(rec.temperature_c[0])
     return float(rec.voltage_v[0] + r_guess * rec.current_a[0]), float(rec.temperature_c[0])
 
@@ -314,10 +323,11 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     else:
         raise ValueError(f"split '{opt.split}' not recognised; choose chronological, interleaved or blocks")
     fit_full = ~held
-    # the capacity check (signatures.two_point_capacity) reads the last sample's voltage: it
+    # the capacity check (signatures.two_point_capacity) reads the voltage at its end point: it
     # is scored by no candidate, so no held-out score contains a sample a signature measured
+    cap_end = capacity_end_point(rec.time_s, rec.current_a, cap)
     held = held.copy()
-    held[-1] = False
+    held[cap_end] = False
     if fit_full.sum() < 20 or held.sum() < 20:
         raise ValueError(f"recording too short to split ({len(rec)} samples)")
 
@@ -373,7 +383,8 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     sig = signatures(rec.time_s, rec.current_a, rec.temperature_c, cap)
     bias_sig = sig.get("current_bias", {})
     sig["capacity"] = two_point_capacity(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, v_base,
-                                         soc_base, ocv, cap, opening_rest_end(rec, cap), point.r_ohm, bias=bias_sig)
+                                         soc_base, ocv, cap, opening_rest_end(rec, cap), cap_end, point.r_ohm,
+                                         bias=bias_sig)
     cap_sig = sig["capacity"]
     bias_rest = (bias_sig.get("offset_a"), bias_sig.get("se_a")) if bias_sig.get("n_rest_samples") and bias_sig.get("se_a") else (None, None)
     problem.ctx = Context(

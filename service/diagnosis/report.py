@@ -9,18 +9,17 @@ import numpy as np
 from service.diagnosis.effects import EFFECTS, Context
 
 
-
 def _capacity_lines(c: dict) -> list[str]:
     """The two-point capacity check in words."""
     lo, hi = c["capacity_scale_range"]
-    return [f"Two-point capacity: SOC {c['soc_start']:.3f} (range {c['soc_start_range'][0]:.3f}-"
+    return [(f"Two-point capacity: SOC {c['soc_start']:.3f} (range {c['soc_start_range'][0]:.3f}-"
             f"{c['soc_start_range'][1]:.3f}) at {c['t_start_s']:.0f} s and {c['soc_end']:.3f} "
             f"({c['soc_end_range'][0]:.3f}-{c['soc_end_range'][1]:.3f}) at {c['t_end_s']:.0f} s on the OCV table "
             f"(overpotential there {c['overpotential_start_mv']:+.1f} / {c['overpotential_end_mv']:+.1f} mV, "
             f"{c['ohmic_end_mv']:+.1f} mV of it ohmic), {100 * c['drawn_soc']:.1f} % of the stated capacity "
             f"drawn between them: capacity × {c['capacity_scale']:.3f} (range {lo:.3f}-{hi:.3f}); rule: the whole "
             f"range ≥ {100 * c['threshold']:.0f} % from 1 and the points ≥ {c['min_span_soc']:.1f} SOC apart. "
-            "The last sample's voltage is read here, so no held-out score includes it.", ""]
+            "The last sample's voltage is read here, so no held-out score includes it."), ""]
 
 def _fmt(v: float | None) -> str:
     if v is None:

@@ -32,7 +32,8 @@ departure the effect describes is present.  An effect whose signature fires is
   Capacity is defined between ``v_min`` and ``v_max`` at equilibrium, so the ends of the
   OCV curve anchor SOC for any cell, aged or not; the points are the opening rest (at least
   :data:`CAPACITY_MIN_OPENING_REST_S`; a recording that opens under load is not checked) and
-  the last sample (a final rest or the cut-off).  Under load the OCV there is the voltage minus
+  the end (the latest rest sample in the last :data:`CAPACITY_END_WINDOW_S`, else the lightest
+  load there: a final rest, or the approach to a cut-off).  Under load the OCV there is the voltage minus
   the base model's overpotential ``η``; the model may be wrong, so the OCV is taken only to
   lie between ``V − η_Ω`` and ``V − η_Ω − 2(η − η_Ω)``, where ``η_Ω = −R_Ω·I`` is the
   ohmic drop (``R_Ω`` identified from the fit part's voltage steps) and the model's
@@ -76,6 +77,8 @@ CAPACITY_OCV_FLOOR_V = 0.010
 CAPACITY_MIN_ERROR = 0.02
 #: and the two points must lie this far apart in SOC
 CAPACITY_MIN_SPAN = 0.3
+#: the end point is the sample of least current within this window before the recording's end
+CAPACITY_END_WINDOW_S = 300.0
 #: the opening point must be a rest at least this long (a recording that opens under load has
 #: no OCV-anchored start)
 CAPACITY_MIN_OPENING_REST_S = 30.0
@@ -246,22 +249,37 @@ def _soc_interval(table, v: float, eta: float, temp_c: float, ohmic_v: float = 0
     return float(soc[0]), float(soc[1]), float(soc[2])
 
 
+def capacity_end_point(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> int:
+    """The closing point of the two-point check: within the last :data:`CAPACITY_END_WINDOW_S`,
+    the latest rest sample, else the sample of least current.
+
+    A cut-off under high current is a poor OCV anchor (the overpotential is most of the
+    voltage, and a kinetics-limited cell reaches ``v_min`` at any SOC); the lightest load just
+    before it says more about the SOC.
+    """
+    window = np.flatnonzero(time_s >= time_s[-1] - CAPACITY_END_WINDOW_S)
+    rest = window[np.abs(current_a[window]) < REST_MAX_C * capacity_ah]
+    if rest.size:
+        return int(rest[-1])
+    return int(window[np.argmin(np.abs(current_a[window]))])
+
+
 def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, temperature_c: np.ndarray,
                        v_model: np.ndarray, soc_model: np.ndarray, table, capacity_ah: float, i_start: int,
-                       r_ohm: float, bias: dict | None = None) -> dict:
+                       i_end: int, r_ohm: float, bias: dict | None = None) -> dict:
     """Capacity from the charge between two OCV-anchored points (module docstring, ``capacity``).
 
     ``v_model``/``soc_model`` are the base model's voltage and SOC along the recording
     (Coulomb counting with ``capacity_ah``); ``i_start`` is the sample standing for the
-    opening OCV (the end of the opening rest); ``r_ohm`` the base model's ohmic resistance.
-    The last sample is the only held-out voltage it reads (the pipeline leaves it out of
-    every held-out score).  A current offset the rests measured
+    opening OCV (the end of the opening rest), ``i_end`` the closing one
+    (:func:`capacity_end_point`); ``r_ohm`` the base model's ohmic resistance.  The closing
+    sample is the only held-out voltage it reads (the pipeline leaves it out of every
+    held-out score).  A current offset the rests measured
     (``bias`` from :func:`rest_current_offset`, when nominated) is taken out of the charge.
     """
     out = {"nominated": False, "direct": True, "statistic": 1.0, "what": "capacity / stated capacity from the "
-           "charge between the opening and the last sample over their SOC difference on the OCV table",
+           "charge between the opening rest and the end over their SOC difference on the OCV table",
            "threshold": CAPACITY_MIN_ERROR, "min_span_soc": CAPACITY_MIN_SPAN, "ocv_floor_v": CAPACITY_OCV_FLOOR_V}
-    i_end = time_s.size - 1
     if i_end - i_start < 10:
         return out
     if time_s[i_start] - time_s[0] < CAPACITY_MIN_OPENING_REST_S:
@@ -269,7 +287,7 @@ def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
         return out
     eta = v_model - table.ocv(soc_model, temperature_c)
     s0 = _soc_interval(table, float(voltage_v[i_start]), float(eta[i_start]), float(temperature_c[i_start]))
-    # under load at the end (a cut-off) the ohmic drop is the base's R_ohm (identified from the
+    # under load at the end (before a cut-off) the ohmic drop is the base's R_ohm (identified from the
     # voltage steps of the fit part) times the current; only the polarisation is uncertain
     ohmic = -r_ohm * float(current_a[i_end])
     if abs(ohmic) > abs(float(eta[i_end])) or ohmic * float(eta[i_end]) < 0:

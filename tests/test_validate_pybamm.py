@@ -1,0 +1,31 @@
+"""The PyBaMM stand-in for the blind set: its drives and its table (PyBaMM itself is optional)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.diagnosis.validate_pybamm import Row, drive, table
+
+
+@pytest.mark.parametrize("kind", ["dst", "walk"])
+def test_drive_opens_and_ends_with_rests_and_draws_three_quarters(kind):
+    i = drive(kind, 3, 5.0)
+    assert np.all(i[:60] == 0.0) and np.all(i[-600:] == 0.0)
+    drawn = i.sum() / 3600.0
+    assert 0.75 * 5.0 <= drawn < 0.75 * 5.0 + 3.0 * 5.0 * 90 / 3600  # overshoot at most one step
+    assert (i < 0).any(), "regen / charging present"
+    assert not np.array_equal(drive(kind, 4, 5.0)[:2000], i[:2000]), "the seed changes the drive"
+
+
+def _row(cell, effect, verdict):
+    return Row(f"{cell}_{effect}", cell, effect, "moderate", 1, verdict, "named", verdict, 0.5, 10.0, 5.0, 1.0)
+
+
+def test_table_counts_right_wrong_and_false_positives():
+    rows = [_row("A", "none", "none"), _row("A", "none", "kinetics"), _row("A", "capacity", "capacity"),
+            _row("B", "none", "none"), _row("B", "hysteresis", "none"), _row("B", "diffusion", "kinetics")]
+    text = table(rows)
+    assert "| A | 1/2 (kinetics) |" in text
+    assert "| B | 1/1 |" in text and "0/1 (kinetics)" in text
+    assert "named right: 3/6; clean named as an effect: 1/3; effects named as another effect: 1/3" in text
