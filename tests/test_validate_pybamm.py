@@ -19,7 +19,8 @@ def test_drive_opens_and_ends_with_rests_and_draws_three_quarters(kind):
 
 
 def _row(cell, effect, verdict):
-    return Row(f"{cell}_{effect}", cell, effect, "moderate", 1, verdict, "named", verdict, 0.5, 10.0, 5.0, 1.0)
+    return Row(effect=effect, level="moderate", seed=1, verdict=verdict, state="named", top=verdict, top_score=0.5,
+               seconds=1.0, stem=f"{cell}_{effect}", cell=cell, rmse_before_mv=10.0, rmse_after_mv=5.0)
 
 
 def test_table_counts_right_wrong_and_false_positives():

@@ -47,6 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
+from service.diagnosis.validate import Row as GridRow
+
 CELLS = ("Chen2020", "Mohtat2020", "Marquis2019", "Ai2020")
 EFFECTS = ("none", "hysteresis", "temperature", "capacity", "diffusion", "kinetics", "current_bias")
 LEVELS = ("subtle", "moderate", "clear")
@@ -194,23 +196,14 @@ def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -
 
 
 @dataclass
-class Row:
+class Row(GridRow):
+    """A grid row (:class:`service.diagnosis.validate.Row`) with the recording's cell and the
+    top effect's held-out RMSEs."""
+
     stem: str
     cell: str
-    effect: str
-    level: str
-    seed: int
-    verdict: str
-    state: str
-    top: str
-    top_score: float
     rmse_before_mv: float
     rmse_after_mv: float
-    seconds: float
-
-    @property
-    def right(self) -> bool:
-        return self.verdict == self.effect
 
 
 def run_one(job: tuple[str, str, str, int, str, str]) -> Row:
@@ -239,8 +232,9 @@ def run_one(job: tuple[str, str, str, int, str, str]) -> Row:
     (out / f"{stem}.diagnosis.json").write_text(json.dumps({
         "verdict": dg.verdict, "assessment": dg.assessment, "effects": [e.to_json() for e in dg.effects],
         "signatures": dg.signatures, "base": dg.base}, indent=1, default=float))
-    return Row(stem, cell, effect, level, seed, dg.verdict, dg.assessment["state"], top.name, float(top.score),
-               float(top.rmse_before_mv), float(top.rmse_after_mv), time.perf_counter() - t0)
+    return Row(effect=effect, level=level, seed=seed, verdict=dg.verdict, state=dg.assessment["state"], top=top.name,
+               top_score=float(top.score), seconds=time.perf_counter() - t0, stem=stem, cell=cell,
+               rmse_before_mv=float(top.rmse_before_mv), rmse_after_mv=float(top.rmse_after_mv))
 
 
 def table(rows: list[Row]) -> str:
@@ -285,7 +279,8 @@ def main(argv: list[str] | None = None) -> int:
     Path(args.workdir).mkdir(parents=True, exist_ok=True)
     jobs = []
     for cell in cells:
-        for e_index, effect in enumerate(effects):
+        for effect in effects:
+            e_index = EFFECTS.index(effect)  # a subset of effects reproduces the full run's recordings
             n = 2 * args.seeds if effect == "none" else args.seeds
             # a seed per effect and draw, the drive alternating between the step table and the walk
             jobs += [(cell, effect, args.level, 1 + e_index * 100 + s, ("dst", "walk")[(e_index + s) % 2],
