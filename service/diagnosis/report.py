@@ -19,7 +19,8 @@ def _capacity_lines(c: dict) -> list[str]:
             f"{c['ohmic_end_mv']:+.1f} mV of it ohmic), {100 * c['drawn_soc']:.1f} % of the stated capacity "
             f"drawn between them: capacity × {c['capacity_scale']:.3f} (range {lo:.3f}-{hi:.3f}); rule: the whole "
             f"range ≥ {100 * c['threshold']:.0f} % from 1 and the points ≥ {c['min_span_soc']:.1f} SOC apart. "
-            "The last sample's voltage is read here, so no held-out score includes it."), ""]
+            "The end sample's voltage is read here, so no held-out score includes it."), ""]
+
 
 def _fmt(v: float | None) -> str:
     if v is None:

@@ -289,10 +289,10 @@ def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     s0 = _soc_interval(table, float(voltage_v[i_start]), float(eta[i_start]), float(temperature_c[i_start]))
     # under load at the end (before a cut-off) the ohmic drop is the base's R_ohm (identified from the
     # voltage steps of the fit part) times the current; only the polarisation is uncertain
-    ohmic = -r_ohm * float(current_a[i_end])
-    if abs(ohmic) > abs(float(eta[i_end])) or ohmic * float(eta[i_end]) < 0:
-        ohmic = float(eta[i_end]) if ohmic * float(eta[i_end]) > 0 else 0.0
-    s1 = _soc_interval(table, float(voltage_v[i_end]), float(eta[i_end]), float(temperature_c[i_end]), ohmic)
+    # (no larger than the model's whole overpotential, and of its sign)
+    ohmic, eta_end = -r_ohm * float(current_a[i_end]), float(eta[i_end])
+    ohmic = math.copysign(min(abs(ohmic), abs(eta_end)), eta_end) if ohmic * eta_end > 0 else 0.0
+    s1 = _soc_interval(table, float(voltage_v[i_end]), eta_end, float(temperature_c[i_end]), ohmic)
     # charge drawn in "SOC of the stated capacity", as the model counts it
     drawn = float(soc_model[i_start] - soc_model[i_end])
     hours = float(time_s[i_end] - time_s[i_start]) / 3600.0
