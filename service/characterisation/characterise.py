@@ -13,6 +13,11 @@
 4. Optional (``--soc-resistance``): the resistances' dependence on SOC at each temperature,
    measured directly from the HPPC discharge pulses (:mod:`service.cell.soc_dependence`)
    before step 3, so the parameters are fitted with it in the model.
+5. Optional (``--slow-branch``): a slow RC branch measured from the voltage recovery in
+   long rests at the reference temperature (:mod:`service.characterisation.relaxation`),
+   added before steps 1 (joint fit) and 3, so neither the jointly fitted OCV nor the
+   CPE branches have to imitate it.  Fitted segments start with it relaxed, as they do
+   the CPE branches.
 """
 
 from __future__ import annotations
@@ -27,7 +32,9 @@ from service.cell.fitting import FitSegment, fit_parameters
 from service.cell.model import simulate
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.profile import (
+    BranchSpec,
     CellProfile,
+    Extensions,
     HysteresisSpec,
     OcvSpec,
     ParameterPoint,
@@ -43,6 +50,7 @@ from service.characterisation.ocv_sources import (
     ocv_row_from_rests,
     rest_points,
 )
+from service.characterisation.relaxation import measure_slow_relaxation
 from service.evaluation.truth import coulomb_soc, truth_and_start
 from service.recording import Recording
 
@@ -143,6 +151,7 @@ def characterise(
     memory_length: int = 16,
     name: str = "cell",
     seed: int = 0,
+    slow_branch: bool = False,
 ) -> tuple[CellProfile, FitReport]:
     rep = FitReport()
     ocv_tests = [r for r in recordings if is_ocv_test(r, capacity_ah)]
@@ -160,13 +169,22 @@ def characterise(
 
     # dynamic recordings grouped by temperature, cut from their full-charge point
     groups: dict[float, list[tuple[Recording, np.ndarray]]] = defaultdict(list)
+    whole: dict[float, list[Recording]] = defaultdict(list)  # the same recordings before the cut
     for rec, fa in dynamic:
         part, soc = truth_and_start(rec, capacity_ah, fa)
         key = float(TEMP_GROUP_C * np.round(np.median(part.temperature_c) / TEMP_GROUP_C))
         groups[key].append((part, soc))
+        whole[key].append(rec)
     temps = sorted(groups)
     ref_t = min(temps, key=lambda t: abs(t - 25.0))
     rep.say(f"temperature groups: {', '.join(f'{t:g} °C ({len(groups[t])} rec.)' for t in temps)}; reference {ref_t:g} °C")
+    extra_branches: list[BranchSpec] = []
+    slow_note = None
+    if slow_branch:
+        slow = measure_slow_relaxation(whole[ref_t], capacity_ah)
+        extra_branches.append(slow.branch())
+        slow_note = slow.describe()
+        rep.say(f"slow relaxation branch (long rests at {ref_t:g} °C): {slow_note}")
 
     def segments_of(t: float) -> list[FitSegment]:
         segs: list[FitSegment] = []
@@ -180,6 +198,7 @@ def characterise(
             name=name, capacity_ah=capacity_ah,
             ocv=OcvSpec(soc=grid.tolist(), temps_c=ts, ocv_v=[ocv_rows[t].tolist() for t in ts]),
             parameters=[ParameterPoint(r_ohm=0.02, r_ct=0.01, c_dl=500, m=0.8, r_df=0.02, c_df=5000, n=0.6)],
+            extensions=Extensions(extra_branches=extra_branches),
         )
 
     # rest points per group → OCV rows
@@ -246,6 +265,7 @@ def characterise(
     profile = prof.model_copy(update={
         "parameters": [points[t] for t in sorted(points)],
         "hysteresis": hyst or HysteresisSpec(),
-        "notes": {"fitted_from": ", ".join(r.name for r in recordings), "memory_length": str(memory_length)},
+        "notes": {"fitted_from": ", ".join(r.name for r in recordings), "memory_length": str(memory_length)}
+        | ({"slow_branch": slow_note} if slow_note else {}),
     })
     return CellProfile.model_validate(profile.model_dump()), rep

@@ -43,6 +43,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "from the recordings' discharge pulses from rest (HPPC tests: pulses at five or more SOC levels) "
                    "and fit the parameters with that table in the model; off by default: it fits the HPPC tests 3x closer "
                    "but measured worse for SOC on the Panasonic drive cycles (README)")
+    p.add_argument("--slow-branch", action="store_true",
+                   help="add a slow RC branch (time constant of minutes to hours) measured from the voltage recovery "
+                   "in rests of 30 min or more at the reference temperature, then fit the rest of the model with it; "
+                   "for cells characterised without an OCV test, whose jointly fitted OCV otherwise absorbs the slow "
+                   "polarisation (README: CALCE INR18650-20R)")
     p.add_argument("--max-seconds", type=float, default=60.0, help="optimiser time per temperature (default 60)")
     p.add_argument("--memory-length", type=int, default=16, help="G-L memory length used in the fit (default 16)")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
@@ -69,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
         profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
                                        fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
                                        min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
+                                       slow_branch=args.slow_branch,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed)
     except ValueError as exc:
         raise UserError(str(exc)) from exc

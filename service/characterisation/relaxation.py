@@ -1,0 +1,148 @@
+"""Slow relaxation: a long time constant measured from the voltage recovery in long rests.
+
+After a load, a Li-ion cell's rest voltage keeps creeping towards the OCV for an hour or
+more (solid diffusion evening out the particles).  The model's two CPE branches cannot
+hold that: the G-L short memory (Zeng Eq. 2, ``L`` samples) forgets a fractional
+branch's tail after a few samples, so a fit to a drive cycle gives the diffusion branch
+a time constant of seconds to a minute.  Under a long drive the missing slow
+polarisation is an almost constant offset, and an OCV curve fitted jointly with the
+model (``socd fit`` without an OCV test) takes it into the OCV: the curve then sits low
+by that offset, and an estimator reads the cell's fully relaxed voltage in a later long
+rest as a higher SOC (README, CALCE INR18650-20R).
+
+The measurement is the classic relaxation analysis.  In a rest of at least
+:data:`LONG_REST_S`, from :data:`SETTLE_S` after its start (the fast branches, with time
+constants up to a minute, have died out), the voltage is ``V(t) = V_∞ − U_s(t)`` with
+``U_s`` an RC branch (``R_s, τ_s``) driven by the recording's whole current history,
+and ``V_∞`` a free level per rest (the OCV there, whatever the table says).  ``R_s`` and
+``τ_s`` are shared by all rests; scipy's least squares fits them, with their standard
+errors from the Jacobian.  The branch is added to the profile as an integer-order extra
+branch (``extensions.extra_branches``), which the model and the SOC filter carry as one
+more state (its parameters stay fixed online).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from service.cell.profile import BranchSpec
+from service.characterisation.ocv_sources import REST_CURRENT_C
+from service.recording import Recording
+
+#: a rest must last this long to carry the slow relaxation
+LONG_REST_S = 1800.0
+#: rest samples earlier than this after the rest's start are left out (the fast branches)
+SETTLE_S = 300.0
+#: search range of the slow time constant [s] and resistance [Ω]
+TAU_BOUNDS_S = (300.0, 1.0e5)
+R_BOUNDS_OHM = (1.0e-5, 1.0)
+
+
+@dataclass
+class SlowRelaxation:
+    """The measured slow branch and how well it describes the rests."""
+
+    r_ohm: float
+    tau_s: float
+    r_std_ohm: float
+    tau_std_s: float
+    rms_mv: float
+    rests: list[str]
+
+    def branch(self) -> BranchSpec:
+        return BranchSpec(r=self.r_ohm, c=self.tau_s / self.r_ohm, alpha=1.0)
+
+    def describe(self) -> str:
+        return (f"R {1e3 * self.r_ohm:.1f} ± {1e3 * self.r_std_ohm:.1f} mΩ, τ {self.tau_s:.0f} ± {self.tau_std_s:.0f} s "
+                f"from {len(self.rests)} rest(s), RMS misfit {self.rms_mv:.2f} mV")
+
+
+def long_rests(rec: Recording, capacity_ah: float, min_rest_s: float = LONG_REST_S) -> list[tuple[int, int]]:
+    """``(first, last)`` sample of every rest of at least ``min_rest_s`` that follows a load."""
+    resting = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah
+    loaded_before = np.maximum.accumulate(np.abs(rec.current_a)) > 5 * REST_CURRENT_C * capacity_ah
+    out = []
+    k, n = 0, resting.size
+    while k < n:
+        if not resting[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < n and resting[j + 1]:
+            j += 1
+        if k > 0 and loaded_before[k] and rec.time_s[j] - rec.time_s[k] >= min_rest_s:
+            out.append((k, j))
+        k = j + 1
+    return out
+
+
+def rc_voltage(time_s: np.ndarray, current_a: np.ndarray, r_ohm: float, tau_s: float) -> np.ndarray:
+    """Voltage of an RC branch driven by ``current_a`` (zero-order hold, exact exponential step).
+
+    The recursion ``u_k = d_k u_{k-1} + (1 - d_k) R i_k`` with ``d_k = exp(-Δt_k/τ)`` is
+    summed in closed form, ``u_k = e^{-s_k} (d_a u_{a-1} + Σ_{j=a..k} (1 - d_j) R i_j e^{s_j})``
+    with ``s = (t - t_a)/τ``, in chunks short enough (``s ≤`` 300) for ``e^s`` to stay finite.
+    """
+    t = np.asarray(time_s, dtype=float)
+    decay = np.exp(-np.diff(t, prepend=t[0]) / tau_s)
+    drive = (1.0 - decay) * r_ohm * np.asarray(current_a, dtype=float)
+    u = np.empty(t.size)
+    prev, a = 0.0, 0
+    while a < t.size:
+        b = max(int(np.searchsorted(t, t[a] + 300.0 * tau_s, side="right")), a + 1)
+        s = (t[a:b] - t[a]) / tau_s
+        u[a:b] = np.exp(-s) * (decay[a] * prev + np.cumsum(drive[a:b] * np.exp(s)))
+        prev, a = float(u[b - 1]), b
+    return u
+
+
+def measure_slow_relaxation(recordings: list[Recording], capacity_ah: float) -> SlowRelaxation:
+    """Fit one slow RC branch to the long rests of ``recordings`` (module docstring).
+
+    Each recording is simulated from its first sample (branch relaxed there), so the charge
+    before a full-charge point counts too.  Raises ``ValueError`` naming the recordings when
+    none holds a rest of :data:`LONG_REST_S` after a load.
+    """
+    cases = []
+    for rec in recordings:
+        for a, b in long_rests(rec, capacity_ah):
+            idx = np.flatnonzero(rec.time_s[a:b + 1] >= rec.time_s[a] + SETTLE_S) + a
+            if idx.size >= 10:
+                cases.append((rec, idx, f"{rec.name} {rec.time_s[a]:.0f}-{rec.time_s[b]:.0f} s"))
+    if not cases:
+        raise ValueError("--slow-branch needs a rest of at least "
+                         f"{LONG_REST_S / 60:.0f} min after a load in the recordings; none in "
+                         + ", ".join(r.name for r in recordings))
+    n_rest = len(cases)
+
+    def residuals(th: np.ndarray) -> np.ndarray:
+        r, tau = math.exp(th[0]), math.exp(th[1])
+        out = []
+        for m, (rec, idx, _) in enumerate(cases):
+            u = rc_voltage(rec.time_s[: idx[-1] + 1], rec.current_a[: idx[-1] + 1], r, tau)
+            out.append(rec.voltage_v[idx] - (th[2 + m] - u[idx]))
+        return np.concatenate(out)
+
+    lo = [math.log(R_BOUNDS_OHM[0]), math.log(TAU_BOUNDS_S[0])] + [0.0] * n_rest
+    hi = [math.log(R_BOUNDS_OHM[1]), math.log(TAU_BOUNDS_S[1])] + [10.0] * n_rest
+    levels = [float(rec.voltage_v[idx[-1]]) for rec, idx, _ in cases]
+    best = None
+    for tau0 in (600.0, 3000.0, 15000.0):
+        sol = least_squares(residuals, [math.log(0.01), math.log(tau0)] + levels, bounds=(lo, hi), x_scale="jac")
+        if best is None or sol.cost < best.cost:
+            best = sol
+    res = best.fun
+    dof = max(res.size - best.x.size, 1)
+    s2 = float(res @ res) / dof
+    try:
+        cov = np.linalg.pinv(best.jac.T @ best.jac) * s2
+        sd = np.sqrt(np.clip(np.diag(cov)[:2], 0.0, None))
+    except np.linalg.LinAlgError:
+        sd = np.array([np.inf, np.inf])
+    r, tau = math.exp(best.x[0]), math.exp(best.x[1])
+    return SlowRelaxation(r_ohm=r, tau_s=tau, r_std_ohm=r * float(sd[0]), tau_std_s=tau * float(sd[1]),
+                          rms_mv=1e3 * math.sqrt(float(np.mean(res**2))), rests=[c[2] for c in cases])

@@ -1,0 +1,85 @@
+"""The slow-relaxation measurement (``socd fit --slow-branch``) recovers a known slow branch."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.cell.model import simulate
+from service.cell.profile import BranchSpec, CellProfile, Extensions
+from service.characterisation.characterise import characterise
+from service.characterisation.relaxation import long_rests, measure_slow_relaxation, rc_voltage
+from service.recording import Recording
+from tests.test_fitting import TRUE, nmc_like_ocv
+
+#: the base branches as a drive-cycle fit finds them: diffusion τ = (R C)^(1/n) ≈ 1 min
+BASE = TRUE.model_copy(update={"c_df": 1600.0})
+SLOW = BranchSpec(r=0.016, c=3400.0 / 0.016, alpha=1.0)  # R 16 mΩ, τ 3400 s
+
+
+def _lab_test(with_slow: bool, seed: int = 0, rest_s: float = 7200.0) -> Recording:
+    """CALCE-like test of a 2 Ah cell: rest, 1 A discharge of 0.4 Ah, long rest, pulses, long rest.
+
+    Sampled every 10 s in the rests and every 1 s under load (as the CALCE tester logs)."""
+    rng = np.random.default_rng(seed)
+    steps = [(600.0, 0.0, 10.0), (1440.0, 1.0, 1.0), (rest_s, 0.0, 10.0)]
+    for _ in range(40):
+        steps.append((float(rng.integers(20, 90)), float(rng.choice([2.0, 1.0, 0.5, -0.5])), 1.0))
+    steps.append((rest_s, 0.0, 10.0))
+    t, i, now = [0.0], [0.0], 0.0
+    for dur, cur, dt in steps:
+        for _ in range(int(dur / dt)):
+            now += dt
+            t.append(now)
+            i.append(cur)
+    t, i = np.array(t), np.array(i)
+    ext = Extensions(extra_branches=[SLOW] if with_slow else [])
+    prof = CellProfile(capacity_ah=2.0, ocv=nmc_like_ocv(), parameters=[BASE], extensions=ext)
+    v, _ = simulate(prof, t, i, np.full(t.size, 25.0), 1.0)
+    v = v + rng.normal(0.0, 0.2e-3, v.size)
+    return Recording(Path(f"lab_{seed}.csv"), t, i, v, np.full(t.size, 25.0))
+
+
+def test_rc_voltage_matches_the_step_recursion_on_uneven_steps():
+    rng = np.random.default_rng(1)
+    t = np.cumsum(rng.uniform(0.5, 10.0, 5000))
+    i = rng.normal(0.0, 1.0, t.size)
+    for tau in (300.0, 3400.0, 1e5):
+        d = np.exp(-np.diff(t, prepend=t[0]) / tau)
+        x, ref = 0.0, np.empty(t.size)
+        for k in range(t.size):
+            x = d[k] * x + (1.0 - d[k]) * 0.02 * i[k]
+            ref[k] = x
+        assert np.max(np.abs(rc_voltage(t, i, 0.02, tau) - ref)) < 1e-12
+
+
+def test_recovers_the_slow_branch_from_long_rests():
+    rec = _lab_test(True)
+    assert len(long_rests(rec, 2.0)) == 2  # the opening rest follows no load
+    m = measure_slow_relaxation([rec], 2.0)
+    assert m.r_ohm == pytest.approx(SLOW.r, rel=0.1)
+    assert m.tau_s == pytest.approx(SLOW.r * SLOW.c, rel=0.1)
+    assert m.rms_mv < 1.0
+
+
+def test_a_cell_without_slow_relaxation_gets_a_negligible_branch():
+    m = measure_slow_relaxation([_lab_test(False)], 2.0)
+    # the base diffusion branch (τ about a minute) is over 5 minutes into a rest
+    assert m.r_ohm < 0.1 * SLOW.r
+
+
+def test_without_a_long_rest_fit_says_what_is_missing():
+    rec = _lab_test(True, rest_s=600.0)
+    with pytest.raises(ValueError, match=r"--slow-branch needs a rest of at least 30 min.*lab_0"):
+        characterise([rec], 2.0, [None], slow_branch=True, max_seconds=2)
+
+
+def test_profile_carries_the_measured_branch():
+    prof, _ = characterise([_lab_test(True)], 2.0, [None], slow_branch=True, max_seconds=4)
+    (branch,) = prof.extensions.extra_branches
+    assert branch.r == pytest.approx(SLOW.r, rel=0.1)
+    assert branch.r * branch.c == pytest.approx(SLOW.r * SLOW.c, rel=0.1)
+    assert "slow_branch" in prof.notes
+    assert prof.n_branches == 3
