@@ -2,11 +2,13 @@
 
     python -m service.evaluation.summary out/eval_pan25.json [more.json ...]
     python -m service.evaluation.summary out/eval_pan25.json+out/eval_pan25_nokin.json
+    python -m service.evaluation.summary --only fomiukf,ecm2rc-ekf out/eval_calce_slow.json+out/eval_calce.json
 
 One row per recording, one column per estimator: SOC RMSE after 600 s in percent (the
 figure of DESIGN §7), then a row of means, then voltage RMSE means.  ``A.json+B.json``
 puts B's estimators beside A's in one table, each labelled with B's cell profile (the
-same estimator scored with another profile).
+same estimator scored with another profile).  ``--only A,B`` keeps those estimators' columns
+(from every file).
 """
 
 from __future__ import annotations
@@ -19,18 +21,18 @@ from pathlib import Path
 ORDER = ["fomiukf", "foukf", "fom-single-scale", "ecm2rc-ekf", "huwang-rls", "coulomb"]
 
 
-def _results(path: Path, label: bool) -> list[dict]:
+def _results(path: Path, label: bool, only: set[str] | None = None) -> list[dict]:
     doc = json.loads(path.read_text())
-    results = doc["results"]
+    results = [r for r in doc["results"] if only is None or r["estimator"] in only]
     if label:
         tag = Path(str(doc.get("cell", path.stem))).stem
         results = [dict(r, estimator=f"{r['estimator']} ({tag})") for r in results]
     return results
 
 
-def table(spec: str) -> str:
+def table(spec: str, only: set[str] | None = None) -> str:
     parts = [Path(p) for p in spec.split("+")]
-    results = [r for i, p in enumerate(parts) for r in _results(p, label=i > 0)]
+    results = [r for i, p in enumerate(parts) for r in _results(p, label=i > 0, only=only)]
     named = [r["estimator"] for r in results]
     ests = [e for e in ORDER if e in named] + [e for e in dict.fromkeys(named) if e not in ORDER]
     by = defaultdict(dict)
@@ -58,10 +60,17 @@ def table(spec: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     specs = list(argv if argv is not None else sys.argv[1:])
+    only = None
+    if specs[:1] == ["--only"]:
+        if len(specs) < 2:
+            print("--only needs a comma-separated list of estimators", file=sys.stderr)
+            return 2
+        only = set(specs[1].split(","))
+        specs = specs[2:]
     if not specs:
         print(__doc__)
         return 2
-    print("\n\n".join(table(s) for s in specs))
+    print("\n\n".join(table(s, only) for s in specs))
     return 0
 
 
