@@ -58,8 +58,14 @@ def rest_points(rec: Recording, capacity_ah: float, soc0: float = 1.0, min_rest_
     sample (backward zero-order hold, which matches the testers' Ah counters).
     """
     soc = coulomb_soc(rec.time_s, rec.current_a, capacity_ah, soc0)
+    return [RestPoint(float(soc[j]), float(rec.voltage_v[j]), float(rec.temperature_c[j]))
+            for _, j in rest_spans(rec, capacity_ah, min_rest_s)]
+
+
+def rest_spans(rec: Recording, capacity_ah: float, min_rest_s: float) -> list[tuple[int, int]]:
+    """``(first, last)`` sample of every rest (``|I| < REST_CURRENT_C · C``) lasting ``min_rest_s``."""
     resting = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah
-    points: list[RestPoint] = []
+    spans = []
     k, n = 0, resting.size
     while k < n:
         if not resting[k]:
@@ -69,9 +75,9 @@ def rest_points(rec: Recording, capacity_ah: float, soc0: float = 1.0, min_rest_
         while j + 1 < n and resting[j + 1]:
             j += 1
         if rec.time_s[j] - rec.time_s[k] >= min_rest_s:
-            points.append(RestPoint(float(soc[j]), float(rec.voltage_v[j]), float(rec.temperature_c[j])))
+            spans.append((k, j))
         k = j + 1
-    return points
+    return spans
 
 
 def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[RestPoint]) -> np.ndarray:

@@ -30,7 +30,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from service.cell.profile import BranchSpec
-from service.characterisation.ocv_sources import REST_CURRENT_C
+from service.characterisation.ocv_sources import REST_CURRENT_C, rest_spans
 from service.recording import Recording
 
 #: a rest must last this long to carry the slow relaxation
@@ -63,21 +63,8 @@ class SlowRelaxation:
 
 def long_rests(rec: Recording, capacity_ah: float, min_rest_s: float = LONG_REST_S) -> list[tuple[int, int]]:
     """``(first, last)`` sample of every rest of at least ``min_rest_s`` that follows a load."""
-    resting = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah
     loaded_before = np.maximum.accumulate(np.abs(rec.current_a)) > 5 * REST_CURRENT_C * capacity_ah
-    out = []
-    k, n = 0, resting.size
-    while k < n:
-        if not resting[k]:
-            k += 1
-            continue
-        j = k
-        while j + 1 < n and resting[j + 1]:
-            j += 1
-        if k > 0 and loaded_before[k] and rec.time_s[j] - rec.time_s[k] >= min_rest_s:
-            out.append((k, j))
-        k = j + 1
-    return out
+    return [(k, j) for k, j in rest_spans(rec, capacity_ah, min_rest_s) if k > 0 and loaded_before[k]]
 
 
 def rc_voltage(time_s: np.ndarray, current_a: np.ndarray, r_ohm: float, tau_s: float) -> np.ndarray:
