@@ -17,7 +17,8 @@
    long rests at the reference temperature (:mod:`service.characterisation.relaxation`),
    added before steps 1 (joint fit) and 3, so neither the jointly fitted OCV nor the
    CPE branches have to imitate it.  Fitted segments start with it relaxed, as they do
-   the CPE branches.
+   the CPE branches.  The branch has no temperature dependence: it is used as measured
+   at every temperature.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from service.characterisation.ocv_sources import (
     ocv_from_test,
     ocv_row_from_rests,
     rest_points,
+    rest_spans,
 )
 from service.characterisation.relaxation import measure_slow_relaxation
 from service.evaluation.truth import coulomb_soc, truth_and_start
@@ -75,19 +77,8 @@ class FitReport:
 
 def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest_s: float = SEGMENT_REST_S) -> list[FitSegment]:
     """Segments of ``rec`` that each start at the end of a rest of ``min_rest_s`` (or the start)."""
-    resting = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah
-    starts = [0]
-    k, n = 0, resting.size
-    while k < n:
-        if resting[k]:
-            j = k
-            while j + 1 < n and resting[j + 1]:
-                j += 1
-            if rec.time_s[j] - rec.time_s[k] >= min_rest_s and j > 0:
-                starts.append(j)
-            k = j + 1
-        else:
-            k += 1
+    n = len(rec)
+    starts = [0] + [j for _, j in rest_spans(rec, capacity_ah, min_rest_s) if j > 0]
     starts = sorted(set(starts)) + [n]
     segs = []
     for a, b in zip(starts[:-1], starts[1:]):

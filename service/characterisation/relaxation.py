@@ -94,29 +94,36 @@ def measure_slow_relaxation(recordings: list[Recording], capacity_ah: float) -> 
     before a full-charge point counts too.  Raises ``ValueError`` naming the recordings when
     none holds a rest of :data:`LONG_REST_S` after a load.
     """
-    cases = []
+    cases = []  # (recording, sample indices of each of its long rests, past SETTLE_S)
+    names = []
     for rec in recordings:
+        spans = []
         for a, b in long_rests(rec, capacity_ah):
             idx = np.flatnonzero(rec.time_s[a:b + 1] >= rec.time_s[a] + SETTLE_S) + a
             if idx.size >= 10:
-                cases.append((rec, idx, f"{rec.name} {rec.time_s[a]:.0f}-{rec.time_s[b]:.0f} s"))
+                spans.append(idx)
+                names.append(f"{rec.name} {rec.time_s[a]:.0f}-{rec.time_s[b]:.0f} s")
+        if spans:
+            cases.append((rec, spans))
     if not cases:
         raise ValueError("--slow-branch needs a rest of at least "
                          f"{LONG_REST_S / 60:.0f} min after a load in the recordings; none in "
                          + ", ".join(r.name for r in recordings))
-    n_rest = len(cases)
+    n_rest = len(names)
 
     def residuals(th: np.ndarray) -> np.ndarray:
         r, tau = math.exp(th[0]), math.exp(th[1])
         out = []
-        for m, (rec, idx, _) in enumerate(cases):
-            u = rc_voltage(rec.time_s[: idx[-1] + 1], rec.current_a[: idx[-1] + 1], r, tau)
-            out.append(rec.voltage_v[idx] - (th[2 + m] - u[idx]))
+        levels = iter(th[2:])
+        for rec, spans in cases:
+            end = spans[-1][-1] + 1  # one simulation per recording, up to its last rest
+            u = rc_voltage(rec.time_s[:end], rec.current_a[:end], r, tau)
+            out += [rec.voltage_v[idx] - (next(levels) - u[idx]) for idx in spans]
         return np.concatenate(out)
 
     lo = [math.log(R_BOUNDS_OHM[0]), math.log(TAU_BOUNDS_S[0])] + [0.0] * n_rest
     hi = [math.log(R_BOUNDS_OHM[1]), math.log(TAU_BOUNDS_S[1])] + [10.0] * n_rest
-    levels = [float(rec.voltage_v[idx[-1]]) for rec, idx, _ in cases]
+    levels = [float(rec.voltage_v[idx[-1]]) for rec, spans in cases for idx in spans]
     best = None
     for tau0 in (600.0, 3000.0, 15000.0):
         sol = least_squares(residuals, [math.log(0.01), math.log(tau0)] + levels, bounds=(lo, hi), x_scale="jac")
@@ -132,4 +139,4 @@ def measure_slow_relaxation(recordings: list[Recording], capacity_ah: float) -> 
         sd = np.array([np.inf, np.inf])
     r, tau = math.exp(best.x[0]), math.exp(best.x[1])
     return SlowRelaxation(r_ohm=r, tau_s=tau, r_std_ohm=r * float(sd[0]), tau_std_s=tau * float(sd[1]),
-                          rms_mv=1e3 * math.sqrt(float(np.mean(res**2))), rests=[c[2] for c in cases])
+                          rms_mv=1e3 * math.sqrt(float(np.mean(res**2))), rests=names)
