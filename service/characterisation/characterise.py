@@ -26,6 +26,7 @@ from __future__ import annotations
 import sys
 from collections import defaultdict
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 
@@ -81,7 +82,7 @@ def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest
     starts = [0] + [j for _, j in rest_spans(rec, capacity_ah, min_rest_s) if j > 0]
     starts = sorted(set(starts)) + [n]
     segs = []
-    for a, b in zip(starts[:-1], starts[1:]):
+    for a, b in pairwise(starts):
         if b - a >= 5 and np.abs(rec.current_a[a:b]).max() > 5 * REST_CURRENT_C * capacity_ah:
             segs.append(FitSegment(rec.time_s[a:b], rec.current_a[a:b], rec.voltage_v[a:b],
                                    rec.temperature_c[a:b], float(soc[a])))
