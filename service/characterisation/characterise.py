@@ -78,9 +78,8 @@ class FitReport:
 
 def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest_s: float = SEGMENT_REST_S) -> list[FitSegment]:
     """Segments of ``rec`` that each start at the end of a rest of ``min_rest_s`` (or the start)."""
-    n = len(rec)
-    starts = [0] + [j for _, j in rest_spans(rec, capacity_ah, min_rest_s) if j > 0]
-    starts = sorted(set(starts)) + [n]
+    # rest ends come out increasing and after sample 0, so no sort is needed
+    starts = [0] + [j for _, j in rest_spans(rec, capacity_ah, min_rest_s) if j > 0] + [len(rec)]
     segs = []
     for a, b in pairwise(starts):
         if b - a >= 5 and np.abs(rec.current_a[a:b]).max() > 5 * REST_CURRENT_C * capacity_ah:

@@ -51,6 +51,8 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
+from service.characterisation.relaxation import rc_voltage
+
 #: RMS misfit of the constant-ambient thermal model above which the ambient is taken to move
 AMBIENT_DRIFT_K = 0.5
 #: rest detection: |I| below this multiple of the 1C current ...
@@ -85,17 +87,11 @@ CAPACITY_MIN_OPENING_REST_S = 30.0
 
 
 def _thermal_sim(th: np.ndarray, time_s: np.ndarray, load: np.ndarray, t0: float) -> np.ndarray:
+    """First-order lag ``τ dT/dt = T_amb + a·load − T`` from ``T = t0``: the RC step of
+    :func:`service.characterisation.relaxation.rc_voltage` applied to ``T − t0``."""
     t_amb, ln_a, ln_tau = th
     a, tau = math.exp(ln_a), math.exp(ln_tau)
-    dt = np.diff(time_s, prepend=time_s[0])
-    alpha = np.exp(-dt / tau)
-    out = np.empty_like(time_s)
-    x = t0
-    drive = t_amb + a * load
-    for k in range(time_s.size):
-        x = alpha[k] * x + (1.0 - alpha[k]) * drive[k]
-        out[k] = x
-    return out
+    return t0 + rc_voltage(time_s, t_amb + a * load - t0, 1.0, tau)
 
 
 def ambient_drift_k(time_s: np.ndarray, current_a: np.ndarray, temperature_c: np.ndarray, capacity_ah: float,
