@@ -32,6 +32,12 @@ class Estimator(Protocol):
 
     name: str
 
-    def run(self, recording: Recording, profile: CellProfile, soc0: float) -> EstimateTrace:
-        """Estimate SOC along ``recording`` starting from the (possibly wrong) ``soc0``."""
+    def run(self, recording: Recording, profile: CellProfile, soc0: float,
+            history: Recording | None = None) -> EstimateTrace:
+        """Estimate SOC along ``recording`` starting from the (possibly wrong) ``soc0``.
+
+        ``history``: the recording before the start (``socd evaluate --warm-start``).  An
+        estimator with polarisation states drives them with its current, as if it had been
+        running; SOC is never taken from it.  Estimators without such states ignore it.
+        """
         ...

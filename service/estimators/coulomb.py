@@ -24,7 +24,9 @@ class CoulombCounter:
 
     name = "coulomb"
 
-    def run(self, recording: Recording, profile: CellProfile, soc0: float) -> EstimateTrace:
+    def run(self, recording: Recording, profile: CellProfile, soc0: float,
+            history: Recording | None = None) -> EstimateTrace:
+        """``history`` is ignored: coulomb counting has no state but SOC."""
         capacity = profile.capacity_ah * profile.extensions.capacity_scale
         soc = coulomb_soc(recording.time_s, recording.current_a, capacity, soc0)
         return EstimateTrace(soc=soc, v_pred=None, soc_std=None, params={})

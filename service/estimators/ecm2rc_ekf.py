@@ -158,6 +158,23 @@ class Ecm2RcEkfBank:
             self._params[key][moved] = val
         self._temp_params[moved] = temp_c[moved]
 
+    def warm_start(self, history: Recording) -> None:
+        """Drive the RC voltages ``U_1, U_2`` with the current recorded before the start
+        (the same exact recursion as :meth:`step`, at the recorded temperature); SOC and
+        ``P`` stay as they were.  The counterpart of
+        :meth:`service.estimators.pipeline.PackEstimator.warm_start`."""
+        dt = history.dt_s()
+        for k in range(len(history)):
+            temp = np.full(self.n_cells, history.temperature_c[k])
+            self._refresh_params(temp)
+            par = self._params
+            i = history.current_a[k] - par["bias"]
+            r_b = par["r"]
+            if self._soc_scale is not None:
+                r_b = r_b * self._soc_scale(self.x[:, 0], temp)[1][:, None]
+            a = np.exp(-dt[k] / par["tau"])
+            self.x[:, 1:] = a * self.x[:, 1:] + r_b * (1.0 - a) * i[:, None]
+
     def step(
         self,
         dt_s: np.ndarray | float,
@@ -240,10 +257,13 @@ class Ecm2RcEkf:
             )
         self.tuning = EkfTuning(**tuning)
 
-    def run(self, recording: Recording, profile: CellProfile, soc0: float) -> EstimateTrace:
+    def run(self, recording: Recording, profile: CellProfile, soc0: float,
+            history: Recording | None = None) -> EstimateTrace:
         dt = recording.dt_s()
         temp = recording.temperature_c
         bank = Ecm2RcEkfBank(profile, soc0, temp[0], n_cells=1, tuning=self.tuning)
+        if history is not None:
+            bank.warm_start(history)
         n = len(recording)
         soc = np.empty(n)
         std = np.empty(n)

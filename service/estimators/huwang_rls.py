@@ -466,7 +466,10 @@ class HuWangRls:
             raise TypeError(f"unknown Hu-Wang option(s) {sorted(unknown)}; known: {sorted(known)}")
         self.settings = HuWangSettings(**settings)
 
-    def run(self, recording: Recording, profile: CellProfile, soc0: float) -> EstimateTrace:
+    def run(self, recording: Recording, profile: CellProfile, soc0: float,
+            history: Recording | None = None) -> EstimateTrace:
+        """``history`` is ignored: the identifier's filters and RLS start from the recording
+        itself, as in Hu & Wang."""
         ident = HuWangIdentifier(profile, 1, self.settings, soc0=soc0)
         dt = recording.dt_s()
         n = len(recording)

@@ -19,6 +19,7 @@ from typing import Literal
 import numpy as np
 
 from service.cell.fractional import gl_weights
+from service.cell.model import MtsFom
 from service.cell.ocv import CellOcv
 from service.cell.profile import CellParameters, CellProfile
 from service.cell.soc_dependence import scaled_resistances
@@ -151,6 +152,38 @@ class PackEstimator:
         if self.fast is not None:
             self.fast.reset(cells)
         self.ocv_initialised[cells] = False
+
+    def warm_start(self, history: Recording, cells: np.ndarray | None = None) -> None:
+        """Drive ``cells``' polarisation states with the current recorded before the start.
+
+        The cell model (Zeng Eqs. 1, 3, 5: every CPE or extra branch with its G-L memory,
+        and the hysteresis voltage ``U_h``) is simulated along ``history`` with the
+        profile's parameters at the recorded temperature; the filter's branch means,
+        G-L memory and ``U_h`` mean are set to the model's state at the end.  These
+        states depend on the current alone, so the SOC (and every covariance) stays as
+        :meth:`start` set it.  This is what a service that had been running through
+        ``history`` would know; without it a branch of time constant τ starts relaxed,
+        which is wrong for about τ after the last load (an hour-long slow branch after
+        a ten-minute rest)."""
+        cells = np.ones(self.n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
+        if len(history) == 0 or not cells.any():
+            return
+        temp = history.temperature_c
+        dt = history.dt_s()
+        params = self.profile.parameters_at(np.full(self.n, temp[0]))
+        # SOC matters only to resistance scales over SOC: count back from the start SOC
+        soc_then = self.ukf.soc + float(np.sum(history.current_a * dt)) / (3600.0 * params.capacity_ah)
+        model = MtsFom(self.profile, params, soc_then, self.settings.memory_length)
+        last = float(temp[0])
+        for k in range(len(history)):
+            if abs(temp[k] - last) > TEMP_REFRESH_C:
+                last = float(temp[k])
+                model.set_params(self.profile.parameters_at(np.full(self.n, last)))
+            model.step(dt[k], np.full(self.n, history.current_a[k]), np.full(self.n, temp[k]))
+        b = self.n_branches
+        self.ukf.hist[cells] = model.history[cells]
+        self.ukf.x[cells, :b] = model.history[cells, :, 0]
+        self.ukf.x[cells, self.ukf.i_uh] = model.u_h[cells]
 
     # -- the fast path ------------------------------------------------------------------
     def step(
@@ -317,9 +350,12 @@ class PipelineEstimator:
         base = settings or EstimatorSettings()
         self.settings = base.model_copy(update=overrides) if overrides else base
 
-    def run(self, recording: Recording, profile: CellProfile, soc0: float) -> EstimateTrace:
+    def run(self, recording: Recording, profile: CellProfile, soc0: float,
+            history: Recording | None = None) -> EstimateTrace:
         est = PackEstimator(profile, 1, self.settings, self.identification)
         est.start(np.array([soc0]))
+        if history is not None:
+            est.warm_start(history)
         T = len(recording)
         soc = np.empty(T)
         std = np.empty(T)
