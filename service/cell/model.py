@@ -151,20 +151,35 @@ def simulate(
         params = profile.parameters_at(float(temp_c[0]), n_cells=1)
     n = params.r.shape[0]
     model = MtsFom(profile, params, np.broadcast_to(soc0, (n,)), memory_length, np.broadcast_to(u_h0, (n,)))
-    dt = np.diff(time_s, prepend=time_s[0])
-    v = np.empty((time_s.size, n))
-    soc = np.empty((time_s.size, n))
     multi_temp = single and (
         (temperature_dependent and len(profile.parameters) > 1) or profile.extensions.arrhenius is not None
     )
+    v, soc = drive(model, time_s, current_a, temp_c, follow_temperature=multi_temp)
+    if single:
+        return v[:, 0], soc[:, 0]
+    return v, soc
+
+
+def drive(
+    model: MtsFom,
+    time_s: np.ndarray,
+    current_a: np.ndarray,
+    temp_c: np.ndarray,
+    follow_temperature: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step every cell of ``model`` along one recorded current and temperature; return
+    terminal voltage and SOC ``[T, N]``.  With ``follow_temperature`` the profile's
+    parameters are re-read whenever the temperature has moved more than 0.2 °C."""
+    n = model.soc.size
+    dt = np.diff(time_s, prepend=time_s[0])
+    v = np.empty((time_s.size, n))
+    soc = np.empty((time_s.size, n))
     last_t = float(temp_c[0])
     for k in range(time_s.size):
         tk = np.full(n, temp_c[k])
-        if multi_temp and abs(temp_c[k] - last_t) > 0.2:
-            model.set_params(profile.parameters_at(tk))
+        if follow_temperature and abs(temp_c[k] - last_t) > 0.2:
+            model.set_params(model.profile.parameters_at(tk))
             last_t = float(temp_c[k])
         v[k] = model.step(dt[k], np.full(n, current_a[k]), tk)
         soc[k] = model.soc
-    if single:
-        return v[:, 0], soc[:, 0]
     return v, soc

@@ -44,8 +44,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from service.cell.ocv import OcvTable
 from service.cell.model import kinetic_overpotential
+from service.cell.ocv import OcvTable
 from service.cell.profile import CellProfile
 from service.estimators.adaptive_noise import AdaptiveNoise
 from service.estimators.base import EstimateTrace
@@ -160,20 +160,32 @@ class Ecm2RcEkfBank:
 
     def warm_start(self, history: Recording) -> None:
         """Drive the RC voltages ``U_1, U_2`` with the current recorded before the start
-        (the same exact recursion as :meth:`step`, at the recorded temperature); SOC and
-        ``P`` stay as they were.  The counterpart of
+        (the prediction of :meth:`step`, at the recorded temperature); SOC and ``P`` stay
+        as they were.  The counterpart of
         :meth:`service.estimators.pipeline.PackEstimator.warm_start`."""
         dt = history.dt_s()
         for k in range(len(history)):
-            temp = np.full(self.n_cells, history.temperature_c[k])
-            self._refresh_params(temp)
-            par = self._params
-            i = history.current_a[k] - par["bias"]
-            r_b = par["r"]
-            if self._soc_scale is not None:
-                r_b = r_b * self._soc_scale(self.x[:, 0], temp)[1][:, None]
-            a = np.exp(-dt[k] / par["tau"])
-            self.x[:, 1:] = a * self.x[:, 1:] + r_b * (1.0 - a) * i[:, None]
+            _, i, _, _, a, b = self._rc_terms(dt[k], history.current_a[k], history.temperature_c[k])
+            self.x[:, 1:] = a * self.x[:, 1:] + b * i[:, None]
+
+    def _rc_terms(self, dt_s, current_a, temp_c) -> tuple[np.ndarray, ...]:
+        """``temp [N], i [N], R0 [N], R_b [N, 2], a [N, 2], b [N, 2]`` of one step:
+        parameters at the temperature, the bias taken off the current, the SOC scales read
+        at the prior SOC (τ unchanged) and the exact discretisation ``U_b ← a U_b + b I``."""
+        n = self.n_cells
+        dt = np.broadcast_to(np.asarray(dt_s, dtype=float), (n,))
+        temp = np.broadcast_to(np.asarray(temp_c, dtype=float), (n,))
+        self._refresh_params(temp)
+        par = self._params
+        i = np.asarray(current_a, dtype=float) - par["bias"]
+        r0, r_b = par["r0"], par["r"]
+        if self._soc_scale is not None:
+            # the profile's resistance scales over SOC, read at the prior SOC (τ unchanged)
+            g_ohm, g_pol = self._soc_scale(self.x[:, 0], temp)
+            r0, r_b = r0 * g_ohm, r_b * g_pol[:, None]
+        # exact exponential discretisation with the actual dt
+        a = np.exp(-dt[:, None] / par["tau"])  # [N, 2]
+        return temp, i, r0, r_b, a, r_b * (1.0 - a)
 
     def step(
         self,
@@ -186,19 +198,10 @@ class Ecm2RcEkfBank:
         n = self.n_cells
         t = self.tuning
         dt = np.broadcast_to(np.asarray(dt_s, dtype=float), (n,))
-        temp = np.broadcast_to(np.asarray(temp_c, dtype=float), (n,))
-        self._refresh_params(temp)
+        temp, i, r0, r_b, a, b = self._rc_terms(dt, current_a, temp_c)
         par = self._params
-        i = np.asarray(current_a, dtype=float) - par["bias"]
-        r0, r_b = par["r0"], par["r"]
-        if self._soc_scale is not None:
-            # the profile's resistance scales over SOC, read at the prior SOC (τ unchanged)
-            g_ohm, g_pol = self._soc_scale(self.x[:, 0], temp)
-            r0, r_b = r0 * g_ohm, r_b * g_pol[:, None]
 
-        # -- predict (exact exponential discretisation with the actual dt) ---------------
-        a = np.exp(-dt[:, None] / par["tau"])  # [N, 2]
-        b = r_b * (1.0 - a)  # [N, 2]
+        # -- predict ---------------------------------------------------------------------
         g_soc = -dt / (3600.0 * par["capacity"])
         x = self.x
         x[:, 0] += g_soc * i

@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 
 from service.cell.fractional import gl_weights
-from service.cell.model import MtsFom
+from service.cell.model import MtsFom, drive
 from service.cell.ocv import CellOcv
 from service.cell.profile import CellParameters, CellProfile
 from service.cell.soc_dependence import scaled_resistances
@@ -168,18 +168,11 @@ class PackEstimator:
         cells = np.ones(self.n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
         if len(history) == 0 or not cells.any():
             return
-        temp = history.temperature_c
-        dt = history.dt_s()
-        params = self.profile.parameters_at(np.full(self.n, temp[0]))
+        params = self.profile.parameters_at(np.full(self.n, history.temperature_c[0]))
         # SOC matters only to resistance scales over SOC: count back from the start SOC
-        soc_then = self.ukf.soc + float(np.sum(history.current_a * dt)) / (3600.0 * params.capacity_ah)
-        model = MtsFom(self.profile, params, soc_then, self.settings.memory_length)
-        last = float(temp[0])
-        for k in range(len(history)):
-            if abs(temp[k] - last) > TEMP_REFRESH_C:
-                last = float(temp[k])
-                model.set_params(self.profile.parameters_at(np.full(self.n, last)))
-            model.step(dt[k], np.full(self.n, history.current_a[k]), np.full(self.n, temp[k]))
+        charge_ah = float(np.sum(history.current_a * history.dt_s())) / 3600.0
+        model = MtsFom(self.profile, params, self.ukf.soc + charge_ah / params.capacity_ah, self.settings.memory_length)
+        drive(model, history.time_s, history.current_a, history.temperature_c)
         b = self.n_branches
         self.ukf.hist[cells] = model.history[cells]
         self.ukf.x[cells, :b] = model.history[cells, :, 0]
