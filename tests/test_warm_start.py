@@ -31,7 +31,7 @@ def _profile(**hyst: float) -> CellProfile:
 
 
 def _charge_rest_drive(seed: int = 0) -> tuple[Recording, int, np.ndarray]:
-    """40 min at 1C charge from 20 %, 10 min rest, 1 h of 0.3-1.5C discharge steps with rests.
+    """40 min at 1C charge from 20 %, 10 min rest, about 50 min of 0.3-1.5C discharge steps and rests.
 
     Returns the recording, the index of the start point (end of the rest) and true SOC."""
     rng = np.random.default_rng(seed)
