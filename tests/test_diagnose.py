@@ -78,6 +78,21 @@ def test_effects_tied_within_noise_go_to_the_measured_or_more_informative_one(tm
     assert dg.effects[0].rmse_after_mv - runner_up.rmse_after_mv <= dg.thresholds["min_abs_gain_mv"]
 
 
+def test_kinetics_of_a_healthy_cell_is_not_named(tmp_path):
+    """Butler-Volmer with i0 = 0.6 C (a healthy cell's charge transfer): the term fits, and cuts the
+    held-out RMSE, but its size is not a departure, so kinetics is not significant and says why."""
+    from service.diagnosis.effects import KINETICS_MAX_I0_C
+
+    path = write_case(tmp_path / "healthy_kinetics.csv", "kinetics", "clear", seed=0,
+                      case={"extensions": Extensions(kinetics_i0_a=0.6 * CAP)})
+    dg = run_diagnosis(load_recording(path), user_profile(), OPTIONS)
+    kin = next(e for e in dg.effects if e.name == "kinetics")
+    assert kin.params["kinetics_i0_a"] / CAP >= KINETICS_MAX_I0_C
+    assert kin.score > 0.1  # the term does fit: without the size test this is the gain that named it
+    assert not kin.significant and any("healthy cell" in r for r in kin.reasons), kin.reasons
+    assert dg.verdict != "kinetics"
+
+
 def test_none_with_a_large_residual_says_the_physics_is_missing(tmp_path):
     """Hysteresis left out of the candidates: the verdict is none, and the assessment says the
     residual is far above noise (not that the model is fine) and which candidate fitted best."""

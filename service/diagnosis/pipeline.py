@@ -33,6 +33,9 @@ Protocol (stated in every report and JSON):
   falls by at least ``min_abs_gain_noise`` times the voltage noise (estimated from the
   recording's rests) and ``ΔBIC >= min_delta_bic``.  The verdict is the best significant
   effect, else ``none``.
+* **Size**: an effect whose fitted size is that of a healthy cell is not significant
+  (:attr:`Effect.implausible`; kinetics: apparent exchange current ``>= 0.1 C``,
+  :data:`service.diagnosis.effects.KINETICS_MAX_I0_C`).
 * **Ranking** (:func:`rank`): significant effects whose held-out RMSEs lie within the
   noise margin of the best are tied (the voltage cannot tell them apart); a directly
   measured one goes first, then the higher ΔBIC.
@@ -49,7 +52,7 @@ import numpy as np
 from service.cell.fitting import FitSegment, encode_point, estimate_r_ohm, fit_parameters
 from service.cell.model import simulate
 from service.cell.profile import CellProfile
-from service.diagnosis.effects import EFFECTS, Context, Effect
+from service.diagnosis.effects import EFFECTS, KINETICS_MAX_I0_C, Context, Effect
 from service.diagnosis.locate import locate
 from service.diagnosis.refit import Problem, parameter_std, refit
 from service.diagnosis.signatures import (
@@ -444,6 +447,9 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
                            f"({1000 * sigma:.2f} mV)")
         if not direct and dbic < opt.min_delta_bic:
             reasons.append(f"dBIC {dbic:.1f} < {opt.min_delta_bic:g}")
+        why = eff.implausible(phys, problem.ctx) if eff.implausible else None
+        if why:
+            reasons.append(why)
         outcomes.append(EffectOutcome(
             name=name, title=eff.title, score=score, significant=not reasons, rmse_before_mv=rmse_before,
             rmse_after_mv=after, params={k: float(v) for k, v in phys.items()}, params_std=params_std,
@@ -467,6 +473,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         "min_abs_gain_noise": opt.min_abs_gain_noise, "noise_sigma_mv": round(1000 * sigma, 3),
         "min_abs_gain_mv": round(opt.min_abs_gain_noise * 1000 * sigma, 3),
         "concentration_flag": 1.5,
+        "kinetics_max_i0_c": KINETICS_MAX_I0_C,
     }
     base = {
         "point": point.model_dump(), "rmse_fit_mv": round(rmse_fit_base, 3),

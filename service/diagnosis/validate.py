@@ -97,7 +97,9 @@ CASES: dict[str, dict[str, dict]] = {
     # the sensor reads true + offset: the voltage follows the true current, whose rests are
     # exactly zero, and the recording holds the measured one
     "current_bias": {lv: {"bias_a": b} for lv, b in zip(LEVELS, (0.006, 0.014, 0.03))},
-    "kinetics": {lv: {"extensions": Extensions(kinetics_i0_a=i0)} for lv, i0 in zip(LEVELS, (3.0, 1.5, 0.6))},
+    # exchange currents below a healthy cell's (service.diagnosis.effects.KINETICS_MAX_I0_C = 0.1 C):
+    # 0.09 / 0.06 / 0.03 C
+    "kinetics": {lv: {"extensions": Extensions(kinetics_i0_a=f * CAP)} for lv, f in zip(LEVELS, (0.09, 0.06, 0.03))},
     # slow solid diffusion: the surface SOC lags the bulk (gain of SOC per 1C, 10 min)
     "diffusion": {lv: {"extensions": Extensions(diffusion_surface=SurfaceDiffusionSpec(tau_s=600.0, gain=g))}
                   for lv, g in zip(LEVELS, (0.02, 0.04, 0.08))},
@@ -107,12 +109,13 @@ CASES: dict[str, dict[str, dict]] = {
 }
 
 
-def simulate_case(effect: str, level: str = "clear", seed: int = 0) -> np.ndarray:
+def simulate_case(effect: str, level: str = "clear", seed: int = 0, case: dict | None = None) -> np.ndarray:
     """``[N, 4]`` columns time_s, current_a (measured), voltage_v, temperature_c.
 
-    Seed 0 is the drive and noise of the test suite; other seeds change both.
+    Seed 0 is the drive and noise of the test suite; other seeds change both.  ``case``
+    replaces ``CASES[effect][level]`` (the same keys) to simulate a size outside the grid.
     """
-    case = dict(CASES[effect][level])
+    case = dict(CASES[effect][level] if case is None else case)
     u_h0 = case.pop("u_h0", 0.0)
     temp_kind = case.pop("temp", "flat")
     bias_a = case.pop("bias_a", 0.0)
@@ -127,8 +130,8 @@ def simulate_case(effect: str, level: str = "clear", seed: int = 0) -> np.ndarra
     return np.column_stack([t, i_meas, v, temp + rng.normal(0, 0.05, N)])
 
 
-def write_case(path: Path, effect: str, level: str = "clear", seed: int = 0) -> Path:
-    np.savetxt(path, simulate_case(effect, level, seed), delimiter=",",
+def write_case(path: Path, effect: str, level: str = "clear", seed: int = 0, case: dict | None = None) -> Path:
+    np.savetxt(path, simulate_case(effect, level, seed, case), delimiter=",",
                header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.6f")
     return path
 
