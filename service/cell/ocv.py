@@ -188,13 +188,17 @@ class CellOcv:
     """OCV rows of a table evaluated once at each cell's temperature, for fast lookups.
 
     ``rows[n, s]`` is the cell ``n``'s OCV on the uniform SOC grid; lookups take SOC of
-    shape ``[N]`` or ``[N, ...]`` (one leading axis per cell).
+    shape ``[N]`` or ``[N, ...]`` (one leading axis per cell).  ``offset_v[n]`` (optional) is
+    added to every row: the entropic shift ``dOCV/dT · (T - T_ref)`` of the temperature
+    extension (:class:`service.cell.profile.ArrheniusSpec`).
     """
 
-    def __init__(self, table: OcvTable, temp_c: np.ndarray) -> None:
+    def __init__(self, table: OcvTable, temp_c: np.ndarray, offset_v: np.ndarray | None = None) -> None:
         temp_c = np.asarray(temp_c, float)
         k0, k1, f = table._rows_at(temp_c)
         self.rows = table.ocv_v[k0] + f[:, None] * (table.ocv_v[k1] - table.ocv_v[k0])
+        if offset_v is not None:
+            self.rows = self.rows + np.broadcast_to(np.asarray(offset_v, float), temp_c.shape)[:, None]
         self.steps = np.diff(self.rows, axis=1)  # [N, G-1]
         self._rows_flat = self.rows.ravel()
         self._steps_flat = self.steps.ravel()

@@ -112,9 +112,10 @@ class SurfaceDiffusionSpec(_Strict):
     steep (low SOC on NMC) -- the SOC dependence a constant-R branch cannot give.
     ``gain`` is the steady-state surface deficit per 1C (fraction of SOC).  ``x`` starts
     at 0 (a rested cell).  Simulated by :mod:`service.cell.model` and
-    :func:`service.cell.fitting.simulate_batch`; the online estimators
-    (:mod:`service.estimators`) do **not** model it yet: a profile carrying it loads and
-    runs there with the term ignored.
+    :func:`service.cell.fitting.simulate_batch`; the paper's pipeline
+    (:class:`service.estimators.pipeline.PackEstimator`: ``fomiukf``, ``foukf``,
+    ``fom-single-scale`` and the service) propagates ``x`` from the measured current and
+    reads its OCV at the surface.  The 2-RC EKF baseline ignores the term.
     """
 
     tau_s: float = Field(gt=0, description="surface-bulk relaxation time constant, s")

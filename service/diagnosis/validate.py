@@ -115,19 +115,27 @@ def simulate_case(effect: str, level: str = "clear", seed: int = 0, case: dict |
     Seed 0 is the drive and noise of the test suite; other seeds change both.  ``case``
     replaces ``CASES[effect][level]`` (the same keys) to simulate a size outside the grid.
     """
-    case = dict(CASES[effect][level] if case is None else case)
+    columns, _ = simulate_cell(CASES[effect][level] if case is None else case, current_profile(11 + seed), seed)
+    return columns
+
+
+def simulate_cell(case: dict, current_a: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The cell of ``case`` (a ``CASES`` entry) driven by the true ``current_a`` at ``DT``:
+    ``([T, 4]`` columns time_s, current_a (measured: + sensor offset + noise), voltage_v
+    (+ noise), temperature_c``, true SOC ``[T])``.  The SOC starts at 0.95."""
+    case = dict(case)
     u_h0 = case.pop("u_h0", 0.0)
     temp_kind = case.pop("temp", "flat")
     bias_a = case.pop("bias_a", 0.0)
     prof = base_profile().model_copy(update=case)
-    t = np.arange(N) * DT
-    i = current_profile(11 + seed)
+    n = current_a.size
+    t = np.arange(n) * DT
     rng = np.random.default_rng(5 + 1000 * seed)
-    temp = np.linspace(5.0, 35.0, N) if temp_kind == "ramp" else 25.0 + 2.0 * np.sin(t / 900.0)
-    v, _ = simulate(prof, t, i, temp, 0.95, u_h0=u_h0)
-    v = v + rng.normal(0.0, V_NOISE, N)
-    i_meas = i + bias_a + rng.normal(0.0, I_NOISE, N)
-    return np.column_stack([t, i_meas, v, temp + rng.normal(0, 0.05, N)])
+    temp = np.linspace(5.0, 35.0, n) if temp_kind == "ramp" else 25.0 + 2.0 * np.sin(t / 900.0)
+    v, soc = simulate(prof, t, current_a, temp, 0.95, u_h0=u_h0)
+    v = v + rng.normal(0.0, V_NOISE, n)
+    i_meas = current_a + bias_a + rng.normal(0.0, I_NOISE, n)
+    return np.column_stack([t, i_meas, v, temp + rng.normal(0, 0.05, n)]), soc
 
 
 def write_case(path: Path, effect: str, level: str = "clear", seed: int = 0, case: dict | None = None) -> Path:

@@ -20,8 +20,8 @@ the fall of the apparent resistance at high current in ``η_kin`` (a known funct
 current, :func:`service.cell.model.kinetic_overpotential`, so the Jacobian is unchanged):
 the baseline reads the same profile as the pipeline, including the resistance scales over
 SOC (``socd fit --soc-resistance``; ``R0`` and ``R_b`` scaled at the prior SOC, ``τ_b``
-kept).  Hysteresis, extra branches and the
-entropic OCV term are not part of a 2-RC EKF and are ignored.
+kept).  Hysteresis, extra branches, the entropic OCV term and the solid-diffusion
+surface lag are not part of a 2-RC EKF and are ignored (the pipeline reads all four).
 
 Noise model (all keyword arguments of the constructors):
 

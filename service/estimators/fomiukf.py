@@ -135,13 +135,18 @@ class FoMiUkf:
         params: CellParameters,
         active: np.ndarray,
         cell_ocv: CellOcv | None = None,
+        surface_deficit: np.ndarray | None = None,
     ) -> None:
+        """``surface_deficit[n]`` (optional): bulk − surface SOC of the solid-diffusion
+        extension; the OCV is then read at the particle surface, ``OCV(SOC - x)``."""
         b = self.b
         i = current_a - params.current_bias_a
         sqrt_p, bad = robust_cholesky(self.P)
         self.repairs += int(bad.sum())
         X = sigma_points(self.x, sqrt_p, self.gamma)
         soc_s = X[..., self.i_soc]
+        if surface_deficit is not None:
+            soc_s = soc_s - surface_deficit[:, None]
         drop = params.r_ohm * i
         # the Butler-Volmer term, kept for the fast identifier's output (None: no cell has one)
         self.kinetic_v = None

@@ -4,7 +4,8 @@
 estimators (``fomiukf``, ``foukf``, ``fom-single-scale``) wrap it for one cell.
 
 Per sample: profile parameters at each cell's temperature, corrected by the
-identifiers → FO-MI-UKF prediction and update → fast identifier (EKF over
+identifiers → the solid-diffusion surface deficit, if the profile carries that
+extension → FO-MI-UKF prediction and update → fast identifier (EKF over
 ``[R_ohm, R_ct, C_dl, m, U_df]`` using the SOC filter's gain) → G-L memory push.
 The slow identifier (``[R_df, C_df, n]``) buffers what it needs on the fast path and
 updates in :meth:`PackEstimator.slow_update`, which the service calls from its own
@@ -57,7 +58,14 @@ class PackEstimator:
         self.n_branches = profile.n_branches
         self.ukf = FoMiUkf(self.ocv, self.n, self.n_branches, s)
         self._temp_used = np.full(self.n, 25.0)
-        self.cell_ocv = CellOcv(self.ocv, self._temp_used)
+        # the temperature extension's entropic OCV slope (V/K, reference °C), or None
+        arr = profile.extensions.arrhenius
+        self._entropic = (arr.entropic_v_per_k, arr.ref_temp_c) if arr is not None and arr.entropic_v_per_k else None
+        self.cell_ocv = self._cell_ocv()
+        #: the solid-diffusion extension (``Extensions.diffusion_surface``) or None, and its
+        #: state: bulk − surface SOC per cell, a first-order lag of the measured current
+        self.surface = profile.extensions.diffusion_surface
+        self.surface_deficit = np.zeros(self.n)
         self.nominal = profile.parameters_at(25.0, n_cells=self.n)
         self.params = self.nominal.copy()
         self.soc_scale = profile.soc_scale_table()
@@ -78,12 +86,33 @@ class PackEstimator:
         self.steps = 0
 
     # -- parameters ---------------------------------------------------------------------
+    def _entropic_shift(self, temp_c: np.ndarray) -> np.ndarray | None:
+        """``dOCV/dT · (T - T_ref)`` of the temperature extension (None without one)."""
+        if self._entropic is None:
+            return None
+        slope, ref = self._entropic
+        return slope * (np.asarray(temp_c, float) - ref)
+
+    def _cell_ocv(self) -> CellOcv:
+        return CellOcv(self.ocv, self._temp_used, self._entropic_shift(self._temp_used))
+
     def _refresh_nominal(self, temp_c: np.ndarray, force: bool = False) -> None:
         moved = ~(np.abs(temp_c - self._temp_used) < TEMP_REFRESH_C) | force
         if moved.any():
             self.nominal = self.profile.parameters_at(np.where(moved, temp_c, self._temp_used))
             self._temp_used = np.where(moved, temp_c, self._temp_used)
-            self.cell_ocv = CellOcv(self.ocv, self._temp_used)
+            self.cell_ocv = self._cell_ocv()
+
+    def _surface_step(self, dt_s: float, current_a: np.ndarray, params: CellParameters) -> None:
+        """Advance bulk − surface SOC ``x``: ``τ dx/dt = gain·I/Q − x``, discretised exactly for
+        a current held over the sample, as :meth:`service.cell.model.MtsFom.surface_step`
+        does (:class:`service.cell.profile.SurfaceDiffusionSpec`).  ``x`` depends on the
+        current alone, so it is propagated beside the filter rather than as a filter state."""
+        if self.surface is None:
+            return
+        a = np.exp(-dt_s / self.surface.tau_s)
+        drive_c = (current_a - params.current_bias_a) / params.capacity_ah
+        self.surface_deficit = a * self.surface_deficit + (1.0 - a) * self.surface.gain * drive_c
 
     def _soc_nominal(self) -> CellParameters:
         """The nominal parameters at each cell's present SOC estimate (resistance scales of
@@ -139,6 +168,10 @@ class PackEstimator:
         self._refresh_nominal(temp, force=not self.steps)
         i = np.broadcast_to(np.asarray(current_a, float), (self.n,))
         v = np.broadcast_to(np.asarray(voltage_v, float), (self.n,)) + self.nominal.r_ohm * i
+        shift = self._entropic_shift(temp)
+        if shift is not None:
+            v = v - shift
+        # a (re)start relaxes the surface deficit with the branches, so surface SOC = SOC here
         soc = np.clip(self.ocv.soc_from_ocv(v, temp), 0.0, 1.0)
         self.start(soc, cells=cells)
         self.ocv_initialised[cells] = True
@@ -149,6 +182,7 @@ class PackEstimator:
         soc_arr = np.broadcast_to(np.asarray(soc, float), (self.n,))
         std = self.settings.soc_init_std if soc_std is None else soc_std
         self.ukf.reset(cells, soc_arr[cells], std, float(self.profile.hysteresis.u_h_max_v))
+        self.surface_deficit[cells] = 0.0
         if self.fast is not None:
             self.fast.reset(cells)
         self.ocv_initialised[cells] = False
@@ -177,6 +211,7 @@ class PackEstimator:
         self.ukf.hist[cells] = model.history[cells]
         self.ukf.x[cells, :b] = model.history[cells, :, 0]
         self.ukf.x[cells, self.ukf.i_uh] = model.u_h[cells]
+        self.surface_deficit[cells] = model.x_surf[cells]
 
     # -- the fast path ------------------------------------------------------------------
     def step(
@@ -201,11 +236,15 @@ class PackEstimator:
         params = self._current_params()
         weights = gl_weights(params.alpha, self.settings.memory_length)
         ukf = self.ukf
+        self._surface_step(dt, i, params)
+        surface = self.surface_deficit if self.surface is not None else None
         ukf.predict(dt, i, params, weights)
-        ukf.update(v, i, temp, params, act, self.cell_ocv)
+        ukf.update(v, i, temp, params, act, self.cell_ocv, surface)
         if self.fast is not None:
             x_id = ukf.x_single if self.settings.identifier_sees == "single" else ukf.x
             soc_post = x_id[:, ukf.i_soc]
+            if surface is not None:
+                soc_post = soc_post - surface  # the OCV is read at the particle surface
             identify = act & (ukf.soc_std < self.settings.identify_below_soc_std)
             self.fast.update(
                 nominal=self.nominal_now,
@@ -269,6 +308,7 @@ class PackEstimator:
             "ukf_innovations": u.innovations, "ukf_gains": u.gains, "ukf_nis": u.nis_ema,
             "ukf_noise_moments": u.noise.moments,
             "reset_count": self.reset_count, "ocv_initialised": self.ocv_initialised,
+            "surface_deficit": self.surface_deficit,
         }
         if self.fast is not None:
             st.update(fast_z=self.fast.z, fast_P=self.fast.P, fast_D=self.fast.D)
@@ -319,9 +359,12 @@ class PackEstimator:
                     need("slow_ring", self.slow.ring.shape), need("slow_moved", self.slow.moved.shape))
         resets = need("reset_count", self.reset_count.shape).astype(int)
         ocv_init = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
+        # states written before the surface deficit was kept: a relaxed surface
+        surface = need("surface_deficit", (self.n,)) if "surface_deficit" in state else np.zeros(self.n)
         u.x, u.P, u.hist, u.var_hist, u.innovations, u.gains, u.nis_ema = x, P, hist, var_hist, innov, gains, nis
         u.noise.set_moments(noise_moments)
         self.reset_count, self.ocv_initialised = resets, ocv_init
+        self.surface_deficit = surface
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast
             self.fast.set_difference_state(prev)
