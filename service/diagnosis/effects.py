@@ -13,8 +13,8 @@ Registry :data:`EFFECTS` maps the names of the issue's vocabulary to the parts.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

@@ -318,7 +318,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         # capacity scale or a sensor offset is fitted where its signature is (the knee), while
         # the model still runs through the whole recording
         duration = float(rec.time_s[-1] - rec.time_s[0])
-        n_blocks = max(4, int(round(duration / opt.block_s)))
+        n_blocks = max(4, round(duration / opt.block_s))
         block = np.minimum(((rec.time_s - rec.time_s[0]) / duration * n_blocks).astype(int), n_blocks - 1)
         held = block % 2 == 1
     elif opt.split == "chronological":

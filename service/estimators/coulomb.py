@@ -11,12 +11,10 @@ error in ``soc0`` or in the current sensor stays in the estimate for good.
 
 from __future__ import annotations
 
-import numpy as np
-
 from service.cell.profile import CellProfile
 from service.estimators.base import EstimateTrace
-from service.recording import Recording
 from service.evaluation.truth import coulomb_soc
+from service.recording import Recording
 
 
 class CoulombCounter:

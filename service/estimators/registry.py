@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
-from typing import Callable
+from collections.abc import Callable
 
 from service.estimators.base import Estimator
 from service.estimators.settings import EstimatorSettings
