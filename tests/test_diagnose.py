@@ -129,6 +129,16 @@ def test_cli_json_report_and_profile(tmp_path, capsys):
     saved = CellProfile.model_validate_json((tmp_path / "cell.json").read_text())
     assert saved.extensions.capacity_scale == pytest.approx(0.85, abs=0.05)
 
+    # --save-effect keeps another candidate's extension (here the non-significant sensor offset)
+    rc = main(["diagnose", str(rec), "--ocv", str(ocv), "--capacity-ah", str(CAP), "--json", str(out),
+               "--save-profile", str(tmp_path / "bias.json"), "--save-effect", "current_bias",
+               "--effects", "capacity,current_bias", "--quiet"])
+    assert rc == 0
+    bias = next(e for e in json.loads(out.read_text())["effects"] if e["name"] == "current_bias")
+    other = CellProfile.model_validate_json((tmp_path / "bias.json").read_text())
+    assert other.extensions.capacity_scale == 1.0
+    assert other.extensions.current_bias_a == pytest.approx(bias["params"]["current_bias_a"])
+
 
 def test_bad_inputs_name_the_file_or_field(tmp_path, capsys):
     bad = tmp_path / "bad.csv"
@@ -149,6 +159,11 @@ def test_bad_inputs_name_the_file_or_field(tmp_path, capsys):
     assert "cell.json" in err and "capacity_ah" in err
     assert main(["diagnose", str(good), "--ocv", str(ocv), "--capacity-ah", "2", "--effects", "magic"]) == 2
     assert "magic" in capsys.readouterr().err
+    assert main(["diagnose", str(good), "--ocv", str(ocv), "--capacity-ah", "2", "--effects", "capacity",
+                 "--save-profile", str(tmp_path / "p.json"), "--save-effect", "kinetics"]) == 2
+    assert "--save-effect" in capsys.readouterr().err
+    assert main(["diagnose", str(good), "--ocv", str(ocv), "--capacity-ah", "2", "--save-effect", "capacity"]) == 2
+    assert "--save-profile" in capsys.readouterr().err
     with pytest.raises(UserError):
         load_recording(tmp_path / "missing.csv")
 

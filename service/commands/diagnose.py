@@ -37,7 +37,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--capacity-ah", type=float, help="capacity in Ah (with --ocv)")
     p.add_argument("--json", help="write the result as JSON here ('-' = stdout)")
     p.add_argument("--report", help="write report.md and PNG plots into this directory")
-    p.add_argument("--save-profile", help="write the extended cell profile here (.json or .toml)")
+    p.add_argument("--save-profile", help="write the extended cell profile here (.json or .toml): the verdict's "
+                   "extension, or the base model alone when the verdict is none")
+    p.add_argument("--save-effect", metavar="NAME",
+                   help="with --save-profile: save this candidate's extension instead of the verdict's, even when "
+                   "it is not significant (your call, e.g. from other evidence); 'none' saves the base model")
     p.add_argument("--fit-fraction", type=float, default=0.6, help="share of the duration fitted (default 0.6)")
     p.add_argument("--split", choices=("chronological", "interleaved", "blocks"), default="chronological",
                    help="held-out protocol: the last 40 %% of the duration (default), or blocks 2,4,7,9 of 10")
@@ -100,6 +104,12 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise UserError(f"--soc0 must be in [0, 1], got {args.soc0:g}")
+    if args.save_effect is not None:
+        if not args.save_profile:
+            raise UserError("--save-effect needs --save-profile (where to write it)")
+        if args.save_effect != "none" and args.save_effect not in effects:
+            raise UserError(f"--save-effect: '{args.save_effect}' is not among the candidates tried "
+                            f"({', '.join(effects)}) or 'none'")
     opt = DiagnoseOptions(fit_fraction=args.fit_fraction, split=args.split, soc0=args.soc0, effects=effects,
                           seed=args.seed, fit_base=fit_base)
     say = (lambda m: None) if args.quiet else (lambda m: print(f"socd diagnose: {m}", file=sys.stderr, flush=True))
@@ -121,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
         path = write_report(dg, args.report)
         say(f"report: {path}")
     if args.save_profile:
-        save_profile(dg.best_profile(), args.save_profile)
+        save_profile(dg.best_profile() if args.save_effect is None else dg.profile_of(args.save_effect),
+                     args.save_profile)
         say(f"profile: {args.save_profile}")
     if args.json != "-":
         print(f"verdict: {dg.verdict} ({dg.assessment['state']}: {dg.assessment['text']})")

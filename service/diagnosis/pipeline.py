@@ -163,10 +163,17 @@ class Diagnosis:
 
     def best_profile(self) -> CellProfile:
         """The extended profile of the verdict (the base profile when the verdict is none)."""
+        return self.profile_of(self.verdict)
+
+    def profile_of(self, name: str) -> CellProfile:
+        """The profile extended by candidate ``name``, significant or not (``none``: the base).
+        Raises ``KeyError`` for a name that was not tried."""
+        if name == "none":
+            return self.base_profile
         for e in self.effects:
-            if e.name == self.verdict:
+            if e.name == name:
                 return e.profile
-        return self.base_profile
+        raise KeyError(f"no candidate '{name}' in this diagnosis")
 
 
 # -- statistics ---------------------------------------------------------------------------------
