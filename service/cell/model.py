@@ -33,6 +33,19 @@ def soc_step(soc: np.ndarray, current_a: np.ndarray, dt_s, capacity_ah: np.ndarr
     return soc - current_a * dt_s / (3600.0 * capacity_ah)
 
 
+def surface_deficit_step(x: np.ndarray, current_a: np.ndarray, dt_s, tau_s, gain, capacity_ah) -> np.ndarray:
+    """Bulk − surface SOC after one sample: ``τ dx/dt = gain·I/Q − x`` solved exactly for a
+    current held over the sample (:class:`service.cell.profile.SurfaceDiffusionSpec`)."""
+    a = np.exp(-dt_s / tau_s)
+    return a * x + (1.0 - a) * gain * current_a / capacity_ah
+
+
+def entropic_shift_v(slope_v_per_k: float, ref_temp_c: float, temp_c: np.ndarray) -> np.ndarray:
+    """Entropic OCV shift ``dOCV/dT · (T − T_ref)`` of the temperature extension
+    (:class:`service.cell.profile.ArrheniusSpec`)."""
+    return slope_v_per_k * (np.asarray(temp_c, float) - ref_temp_c)
+
+
 def kinetic_overpotential(current_a: np.ndarray, i0_a: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
     """Symmetric Butler–Volmer overpotential beyond the linear term: 2RT/F asinh(I/2i0) - linear.
 
@@ -101,8 +114,8 @@ class MtsFom:
         """Advance bulk − surface SOC ``x`` (see :class:`SurfaceDiffusionSpec`); no-op when off."""
         if self.surface_tau_s is None:
             return
-        a = np.exp(-dt_s / self.surface_tau_s)
-        self.x_surf = a * self.x_surf + (1.0 - a) * self.surface_gain * i / self.params.capacity_ah
+        self.x_surf = surface_deficit_step(self.x_surf, i, dt_s, self.surface_tau_s, self.surface_gain,
+                                           self.params.capacity_ah)
 
     def set_params(self, params: CellParameters) -> None:
         self.params = params
@@ -111,7 +124,7 @@ class MtsFom:
     def open_circuit(self, temp_c: np.ndarray, soc: np.ndarray | None = None) -> np.ndarray:
         v = self.ocv.ocv(self.soc if soc is None else soc, temp_c)
         if self._entropic:
-            v = v + self._entropic * (temp_c - self._entropic_ref)
+            v = v + entropic_shift_v(self._entropic, self._entropic_ref, temp_c)
         return v
 
     def step(self, dt_s: float | np.ndarray, current_a: np.ndarray, temp_c: np.ndarray) -> np.ndarray:

@@ -28,7 +28,15 @@ from pathlib import Path
 
 import numpy as np
 
-from service.diagnosis.validate import CAP, CASES, LEVELS, simulate_cell, user_profile, write_case
+from service.diagnosis.validate import (
+    CASES,
+    DT,
+    LEVELS,
+    random_steps,
+    simulate_cell,
+    user_profile,
+    write_case,
+)
 
 #: the estimators scored (the service's default pipeline and the paper's)
 ESTIMATORS = ("foukf", "fomiukf")
@@ -39,15 +47,8 @@ SCORE_DISCHARGE_AH = 1.6
 def score_drive(seed: int) -> np.ndarray:
     """True current of the scoring recording at ``validate.DT``: steps of 0.5-2C discharge,
     0.5C charge and rests until ``SCORE_DISCHARGE_AH`` is out, then a 10 min rest."""
-    from service.diagnosis.validate import DT
-
-    rng = np.random.default_rng(100 + seed)
-    out: list[float] = [0.0] * 15
-    while np.sum(out) * DT / 3600.0 < SCORE_DISCHARGE_AH:
-        level = rng.choice([2.0, 1.5, 1.0, 1.0, 0.5, 0.0, -0.5]) * CAP
-        out += [level] * int(rng.integers(3, 30))
-        if rng.random() < 0.15:
-            out += [0.0] * int(rng.integers(20, 80))
+    out = random_steps(np.random.default_rng(100 + seed), (2.0, 1.5, 1.0, 1.0, 0.5, 0.0, -0.5),
+                       lambda o: np.sum(o) * DT / 3600.0 >= SCORE_DISCHARGE_AH)
     return np.array(out + [0.0] * int(600 / DT), dtype=float)
 
 

@@ -21,6 +21,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,15 +65,20 @@ def user_profile() -> CellProfile:
         ParameterPoint(r_ohm=0.01, r_ct=0.01, c_dl=100.0, m=0.9, r_df=0.01, c_df=1000.0, n=0.8)])
 
 
-def current_profile(seed: int = 11) -> np.ndarray:
-    """Random drive: steps of 0.5-2C discharge and 0.5-1C charge, with rests."""
-    rng = np.random.default_rng(seed)
+def random_steps(rng: np.random.Generator, c_rates: tuple[float, ...], done: Callable[[list[float]], bool]) -> list[float]:
+    """Current steps of 3-30 samples at C-rates drawn from ``c_rates``, with a rest of 20-80
+    samples after 15 % of them, from a 15-sample opening rest until ``done(steps)``."""
     out: list[float] = [0.0] * 15
-    while len(out) < N:
-        level = rng.choice([2.0, 1.5, 1.0, 1.0, 0.5, 0.0, -0.5, -1.0]) * CAP
-        out += [level] * int(rng.integers(3, 30))
+    while not done(out):
+        out += [rng.choice(c_rates) * CAP] * int(rng.integers(3, 30))
         if rng.random() < 0.15:
             out += [0.0] * int(rng.integers(20, 80))
+    return out
+
+
+def current_profile(seed: int = 11) -> np.ndarray:
+    """Random drive: steps of 0.5-2C discharge and 0.5-1C charge, with rests."""
+    out = random_steps(np.random.default_rng(seed), (2.0, 1.5, 1.0, 1.0, 0.5, 0.0, -0.5, -1.0), lambda o: len(o) >= N)
     return np.array(out[:N], dtype=float)
 
 

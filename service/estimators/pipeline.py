@@ -20,7 +20,7 @@ from typing import Literal
 import numpy as np
 
 from service.cell.fractional import gl_weights
-from service.cell.model import MtsFom, drive
+from service.cell.model import MtsFom, drive, entropic_shift_v, surface_deficit_step
 from service.cell.ocv import CellOcv
 from service.cell.profile import CellParameters, CellProfile
 from service.cell.soc_dependence import scaled_resistances
@@ -90,8 +90,7 @@ class PackEstimator:
         """``dOCV/dT · (T - T_ref)`` of the temperature extension (None without one)."""
         if self._entropic is None:
             return None
-        slope, ref = self._entropic
-        return slope * (np.asarray(temp_c, float) - ref)
+        return entropic_shift_v(*self._entropic, temp_c)
 
     def _cell_ocv(self) -> CellOcv:
         return CellOcv(self.ocv, self._temp_used, self._entropic_shift(self._temp_used))
@@ -104,15 +103,13 @@ class PackEstimator:
             self.cell_ocv = self._cell_ocv()
 
     def _surface_step(self, dt_s: float, current_a: np.ndarray, params: CellParameters) -> None:
-        """Advance bulk − surface SOC ``x``: ``τ dx/dt = gain·I/Q − x``, discretised exactly for
-        a current held over the sample, as :meth:`service.cell.model.MtsFom.surface_step`
-        does (:class:`service.cell.profile.SurfaceDiffusionSpec`).  ``x`` depends on the
-        current alone, so it is propagated beside the filter rather than as a filter state."""
+        """Advance bulk − surface SOC ``x`` as the model does (:func:`service.cell.model.surface_deficit_step`).
+        ``x`` depends on the current alone, so it is propagated beside the filter rather than
+        as a filter state."""
         if self.surface is None:
             return
-        a = np.exp(-dt_s / self.surface.tau_s)
-        drive_c = (current_a - params.current_bias_a) / params.capacity_ah
-        self.surface_deficit = a * self.surface_deficit + (1.0 - a) * self.surface.gain * drive_c
+        self.surface_deficit = surface_deficit_step(self.surface_deficit, current_a - params.current_bias_a, dt_s,
+                                                    self.surface.tau_s, self.surface.gain, params.capacity_ah)
 
     def _soc_nominal(self) -> CellParameters:
         """The nominal parameters at each cell's present SOC estimate (resistance scales of
