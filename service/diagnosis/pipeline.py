@@ -165,15 +165,17 @@ class Diagnosis:
         """The extended profile of the verdict (the base profile when the verdict is none)."""
         return self.profile_of(self.verdict)
 
+    def outcome(self, name: str) -> EffectOutcome:
+        """Candidate ``name``'s outcome, significant or not; ``KeyError`` if it was not tried."""
+        for e in self.effects:
+            if e.name == name:
+                return e
+        raise KeyError(f"no candidate '{name}' in this diagnosis")
+
     def profile_of(self, name: str) -> CellProfile:
         """The profile extended by candidate ``name``, significant or not (``none``: the base).
         Raises ``KeyError`` for a name that was not tried."""
-        if name == "none":
-            return self.base_profile
-        for e in self.effects:
-            if e.name == name:
-                return e.profile
-        raise KeyError(f"no candidate '{name}' in this diagnosis")
+        return self.base_profile if name == "none" else self.outcome(name).profile
 
 
 # -- statistics ---------------------------------------------------------------------------------

@@ -88,7 +88,7 @@ def run_effect(effect: str, level: str, workdir: Path, progress=None) -> RoundTr
     diag_csv = write_case(workdir / f"{effect}_{level}_diagnose.csv", effect, level, 0)
     say(f"{effect}: diagnosing {diag_csv.name} ...")
     dg = run_diagnosis(load_recording(diag_csv), user_profile(), DiagnoseOptions())
-    candidate = next(e for e in dg.effects if e.name == effect)
+    candidate = dg.outcome(effect)
     base_path = workdir / f"{effect}_{level}_base.toml"
     ext_path = workdir / f"{effect}_{level}_extended.toml"
     save_profile(dg.base_profile, base_path)
