@@ -122,15 +122,9 @@ def _hyst_profile(ph, profile, ctx):
 
 def _direction_state(ctx: Context, rate: float = 30.0) -> np.ndarray:
     """The Eq.-1 hysteresis state for U_H = 1: +1 after charge, -1 after discharge."""
-    from service.cell.hysteresis import hysteresis_step
+    from service.diagnosis.signatures import direction_state
 
-    u = np.zeros(ctx.time_s.size)
-    h = 0.0
-    dt = np.diff(ctx.time_s, prepend=ctx.time_s[0])
-    for k in range(u.size):
-        h = float(hysteresis_step(np.array(h), np.array(ctx.current_a[k]), dt[k], 1.0, rate, ctx.capacity_ah))
-        u[k] = h
-    return u
+    return direction_state(ctx.time_s, ctx.current_a, ctx.capacity_ah, rate)
 
 
 def _hyst_feature(ctx):

@@ -25,7 +25,8 @@ Protocol (stated in every report and JSON):
   effect needs only ``min_rel_gain_nominated``; flexible extensions also absorb the
   generic mismatch between the equivalent circuit and a real cell, so without a signature
   the full ``min_rel_gain`` applies.  A signature that *measures* the departure directly
-  (``current_bias``: the mean measured current in rests, where the true current is zero)
+  (``current_bias``: the mean measured current in rests, where the true current is zero;
+  ``capacity``: the two-point check; ``hysteresis``: the branch offset at the ends of long rests)
   makes its effect significant when the held-out RMSE does not get worse
   (``min_rel_gain_direct`` = 0); the voltage channel then only has to agree, because a
   sensor offset changes the voltage only through a slow SOC drift.
@@ -59,6 +60,7 @@ from service.diagnosis.signatures import (
     REST_MAX_C,
     capacity_end_point,
     integrated_autocorr_time,
+    rest_branch_offset,
     signatures,
     two_point_capacity,
 )
@@ -340,6 +342,10 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     cap_end = capacity_end_point(rec.time_s, rec.current_a, cap)
     held = held.copy()
     held[cap_end] = False
+    # likewise the rest ends the hysteresis signature reads (signatures.rest_branch_offset)
+    branch = rest_branch_offset(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, profile.ocv_table(), cap)
+    for a, b in branch.get("rest_tails", []):
+        held[a:b] = False
     if fit_full.sum() < 20 or held.sum() < 20:
         raise ValueError(f"recording too short to split ({len(rec)} samples)")
 
@@ -398,6 +404,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
                                          soc_base, ocv, cap, opening_rest_end(rec, cap), cap_end, point.r_ohm,
                                          bias=bias_sig)
     cap_sig = sig["capacity"]
+    sig["hysteresis"] = branch
     bias_rest = (bias_sig.get("offset_a"), bias_sig.get("se_a")) if bias_sig.get("n_rest_samples") and bias_sig.get("se_a") else (None, None)
     problem.ctx = Context(
         time_s=grid.time_s, current_a=grid.current_a, temperature_c=grid.temperature_c,

@@ -9,6 +9,17 @@ import numpy as np
 from service.diagnosis.effects import EFFECTS, Context
 
 
+def _branch_lines(b: dict) -> list[str]:
+    """The hysteresis signature in words (signatures.rest_branch_offset)."""
+    return [(f"Rest-end branch offset: {len(b['rest_end_s'])} rests of at least {b['min_rest_s']:.0f} s after load give a half-gap "
+            f"U_H = {1000 * b['half_gap_v']:+.2f} ± {1000 * b['half_gap_se_v']:.2f} mV (z {b['statistic']:g}; "
+            f"direction-state rate {b['rate']:g}; SOC at the start {b['soc0']:.3f}); residual spread "
+            f"{100 * b['spread']:.0f} % of U_H, relaxation left at the rest ends {100 * b['relaxation']:.0f} % of U_H. "
+            f"Rule: z ≥ {b['threshold']:g}, U_H ≥ {1000 * b['min_half_gap_v']:g} mV, spread ≤ "
+            f"{100 * b['max_spread']:.0f} %, relaxation ≤ {100 * b['max_relaxation']:.0f} %. These rest ends are "
+            "left out of every held-out score."), ""]
+
+
 def _capacity_lines(c: dict) -> list[str]:
     """The two-point capacity check in words."""
     lo, hi = c["capacity_scale_range"]
@@ -162,7 +173,7 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"{th['min_abs_gain_mv']:.2f} mV; ΔBIC ≥ {th['min_delta_bic']:g} on the fit part with "
         f"n_eff = {dg.base['n_eff']:.0f} (n / τ_int, τ_int = {dg.base['tau_int_samples']:.1f} samples). "
         f"An effect whose signature measures it directly (current_bias: the rest current; capacity: the "
-        f"two-point check) needs only a held-out "
+        f"two-point check; hysteresis: the branch offset at the ends of long rests) needs only a held-out "
         f"gain ≥ {100 * th.get('min_rel_gain_direct', 0.0):.0f} %.",
         f"- Ranking: significant effects whose held-out RMSEs lie within {th['min_abs_gain_mv']:.2f} mV of the best "
         "are tied (the voltage cannot tell them apart); a directly measured one goes first, then the higher ΔBIC.",
@@ -183,6 +194,7 @@ def write_report(dg, out_dir: str | Path) -> Path:
            f"{100 * dg.signatures['current_bias']['min_frac_1c']:.2f} % of 1C.", ""]
           if dg.signatures.get("current_bias", {}).get("se_a") else []),
         *(_capacity_lines(dg.signatures["capacity"]) if "capacity_scale" in dg.signatures.get("capacity", {}) else []),
+        *(_branch_lines(dg.signatures["hysteresis"]) if "half_gap_v" in dg.signatures.get("hysteresis", {}) else []),
         "## Base model (MTS-FOM, refitted on the fit part)",
         "",
         "| " + " | ".join(k for k in dg.base["point"]) + " |",

@@ -42,6 +42,22 @@ departure the effect describes is present.  An effect whose signature fires is
   direct measurement, when the whole resulting capacity interval lies at least
   :data:`CAPACITY_MIN_ERROR` from the stated capacity and the points are at least
   :data:`CAPACITY_MIN_SPAN` of SOC apart; a flat OCV (LFP) widens the interval by itself.
+* ``hysteresis`` — at the end of a long rest (at least :data:`BRANCH_REST_MIN_S`) the voltage
+  stands for the OCV of the branch the cell is on, and the user's table is the mean of the
+  branches (:func:`rest_branch_offset`).  The rest-end voltages are fitted, with the model
+  left out, by ``OCV(s0 − q_k) + U_H·h_k``: ``q_k`` the charge drawn (Coulomb count over the
+  stated capacity), ``h_k`` the Eq.-1 direction state (−1 after discharge, +1 after charge;
+  rate from a small grid) and ``s0`` free, so an initial SOC read off a branch is not taken
+  for an offset; the varying OCV slope separates ``s0`` from ``U_H`` even when every rest
+  follows a discharge.  Nominated, as a direct measurement of the half-gap, when at least
+  :data:`BRANCH_MIN_RESTS` rests give ``U_H`` of the physical sign (the discharge branch lies
+  below the table) with ``z >= BRANCH_MIN_Z``, at least :data:`BRANCH_MIN_HALF_GAP_V`, the
+  rests agree with one constant half-gap (residual spread at most
+  :data:`BRANCH_MAX_SPREAD` of ``U_H``: a wrong capacity or OCV curve leaves an offset that
+  changes with SOC) and they have finished relaxing (the relaxation left at the rest ends,
+  extrapolated from their last quarter as ``2·t·dV/dt``, at most :data:`BRANCH_MAX_RELAXATION`
+  × ``U_H``: a slow diffusion leaves every post-discharge rest low too).  A recording without
+  such rests (a drive cycle) has no signature here.
 """
 
 from __future__ import annotations
@@ -81,6 +97,20 @@ CAPACITY_MIN_ERROR = 0.02
 CAPACITY_MIN_SPAN = 0.3
 #: the end point is the sample of least current within this window before the recording's end
 CAPACITY_END_WINDOW_S = 300.0
+#: hysteresis: rests at least this long stand for the branch OCV at their end (GITT/HPPC practice)
+BRANCH_REST_MIN_S = 600.0
+#: ... and at least this many such rests (besides the opening one, whose branch is unknown)
+BRANCH_MIN_RESTS = 4
+#: z of the half-gap (standard error from the rests' residual spread) needed to nominate
+BRANCH_MIN_Z = 5.0
+#: a half-gap below this is within what an OCV table is good for
+BRANCH_MIN_HALF_GAP_V = 0.004
+#: rest residual spread (RMS, V) as a share of the half-gap: more and the offset is not one branch gap
+BRANCH_MAX_SPREAD = 0.12
+#: relaxation still to come at the rest ends, as a multiple of the half-gap
+BRANCH_MAX_RELAXATION = 1.5
+#: direction-state rates tried (Eq. 1, per unit SOC throughput)
+BRANCH_RATES = (10.0, 30.0, 100.0, 300.0)
 #: the opening point must be a rest at least this long (a recording that opens under load has
 #: no OCV-anchored start)
 CAPACITY_MIN_OPENING_REST_S = 30.0
@@ -317,6 +347,78 @@ def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     out.update(statistic=round(ratio, 4), capacity_scale=ratio, capacity_scale_range=[round(lo, 4), round(hi, 4)],
                nominated=bool(span >= CAPACITY_MIN_SPAN and (hi <= 1.0 - CAPACITY_MIN_ERROR
                                                             or lo >= 1.0 + CAPACITY_MIN_ERROR)))
+    return out
+
+
+def direction_state(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float, rate: float) -> np.ndarray:
+    """The Eq.-1 hysteresis state with ``U_H = 1`` (+1 after charge, −1 after discharge) from 0,
+    the branch of a cell whose history is unknown (:func:`service.cell.hysteresis.hysteresis_step`)."""
+    from service.cell.hysteresis import hysteresis_decay
+
+    dt = np.diff(time_s, prepend=time_s[0])
+    decay = hysteresis_decay(current_a, dt, rate, capacity_ah)
+    target = -np.sign(current_a)
+    out = np.empty(time_s.size)
+    h = 0.0
+    for k in range(time_s.size):
+        h = decay[k] * h + (1.0 - decay[k]) * target[k]
+        out[k] = h
+    return out
+
+
+def rest_branch_offset(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, temperature_c: np.ndarray,
+                       table, capacity_ah: float) -> dict:
+    """The hysteresis half-gap measured at the ends of long rests (module docstring, ``hysteresis``).
+
+    ``rest_tails`` in the result are the ``[start, stop)`` samples it read (the last quarter of
+    each rest): the pipeline leaves them out of every held-out score, as it does the capacity
+    check's end point, so no held-out score contains a voltage a signature measured."""
+    out = {"nominated": False, "direct": True, "statistic": 0.0, "what": "z of the branch half-gap U_H that the "
+           f"ends of rests >= {BRANCH_REST_MIN_S:.0f} s show against the OCV table (Eq.-1 direction state, no model)",
+           "threshold": BRANCH_MIN_Z, "min_rest_s": BRANCH_REST_MIN_S, "min_rests": BRANCH_MIN_RESTS, "min_half_gap_v": BRANCH_MIN_HALF_GAP_V,
+           "max_spread": BRANCH_MAX_SPREAD, "max_relaxation": BRANCH_MAX_RELAXATION}
+    ends, v_end, relax, tails = [], [], [], []
+    for a, b in rest_runs(time_s, current_a, capacity_ah):
+        if a < REST_MIN_SAMPLES or time_s[b - 1] - time_s[a] < BRANCH_REST_MIN_S:
+            continue  # the opening rest's branch is the unknown history
+        tail = slice(a + 3 * (b - a) // 4, b)
+        slope, level = np.polyfit(time_s[tail] - time_s[a], voltage_v[tail], 1)
+        t_end = float(time_s[b - 1] - time_s[a])
+        ends.append(b - 1)
+        tails.append([int(tail.start), int(b)])
+        v_end.append(level + slope * t_end)
+        relax.append(2.0 * t_end * slope)
+    out["n_rests"], out["rest_tails"] = len(ends), []
+    if len(ends) < BRANCH_MIN_RESTS:
+        out["skipped"] = f"{len(ends)} rests of {BRANCH_REST_MIN_S:.0f} s after load (needs {BRANCH_MIN_RESTS})"
+        return out
+    out["rest_tails"] = tails
+    idx, v = np.array(ends), np.array(v_end)
+    drawn = np.concatenate([[0.0], np.cumsum(0.5 * (current_a[1:] + current_a[:-1]) * np.diff(time_s))])
+    q = drawn[idx] / (3600.0 * capacity_ah)
+    best = None
+    for rate in BRANCH_RATES:
+        h = direction_state(time_s, current_a, capacity_ah, rate)[idx]
+
+        def resid(x, h=h):
+            # U_H > 0 puts the discharge branch (h = -1) below the table
+            return table.ocv(x[0] - q, temperature_c[idx]) + x[1] * h - v
+
+        fit = least_squares(resid, [float(table.soc_from_ocv(np.array(v[0]), temperature_c[idx[0]])) + q[0], 0.0])
+        if best is None or fit.cost < best[1].cost:
+            best = (rate, fit)
+    rate, fit = best
+    n = idx.size
+    var = 2.0 * fit.cost / max(n - 3, 1)  # s0, U_H and the chosen rate
+    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * var
+    half_gap, se = float(fit.x[1]), float(math.sqrt(max(cov[1, 1], 1e-30)))
+    spread = math.sqrt(var) / max(abs(half_gap), 1e-9)
+    relaxation = float(np.median(np.abs(relax))) / max(abs(half_gap), 1e-9)
+    z = half_gap / se
+    out.update(statistic=round(z, 2), half_gap_v=half_gap, half_gap_se_v=se, rate=rate, soc0=round(float(fit.x[0]), 4),
+               spread=round(spread, 3), relaxation=round(relaxation, 3), rest_end_s=[float(time_s[k]) for k in idx],
+               nominated=bool(z >= BRANCH_MIN_Z and half_gap >= BRANCH_MIN_HALF_GAP_V and spread <= BRANCH_MAX_SPREAD
+                              and relaxation <= BRANCH_MAX_RELAXATION))
     return out
 
 

@@ -90,12 +90,21 @@ def ocv_table(cell: str) -> tuple[np.ndarray, np.ndarray, float]:
 
 def drive(kind: str, seed: int, capacity_ah: float, max_s: int = 4 * 3600) -> np.ndarray:
     """1 Hz current (A, + = discharge): a 60 s rest, the profile until 75 % of the capacity is
-    drawn, a 600 s rest.  ``kind`` "dst": a DST-like 20-step table; "walk": a random walk."""
+    drawn, a 600 s rest.  ``kind`` "dst": a DST-like 20-step table; "walk": a random walk;
+    "hppc": 10 % of the capacity at 1C, a 12-20 min rest, a 10 s discharge pulse (1.5-2.5C), 40 s
+    rest, a 10 s charge pulse at 0.75 x the discharge pulse, 40 s rest (the labelled files' hppc)."""
     rng = np.random.default_rng(seed)
     i: list[float] = [0.0] * 60
     drawn = 0.0
     target = 0.75 * capacity_ah * 3600.0
-    if kind == "dst":
+    if kind == "hppc":
+        pulse = 1.5 + rng.random()
+        while drawn < target:
+            n = int(0.1 * 3600)
+            i += [capacity_ah] * n + [0.0] * int(rng.integers(720, 1200))
+            i += [pulse * capacity_ah] * 10 + [0.0] * 40 + [-0.75 * pulse * capacity_ah] * 10 + [0.0] * 40
+            drawn += capacity_ah * n + 0.25 * pulse * capacity_ah * 10
+    elif kind == "dst":
         table = np.array([0, 1, 0, -0.5, 1, 2, -0.8, 0, 1, 0.5, 2.5, -1.0, 0.5, 1, 0, -0.5, 1.5, 0.5, 1, 0])
         table = table * (0.8 + 0.2 * rng.random())
         steps = rng.integers(8, 30, table.size)
@@ -237,6 +246,35 @@ def run_one(job: tuple[str, str, str, int, str, str]) -> Row:
                rmse_before_mv=float(top.rmse_before_mv), rmse_after_mv=float(top.rmse_after_mv))
 
 
+def signature_one(job: tuple[str, str, str, int, str, str]) -> dict:
+    """Simulate one recording and compute only the hysteresis signature (no diagnosis)."""
+    from service.cell.ocv import OcvTable
+    from service.diagnosis.signatures import rest_branch_offset
+
+    cell, effect, level, seed, kind, _ = job
+    data, soc, ocv, info = simulate(cell, effect, level, seed, kind)
+    t, i, v, temp = data.T
+    b = rest_branch_offset(t, i, v, temp, OcvTable.from_points(soc, ocv), info["capacity_ah"])
+    return {"stem": f"{cell}_{effect}_{level}_{kind}_s{seed}", "cell": cell, "effect": effect,
+            **{k: b[k] for k in ("nominated", "n_rests", "half_gap_v", "statistic", "spread", "relaxation", "rate",
+                                 "skipped") if k in b}}
+
+
+def signature_table(rows: list[dict]) -> str:
+    out = ["| recording | rests | U_H mV | z | spread | relaxation | nominated |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "half_gap_v" not in r:
+            out.append(f"| {r['stem']} | {r['n_rests']} | - | - | - | - | no |")
+            continue
+        out.append(f"| {r['stem']} | {r['n_rests']} | {1000 * r['half_gap_v']:+.2f} | {r['statistic']:+.1f} | "
+                   f"{r['spread']:.2f} | {r['relaxation']:.2f} | {'**yes**' if r['nominated'] else 'no'} |")
+    hyst = [r for r in rows if r["effect"] == "hysteresis"]
+    other = [r for r in rows if r["effect"] != "hysteresis"]
+    out += ["", (f"hysteresis nominated: {sum(r['nominated'] for r in hyst)}/{len(hyst)}; other recordings "
+                 f"nominated: {sum(r['nominated'] for r in other)}/{len(other)}")]
+    return "\n".join(out)
+
+
 def table(rows: list[Row]) -> str:
     """Markdown: one line per cell (right/total and the wrong verdicts per effect), then totals."""
     effects = [e for e in EFFECTS if any(r.effect == e for r in rows)]
@@ -269,6 +307,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="recordings simulated and diagnosed at once (default 1)")
     ap.add_argument("--workdir", default="out/validate_pybamm", help="where the recordings are written")
     ap.add_argument("--json", help="write the rows as JSON")
+    ap.add_argument("--drive", choices=("alternate", "dst", "walk", "hppc"), default="alternate",
+                    help="drive of every recording (default: alternate the step table and the walk over effects)")
+    ap.add_argument("--signature-only", action="store_true",
+                    help="compute only the hysteresis rest-end signature of each recording, without diagnosing")
     args = ap.parse_args(argv)
     _pybamm()
     cells = [c for c in args.cells.split(",") if c]
@@ -283,8 +325,16 @@ def main(argv: list[str] | None = None) -> int:
             e_index = EFFECTS.index(effect)  # a subset of effects reproduces the full run's recordings
             n = 2 * args.seeds if effect == "none" else args.seeds
             # a seed per effect and draw, the drive alternating between the step table and the walk
-            jobs += [(cell, effect, args.level, 1 + e_index * 100 + s, ("dst", "walk")[(e_index + s) % 2],
+            jobs += [(cell, effect, args.level, 1 + e_index * 100 + s,
+                      ("dst", "walk")[(e_index + s) % 2] if args.drive == "alternate" else args.drive,
                       args.workdir) for s in range(n)]
+    if args.signature_only:
+        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            sig_rows = list(pool.map(signature_one, jobs))
+        print(signature_table(sig_rows))
+        if args.json:
+            Path(args.json).write_text(json.dumps(sig_rows, indent=1, default=float))
+        return 0
     rows: list[Row] = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for k, row in enumerate(pool.map(run_one, jobs), 1):
