@@ -120,15 +120,10 @@ def _hyst_profile(ph, profile, ctx):
     return profile.model_copy(update={"hysteresis": HysteresisSpec(u_h_max_v=ph["u_h_max_v"], rate=ph["rate"])})
 
 
-def _direction_state(ctx: Context, rate: float = 30.0) -> np.ndarray:
-    """The Eq.-1 hysteresis state for U_H = 1: +1 after charge, -1 after discharge."""
+def _hyst_feature(ctx):
     from service.diagnosis.signatures import direction_state
 
-    return direction_state(ctx.time_s, ctx.current_a, ctx.capacity_ah, rate)
-
-
-def _hyst_feature(ctx):
-    return "hysteresis state (Eq. 1, U_H = 1)", _direction_state(ctx)
+    return "hysteresis state (Eq. 1, U_H = 1)", direction_state(ctx.time_s, ctx.current_a, ctx.capacity_ah, 30.0)
 
 
 HYSTERESIS = Effect(
