@@ -314,12 +314,15 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     if unknown:
         raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
     cap = profile.capacity_ah * profile.extensions.capacity_scale
+    # the OCV table of the recording's profile; the base and every candidate share it (they
+    # change parameters or extensions that it does not read)
+    ocv = profile.ocv_table()
     full = FitSegment(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, soc0=0.0)
     r_guess = estimate_r_ohm([full]) or 0.02
     v_rest0, _ = initial_rest_voltage(rec, cap, r_guess)
     if opt.soc0 is not None:
         # a user-given initial SOC stands in for the rest voltage: its OCV on the table
-        v_rest0 = float(profile.ocv_table().ocv(np.array(opt.soc0), float(rec.temperature_c[0])))
+        v_rest0 = float(ocv.ocv(np.array(opt.soc0), float(rec.temperature_c[0])))
     t_split = rec.time_s[0] + opt.fit_fraction * (rec.time_s[-1] - rec.time_s[0])
     if opt.split == "interleaved":
         block = np.minimum(((rec.time_s - rec.time_s[0]) / (rec.time_s[-1] - rec.time_s[0]) * 10).astype(int), 9)
@@ -343,7 +346,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     held = held.copy()
     held[cap_end] = False
     # likewise the rest ends the hysteresis signature reads (signatures.rest_branch_offset)
-    branch = rest_branch_offset(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, profile.ocv_table(), cap)
+    branch = rest_branch_offset(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, ocv, cap)
     for a, b in branch.get("rest_tails", []):
         held[a:b] = False
     if fit_full.sum() < 20 or held.sum() < 20:
@@ -351,7 +354,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
 
     temp_fit = float(np.mean(rec.temperature_c[fit_full]))
     # the base point sits at the fit part's mean temperature (the Arrhenius reference)
-    soc0 = float(initial_soc(profile.ocv_table(), v_rest0, float(rec.temperature_c[0]))[0])
+    soc0 = float(initial_soc(ocv, v_rest0, float(rec.temperature_c[0]))[0])
     last_fit = int(np.flatnonzero(fit_full)[-1]) + 1
     seg_fit = FitSegment(rec.time_s[:last_fit], rec.current_a[:last_fit], rec.voltage_v[:last_fit],
                          rec.temperature_c[:last_fit], soc0=soc0)
@@ -395,7 +398,6 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     r_grid_base = problem.residuals(x_base, None)[0]
     tau_int = integrated_autocorr_time(r_grid_base)
     n_eff = max(r_grid_base.size / tau_int, 2.0)
-    ocv = base_profile.ocv_table()
     soc_lo, soc_hi = float(np.clip(soc_base.min(), 0, 1)), float(np.clip(soc_base.max(), 0, 1))
     tau_df = (point.r_df * point.c_df) ** (1 / point.n)
     sig = signatures(rec.time_s, rec.current_a, rec.temperature_c, cap)
