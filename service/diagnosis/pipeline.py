@@ -21,7 +21,8 @@ Protocol (stated in every report and JSON):
   autocorrelation time of the base residual, so correlated residuals are not counted as
   independent); residual whiteness (lag-1 autocorrelation) before/after.
 * **Signatures** (:mod:`service.diagnosis.signatures`): evidence outside the voltage fit
-  that an effect's departure is present (temperature: the ambient moves).  A nominated
+  that an effect's departure is present (temperature: the ambient moves; diffusion: relaxation
+  still running at the ends of the fit part's long rests).  A nominated
   effect needs only ``min_rel_gain_nominated``; flexible extensions also absorb the
   generic mismatch between the equivalent circuit and a real cell, so without a signature
   the full ``min_rel_gain`` applies.  A signature that *measures* the departure directly
@@ -61,6 +62,7 @@ from service.diagnosis.signatures import (
     capacity_end_point,
     integrated_autocorr_time,
     rest_branch_offset,
+    rest_relaxation,
     signatures,
     two_point_capacity,
 )
@@ -202,7 +204,7 @@ FIT_ONLY_GAIN = 0.30
 
 
 def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float, rmse_held_base_mv: float,
-           noise_mv: float) -> dict:
+           noise_mv: float, signatures: dict | None = None) -> dict:
     """What the verdict means for the user, in numbers.
 
     ``none`` has two readings that must not be confused: the base model already explains
@@ -218,6 +220,8 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
         if not e.significant and fit_gain >= FIT_ONLY_GAIN:
             fit_only.append({"name": e.name, "fit_gain": round(fit_gain, 4), "heldout_gain": round(e.score, 4)})
     fit_only.sort(key=lambda d: -d["fit_gain"])
+    signed = [{"name": e.name, "heldout_gain": round(e.score, 4)} for e in outcomes
+              if not e.significant and (signatures or {}).get(e.name, {}).get("nominated")]
     if verdict != "none":
         state = "named"
         text = f"{verdict} is the best significant candidate"
@@ -233,7 +237,11 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
                 f"part ({ratio:.0f} x the voltage noise): the model's form, or physics outside the candidate "
                 f"library, or physics that does not extrapolate from the fit part to the held-out one; "
                 f"candidates that fit the fit part without generalising: {leads}")
+        if signed:
+            text += ("; nominated by a signature, but the extension does not predict the held-out part: "
+                     + ", ".join(f"{d['name']} (held out {100 * d['heldout_gain']:+.0f} %)" for d in signed))
     return {"state": state, "text": text, "heldout_rmse_over_noise": round(ratio, 2),
+            "signature_without_extension": signed,
             "explained_noise_factor": EXPLAINED_NOISE_FACTOR, "fit_only_gain": FIT_ONLY_GAIN,
             "fit_without_generalising": fit_only}
 
@@ -407,6 +415,8 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
                                          bias=bias_sig)
     cap_sig = sig["capacity"]
     sig["hysteresis"] = branch
+    # slow relaxation at the ends of the fit part's long rests (no held-out voltage enters it)
+    sig["diffusion"] = rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, cap, usable=fit_full)
     bias_rest = (bias_sig.get("offset_a"), bias_sig.get("se_a")) if bias_sig.get("n_rest_samples") and bias_sig.get("se_a") else (None, None)
     problem.ctx = Context(
         time_s=grid.time_s, current_a=grid.current_a, temperature_c=grid.temperature_c,
@@ -504,7 +514,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         "fit_samples": int(fit_full.sum()), "heldout_samples": int(held.sum()),
         "initial_state": "SOC from OCV at the opening rest voltage (no soc_true)",
     }
-    assessment = assess(verdict, outcomes, rmse_fit_base, rmse_before, 1000 * sigma)
+    assessment = assess(verdict, outcomes, rmse_fit_base, rmse_before, 1000 * sigma, sig)
     return Diagnosis(
         verdict=verdict, effects=outcomes, located=located, located_full=loc, base_profile=base_profile, base=base,
         thresholds=thresholds, protocol=protocol, recording=rec, v_base=v_base, soc_base=soc_base, held_mask=held,

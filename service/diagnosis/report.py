@@ -20,6 +20,16 @@ def _branch_lines(b: dict) -> list[str]:
             "left out of every held-out score."), ""]
 
 
+def _relaxation_lines(r: dict) -> list[str]:
+    """The diffusion signature in words (signatures.rest_relaxation)."""
+    rests = ", ".join(f"{rem:+.1f}/{step:.1f} mV" for rem, step in zip(r["remaining_mv"], r["step_mv"]))
+    return [(f"Relaxation at rest ends: {r['n_rests']} rests of at least {r['min_rest_s']:.0f} s after a load step of "
+             f"at least {r['min_step_c']:g}C in the fit part; relaxation still to come (diffusion tail 2·t·dV/dt) over "
+             f"the ohmic step when the current stopped: {rests}; median ratio {r['statistic']:g}, pooled z "
+             f"{r['z']:g}. Rule: ratio ≥ {r['threshold']:g} and z ≥ {r['min_z']:g} (a healthy cell has done nearly "
+             "all its relaxing after ten minutes). It nominates diffusion; it does not size the extension."), ""]
+
+
 def _capacity_lines(c: dict) -> list[str]:
     """The two-point capacity check in words."""
     lo, hi = c["capacity_scale_range"]
@@ -195,6 +205,7 @@ def write_report(dg, out_dir: str | Path) -> Path:
           if dg.signatures.get("current_bias", {}).get("se_a") else []),
         *(_capacity_lines(dg.signatures["capacity"]) if "capacity_scale" in dg.signatures.get("capacity", {}) else []),
         *(_branch_lines(dg.signatures["hysteresis"]) if "half_gap_v" in dg.signatures.get("hysteresis", {}) else []),
+        *(_relaxation_lines(dg.signatures["diffusion"]) if "ratio" in dg.signatures.get("diffusion", {}) else []),
         "## Base model (MTS-FOM, refitted on the fit part)",
         "",
         "| " + " | ".join(k for k in dg.base["point"]) + " |",

@@ -58,6 +58,18 @@ departure the effect describes is present.  An effect whose signature fires is
   extrapolated from their last quarter as ``2·t·dV/dt``, at most :data:`BRANCH_MAX_RELAXATION`
   × ``U_H``: a slow diffusion leaves every post-discharge rest low too).  A recording without
   such rests (a drive cycle) has no signature here.
+* ``diffusion`` — a slow solid diffusion shows as relaxation that is still running at the end
+  of a long rest (:func:`rest_relaxation`).  For each rest of at least
+  :data:`RELAX_REST_MIN_S` after a load step of at least :data:`RELAX_MIN_STEP_C` × 1C, the
+  relaxation still to come is extrapolated from the rest's last quarter as a diffusion tail
+  (``V∞ − V ∝ t^−1/2``, so ``V∞ − V(t) = 2·t·dV/dt``) and divided by the instantaneous
+  voltage step when the current stopped (the ohmic drop, which every cell shows at once).  A
+  healthy Li-ion cell has done nearly all of its relaxing after ten minutes; nominated when the
+  median ratio is at least :data:`RELAX_MIN_RATIO` and the pooled z of the remaining
+  relaxation is at least :data:`RELAX_MIN_Z`.  It nominates (the lower gain bar), it does not
+  measure the extension's size: how much of the slow relaxation the surface lag describes is
+  left to the held-out score.  The pipeline passes only the fit part's rests, so no held-out
+  voltage enters it.
 """
 
 from __future__ import annotations
@@ -111,6 +123,14 @@ BRANCH_MAX_SPREAD = 0.12
 BRANCH_MAX_RELAXATION = 1.5
 #: direction-state rates tried (Eq. 1, per unit SOC throughput)
 BRANCH_RATES = (10.0, 30.0, 100.0, 300.0)
+#: diffusion: rests at least this long (a final 600 s rest counts after its trimmed edges) ...
+RELAX_REST_MIN_S = 500.0
+#: ... after a load step of at least this C-rate (so the ohmic step is measured well)
+RELAX_MIN_STEP_C = 0.2
+#: relaxation still to come at the rest end over the ohmic step: nominates diffusion above this
+RELAX_MIN_RATIO = 0.3
+#: pooled z of the remaining relaxation needed besides
+RELAX_MIN_Z = 5.0
 #: the opening point must be a rest at least this long (a recording that opens under load has
 #: no OCV-anchored start)
 CAPACITY_MIN_OPENING_REST_S = 30.0
@@ -366,6 +386,64 @@ def direction_state(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: floa
     return out
 
 
+def _rest_end_line(time_s: np.ndarray, voltage_v: np.ndarray, origin: int, stop: int) -> tuple[float, float, float, slice]:
+    """A line through the last quarter of the rest ``[origin, stop)``, time counted from
+    ``origin``: ``(voltage at the rest end, relaxation still to come 2·t·dV/dt, its standard
+    error, the tail's samples)``.  ``2·t·dV/dt`` is what is left of a diffusion tail
+    ``V∞ − A·t^−1/2`` at the rest end."""
+    tail = slice(origin + 3 * (stop - origin) // 4, stop)
+    t_end = float(time_s[stop - 1] - time_s[origin])
+    t, v = time_s[tail] - time_s[origin], voltage_v[tail]
+    if t.size > 3:
+        (slope, level), cov = np.polyfit(t, v, 1, cov=True)
+        se = 2.0 * t_end * math.sqrt(max(cov[0, 0], 0.0))
+    else:  # too few samples for a standard error (a slowly sampled recording)
+        slope, level = np.polyfit(t, v, 1)
+        se = math.inf
+    return float(level + slope * t_end), float(2.0 * t_end * slope), se, tail
+
+
+def rest_relaxation(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, capacity_ah: float,
+                    usable: np.ndarray | None = None) -> dict:
+    """Relaxation still running at the ends of long rests, over the ohmic step (module
+    docstring, ``diffusion``).  ``usable`` (optional mask): only rests that lie wholly inside it,
+    with the load sample before them, are read (the pipeline passes the fit part)."""
+    out = {"nominated": False, "statistic": 0.0, "threshold": RELAX_MIN_RATIO, "min_z": RELAX_MIN_Z,
+           "min_rest_s": RELAX_REST_MIN_S, "min_step_c": RELAX_MIN_STEP_C,
+           "what": f"relaxation still to come at the ends of rests >= {RELAX_REST_MIN_S:.0f} s (diffusion tail "
+                   "2·t·dV/dt) over the ohmic step when the current stopped (median, no model)"}
+    rests = []
+    for a, b in rest_runs(time_s, current_a, capacity_ah):
+        j = a - 1
+        while j >= 0 and abs(current_a[j]) < REST_MAX_C * capacity_ah:
+            j -= 1
+        start = j + 1
+        if j < 0 or time_s[b - 1] - time_s[start] < RELAX_REST_MIN_S:
+            continue  # the opening rest, or too short
+        if abs(current_a[j]) < RELAX_MIN_STEP_C * capacity_ah or (usable is not None and not usable[j:b].all()):
+            continue
+        sign = math.copysign(1.0, current_a[j])  # after a discharge the voltage rises
+        step = sign * float(voltage_v[start] - voltage_v[j])
+        if step <= 0:
+            continue
+        _, remaining, se, _ = _rest_end_line(time_s, voltage_v, start, b)
+        rests.append((float(time_s[b - 1]), step, sign * remaining, se, float(current_a[j])))
+    out["n_rests"] = len(rests)
+    if not rests:
+        out["skipped"] = (f"no rest of {RELAX_REST_MIN_S:.0f} s after a load step of {RELAX_MIN_STEP_C:g}C"
+                          + (" in the fit part" if usable is not None else ""))
+        return out
+    ends, step, remaining, se, step_a = (np.array(c) for c in zip(*rests))
+    ratio = remaining / step
+    z = float(remaining.sum() / math.sqrt(max(float((se**2).sum()), 1e-30)))
+    stat = float(np.median(ratio))
+    out.update(statistic=round(stat, 3), z=round(z, 2), rest_end_s=ends.tolist(),
+               step_mv=[round(1000 * float(x), 1) for x in step], remaining_mv=[round(1000 * float(x), 1) for x in remaining],
+               ratio=[round(float(x), 3) for x in ratio], step_current_a=step_a.tolist(),
+               nominated=bool(stat >= RELAX_MIN_RATIO and z >= RELAX_MIN_Z))
+    return out
+
+
 def rest_branch_offset(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, temperature_c: np.ndarray,
                        table, capacity_ah: float) -> dict:
     """The hysteresis half-gap measured at the ends of long rests (module docstring, ``hysteresis``).
@@ -381,13 +459,11 @@ def rest_branch_offset(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     for a, b in rest_runs(time_s, current_a, capacity_ah):
         if a < REST_MIN_SAMPLES or time_s[b - 1] - time_s[a] < BRANCH_REST_MIN_S:
             continue  # the opening rest's branch is the unknown history
-        tail = slice(a + 3 * (b - a) // 4, b)
-        slope, level = np.polyfit(time_s[tail] - time_s[a], voltage_v[tail], 1)
-        t_end = float(time_s[b - 1] - time_s[a])
+        level, remaining, _, tail = _rest_end_line(time_s, voltage_v, a, b)
         ends.append(b - 1)
         tails.append([int(tail.start), int(b)])
-        v_end.append(level + slope * t_end)
-        relax.append(2.0 * t_end * slope)
+        v_end.append(level)
+        relax.append(remaining)
     out["n_rests"], out["rest_tails"] = len(ends), []
     if len(ends) < BRANCH_MIN_RESTS:
         out["skipped"] = f"{len(ends)} rests of {BRANCH_REST_MIN_S:.0f} s after load (needs {BRANCH_MIN_RESTS})"

@@ -12,7 +12,7 @@ Needs PyBaMM (``pip install -e .[validation]`` or ``pip install pybamm``; not a 
 the service, not run in CI).
 
     python -m service.diagnosis.validate_pybamm [--cells Chen2020,Mohtat2020,...] [--seeds N]
-        [--level moderate] [--jobs 2] [--workdir out/validate_pybamm] [--json OUT]
+        [--level moderate[,clear,...]] [--jobs 2] [--workdir out/validate_pybamm] [--json OUT]
 
 The effects (how each recording departs from its parameter set):
 
@@ -247,31 +247,43 @@ def run_one(job: tuple[str, str, str, int, str, str]) -> Row:
 
 
 def signature_one(job: tuple[str, str, str, int, str, str]) -> dict:
-    """Simulate one recording and compute only the hysteresis signature (no diagnosis)."""
+    """Simulate one recording and compute only the rest signatures (no diagnosis): the
+    hysteresis branch offset over the whole recording and the diffusion relaxation over the
+    fit part (the first ``fit_fraction`` of the duration), as :func:`run_diagnosis` reads them."""
     from service.cell.ocv import OcvTable
-    from service.diagnosis.signatures import rest_branch_offset
+    from service.diagnosis.pipeline import DiagnoseOptions
+    from service.diagnosis.signatures import rest_branch_offset, rest_relaxation
 
     cell, effect, level, seed, kind, _ = job
     data, soc, ocv, info = simulate(cell, effect, level, seed, kind)
     t, i, v, temp = data.T
     b = rest_branch_offset(t, i, v, temp, OcvTable.from_points(soc, ocv), info["capacity_ah"])
+    fit = t <= t[0] + DiagnoseOptions().fit_fraction * (t[-1] - t[0])
+    d = rest_relaxation(t, i, v, info["capacity_ah"], usable=fit)
     return {"stem": f"{cell}_{effect}_{level}_{kind}_s{seed}", "cell": cell, "effect": effect,
             **{k: b[k] for k in ("nominated", "n_rests", "half_gap_v", "statistic", "spread", "relaxation", "rate",
-                                 "skipped") if k in b}}
+                                 "skipped") if k in b},
+            "diffusion": {k: d[k] for k in ("nominated", "n_rests", "statistic", "z", "skipped") if k in d}}
 
 
 def signature_table(rows: list[dict]) -> str:
-    out = ["| recording | rests | U_H mV | z | spread | relaxation | nominated |", "|---|---|---|---|---|---|---|"]
+    out = [("| recording | rests | U_H mV | z | spread | relaxation | hysteresis | fit-part rests | relaxation left / "
+            "ohmic step | z | diffusion |"), "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        d = r["diffusion"]
+        relax = (f"{d['n_rests']} | {d['statistic']:.3f} | {d['z']:+.1f} | {'**yes**' if d['nominated'] else 'no'}"
+                 if "z" in d else f"{d['n_rests']} | - | - | no")
         if "half_gap_v" not in r:
-            out.append(f"| {r['stem']} | {r['n_rests']} | - | - | - | - | no |")
+            out.append(f"| {r['stem']} | {r['n_rests']} | - | - | - | - | no | {relax} |")
             continue
         out.append(f"| {r['stem']} | {r['n_rests']} | {1000 * r['half_gap_v']:+.2f} | {r['statistic']:+.1f} | "
-                   f"{r['spread']:.2f} | {r['relaxation']:.2f} | {'**yes**' if r['nominated'] else 'no'} |")
-    hyst = [r for r in rows if r["effect"] == "hysteresis"]
-    other = [r for r in rows if r["effect"] != "hysteresis"]
-    out += ["", (f"hysteresis nominated: {sum(r['nominated'] for r in hyst)}/{len(hyst)}; other recordings "
-                 f"nominated: {sum(r['nominated'] for r in other)}/{len(other)}")]
+                   f"{r['spread']:.2f} | {r['relaxation']:.2f} | {'**yes**' if r['nominated'] else 'no'} | {relax} |")
+    out.append("")
+    for name, nominated in (("hysteresis", lambda r: r["nominated"]), ("diffusion", lambda r: r["diffusion"]["nominated"])):
+        mine = [r for r in rows if r["effect"] == name]
+        other = [r for r in rows if r["effect"] != name]
+        out.append(f"{name} signature: nominated on {sum(map(nominated, mine))}/{len(mine)} {name} recordings and "
+                   f"on {sum(map(nominated, other))}/{len(other)} others")
     return "\n".join(out)
 
 
@@ -301,7 +313,9 @@ def main(argv: list[str] | None = None) -> int:
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--cells", default=",".join(CELLS), help="PyBaMM parameter sets (default: %(default)s)")
     ap.add_argument("--effects", default=",".join(EFFECTS), help="subset of " + ",".join(EFFECTS))
-    ap.add_argument("--level", default="moderate", choices=LEVELS, help="effect size (default moderate)")
+    ap.add_argument("--level", default="moderate",
+                    help="effect size: subtle, moderate or clear, or several comma-separated (clean recordings "
+                         "are simulated once, not per level; default moderate)")
     ap.add_argument("--seeds", type=int, default=1,
                     help="recordings per cell and effect (clean ones get twice as many; default 1)")
     ap.add_argument("--jobs", type=int, default=1, help="recordings simulated and diagnosed at once (default 1)")
@@ -310,7 +324,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drive", choices=("alternate", "dst", "walk", "hppc"), default="alternate",
                     help="drive of every recording (default: alternate the step table and the walk over effects)")
     ap.add_argument("--signature-only", action="store_true",
-                    help="compute only the hysteresis rest-end signature of each recording, without diagnosing")
+                    help="compute only the rest signatures of each recording (hysteresis branch offset, "
+                         "diffusion relaxation), without diagnosing")
     args = ap.parse_args(argv)
     _pybamm()
     cells = [c for c in args.cells.split(",") if c]
@@ -318,6 +333,9 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         ap.error(f"unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+    levels = [lv for lv in args.level.split(",") if lv]
+    if not levels or any(lv not in LEVELS for lv in levels):
+        ap.error(f"--level {args.level!r}: choose from {', '.join(LEVELS)}")
     Path(args.workdir).mkdir(parents=True, exist_ok=True)
     jobs = []
     for cell in cells:
@@ -325,9 +343,10 @@ def main(argv: list[str] | None = None) -> int:
             e_index = EFFECTS.index(effect)  # a subset of effects reproduces the full run's recordings
             n = 2 * args.seeds if effect == "none" else args.seeds
             # a seed per effect and draw, the drive alternating between the step table and the walk
-            jobs += [(cell, effect, args.level, 1 + e_index * 100 + s,
-                      ("dst", "walk")[(e_index + s) % 2] if args.drive == "alternate" else args.drive,
-                      args.workdir) for s in range(n)]
+            for level in levels[:1] if effect == "none" else levels:
+                jobs += [(cell, effect, level, 1 + e_index * 100 + s,
+                          ("dst", "walk")[(e_index + s) % 2] if args.drive == "alternate" else args.drive,
+                          args.workdir) for s in range(n)]
     if args.signature_only:
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             sig_rows = list(pool.map(signature_one, jobs))

@@ -1,0 +1,57 @@
+"""The diffusion signature: relaxation still running at the ends of long rests, over the ohmic
+step (:func:`service.diagnosis.signatures.rest_relaxation`), on HPPC-like recordings simulated
+with the estimator's own model (:func:`service.diagnosis.validate.simulate_cell`; the drive is
+the one of ``tests/test_branch_signature.py``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.diagnosis import validate as va
+from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_REST_MIN_S, rest_relaxation
+from tests.test_branch_signature import hppc_current
+
+#: a slow solid diffusion: the surface lags the bulk with τ = 3000 s, 0.3 SOC per 1C (steady state)
+SLOW = {"extensions": va.Extensions(diffusion_surface=va.SurfaceDiffusionSpec(tau_s=3000.0, gain=0.3))}
+
+
+def relaxation(case: dict, seed: int = 0, rest_s: float = 1200.0, usable=None) -> dict:
+    cols, _ = va.simulate_cell(case, hppc_current(rest_s), seed)
+    t, i, v, _ = cols.T
+    mask = None if usable is None else usable(t)
+    return rest_relaxation(t, i, v, va.CAP, usable=mask)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_slow_diffusion_is_nominated(seed):
+    r = relaxation(SLOW, seed)
+    assert r["nominated"], r
+    # seven long rests after the 1C discharges, and the closing one after the charge pulse
+    assert r["n_rests"] == 8
+    assert r["statistic"] >= RELAX_MIN_RATIO and r["z"] >= 5
+    # the closing rest follows the charge pulse: its step (a fall) still counts positive
+    assert r["step_current_a"][-1] < 0 and r["step_mv"][-1] > 0
+
+
+@pytest.mark.parametrize("effect", ["none", "hysteresis", "kinetics", "capacity"])
+def test_a_cell_that_relaxes_within_minutes_is_not_nominated(effect):
+    r = relaxation(va.CASES[effect]["clear"])
+    assert r["n_rests"] == 8 and not r["nominated"], r
+    assert r["statistic"] < RELAX_MIN_RATIO / 2
+
+
+def test_only_usable_rests_are_read():
+    """The pipeline passes the fit part: a rest that reaches past it is not read."""
+    full = relaxation(SLOW)
+    first_half = relaxation(SLOW, usable=lambda t: t <= t[0] + 0.5 * (t[-1] - t[0]))
+    assert 0 < first_half["n_rests"] < full["n_rests"]
+    assert first_half["rest_end_s"] == full["rest_end_s"][: first_half["n_rests"]]
+    none = relaxation(SLOW, usable=lambda t: np.zeros(t.size, dtype=bool))
+    assert none["n_rests"] == 0 and not none["nominated"] and "fit part" in none["skipped"]
+
+
+def test_short_rests_give_no_signature():
+    r = relaxation(SLOW, rest_s=RELAX_REST_MIN_S / 2)
+    # only the closing rest (600 s after the charge pulse's 40 s rest) is long enough
+    assert r["n_rests"] == 1
