@@ -37,6 +37,7 @@ from service.cell.profile import (
     OcvSpec,
     ParameterPoint,
     SurfaceDiffusionSpec,
+    kinetic_linear_ohm,
 )
 
 CAP = 2.0
@@ -95,6 +96,15 @@ def _arrhenius(scale: float) -> ArrheniusSpec:
 
 #: effect -> level -> what is changed in the simulated cell (the "clear" level is the one
 #: tests/test_diagnose.py requires diagnose to name)
+def _slow_kinetics(i0_a: float) -> dict:
+    """A cell with Butler–Volmer exchange current ``i0_a``.  The model's kinetic term is the drop
+    *beyond* its linear part (:func:`service.cell.model.kinetic_overpotential`), which the
+    resistances hold, so the linear part ``2RT/F / (2 i0)`` at 25 °C is added to ``R_ohm`` as a
+    ``--kinetics`` fit keeps it; without it the cell's voltage would rise under a large discharge."""
+    point = TRUE.model_copy(update={"r_ohm": TRUE.r_ohm + float(kinetic_linear_ohm(i0_a, 25.0))})
+    return {"parameters": [point], "extensions": Extensions(kinetics_i0_a=i0_a)}
+
+
 CASES: dict[str, dict[str, dict]] = {
     "none": {level: {} for level in LEVELS},
     "hysteresis": {lv: {"hysteresis": HysteresisSpec(u_h_max_v=u, rate=30.0), "u_h0": u}
@@ -105,7 +115,7 @@ CASES: dict[str, dict[str, dict]] = {
     "current_bias": {lv: {"bias_a": b} for lv, b in zip(LEVELS, (0.006, 0.014, 0.03))},
     # exchange currents below a healthy cell's (service.diagnosis.effects.KINETICS_MAX_I0_C = 0.1 C):
     # 0.09 / 0.06 / 0.03 C
-    "kinetics": {lv: {"extensions": Extensions(kinetics_i0_a=f * CAP)} for lv, f in zip(LEVELS, (0.09, 0.06, 0.03))},
+    "kinetics": {lv: _slow_kinetics(f * CAP) for lv, f in zip(LEVELS, (0.09, 0.06, 0.03))},
     # slow solid diffusion: the surface SOC lags the bulk (gain of SOC per 1C, 10 min)
     "diffusion": {lv: {"extensions": Extensions(diffusion_surface=SurfaceDiffusionSpec(tau_s=600.0, gain=g))}
                   for lv, g in zip(LEVELS, (0.02, 0.04, 0.08))},
