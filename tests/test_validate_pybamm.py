@@ -30,3 +30,19 @@ def test_table_counts_right_wrong_and_false_positives():
     assert "| A | 1/2 (kinetics) |" in text
     assert "| B | 1/1 |" in text and "0/1 (kinetics)" in text
     assert "named right: 3/6; clean named as an effect: 1/3; effects named as another effect: 1/3" in text
+
+
+def test_signature_table_counts_each_signature_and_lists_failed_simulations():
+    from service.diagnosis.validate_pybamm import signature_table
+
+    def row(effect, hyst, diff, n_rests=5):
+        return {"stem": f"A_{effect}", "cell": "A", "effect": effect, "nominated": hyst, "n_rests": n_rests,
+                "half_gap_v": 0.01, "statistic": 9.0, "spread": 0.05, "relaxation": 0.2,
+                "diffusion": {"nominated": diff, "n_rests": 4, "statistic": 0.5 if diff else 0.1, "z": 20.0}}
+
+    rows = [row("hysteresis", True, False), row("diffusion", False, True), row("diffusion", False, False),
+            row("none", False, False), {"stem": "B_capacity", "cell": "B", "effect": "capacity", "error": "SolverError: x"}]
+    text = signature_table(rows)
+    assert "hysteresis signature: nominated on 1/1 hysteresis recordings and on 0/3 others" in text
+    assert "diffusion signature: nominated on 1/2 diffusion recordings and on 0/2 others" in text
+    assert "not simulated: B_capacity (SolverError: x)" in text

@@ -255,12 +255,16 @@ def signature_one(job: tuple[str, str, str, int, str, str]) -> dict:
     from service.diagnosis.signatures import rest_branch_offset, rest_relaxation
 
     cell, effect, level, seed, kind, _ = job
-    data, soc, ocv, info = simulate(cell, effect, level, seed, kind)
+    stem = f"{cell}_{effect}_{level}_{kind}_s{seed}"
+    try:
+        data, soc, ocv, info = simulate(cell, effect, level, seed, kind)
+    except Exception as exc:  # one parameter set the solver cannot start must not lose the others
+        return {"stem": stem, "cell": cell, "effect": effect, "error": f"{type(exc).__name__}: {exc}"}
     t, i, v, temp = data.T
     b = rest_branch_offset(t, i, v, temp, OcvTable.from_points(soc, ocv), info["capacity_ah"])
     fit = t <= t[0] + DiagnoseOptions().fit_fraction * (t[-1] - t[0])
     d = rest_relaxation(t, i, v, info["capacity_ah"], usable=fit)
-    return {"stem": f"{cell}_{effect}_{level}_{kind}_s{seed}", "cell": cell, "effect": effect,
+    return {"stem": stem, "cell": cell, "effect": effect,
             **{k: b[k] for k in ("nominated", "n_rests", "half_gap_v", "statistic", "spread", "relaxation", "rate",
                                  "skipped") if k in b},
             "diffusion": {k: d[k] for k in ("nominated", "n_rests", "statistic", "z", "skipped") if k in d}}
@@ -269,6 +273,8 @@ def signature_one(job: tuple[str, str, str, int, str, str]) -> dict:
 def signature_table(rows: list[dict]) -> str:
     out = [("| recording | rests | U_H mV | z | spread | relaxation | hysteresis | fit-part rests | relaxation left / "
             "ohmic step | z | diffusion |"), "|---|---|---|---|---|---|---|---|---|---|---|"]
+    failed = [r for r in rows if "error" in r]
+    rows = [r for r in rows if "error" not in r]
     for r in rows:
         d = r["diffusion"]
         relax = (f"{d['n_rests']} | {d['statistic']:.3f} | {d['z']:+.1f} | {'**yes**' if d['nominated'] else 'no'}"
@@ -284,6 +290,7 @@ def signature_table(rows: list[dict]) -> str:
         other = [r for r in rows if r["effect"] != name]
         out.append(f"{name} signature: nominated on {sum(map(nominated, mine))}/{len(mine)} {name} recordings and "
                    f"on {sum(map(nominated, other))}/{len(other)} others")
+    out += [f"not simulated: {r['stem']} ({r['error']})" for r in failed]
     return "\n".join(out)
 
 
