@@ -203,6 +203,11 @@ EXPLAINED_NOISE_FACTOR = 3.0
 FIT_ONLY_GAIN = 0.30
 
 
+def chronological_fit_mask(time_s: np.ndarray, fit_fraction: float) -> np.ndarray:
+    """The fit part of the chronological split: the first ``fit_fraction`` of the duration."""
+    return time_s <= time_s[0] + fit_fraction * (time_s[-1] - time_s[0])
+
+
 def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float, rmse_held_base_mv: float,
            noise_mv: float, signatures: dict | None = None) -> dict:
     """What the verdict means for the user, in numbers.
@@ -344,7 +349,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         block = np.minimum(((rec.time_s - rec.time_s[0]) / duration * n_blocks).astype(int), n_blocks - 1)
         held = block % 2 == 1
     elif opt.split == "chronological":
-        held = rec.time_s > t_split
+        held = ~chronological_fit_mask(rec.time_s, opt.fit_fraction)
     else:
         raise ValueError(f"split '{opt.split}' not recognised; choose chronological, interleaved or blocks")
     fit_full = ~held

@@ -251,19 +251,18 @@ def signature_one(job: tuple[str, str, str, int, str, str]) -> dict:
     hysteresis branch offset over the whole recording and the diffusion relaxation over the
     fit part (the first ``fit_fraction`` of the duration), as :func:`run_diagnosis` reads them."""
     from service.cell.ocv import OcvTable
-    from service.diagnosis.pipeline import DiagnoseOptions
+    from service.diagnosis.pipeline import DiagnoseOptions, chronological_fit_mask
     from service.diagnosis.signatures import rest_branch_offset, rest_relaxation
 
     cell, effect, level, seed, kind, _ = job
     stem = f"{cell}_{effect}_{level}_{kind}_s{seed}"
     try:
         data, soc, ocv, info = simulate(cell, effect, level, seed, kind)
-    except Exception as exc:  # one parameter set the solver cannot start must not lose the others
+    except (RuntimeError, _pybamm().SolverError) as exc:  # one recording the solver cannot run must not lose the rest
         return {"stem": stem, "cell": cell, "effect": effect, "error": f"{type(exc).__name__}: {exc}"}
     t, i, v, temp = data.T
     b = rest_branch_offset(t, i, v, temp, OcvTable.from_points(soc, ocv), info["capacity_ah"])
-    fit = t <= t[0] + DiagnoseOptions().fit_fraction * (t[-1] - t[0])
-    d = rest_relaxation(t, i, v, info["capacity_ah"], usable=fit)
+    d = rest_relaxation(t, i, v, info["capacity_ah"], usable=chronological_fit_mask(t, DiagnoseOptions().fit_fraction))
     return {"stem": stem, "cell": cell, "effect": effect,
             **{k: b[k] for k in ("nominated", "n_rests", "half_gap_v", "statistic", "spread", "relaxation", "rate",
                                  "skipped") if k in b},
