@@ -203,9 +203,14 @@ EXPLAINED_NOISE_FACTOR = 3.0
 FIT_ONLY_GAIN = 0.30
 
 
+def split_time(time_s: np.ndarray, fit_fraction: float) -> float:
+    """The end of the fit part: ``fit_fraction`` of the duration from the start."""
+    return float(time_s[0] + fit_fraction * (time_s[-1] - time_s[0]))
+
+
 def chronological_fit_mask(time_s: np.ndarray, fit_fraction: float) -> np.ndarray:
-    """The fit part of the chronological split: the first ``fit_fraction`` of the duration."""
-    return time_s <= time_s[0] + fit_fraction * (time_s[-1] - time_s[0])
+    """The fit part of the chronological split: the samples up to :func:`split_time`."""
+    return time_s <= split_time(time_s, fit_fraction)
 
 
 def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float, rmse_held_base_mv: float,
@@ -336,7 +341,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
     if opt.soc0 is not None:
         # a user-given initial SOC stands in for the rest voltage: its OCV on the table
         v_rest0 = float(ocv.ocv(np.array(opt.soc0), float(rec.temperature_c[0])))
-    t_split = rec.time_s[0] + opt.fit_fraction * (rec.time_s[-1] - rec.time_s[0])
+    t_split = split_time(rec.time_s, opt.fit_fraction)
     if opt.split == "interleaved":
         block = np.minimum(((rec.time_s - rec.time_s[0]) / (rec.time_s[-1] - rec.time_s[0]) * 10).astype(int), 9)
         held = np.isin(block % 5, (1, 3))
@@ -349,7 +354,7 @@ def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions
         block = np.minimum(((rec.time_s - rec.time_s[0]) / duration * n_blocks).astype(int), n_blocks - 1)
         held = block % 2 == 1
     elif opt.split == "chronological":
-        held = ~chronological_fit_mask(rec.time_s, opt.fit_fraction)
+        held = rec.time_s > t_split
     else:
         raise ValueError(f"split '{opt.split}' not recognised; choose chronological, interleaved or blocks")
     fit_full = ~held
