@@ -46,3 +46,25 @@ def test_signature_table_counts_each_signature_and_lists_failed_simulations():
     assert "hysteresis signature: nominated on 1/1 hysteresis recordings and on 0/3 others" in text
     assert "diffusion signature: nominated on 1/2 diffusion recordings and on 0/2 others" in text
     assert "not simulated: B_capacity (SolverError: x)" in text
+
+
+def test_run_one_returns_a_failed_row_instead_of_ending_the_run(monkeypatch, tmp_path):
+    """A recording the solver cannot run comes back as a row with its error, and the table lists it.
+    PyBaMM is optional (not in CI), so its solver failure is stood in by the drawn-charge check's
+    RuntimeError and a stand-in module for ``SolverError``."""
+    import types
+
+    import service.diagnosis.validate_pybamm as vp
+
+    def failing(cell, effect, level, seed, kind):
+        raise RuntimeError(f"{cell} {effect}: solver drew 1.000 Ah, the drive 3.000 Ah")
+
+    monkeypatch.setattr(vp, "simulate", failing)
+    monkeypatch.setattr(vp, "_pybamm", lambda: types.SimpleNamespace(SolverError=ArithmeticError))
+    row = vp.run_one(("Ai2020", "capacity", "clear", 401, "dst", str(tmp_path)))
+    assert row == {"stem": "Ai2020_capacity_clear_dst_s401", "cell": "Ai2020", "effect": "capacity",
+                   "error": "RuntimeError: Ai2020 capacity: solver drew 1.000 Ah, the drive 3.000 Ah"}
+    assert not list(tmp_path.iterdir()), "nothing written for a recording that was not simulated"
+    text = table([_row("A", "none", "none")], [row])
+    assert "named right: 1/1" in text
+    assert "not simulated: Ai2020_capacity_clear_dst_s401 (RuntimeError: Ai2020 capacity" in text

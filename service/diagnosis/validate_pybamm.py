@@ -215,16 +215,30 @@ class Row(GridRow):
     rmse_after_mv: float
 
 
-def run_one(job: tuple[str, str, str, int, str, str]) -> Row:
-    """Simulate one recording, write it (CSV, OCV CSV, JSON facts) and diagnose it."""
+def _simulated(job: tuple[str, str, str, int, str, str]) -> tuple[str, tuple | dict]:
+    """``(stem, simulate(...))`` for ``job``, or ``(stem, {stem, cell, effect, error})`` when the
+    solver cannot run the recording: one such recording must not lose a run's other rows."""
+    cell, effect, level, seed, kind, _ = job
+    stem = f"{cell}_{effect}_{level}_{kind}_s{seed}"
+    try:
+        return stem, simulate(cell, effect, level, seed, kind)
+    except (RuntimeError, _pybamm().SolverError) as exc:
+        return stem, {"stem": stem, "cell": cell, "effect": effect, "error": f"{type(exc).__name__}: {exc}"}
+
+
+def run_one(job: tuple[str, str, str, int, str, str]) -> Row | dict:
+    """Simulate one recording, write it (CSV, OCV CSV, JSON facts) and diagnose it; a recording
+    the solver cannot run comes back as a ``{stem, cell, effect, error}`` dict."""
     from service.cell.profile import CellProfile, OcvSpec, ParameterPoint
     from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
     from service.recording import load_recording
 
-    cell, effect, level, seed, kind, workdir = job
-    stem = f"{cell}_{effect}_{level}_{kind}_s{seed}"
+    cell, effect, level, seed, _kind, workdir = job
+    stem, sim = _simulated(job)
+    if isinstance(sim, dict):
+        return sim
+    data, soc, ocv, info = sim
     out = Path(workdir)
-    data, soc, ocv, info = simulate(cell, effect, level, seed, kind)
     np.savetxt(out / f"{stem}.csv", data, delimiter=",", header="time_s,current_a,voltage_v,temperature_c",
                comments="", fmt="%.4f")
     np.savetxt(out / f"{stem}_ocv.csv", np.column_stack([soc, ocv]), delimiter=",", header="soc,ocv_v",
@@ -254,12 +268,11 @@ def signature_one(job: tuple[str, str, str, int, str, str]) -> dict:
     from service.diagnosis.pipeline import DiagnoseOptions, chronological_fit_mask
     from service.diagnosis.signatures import rest_branch_offset, rest_relaxation
 
-    cell, effect, level, seed, kind, _ = job
-    stem = f"{cell}_{effect}_{level}_{kind}_s{seed}"
-    try:
-        data, soc, ocv, info = simulate(cell, effect, level, seed, kind)
-    except (RuntimeError, _pybamm().SolverError) as exc:  # one recording the solver cannot run must not lose the rest
-        return {"stem": stem, "cell": cell, "effect": effect, "error": f"{type(exc).__name__}: {exc}"}
+    cell, effect = job[0], job[1]
+    stem, sim = _simulated(job)
+    if isinstance(sim, dict):
+        return sim
+    data, soc, ocv, info = sim
     t, i, v, temp = data.T
     b = rest_branch_offset(t, i, v, temp, OcvTable.from_points(soc, ocv), info["capacity_ah"])
     d = rest_relaxation(t, i, v, info["capacity_ah"], usable=chronological_fit_mask(t, DiagnoseOptions().fit_fraction))
@@ -293,8 +306,9 @@ def signature_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def table(rows: list[Row]) -> str:
-    """Markdown: one line per cell (right/total and the wrong verdicts per effect), then totals."""
+def table(rows: list[Row], failed: list[dict] = ()) -> str:
+    """Markdown: one line per cell (right/total and the wrong verdicts per effect), then totals and
+    the recordings the solver could not run (``failed``, from :func:`run_one`)."""
     effects = [e for e in EFFECTS if any(r.effect == e for r in rows)]
     out = ["| cell | " + " | ".join(effects) + " | right |", "|---|" + "---|" * (len(effects) + 1)]
     for cell in dict.fromkeys(r.cell for r in rows):
@@ -311,6 +325,7 @@ def table(rows: list[Row]) -> str:
                f"{sum(not r.right for r in clean)}/{len(clean)}; effects named as another effect: "
                f"{sum(r.verdict not in ('none', r.effect) for r in rows if r.effect != 'none')}/"
                f"{sum(r.effect != 'none' for r in rows)}")
+    out += [f"not simulated: {r['stem']} ({r['error']})" for r in failed]
     return "\n".join(out)
 
 
@@ -361,14 +376,19 @@ def main(argv: list[str] | None = None) -> int:
             Path(args.json).write_text(json.dumps(sig_rows, indent=1, default=float))
         return 0
     rows: list[Row] = []
+    failed: list[dict] = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for k, row in enumerate(pool.map(run_one, jobs), 1):
+            if isinstance(row, dict):
+                failed.append(row)
+                print(f"[{k}/{len(jobs)}] {row['stem']}: not simulated ({row['error']})", file=sys.stderr, flush=True)
+                continue
             rows.append(row)
             print(f"[{k}/{len(jobs)}] {row.stem}: {row.verdict} ({'right' if row.right else 'wrong'}; top "
                   f"{row.top} {100 * row.top_score:+.1f} %, {row.seconds:.0f} s)", file=sys.stderr, flush=True)
-    print(table(rows))
+    print(table(rows, failed))
     if args.json:
-        Path(args.json).write_text(json.dumps([asdict(r) for r in rows], indent=1))
+        Path(args.json).write_text(json.dumps([asdict(r) for r in rows] + failed, indent=1))
     return 0
 
 
