@@ -55,3 +55,28 @@ def test_short_rests_give_no_signature():
     r = relaxation(SLOW, rest_s=RELAX_REST_MIN_S / 2)
     # only the closing rest (600 s after the charge pulse's 40 s rest) is long enough
     assert r["n_rests"] == 1
+
+
+def test_a_nominated_effect_that_misses_its_bar_is_retried_on_the_interleaved_split(tmp_path):
+    """pipeline.confirm_nominated: a none verdict with a signature-nominated effect below its bar
+    refits that effect alone on the interleaved split and records what it retried; with an
+    unreachable bar it is not confirmed there either, and nothing is named. Switched off
+    (confirm_split=None) there is no second look."""
+    from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
+    from service.recording import load_recording
+
+    cols, _ = va.simulate_cell(SLOW, hppc_current(1200.0), 0)
+    path = tmp_path / "slow_hppc.csv"
+    np.savetxt(path, cols, delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.5f")
+    rec = load_recording(path)
+    quick = {"base_seconds": 8.0, "base_de_maxiter": 8, "effect_seconds": 6.0, "effects": ("diffusion",),
+             "min_rel_gain_nominated": 5.0}  # a held-out gain can never reach 500 %
+    dg = run_diagnosis(rec, va.user_profile(), DiagnoseOptions(**quick))
+    assert dg.signatures["diffusion"]["nominated"], dg.signatures["diffusion"]
+    assert dg.verdict == "none"
+    conf = dg.protocol["confirmation"]
+    assert conf["split"] == "interleaved" and conf["effects"] == ["diffusion"] and conf["confirmed"] == []
+    assert conf["heldout_samples"] > 0 and conf["base_rmse_heldout_mv"] > 0
+    assert [e.split for e in dg.effects] == ["chronological"]
+    off = run_diagnosis(rec, va.user_profile(), DiagnoseOptions(**quick, confirm_split=None))
+    assert off.verdict == "none" and "confirmation" not in off.protocol

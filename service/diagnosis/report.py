@@ -20,6 +20,19 @@ def _branch_lines(b: dict) -> list[str]:
             "left out of every held-out score."), ""]
 
 
+def _confirmation_lines(dg) -> list[str]:
+    """The protocol line for the second look at a nominated effect (pipeline.confirm_nominated)."""
+    c = dg.protocol.get("confirmation")
+    if not c:
+        return []
+    got = ", ".join(c["confirmed"]) or "none of them"
+    line = (f"- Confirmation: the verdict on this split was none while a signature nominated "
+            f"{', '.join(c['effects'])}; refitted with a fresh base on the {c['split']} split (base held-out "
+            f"{c['base_rmse_heldout_mv']:.2f} mV over {c['heldout_samples']} samples, {c['seconds']:.0f} s): "
+            f"cleared its bar there: {got}. A confirmed effect's row above carries that split's figures.")
+    return [line]
+
+
 def _relaxation_lines(r: dict) -> list[str]:
     """The diffusion signature in words (signatures.rest_relaxation)."""
     rests = ", ".join(f"{rem:+.1f}/{step:.1f} mV" for rem, step in zip(r["remaining_mv"], r["step_mv"]))
@@ -187,6 +200,7 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"gain ≥ {100 * th.get('min_rel_gain_direct', 0.0):.0f} %.",
         f"- Ranking: significant effects whose held-out RMSEs lie within {th['min_abs_gain_mv']:.2f} mV of the best "
         "are tied (the voltage cannot tell them apart); a directly measured one goes first, then the higher ΔBIC.",
+        *_confirmation_lines(dg),
         "",
         "## Signatures (evidence outside the voltage fit)",
         "",
@@ -247,7 +261,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
             f"{k} = {_fmt(v)}" + (f" ± {_fmt(e.params_std[k])}" if k in e.params_std else "")
             for k, v in e.params.items())
         why = "" if e.significant else f" — not significant: {'; '.join(e.reasons)}"
-        lines.append(f"- **{e.name}** ({e.title}): {ps}{why}")
+        where = "" if e.split == dg.protocol["split"] else f" (fitted and scored on the {e.split} split)"
+        lines.append(f"- **{e.name}** ({e.title}){where}: {ps}{why}")
     lines += ["", "## Plots", ""] + [f"![{f}]({f})" for f in files] + [
         "", f"_{dg.seconds:.0f} s. Detection statistics are |correlation| of the base residual with the effect's "
         "feature (ocv: share of residual variance explained by SOC); they point, the refit decides._", ""]

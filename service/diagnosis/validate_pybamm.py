@@ -37,6 +37,7 @@ step table or a random walk with rests and charging, alternating over effects) a
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -226,9 +227,10 @@ def _simulated(job: tuple[str, str, str, int, str, str]) -> tuple[str, tuple | d
         return stem, {"stem": stem, "cell": cell, "effect": effect, "error": f"{type(exc).__name__}: {exc}"}
 
 
-def run_one(job: tuple[str, str, str, int, str, str]) -> Row | dict:
-    """Simulate one recording, write it (CSV, OCV CSV, JSON facts) and diagnose it; a recording
-    the solver cannot run comes back as a ``{stem, cell, effect, error}`` dict."""
+def run_one(job: tuple[str, str, str, int, str, str], split: str = "chronological") -> Row | dict:
+    """Simulate one recording, write it (CSV, OCV CSV, JSON facts) and diagnose it with the
+    held-out protocol ``split`` (``socd diagnose --split``); a recording the solver cannot run
+    comes back as a ``{stem, cell, effect, error}`` dict."""
     from service.cell.profile import CellProfile, OcvSpec, ParameterPoint
     from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
     from service.recording import load_recording
@@ -250,7 +252,7 @@ def run_one(job: tuple[str, str, str, int, str, str]) -> Row | dict:
                           parameters=[ParameterPoint(r_ohm=0.02, r_ct=0.01, c_dl=100.0, m=0.9, r_df=0.01,
                                                      c_df=1000.0, n=0.8)])
     t0 = time.perf_counter()
-    dg = run_diagnosis(load_recording(out / f"{stem}.csv"), profile, DiagnoseOptions())
+    dg = run_diagnosis(load_recording(out / f"{stem}.csv"), profile, DiagnoseOptions(split=split))
     top = dg.effects[0]
     (out / f"{stem}.diagnosis.json").write_text(json.dumps({
         "verdict": dg.verdict, "assessment": dg.assessment, "effects": [e.to_json() for e in dg.effects],
@@ -344,6 +346,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write the rows as JSON")
     ap.add_argument("--drive", choices=("alternate", "dst", "walk", "hppc"), default="alternate",
                     help="drive of every recording (default: alternate the step table and the walk over effects)")
+    ap.add_argument("--split", choices=("chronological", "interleaved", "blocks"), default="chronological",
+                    help="held-out protocol of each diagnosis, as socd diagnose --split (default: %(default)s)")
     ap.add_argument("--signature-only", action="store_true",
                     help="compute only the rest signatures of each recording (hysteresis branch offset, "
                          "diffusion relaxation), without diagnosing")
@@ -378,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[Row] = []
     failed: list[dict] = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        for k, row in enumerate(pool.map(run_one, jobs), 1):
+        for k, row in enumerate(pool.map(functools.partial(run_one, split=args.split), jobs), 1):
             if isinstance(row, dict):
                 failed.append(row)
                 print(f"[{k}/{len(jobs)}] {row['stem']}: not simulated ({row['error']})", file=sys.stderr, flush=True)
