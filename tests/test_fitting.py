@@ -7,15 +7,26 @@ import math
 import numpy as np
 import pytest
 
-from service.cell.fitting import FitSegment, excited_window, fit_parameters, simulate_batch
+from service.cell.fitting import (
+    FitSegment,
+    decode,
+    excited_window,
+    fit_parameters,
+    point_from_x,
+    simulate_batch,
+)
 from service.cell.model import simulate
 from service.cell.profile import (
+    FARADAY,
+    GAS_CONSTANT,
+    KELVIN,
     ArrheniusSpec,
     CellProfile,
     Extensions,
     HysteresisSpec,
     OcvSpec,
     ParameterPoint,
+    SocResistanceSpec,
 )
 
 TRUE = ParameterPoint(r_ohm=0.030, r_ct=0.015, c_dl=300.0, m=0.9, r_df=0.020, c_df=9000.0, n=0.85)
@@ -135,7 +146,9 @@ def test_fit_kinetics_recovers_exchange_current():
 
 
 def test_i0_interpolates_like_a_resistance_and_is_all_or_none():
-    pts = [TRUE.model_copy(update={"temp_c": 0.0, "i0_a": 0.5}), TRUE.model_copy(update={"temp_c": 25.0, "i0_a": 2.0})]
+    # R_ohm 60 mΩ holds the linear kinetic drop of i0 0.5 A at 0 °C (47 mΩ; see the next test)
+    pts = [TRUE.model_copy(update={"temp_c": 0.0, "i0_a": 0.5, "r_ohm": 0.06}),
+           TRUE.model_copy(update={"temp_c": 25.0, "i0_a": 2.0})]
     prof = profile(pts[0]).model_copy(update={"parameters": pts})
     i0 = prof.parameters_at(np.array([0.0, 12.0, 25.0])).kinetics_i0_a
     assert i0[0] == pytest.approx(0.5) and i0[2] == pytest.approx(2.0)
@@ -148,10 +161,51 @@ def test_i0_interpolates_like_a_resistance_and_is_all_or_none():
                     parameters=[pts[0], TRUE.model_copy(update={"temp_c": 25.0})])
 
 
+def test_r_ohm_below_the_linear_kinetic_drop_is_rejected_and_never_fitted():
+    """The model's drop is R_ohm·I + 2RT/F (asinh(I/2i0) − I/2i0): with R_ohm below 2RT/F/(2 i0)
+    a large discharge lifts the voltage above the OCV.  A profile like that is refused with the
+    temperature point named, and neither the fit's search coordinates nor diagnose's kinetics
+    extension can produce one."""
+    lin_0c = 2.0 * GAS_CONSTANT * KELVIN / FARADAY / (2.0 * 0.5)  # i0 0.5 A at 0 °C: 47 mΩ
+    bad = TRUE.model_copy(update={"temp_c": 0.0, "i0_a": 0.5, "r_ohm": 0.6 * lin_0c})
+    with pytest.raises(ValueError, match=r"parameters\[0\] \(0 °C\).*below the linear Butler-Volmer drop"):
+        profile(bad)
+    # the same point is fine at the floor, and an extension's i0 is checked against every point
+    profile(bad.model_copy(update={"r_ohm": lin_0c}))
+    with pytest.raises(ValueError, match="below the linear Butler-Volmer drop"):
+        profile(extensions=Extensions(kinetics_i0_a=0.2))  # TRUE's 30 mΩ < 128 mΩ at 25 °C
+    # a SOC scale of R_ohm below 1 raises the floor by its inverse
+    table = SocResistanceSpec(soc=[0.0, 1.0], temps_c=[0.0], r_ohm_scale=[[0.5, 1.0]], r_pol_scale=[[1.0, 1.0]])
+    with pytest.raises(ValueError, match="below the linear Butler-Volmer drop"):
+        profile(bad.model_copy(update={"r_ohm": 1.5 * lin_0c}), extensions=Extensions(soc_resistance=table))
+    assert profile(TRUE, extensions=Extensions(soc_resistance=table)).min_r_ohm_scale(0.0) == pytest.approx(0.5)
+
+    # the fit's coordinates: R_ohm far below the floor decodes to the floor
+    start = profile(ParameterPoint(temp_c=0.0, r_ohm=0.01, r_ct=0.01, c_dl=100, m=0.8, r_df=0.01, c_df=1000, n=0.8))
+    x = np.array([[math.log(0.005), math.log(0.01), math.log(5.0), 0.8, math.log(0.01), math.log(40.0), 0.8,
+                   math.log(0.5)]])
+    dec = decode(x, start, 0.0, fit_hysteresis=False, fit_kinetics=True)
+    assert dec.r_ohm[0] == pytest.approx(lin_0c)
+    # so a 10 A discharge step from rest cannot lift the voltage above the OCV
+    prof = profile(point_from_x(x[0], 0.0, 0.5).model_copy(update={"r_ohm": float(dec.r_ohm[0])}))
+    t = np.arange(30.0)
+    i = np.where(t >= 10, 10.0, 0.0)
+    v, soc = simulate(prof, t, i, np.zeros_like(t), 0.8)
+    assert np.all(v[10:] <= prof.ocv_table().ocv(soc[10:], 0.0) + 1e-12)
+
+    # diagnose's kinetics extension lifts R_ohm the same way, in the model and in the saved profile
+    from service.diagnosis.effects import EFFECTS
+
+    kin = EFFECTS["kinetics"]
+    saved = kin.to_profile({"kinetics_i0_a": 0.2}, profile(TRUE), None)
+    assert saved.extensions.kinetics_i0_a == 0.2
+    assert saved.parameters[0].r_ohm == pytest.approx(2.0 * GAS_CONSTANT * (25.0 + KELVIN) / FARADAY / 0.4)
+
+
 def test_r_ohm_keeps_its_linear_kinetic_part_matched_to_i0_between_temperatures():
     """A --kinetics fit stores R_ohm = R_rest + 2RT/F/(2 i0); between fitted temperatures the rest
     and i0 are interpolated and the linear kinetic drop is added back for the interpolated i0."""
-    from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN, arrhenius_interp
+    from service.cell.profile import arrhenius_interp
 
     def lin(t, i0):
         return 2.0 * GAS_CONSTANT * (t + KELVIN) / FARADAY / (2.0 * i0)

@@ -45,7 +45,14 @@ from scipy.optimize import differential_evolution, least_squares
 from service.cell.fractional import cpe_step, push_history
 from service.cell.hysteresis import hysteresis_step
 from service.cell.model import DEFAULT_MEMORY_LENGTH, MtsFom, kinetic_overpotential, soc_step, terminal_voltage
-from service.cell.profile import CellParameters, CellProfile, HysteresisSpec, ParameterPoint
+from service.cell.profile import (
+    CellParameters,
+    CellProfile,
+    HysteresisSpec,
+    ParameterPoint,
+    kinetic_floor_ohm,
+    lift_to_kinetic_floor,
+)
 
 #: bounds of the search coordinates (see module docstring)
 BOUNDS: dict[str, tuple[float, float]] = {
@@ -298,6 +305,8 @@ def decode(x: np.ndarray, profile: CellProfile, temp_c: float, fit_hysteresis: b
         p.hyst_rate = np.exp(x[:, 8])
     if fit_kinetics:
         p.kinetics_i0_a = np.exp(x[:, 9 if fit_hysteresis else 7])
+        # R_ohm holds the Butler-Volmer term's linear drop (CellProfile rejects less)
+        p.r_ohm = np.maximum(p.r_ohm, kinetic_floor_ohm(p.kinetics_i0_a, temp_c, profile.min_r_ohm_scale(temp_c)))
     return p
 
 
@@ -496,8 +505,10 @@ def fit_parameters(
     if fit_hysteresis:
         hyst = HysteresisSpec(u_h_max_v=float(max(x_fin[7], 0.0)), rate=float(math.exp(x_fin[8])))
     i0 = float(math.exp(x_fin[-1])) if fit_kinetics else None
+    # R_ohm as decode() simulated it
+    point = lift_to_kinetic_floor(point_from_x(x_fin, temp_c, i0), i0, profile.min_r_ohm_scale(temp_c))
     return FitResult(
-        point=point_from_x(x_fin, temp_c, i0),
+        point=point,
         hysteresis=hyst,
         rmse_mv=rmse_mv,
         n_evaluations=obj_g.n_evaluations + obj.n_evaluations,

@@ -188,6 +188,32 @@ class CellProfile(_Strict):
                              f"(given at {[p.temp_c for p in v if p.i0_a is not None]})")
         return sorted(v, key=lambda p: p.temp_c)
 
+    @model_validator(mode="after")
+    def _kinetic_floor(self) -> CellProfile:
+        """``R_ohm`` must hold the Butler–Volmer term's linear drop (see :func:`kinetic_floor_ohm`)."""
+        for k, p in enumerate(self.parameters):
+            i0 = self.extensions.kinetics_i0_a if self.extensions.kinetics_i0_a is not None else p.i0_a
+            if i0 is None:
+                continue
+            floor = kinetic_floor_ohm(i0, p.temp_c, self.min_r_ohm_scale(p.temp_c))
+            if p.r_ohm < floor * (1.0 - 1e-6):
+                raise ValueError(
+                    f"parameters[{k}] ({p.temp_c:g} °C): r_ohm {p.r_ohm * 1e3:.2f} mΩ is below the linear "
+                    f"Butler-Volmer drop 2RT/F/(2 i0) = {floor * 1e3:.2f} mΩ of i0 {i0:.4g} A (after the lowest "
+                    "SOC scale of R_ohm): the model's voltage would rise above the OCV under a large discharge. "
+                    "Refit the profile with this version's socd fit / socd diagnose, or raise r_ohm"
+                )
+        return self
+
+    def min_r_ohm_scale(self, temp_c: float) -> float:
+        """Lowest ``R_ohm`` SOC scale at ``temp_c`` (1 without a SOC-resistance table)."""
+        table = self.soc_scale_table()
+        if table is None:
+            return 1.0
+        grid = np.linspace(0.0, 1.0, 201)
+        g_ohm, _ = table(grid, np.full(grid.shape, float(temp_c)))
+        return float(min(np.min(g_ohm), 1.0))
+
     # -- derived objects ----------------------------------------------------------------
     def ocv_table(self) -> OcvTable:
         table = OcvTable.from_points(np.array(self.ocv.soc), np.array(self.ocv.ocv_v), np.array(self.ocv.temps_c))
@@ -278,6 +304,24 @@ def kinetic_linear_ohm(i0_a: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
     return 2.0 * GAS_CONSTANT * (np.asarray(temp_c) + KELVIN) / FARADAY / (2.0 * np.asarray(i0_a))
 
 
+def kinetic_floor_ohm(i0_a, temp_c, min_scale: float = 1.0):
+    """Smallest ``R_ohm`` a Butler–Volmer cell may have: the linear drop ``2RT/F / (2 i0)``
+    divided by the lowest SOC scale of ``R_ohm``.  The model's instantaneous drop is
+    ``R_ohm·g·I + 2RT/F (asinh(I/2i0) − I/2i0)`` (:func:`service.cell.model.kinetic_overpotential`);
+    it grows with the discharge current only while ``R_ohm·g ≥ 2RT/F / (2 i0)``, else a large
+    enough discharge lifts the terminal voltage above the OCV."""
+    return kinetic_linear_ohm(i0_a, temp_c) / min_scale
+
+
+def lift_to_kinetic_floor(point: ParameterPoint, i0_a: float | None, min_scale: float = 1.0) -> ParameterPoint:
+    """``point`` with ``R_ohm`` raised to :func:`kinetic_floor_ohm` at its own temperature
+    (unchanged without a Butler–Volmer term or when already above)."""
+    if i0_a is None:
+        return point
+    floor = float(kinetic_floor_ohm(i0_a, point.temp_c, min_scale))
+    return point if point.r_ohm >= floor else point.model_copy(update={"r_ohm": floor})
+
+
 def arrhenius_interp(temp_c: np.ndarray, grid_c: np.ndarray, log_values: np.ndarray) -> np.ndarray:
     """Piecewise-linear in 1/T (Arrhenius) between fitted temperatures; beyond them the
     end segment is extended by at most :data:`EXTRAPOLATE_C`, then held."""
@@ -338,7 +382,8 @@ def load_profile(path: str | Path) -> CellProfile:
     except ValidationError as exc:
         first = exc.errors()[0]
         field = ".".join(str(p) for p in first["loc"])
-        raise ProfileError(f"{path}: field '{field}': {first['msg']}") from exc
+        where = f"field '{field}': " if field else ""
+        raise ProfileError(f"{path}: {where}{first['msg']}") from exc
 
 
 def save_profile(profile: CellProfile, path: str | Path) -> None:

@@ -41,6 +41,7 @@ from service.cell.profile import (
     OcvSpec,
     ParameterPoint,
     SocResistanceSpec,
+    lift_to_kinetic_floor,
 )
 from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.characterisation.ocv_sources import (
@@ -245,7 +246,9 @@ def characterise(
         res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis and t == ref_t,
                              fit_kinetics=fit_kinetics, max_seconds=max_seconds, seed=seed, x0=previous,
                              warmer=warmer, colder=colder, min_order=min_order)
-        pt = res.point.model_copy(update={"temp_c": t})
+        # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
+        pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": t}), res.point.i0_a,
+                                   prof.min_r_ohm_scale(t))
         points[t] = pt
         previous = pt
         if res.hysteresis is not None:

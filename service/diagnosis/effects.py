@@ -27,6 +27,8 @@ from service.cell.profile import (
     HysteresisSpec,
     OcvCorrectionSpec,
     SurfaceDiffusionSpec,
+    kinetic_floor_ohm,
+    lift_to_kinetic_floor,
 )
 from service.diagnosis.simulation import Mods
 
@@ -311,7 +313,17 @@ CURRENT_BIAS = Effect(
 
 # -- current-dependent resistance (Butler-Volmer) -----------------------------------------------
 def _kin_apply(th, mods, ctx):
-    mods.params.kinetics_i0_a = np.exp(th[:, 0]) * ctx.capacity_ah
+    i0 = np.exp(th[:, 0]) * ctx.capacity_ah
+    mods.params.kinetics_i0_a = i0
+    # the model subtracts the linear drop 2RT/F/(2 i0) from R_ohm·I: R_ohm must hold at least
+    # that much, else a large discharge lifts the voltage above the OCV (CellProfile rejects it)
+    mods.params.r_ohm = np.maximum(mods.params.r_ohm, kinetic_floor_ohm(i0, ctx.ref_temp_c))
+
+
+def _kin_profile(ph, profile, ctx):
+    i0 = ph["kinetics_i0_a"]
+    points = [lift_to_kinetic_floor(p, i0, profile.min_r_ohm_scale(p.temp_c)) for p in profile.parameters]
+    return _ext(profile.model_copy(update={"parameters": points}), kinetics_i0_a=i0)
 
 
 def _kin_feature(ctx):
@@ -348,7 +360,7 @@ KINETICS = Effect(
     starts=lambda ctx: [(math.log(0.2),), (math.log(1.0),), (math.log(5.0),)],
     apply=_kin_apply,
     physical=lambda th, ctx: {"kinetics_i0_a": float(math.exp(th[0]) * ctx.capacity_ah)},
-    to_profile=lambda ph, profile, ctx: _ext(profile, kinetics_i0_a=ph["kinetics_i0_a"]),
+    to_profile=_kin_profile,
     detect=lambda ctx: abs(_corr(ctx.residual_v, _kin_feature(ctx)[1])),
     feature=_kin_feature,
     implausible=_kin_implausible,
