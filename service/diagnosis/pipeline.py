@@ -386,6 +386,14 @@ def confirm_nominated(dg: Diagnosis, rec: Recording, profile: CellProfile, opt: 
         f"{100 * first.score:+.1f} %) and clears it on the {opt.confirm_split} one ({confirmed[0].rmse_before_mv:.2f} -> "
         f"{confirmed[0].rmse_after_mv:.2f} mV, {100 * confirmed[0].score:+.1f} %)")
     dg.assessment[f"{opt.split}_score"] = round(first.score, 4)
+    # the lists of leads were written on the first split, before the confirmation: say so, so a
+    # confirmed effect listed there with its failing figures does not read as a contradiction
+    confirmed_names = {e.name for e in confirmed}
+    for key in ("signature_without_extension", "fit_without_generalising"):
+        for lead in dg.assessment.get(key, []):
+            lead["split"] = opt.split
+            if lead["name"] in confirmed_names:
+                lead["confirmed_on"] = opt.confirm_split
     return dg
 
 
