@@ -42,6 +42,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -308,7 +309,7 @@ def signature_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def table(rows: list[Row], failed: list[dict] = ()) -> str:
+def table(rows: list[Row], failed: Sequence[dict] = ()) -> str:
     """Markdown: one line per cell (right/total and the wrong verdicts per effect), then totals and
     the recordings the solver could not run (``failed``, from :func:`run_one`)."""
     effects = [e for e in EFFECTS if any(r.effect == e for r in rows)]
