@@ -48,7 +48,8 @@ def test_evaluate_writes_json_table_and_plots(tmp_path: Path, nmc_recording, nmc
     out = tmp_path / "res" / "results.json"
     plots = tmp_path / "plots"
     rc = main(["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "fomiukf",
-               "--estimator", "coulomb", "--json", str(out), "--plots", str(plots), "--quiet"])
+               "--estimator", "coulomb", "--json", str(out), "--plots", str(plots), "--quiet",
+               "--traces", str(tmp_path / "traces")])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     assert "[evaluate]" not in captured.err  # --quiet
@@ -79,6 +80,14 @@ def test_evaluate_writes_json_table_and_plots(tmp_path: Path, nmc_recording, nmc
     assert plots / "drive_fomiukf_params.png" in pngs
     for p in pngs:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the traces the figures come from: the RMSE after 600 s recomputed from the CSV
+    tr = np.genfromtxt(tmp_path / "traces" / "drive_traces.csv", delimiter=",", names=True)
+    assert tr.dtype.names == ("time_s", "soc_true", "voltage_v", "soc_fomiukf", "v_pred_fomiukf", "soc_coulomb",
+                              "v_pred_coulomb")
+    assert np.all(np.isnan(tr["v_pred_coulomb"])) and np.all(np.isfinite(tr["v_pred_fomiukf"]))
+    late = tr["time_s"] - tr["time_s"][0] >= 600.0
+    rmse = 100 * np.sqrt(np.mean((tr["soc_fomiukf"][late] - tr["soc_true"][late]) ** 2))
+    assert rmse == pytest.approx(fo["soc_rmse_after_600s_pct"], rel=1e-3, abs=1e-3)
 
 
 def test_evaluate_without_truth_column_uses_coulomb_truth(tmp_path: Path, nmc_recording, nmc_profile_file,

@@ -8,6 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from service.cell.profile import ProfileError, load_profile
 from service.cli import UserError
 from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
@@ -45,6 +47,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--settings", metavar="TOML", help="pipeline settings (EstimatorSettings fields) to override")
     p.add_argument("--json", metavar="OUT", help="write results as JSON")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots per recording")
+    p.add_argument("--traces", metavar="DIR",
+                   help="write <recording>_traces.csv per recording: time, truth, measured voltage and each "
+                        "estimator's SOC and predicted voltage over the scored part (to look into a figure)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run)
 
@@ -110,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
                 "v_rmse_mv": s.v_rmse_mv,
                 "us_per_step": us,
             })
+        if args.traces:
+            write_traces(Path(args.traces) / f"{rec.name}_traces.csv", part.time_s, truth, part.voltage_v, traces)
         if args.plots:
             from service.evaluation.plots import plot_recording
 
@@ -121,6 +128,22 @@ def run(args: argparse.Namespace) -> int:
                                                "init_soc_error": args.init_soc_error,
                                                "warm_start": bool(args.warm_start)}, indent=1))
     return 0
+
+
+def write_traces(path: Path, time_s: np.ndarray, truth: np.ndarray, voltage_v: np.ndarray, traces: dict) -> None:
+    """One CSV row per scored sample: ``time_s, soc_true, voltage_v`` then ``soc_<estimator>`` and
+    ``v_pred_<estimator>`` (empty where an estimator predicts no voltage, e.g. coulomb counting)."""
+    cols = {"time_s": time_s, "soc_true": truth, "voltage_v": voltage_v}
+    for name, tr in traces.items():
+        cols[f"soc_{name}"] = tr.soc
+        cols[f"v_pred_{name}"] = tr.v_pred if tr.v_pred is not None else np.full(time_s.shape, np.nan)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = np.column_stack(list(cols.values()))
+    digits = [12] + [7] * (data.shape[1] - 1)  # time to the recording's own precision
+    with path.open("w") as f:
+        f.write(",".join(cols) + "\n")
+        for row in data:
+            f.write(",".join("" if not np.isfinite(v) else f"{v:.{d}g}" for v, d in zip(row, digits)) + "\n")
 
 
 def _fmt(v: float | None, spec: str) -> str:
