@@ -5,9 +5,13 @@ the one of ``tests/test_branch_signature.py``)."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from service.cli import main
 from service.diagnosis import validate as va
 from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_REST_MIN_S, rest_relaxation
 from tests.test_branch_signature import hppc_current
@@ -80,3 +84,32 @@ def test_a_nominated_effect_that_misses_its_bar_is_retried_on_the_interleaved_sp
     assert [e.split for e in dg.effects] == ["chronological"]
     off = run_diagnosis(rec, va.user_profile(), DiagnoseOptions(**quick, confirm_split=None))
     assert off.verdict == "none" and "confirmation" not in off.protocol
+
+
+SYNTHETIC = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
+HPPC_DIFFUSION = "hppc_s105_437525"
+
+
+@pytest.mark.skipif(not (SYNTHETIC / f"{HPPC_DIFFUSION}.csv").is_file(), reason="shared synthetic data not present")
+def test_a_nominated_effect_confirmed_on_the_interleaved_split(tmp_path, capsys):
+    """The positive path of the confirmation step, end to end through ``socd diagnose``, on the
+    labelled PyBaMM HPPC with slow diffusion (no cheap own-model recording fails the chronological
+    split and passes the interleaved one): the rest-relaxation signature nominates diffusion, its
+    extension fails the chronological split (the held-out part is the lowest SOC) and is named on
+    the interleaved one, and the JSON and the assessment's leads say which split each figure is from."""
+    meta = json.loads((SYNTHETIC / f"{HPPC_DIFFUSION}.meta.json").read_text())
+    out = tmp_path / "dg.json"
+    rc = main(["diagnose", str(SYNTHETIC / f"{HPPC_DIFFUSION}.csv"), "--ocv", str(SYNTHETIC / f"{HPPC_DIFFUSION}_ocv.csv"),
+               "--capacity-ah", str(meta["capacity_ah"]), "--effects", "diffusion", "--json", str(out), "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    dg = json.loads(out.read_text())
+    assert dg["verdict"] == "diffusion", dg["assessment"]["text"]
+    top = dg["effects"][0]
+    assert top["name"] == "diffusion" and top["significant"] and top["split"] == "interleaved"
+    assert top["rmse_after_mv"] < top["rmse_before_mv"]
+    conf = dg["protocol"]["confirmation"]
+    assert conf["split"] == "interleaved" and conf["confirmed"] == ["diffusion"]
+    assert dg["assessment"]["chronological_score"] < 0  # it failed the first split
+    leads = dg["assessment"]["signature_without_extension"]
+    assert leads and all(d["split"] == "chronological" for d in leads)
+    assert next(d for d in leads if d["name"] == "diffusion")["confirmed_on"] == "interleaved"
