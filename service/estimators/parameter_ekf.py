@@ -113,6 +113,12 @@ class ParameterEkf:
         self.D = np.zeros((n_cells, n_states, self.np))  # dx+/dθ
         self.updates = 0
         self._volt = [c for c, k in enumerate(names) if PARAMETERS[k][1] == "volt"]
+        # bounds of z per column (:meth:`_clip`); the orders' depend on the profile and are set per step
+        limits = {"mul": RELATIVE_LIMITS, "add": (-np.inf, np.inf), "volt": U_DF_LIMITS}
+        bounds = np.array([limits[PARAMETERS[k][1]] for k in names])
+        self._lo = np.tile(bounds[:, 0], (n_cells, 1))
+        self._hi = np.tile(bounds[:, 1], (n_cells, 1))
+        self._order_cols = [(c, PARAMETERS[k][0]) for c, k in enumerate(names) if PARAMETERS[k][1] == "add"]
         self._identifies_df_voltage = bool(self._volt)
 
     def reset(self, cells: np.ndarray) -> None:
@@ -218,7 +224,6 @@ class ParameterEkf:
 
         # EKF (Zeng Eqs. 12-13): random walk, then correction with this sample's innovation
         self.P = self.P + self.Q
-        pc = np.einsum("nij,nj->ni", self.P, c_row)
         e = voltage_v - h
         if self.measurement == "difference":
             # feature separation: the change of voltage from one sample to the next carries
@@ -232,7 +237,7 @@ class ParameterEkf:
                 e = e - (prev[0] - prev[1])
                 c_row = c_row - prev[2]
                 active = active & prev[3]
-            pc = np.einsum("nij,nj->ni", self.P, c_row)
+        pc = np.einsum("nij,nj->ni", self.P, c_row)
         s = np.einsum("ni,ni->n", c_row, pc) + self.R
         k = pc / s[:, None]
         e = np.where(active, e, 0.0)
@@ -245,15 +250,11 @@ class ParameterEkf:
 
     def _clip(self, nominal: CellParameters) -> None:
         """Keep every parameter inside physical bounds (relative to the profile)."""
-        for col, name in enumerate(self.names):
-            br, kind = PARAMETERS[name]
-            if kind == "mul":
-                self.z[:, col] = np.clip(self.z[:, col], *RELATIVE_LIMITS)
-            elif kind == "add":
-                base = nominal.alpha[:, br]
-                self.z[:, col] = np.clip(self.z[:, col], ORDER_LIMITS[0] - base, ORDER_LIMITS[1] - base)
-            else:
-                self.z[:, col] = np.clip(self.z[:, col], *U_DF_LIMITS)
+        lo, hi = self._lo.copy(), self._hi.copy()
+        for col, br in self._order_cols:  # orders: absolute limits, relative to the profile's value
+            lo[:, col] = ORDER_LIMITS[0] - nominal.alpha[:, br]
+            hi[:, col] = ORDER_LIMITS[1] - nominal.alpha[:, br]
+        np.clip(self.z, lo, hi, out=self.z)
         bad = ~np.isfinite(self.z).all(axis=1) | ~np.isfinite(self.P).all(axis=(1, 2))
         if bad.any():
             self.reset(bad)
