@@ -217,13 +217,22 @@ class CellOcv:
         return flat, i0, x - i0
 
     def ocv(self, soc: np.ndarray) -> np.ndarray:
-        flat, i0, u = self._index(soc)
+        return self._ocv(soc, *self._index(soc))
+
+    def slope(self, soc: np.ndarray) -> np.ndarray:
+        return self._slope(soc, *self._index(soc))
+
+    def ocv_and_slope(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(ocv(soc), slope(soc))`` from one table lookup (the identifiers need both each step)."""
+        idx = self._index(soc)
+        return self._ocv(soc, *idx), self._slope(soc, *idx)
+
+    def _ocv(self, soc: np.ndarray, flat: np.ndarray, i0: np.ndarray, u: np.ndarray) -> np.ndarray:
         v = self._rows_flat[i0 + self._row_offset] + u * self._steps_flat[i0 + self._step_offset]
         v = v + self._lo_ext * np.minimum(flat, 0.0) + self._hi_ext * np.maximum(flat - 1.0, 0.0)
         return v.reshape(soc.shape)
 
-    def slope(self, soc: np.ndarray) -> np.ndarray:
-        flat, i0, _ = self._index(soc)
+    def _slope(self, soc: np.ndarray, flat: np.ndarray, i0: np.ndarray, u: np.ndarray) -> np.ndarray:
         d = self._steps_flat[i0 + self._step_offset] * (GRID_POINTS - 1)
         d = np.where(flat < 0.0, self._lo_ext, np.where(flat > 1.0, self._hi_ext, d))
         return d.reshape(soc.shape)

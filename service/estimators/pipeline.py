@@ -243,14 +243,15 @@ class PackEstimator:
             if surface is not None:
                 soc_post = soc_post - surface  # the OCV is read at the particle surface
             identify = act & (ukf.soc_std < self.settings.identify_below_soc_std)
+            ocv_post, slope_post = self.cell_ocv.ocv_and_slope(soc_post)
             self.fast.update(
                 nominal=self.nominal_now,
                 params=params,
                 weights=weights,
                 hist=ukf.hist,
                 x_post=x_id,
-                soc_slope=self.cell_ocv.slope(soc_post),
-                ocv_post=self.cell_ocv.ocv(soc_post),
+                soc_slope=slope_post,
+                ocv_post=ocv_post,
                 gain=ukf.gain,
                 transition=ukf.transition,
                 current_a=i,
