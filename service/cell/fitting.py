@@ -84,6 +84,9 @@ class FitSegment:
     temperature_c: np.ndarray
     soc0: float
     u_h0: float = 0.0
+    #: the starting U_h in units of the candidate's U_H (+1 just after a charge, -1 after
+    #: a discharge); added to ``u_h0``, so a fit of the hysteresis starts on the right branch
+    u_h0_branch: float = 0.0
 
     def __post_init__(self) -> None:
         self.time_s = np.asarray(self.time_s, dtype=float)
@@ -154,6 +157,7 @@ def decimate(seg: FitSegment, max_points: int) -> FitSegment:
         temperature_c=np.concatenate([seg.temperature_c[:1], block_mean(seg.temperature_c)]),
         soc0=seg.soc0,
         u_h0=seg.u_h0,
+        u_h0_branch=seg.u_h0_branch,
     )
 
 
@@ -179,8 +183,22 @@ def excited_window(seg: FitSegment, max_points: int, capacity_ah: float) -> FitS
     dt = np.diff(seg.time_s, prepend=seg.time_s[0])
     soc_a = seg.soc0 - float(np.sum(seg.current_a[1:a + 1] * dt[1:a + 1])) / (3600.0 * capacity_ah)
     sl = slice(a, a + max_points)
+    branch = seg.u_h0_branch if a == 0 else last_current_direction(seg.current_a[1:a + 1], 0.01 * capacity_ah)
     return FitSegment(seg.time_s[sl], seg.current_a[sl], seg.voltage_v[sl], seg.temperature_c[sl], soc0=soc_a,
-                      u_h0=seg.u_h0 if a == 0 else 0.0)
+                      u_h0=seg.u_h0 if a == 0 else 0.0, u_h0_branch=branch)
+
+
+def last_current_direction(current_a: np.ndarray, rest_a: float) -> float:
+    """+1 if the last current above ``rest_a`` was a charge, -1 a discharge, 0 if none.
+
+    The hysteresis branch a segment starts on: Zeng Eq. 1 drives ``U_h`` to ``-sgn(I)·U_H``
+    and a rest does not move it, so after the charge throughput of a typical drive step it
+    is near the bound of the last direction (an approximation: a short last step leaves it
+    part-way)."""
+    moving = np.flatnonzero(np.abs(current_a) > rest_a)
+    if moving.size == 0:
+        return 0.0
+    return float(-np.sign(current_a[moving[-1]]))
 
 
 def estimate_r_ohm(segments: list[FitSegment]) -> float | None:
@@ -211,6 +229,7 @@ def simulate_batch(
     params_at: Callable[[float], CellParameters] | None = None,
     temp_update_k: float = 0.2,
     surface: tuple[np.ndarray, np.ndarray] | None = None,
+    u_h0_branch: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`service.cell.model.simulate` for ``N`` candidates, about twice as fast.
 
@@ -220,14 +239,16 @@ def simulate_batch(
     candidates' parameters at temperature ``T``; they are updated when the temperature
     moves by more than ``temp_update_k`` (the rule of ``simulate``).  ``surface =
     (tau_s[N], gain[N])`` (optional) sets the candidates' solid-diffusion surface lag
-    (otherwise the profile's ``extensions.diffusion_surface``, if any).  Equality with
-    ``simulate`` is checked in the tests.
+    (otherwise the profile's ``extensions.diffusion_surface``, if any).  ``u_h0_branch``
+    adds that many of each candidate's ``U_H`` to ``u_h0`` (see :class:`FitSegment`).
+    Equality with ``simulate`` is checked in the tests.
     """
     n = params.r.shape[0]
     soc0 = np.broadcast_to(np.asarray(soc0, dtype=float), (n,))
     t0 = float(temp_c[0])
     p = params_at(t0) if params_at is not None else params
-    model = MtsFom(profile, p, soc0, memory_length, np.broadcast_to(u_h0, (n,)))
+    u_h_start = np.broadcast_to(u_h0, (n,)) + u_h0_branch * p.u_h_max
+    model = MtsFom(profile, p, soc0, memory_length, u_h_start)
     if surface is not None:
         model.surface_tau_s = np.broadcast_to(np.asarray(surface[0], dtype=float), (n,)).copy()
         model.surface_gain = np.broadcast_to(np.asarray(surface[1], dtype=float), (n,)).copy()
@@ -241,7 +262,7 @@ def simulate_batch(
     x_surf = np.zeros((size, n)) if surf_on else None
     i_true = np.empty((size, n))
     last_t = t0
-    hyst = bool(np.any(p.u_h_max != 0))
+    hyst = bool(np.any(p.u_h_max != 0)) or bool(np.any(model.u_h != 0))
     scaled = model.soc_scale is not None
     with np.errstate(all="ignore"):
         for k in range(size):
@@ -269,7 +290,7 @@ def simulate_batch(
         model.soc = soc
         ocv = model.open_circuit(temp_tn) if not surf_on else model.open_circuit(temp_tn, soc - x_surf)
         model.soc = saved
-        v = terminal_voltage(ocv, u_h, 1.0, ohm_v, branch_v)
+        v = terminal_voltage(ocv, model.hysteresis_voltage(u_h, p.u_h_max), 1.0, ohm_v, branch_v)
         if np.any(np.isfinite(p.kinetics_i0_a)):
             v = v - kinetic_overpotential(i_true, p.kinetics_i0_a[None, :], temp_tn)
     return v, soc
@@ -353,7 +374,7 @@ class _Objective:
         for s in self.segments:
             v, _ = simulate_batch(
                 self.profile, s.time_s, s.current_a, s.temperature_c, s.soc0, params,
-                memory_length=self.memory_length, u_h0=s.u_h0,
+                memory_length=self.memory_length, u_h0=s.u_h0, u_h0_branch=s.u_h0_branch,
             )
             out.append(v.T - s.voltage_v[None, :])
         self.n_evaluations += x.shape[0]
@@ -503,7 +524,8 @@ def fit_parameters(
     rmse_mv = 1000.0 * math.sqrt(best["cost"] / obj.n_samples)
     hyst = None
     if fit_hysteresis:
-        hyst = HysteresisSpec(u_h_max_v=float(max(x_fin[7], 0.0)), rate=float(math.exp(x_fin[8])))
+        hyst = profile.hysteresis.model_copy(update={"u_h_max_v": float(max(x_fin[7], 0.0)),
+                                                     "rate": float(math.exp(x_fin[8]))})
     i0 = float(math.exp(x_fin[-1])) if fit_kinetics else None
     # R_ohm as decode() simulated it
     point = lift_to_kinetic_floor(point_from_x(x_fin, temp_c, i0), i0, profile.min_r_ohm_scale(temp_c))

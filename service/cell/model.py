@@ -89,6 +89,10 @@ class MtsFom:
         n, b = params.r.shape
         self.soc = np.array(np.broadcast_to(soc0, (n,)), dtype=float)
         self.u_h = np.zeros(n) if u_h0 is None else np.array(np.broadcast_to(u_h0, (n,)), dtype=float)
+        # a one-branch OCV table (HysteresisSpec.table_branch): ocv_table() is already the mean
+        # for the profile's U_H; a candidate with another U_H (a fit) moves it by the difference
+        self._branch_sign = profile.hysteresis.branch_sign
+        self._table_u_h = profile.hysteresis.u_h_max_v
         self.history = np.zeros((n, b, self.memory_length))
         self._weights = gl_weights(params.alpha, self.memory_length)
         entropic = profile.extensions.arrhenius
@@ -127,6 +131,13 @@ class MtsFom:
             v = v + entropic_shift_v(self._entropic, self._entropic_ref, temp_c)
         return v
 
+    def hysteresis_voltage(self, u_h: np.ndarray, u_h_max: np.ndarray) -> np.ndarray:
+        """``U_h`` as it enters Zeng Eq. 6, plus the branch offset of a candidate whose U_H
+        is not the profile's (0 for a mean table, and for every cell of a loaded profile)."""
+        if not self._branch_sign:
+            return u_h
+        return u_h - self._branch_sign * (u_h_max - self._table_u_h)
+
     def step(self, dt_s: float | np.ndarray, current_a: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
         """Advance every cell by ``dt_s`` under measured ``current_a``; return terminal voltage."""
         p = self.params
@@ -138,7 +149,7 @@ class MtsFom:
         u = cpe_step(self.history, i[:, None], dt_s, r, c, p.alpha, self._weights)
         push_history(self.history, u)
         ocv = self.open_circuit(temp_c) if self.surface_tau_s is None else self.open_circuit(temp_c, self.soc - self.x_surf)
-        v = terminal_voltage(ocv, self.u_h, r_ohm, i, u.sum(axis=-1))
+        v = terminal_voltage(ocv, self.hysteresis_voltage(self.u_h, p.u_h_max), r_ohm, i, u.sum(axis=-1))
         return v - kinetic_overpotential(i, p.kinetics_i0_a, temp_c)
 
 

@@ -19,6 +19,7 @@ import tomllib
 from dataclasses import dataclass
 from itertools import pairwise
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -71,10 +72,24 @@ class ParameterPoint(_Strict):
 
 
 class HysteresisSpec(_Strict):
-    """Zeng Eq. 1: ``u_h_max_v`` = U_H, ``rate`` = ε·η (dimensionless)."""
+    """Zeng Eq. 1: ``u_h_max_v`` = U_H, ``rate`` = ε·η (dimensionless).
+
+    ``U_h`` moves between ``-U_H`` (after discharge) and ``+U_H`` (after charge) about the
+    *mean* of the two branches.  ``table_branch`` says which curve the profile's OCV table
+    is: ``mean`` (the average of charge and discharge, the usual OCV table), or ``charge``
+    / ``discharge`` when the only OCV test is one branch (an LFP charge curve, say).  The
+    model then reads its mean OCV as the table ∓ U_H (:meth:`CellProfile.ocv_table`), so a
+    cell just charged (``U_h = +U_H``) sits on a charge-branch table, not ``U_H`` above it.
+    """
 
     u_h_max_v: float = Field(0.0, ge=0)
     rate: float = Field(30.0, gt=0)
+    table_branch: Literal["mean", "charge", "discharge"] = "mean"
+
+    @property
+    def branch_sign(self) -> float:
+        """+1 for a charge-branch table, -1 for a discharge-branch one, 0 for the mean."""
+        return {"mean": 0.0, "charge": 1.0, "discharge": -1.0}[self.table_branch]
 
 
 class ArrheniusSpec(_Strict):
@@ -216,7 +231,10 @@ class CellProfile(_Strict):
 
     # -- derived objects ----------------------------------------------------------------
     def ocv_table(self) -> OcvTable:
-        table = OcvTable.from_points(np.array(self.ocv.soc), np.array(self.ocv.ocv_v), np.array(self.ocv.temps_c))
+        """The model's OCV(SOC, T): the mean of the branches (``hysteresis.table_branch``),
+        plus the ``ocv_correction`` extension."""
+        ocv_v = np.array(self.ocv.ocv_v) - self.hysteresis.branch_sign * self.hysteresis.u_h_max_v
+        table = OcvTable.from_points(np.array(self.ocv.soc), ocv_v, np.array(self.ocv.temps_c))
         corr = self.extensions.ocv_correction
         if corr is not None:
             delta = np.interp(table.soc_grid, corr.soc, corr.delta_v)

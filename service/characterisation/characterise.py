@@ -30,7 +30,7 @@ from itertools import pairwise
 
 import numpy as np
 
-from service.cell.fitting import FitSegment, fit_parameters
+from service.cell.fitting import FitSegment, fit_parameters, last_current_direction
 from service.cell.model import simulate
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.profile import (
@@ -61,6 +61,8 @@ from service.recording import Recording
 TEMP_GROUP_C = 5.0
 MAX_FIT_SAMPLES = 16000
 SEGMENT_REST_S = 300.0
+#: a recording cut at a SOC at least this high starts just after a charge (hysteresis branch)
+FULL_SOC = 0.98
 #: segments starting below this SOC are not fitted: near empty the cell is strongly
 #: non-linear and a few samples there would dominate the squared error
 MIN_FIT_SOC = 0.1
@@ -82,10 +84,17 @@ def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest
     # rest ends come out increasing and after sample 0, so no sort is needed
     starts = [0] + [j for _, j in rest_spans(rec, capacity_ah, min_rest_s) if j > 0] + [len(rec)]
     segs = []
+    rest_a = REST_CURRENT_C * capacity_ah
+    # the hysteresis branch each segment starts on: a full charge point is on the charge
+    # branch; later segments on the branch of the last current before them
+    full = float(soc[0]) >= FULL_SOC
     for a, b in pairwise(starts):
-        if b - a >= 5 and np.abs(rec.current_a[a:b]).max() > 5 * REST_CURRENT_C * capacity_ah:
+        if b - a >= 5 and np.abs(rec.current_a[a:b]).max() > 5 * rest_a:
+            branch = last_current_direction(rec.current_a[1:a + 1], rest_a) if a > 0 else 0.0
+            if branch == 0.0 and full:
+                branch = 1.0
             segs.append(FitSegment(rec.time_s[a:b], rec.current_a[a:b], rec.voltage_v[a:b],
-                                   rec.temperature_c[a:b], float(soc[a])))
+                                   rec.temperature_c[a:b], float(soc[a]), u_h0_branch=branch))
     return segs
 
 
@@ -144,7 +153,13 @@ def characterise(
     name: str = "cell",
     seed: int = 0,
     slow_branch: bool = False,
+    ocv_branch: str = "mean",
 ) -> tuple[CellProfile, FitReport]:
+    """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
+    table or test is (:class:`HysteresisSpec` ``table_branch``; needs ``fit_hysteresis``
+    unless ``mean``)."""
+    if ocv_branch != "mean" and not fit_hysteresis:
+        raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
     rep = FitReport()
     ocv_tests = [r for r in recordings if is_ocv_test(r, capacity_ah)]
     dynamic = [(r, fa) for r, fa in zip(recordings, full_at) if not is_ocv_test(r, capacity_ah)]
@@ -191,6 +206,7 @@ def characterise(
             ocv=OcvSpec(soc=grid.tolist(), temps_c=ts, ocv_v=[ocv_rows[t].tolist() for t in ts]),
             parameters=[ParameterPoint(r_ohm=0.02, r_ct=0.01, c_dl=500, m=0.8, r_df=0.02, c_df=5000, n=0.6)],
             extensions=Extensions(extra_branches=extra_branches),
+            hysteresis=HysteresisSpec(table_branch=ocv_branch),
         )
 
     # rest points per group → OCV rows
@@ -215,10 +231,13 @@ def characterise(
             prof = template({ref_t: ocv_rows[ref_t]})
             res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis,
                                  max_seconds=max_seconds / 4, seed=seed)
-            prof = prof.model_copy(update={"parameters": [res.point]})
+            prof = prof.model_copy(update={"parameters": [res.point]}
+                                   | ({"hysteresis": res.hysteresis} if res.hysteresis is not None else {}))
             socs, resid = [], []
             for s in segs:
-                v, soc = simulate(prof, s.time_s, s.current_a, s.temperature_c, s.soc0, memory_length=memory_length)
+                u_h0 = s.u_h0 + s.u_h0_branch * prof.hysteresis.u_h_max_v
+                v, soc = simulate(prof, s.time_s, s.current_a, s.temperature_c, s.soc0, memory_length=memory_length,
+                                  u_h0=u_h0)
                 socs.append(soc)
                 resid.append(s.voltage_v - v)
             corr = ocv_correction_from_residual(np.concatenate(socs), np.concatenate(resid), grid)
@@ -258,7 +277,7 @@ def characterise(
                 + (f", i0 {pt.i0_a:.2f} A" if pt.i0_a is not None else "") + f"; fit RMSE {res.rmse_mv:.1f} mV")
     profile = prof.model_copy(update={
         "parameters": [points[t] for t in sorted(points)],
-        "hysteresis": hyst or HysteresisSpec(),
+        "hysteresis": hyst or HysteresisSpec(table_branch=ocv_branch),
         "notes": {"fitted_from": ", ".join(r.name for r in recordings), "memory_length": str(memory_length)}
         | ({"slow_branch": slow_note} if slow_note else {}),
     })

@@ -29,6 +29,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="time [s] of the full-charge point ('auto' to detect; once, or once per recording; default: file start)")
     p.add_argument("--ocv", metavar="OCV_CSV", help="OCV table CSV: soc + ocv_v (or ocv_avg_v/...)")
     p.add_argument("--hysteresis", action="store_true", help="also fit the one-state hysteresis (LFP cells)")
+    p.add_argument("--ocv-branch", choices=("mean", "charge", "discharge"), default="mean",
+                   help="which branch the OCV table or test is: 'mean' (the average of charge and discharge, "
+                   "default) or one branch, e.g. 'charge' for an LFP charge curve; the profile records it and "
+                   "the model reads the mean as that branch minus/plus U_H (needs --hysteresis)")
     p.add_argument("--kinetics", action="store_true",
                    help="also fit a Butler-Volmer exchange current i0 per temperature (the apparent resistance "
                    "falls as the current rises; matters in the cold and when the recordings pulse at several currents)")
@@ -74,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
                                        fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
                                        min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
-                                       slow_branch=args.slow_branch,
+                                       slow_branch=args.slow_branch, ocv_branch=args.ocv_branch,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed)
     except ValueError as exc:
         raise UserError(str(exc)) from exc

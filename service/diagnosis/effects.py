@@ -24,7 +24,6 @@ from service.cell.profile import (
     KELVIN,
     ArrheniusSpec,
     CellProfile,
-    HysteresisSpec,
     OcvCorrectionSpec,
     SurfaceDiffusionSpec,
     kinetic_floor_ohm,
@@ -119,7 +118,9 @@ def _hyst_phys(th, ctx):
 
 
 def _hyst_profile(ph, profile, ctx):
-    return profile.model_copy(update={"hysteresis": HysteresisSpec(u_h_max_v=ph["u_h_max_v"], rate=ph["rate"])})
+    # keeps the profile's table_branch: a candidate's U_H moved a one-branch table's mean with it
+    hyst = profile.hysteresis.model_copy(update={"u_h_max_v": ph["u_h_max_v"], "rate": ph["rate"]})
+    return profile.model_copy(update={"hysteresis": hyst})
 
 
 def _hyst_feature(ctx):
