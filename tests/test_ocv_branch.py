@@ -88,11 +88,15 @@ def test_segments_start_on_the_branch_of_their_history():
     rec = Recording(path=Path("synthetic.csv"), time_s=t, current_a=i, voltage_v=np.full(n, 3.3),
                     temperature_c=np.full(n, 25.0))
     soc = 1.0 - np.cumsum(i) / 3600.0
-    segs = split_at_rests(rec, soc, 1.0)
+    segs = split_at_rests(rec, soc, 1.0, track_branch=True)
     assert [s.u_h0_branch for s in segs] == [1.0, -1.0]
-    seg = FitSegment(t, i, np.full(n, 3.3), np.full(n, 25.0), soc0=1.0, u_h0_branch=1.0)
-    w = excited_window(seg, 1000, 1.0)
-    assert w.u_h0_branch == (1.0 if w.time_s[0] == 0 else -1.0)
+    # a mean table keeps the fits' old start, U_h = 0 (the bundled A123 profile's)
+    assert [s.u_h0_branch for s in split_at_rests(rec, soc, 1.0)] == [0.0, 0.0]
+    for branch, later in ((1.0, -1.0), (0.0, 0.0)):
+        seg = FitSegment(t, i, np.full(n, 3.3), np.full(n, 25.0), soc0=1.0, u_h0_branch=branch)
+        w = excited_window(seg, 1000, 1.0)
+        assert w.time_s[0] > 0
+        assert w.u_h0_branch == later
 
 
 def test_fit_recovers_the_half_gap_of_a_charge_branch_table():

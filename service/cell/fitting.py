@@ -183,7 +183,10 @@ def excited_window(seg: FitSegment, max_points: int, capacity_ah: float) -> FitS
     dt = np.diff(seg.time_s, prepend=seg.time_s[0])
     soc_a = seg.soc0 - float(np.sum(seg.current_a[1:a + 1] * dt[1:a + 1])) / (3600.0 * capacity_ah)
     sl = slice(a, a + max_points)
-    branch = seg.u_h0_branch if a == 0 else last_current_direction(seg.current_a[1:a + 1], 0.01 * capacity_ah)
+    # a segment that tracks its hysteresis branch (u_h0_branch != 0) hands it on to a later window
+    branch = seg.u_h0_branch
+    if a > 0 and branch != 0.0:
+        branch = last_current_direction(seg.current_a[1:a + 1], 0.01 * capacity_ah) or branch
     return FitSegment(seg.time_s[sl], seg.current_a[sl], seg.voltage_v[sl], seg.temperature_c[sl], soc0=soc_a,
                       u_h0=seg.u_h0 if a == 0 else 0.0, u_h0_branch=branch)
 

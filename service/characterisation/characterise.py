@@ -79,8 +79,14 @@ class FitReport:
         print(f"[fit] {msg}", file=sys.stderr, flush=True)
 
 
-def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest_s: float = SEGMENT_REST_S) -> list[FitSegment]:
-    """Segments of ``rec`` that each start at the end of a rest of ``min_rest_s`` (or the start)."""
+def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest_s: float = SEGMENT_REST_S,
+                   track_branch: bool = False) -> list[FitSegment]:
+    """Segments of ``rec`` that each start at the end of a rest of ``min_rest_s`` (or the start).
+
+    ``track_branch`` (a one-branch OCV table): each segment starts on the hysteresis branch of
+    its history (``FitSegment.u_h0_branch``).  Without it every segment starts at ``U_h`` = 0,
+    as fits always did for a mean table: a fit from a full point then reads the table as the
+    branch the cell is on, which is how the bundled A123 profile was fitted."""
     # rest ends come out increasing and after sample 0, so no sort is needed
     starts = [0] + [j for _, j in rest_spans(rec, capacity_ah, min_rest_s) if j > 0] + [len(rec)]
     segs = []
@@ -93,6 +99,8 @@ def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest
             branch = last_current_direction(rec.current_a[1:a + 1], rest_a) if a > 0 else 0.0
             if branch == 0.0 and full:
                 branch = 1.0
+            if not track_branch:
+                branch = 0.0
             segs.append(FitSegment(rec.time_s[a:b], rec.current_a[a:b], rec.voltage_v[a:b],
                                    rec.temperature_c[a:b], float(soc[a]), u_h0_branch=branch))
     return segs
@@ -196,7 +204,8 @@ def characterise(
     def segments_of(t: float) -> list[FitSegment]:
         segs: list[FitSegment] = []
         for part, soc in groups[t]:
-            segs += [s for s in split_at_rests(part, soc, capacity_ah) if s.soc0 >= MIN_FIT_SOC]
+            segs += [s for s in split_at_rests(part, soc, capacity_ah, track_branch=ocv_branch != "mean")
+                     if s.soc0 >= MIN_FIT_SOC]
         return select_segments(segs, MAX_FIT_SAMPLES)
 
     def template(ocv_rows: dict[float, np.ndarray]) -> CellProfile:
