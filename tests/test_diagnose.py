@@ -164,6 +164,8 @@ def test_bad_inputs_name_the_file_or_field(tmp_path, capsys):
     assert "--save-effect" in capsys.readouterr().err
     assert main(["diagnose", str(good), "--ocv", str(ocv), "--capacity-ah", "2", "--save-effect", "capacity"]) == 2
     assert "--save-profile" in capsys.readouterr().err
+    assert main(["diagnose", str(good), "--ocv", str(ocv), "--capacity-ah", "2", "--nominal-ambient-c", "warm"]) == 2
+    assert "--nominal-ambient-c" in capsys.readouterr().err
     with pytest.raises(UserError):
         load_recording(tmp_path / "missing.csv")
 

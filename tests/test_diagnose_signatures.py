@@ -181,3 +181,41 @@ def test_two_point_capacity_end_is_the_lightest_load_before_a_cut_off():
     assert capacity_end_point(t, np.r_[np.full(300, 4.0), np.full(100, 2.0)], 2.0) == 300  # lightest load
     sig = _two_point(1.0, "pause", polarisation_error=-0.9)
     assert not sig["nominated"] and sig["capacity_scale_range"][0] <= 1.0 <= sig["capacity_scale_range"][1], sig
+
+
+def _thermal(t: np.ndarray, i: np.ndarray, t_start: float, t_amb: np.ndarray, tau_s: float = 900.0,
+             heat_k: float = 2.0) -> np.ndarray:
+    """A lumped cell temperature: ``τ dT/dt = T_amb(t) + heat·(I/C)² − T`` from ``t_start``, 0.1 °C noise."""
+    temp = np.empty(t.size)
+    temp[0] = t_start
+    for k in range(1, t.size):
+        target = t_amb[k] + heat_k * (i[k] / CAP) ** 2
+        temp[k] = target + (temp[k - 1] - target) * np.exp(-(t[k] - t[k - 1]) / tau_s)
+    return temp + np.random.default_rng(5).normal(0.0, 0.1, t.size)
+
+
+def test_a_cold_start_that_warms_smoothly_is_nominated_by_its_opening_temperature():
+    """An ambient moving smoothly from 10 °C to 25 °C is one first-order lag, which the
+    constant-ambient model fits (misfit below its 0.5 K bar); the opening 15 K from the nominal
+    ambient, with the temperature then moving, nominates it."""
+    t, i = drive(3, hours=2.0)
+    t_amb = 25.0 - 15.0 * np.exp(-t / 2500.0)
+    temp = _thermal(t, i, 10.0, t_amb)
+    sig = signatures(t, i, temp, CAP)["temperature"]
+    assert sig["rms_k"] < 0.5
+    assert sig["nominated"]
+    assert sig["opening_temp_c"] == pytest.approx(10.0, abs=0.3)
+    assert "opens" in sig["why"]
+    # without a nominal ambient only the misfit counts
+    assert not signatures(t, i, temp, CAP, nominal_ambient_c=None)["temperature"]["nominated"]
+
+
+@pytest.mark.parametrize(("t_start", "t_amb_c", "heat_k"), [(25.0, 25.0, 2.0), (0.0, 0.0, 0.2), (27.0, 25.0, 2.0)])
+def test_a_nominal_or_constant_temperature_recording_is_not_nominated(t_start, t_amb_c, heat_k):
+    """Self-heating at the nominal ambient, a cold chamber that holds its temperature (a cold
+    recording is modelled by the base fit, not by a temperature law), and a cell that opens 2 K
+    warm after its charge: none is nominated."""
+    t, i = drive(4, hours=2.0)
+    temp = _thermal(t, i, t_start, np.full(t.size, t_amb_c), heat_k=heat_k)
+    sig = signatures(t, i, temp, CAP)["temperature"]
+    assert not sig["nominated"], sig

@@ -47,6 +47,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="held-out protocol: the last 40 %% of the duration (default), or blocks 2,4,7,9 of 10")
     p.add_argument("--soc0", type=float, help="known initial SOC in [0, 1] (default: from the opening rest voltage)")
     p.add_argument("--effects", help="comma-separated subset of candidate effects to try (default: all)")
+    p.add_argument("--nominal-ambient-c", default="25", metavar="C",
+                   help="the ambient a nominal recording is in (default 25 °C); a recording that opens 5 K or more "
+                   "away from it and whose temperature then moves by 2 K or more has its temperature effect "
+                   "nominated; 'none' judges the temperature only by how well a constant ambient explains it")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run)
@@ -110,8 +114,18 @@ def run(args: argparse.Namespace) -> int:
         if args.save_effect != "none" and args.save_effect not in effects:
             raise UserError(f"--save-effect: '{args.save_effect}' is not among the candidates tried "
                             f"({', '.join(effects)}) or 'none'")
+    if args.nominal_ambient_c.strip().lower() == "none":
+        nominal = None
+    else:
+        try:
+            nominal = float(args.nominal_ambient_c)
+        except ValueError:
+            nominal = float("nan")
+        if not -60.0 <= nominal <= 100.0:
+            raise UserError(f"--nominal-ambient-c must be a temperature in °C (-60..100) or 'none', "
+                            f"got {args.nominal_ambient_c!r}")
     opt = DiagnoseOptions(fit_fraction=args.fit_fraction, split=args.split, soc0=args.soc0, effects=effects,
-                          seed=args.seed, fit_base=fit_base)
+                          seed=args.seed, fit_base=fit_base, nominal_ambient_c=nominal)
     say = (lambda m: None) if args.quiet else (lambda m: print(f"socd diagnose: {m}", file=sys.stderr, flush=True))
     try:
         dg = run_diagnosis(rec, profile, opt, progress=say)

@@ -65,6 +65,7 @@ from service.diagnosis.effects import EFFECTS, KINETICS_MAX_I0_C, Context, Effec
 from service.diagnosis.locate import locate
 from service.diagnosis.refit import Problem, parameter_std, refit
 from service.diagnosis.signatures import (
+    NOMINAL_AMBIENT_C,
     REST_MAX_C,
     capacity_end_point,
     integrated_autocorr_time,
@@ -92,6 +93,9 @@ class DiagnoseOptions:
     effects: tuple[str, ...] = tuple(EFFECTS)
     fit_base: bool = True
     soc0: float | None = None  # known initial SOC (e.g. the run starts at full charge); else from the opening rest
+    # the ambient a nominal recording is in (the temperature signature); None = judge the
+    # temperature by its constant-ambient misfit only
+    nominal_ambient_c: float | None = NOMINAL_AMBIENT_C
     # significance thresholds (see module docstring)
     min_rel_gain: float = 0.30
     # an effect nominated by its own signature (service.cell.diagnosis.signatures) needs less
@@ -489,7 +493,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
     n_eff = max(r_grid_base.size / tau_int, 2.0)
     soc_lo, soc_hi = float(np.clip(soc_base.min(), 0, 1)), float(np.clip(soc_base.max(), 0, 1))
     tau_df = (point.r_df * point.c_df) ** (1 / point.n)
-    sig = signatures(rec.time_s, rec.current_a, rec.temperature_c, cap)
+    sig = signatures(rec.time_s, rec.current_a, rec.temperature_c, cap, opt.nominal_ambient_c)
     bias_sig = sig.get("current_bias", {})
     sig["capacity"] = two_point_capacity(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, v_base,
                                          soc_base, ocv, cap, opening_rest_end(rec, cap), cap_end, point.r_ohm,

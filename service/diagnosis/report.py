@@ -217,6 +217,10 @@ def write_report(dg, out_dir: str | Path) -> Path:
            f"{100 * dg.signatures['current_bias']['min_drift_soc']:.1f} % SOC and |offset| ≥ "
            f"{100 * dg.signatures['current_bias']['min_frac_1c']:.2f} % of 1C.", ""]
           if dg.signatures.get("current_bias", {}).get("se_a") else []),
+        *([f"Temperature: {dg.signatures['temperature']['why']} (opening temperature "
+           f"{dg.signatures['temperature']['opening_temp_c']:.1f} °C, range {dg.signatures['temperature']['range_k']:.1f} K, "
+           f"constant-ambient misfit {dg.signatures['temperature']['rms_k']:.2f} K).", ""]
+          if dg.signatures.get("temperature", {}).get("why") else []),
         *(_capacity_lines(dg.signatures["capacity"]) if "capacity_scale" in dg.signatures.get("capacity", {}) else []),
         *(_branch_lines(dg.signatures["hysteresis"]) if "half_gap_v" in dg.signatures.get("hysteresis", {}) else []),
         *(_relaxation_lines(dg.signatures["diffusion"]) if "ratio" in dg.signatures.get("diffusion", {}) else []),

@@ -12,7 +12,14 @@ departure the effect describes is present.  An effect whose signature fires is
   cell that cools).  Self-heating alone is explained by a first-order thermal model with
   a constant ambient, ``τ dT/dt = T_amb + a (I/C)² - T``.  Its fit to the recorded
   temperature (RMS misfit, K) is a few tenths of a kelvin with self-heating only and
-  degrees when the ambient moves; the voltage never enters.
+  degrees when the ambient moves; the voltage never enters.  An ambient that moves
+  *smoothly* from a cold or warm start is the same first-order lag as a cell that opens
+  away from a constant ambient, so the misfit misses it; the second statistic is the
+  **opening temperature** (median of the first :data:`OPENING_WINDOW_S`): a cell at rest
+  sits at its ambient, so one that opens :data:`OPENING_TEMP_K` or more from the nominal
+  ambient (:data:`NOMINAL_AMBIENT_C`, the ``--nominal-ambient-c`` of ``socd diagnose``)
+  and whose temperature then moves by :data:`TEMP_RANGE_K` or more is in an ambient that
+  is not the nominal one.  A recording at a constant temperature is never nominated by it.
 * ``current_bias`` — in a rest the true current is exactly zero, so the mean of the
   *measured* current over rest samples is the sensor offset itself (:func:`rest_current_offset`).
   Rests are runs of at least :data:`REST_MIN_SAMPLES` samples with ``|I| < REST_MAX_C · C``
@@ -83,6 +90,15 @@ from service.characterisation.relaxation import rc_voltage
 
 #: RMS misfit of the constant-ambient thermal model above which the ambient is taken to move
 AMBIENT_DRIFT_K = 0.5
+#: the nominal ambient a recording is judged against (the synthetic data's definition of a
+#: nominal recording: 25 °C ambient with normal cooling)
+NOMINAL_AMBIENT_C = 25.0
+#: the opening temperature: median over this long from the first sample
+OPENING_WINDOW_S = 60.0
+#: an opening this far from the nominal ambient (beyond the few K a cell keeps after a charge) ...
+OPENING_TEMP_K = 5.0
+#: ... nominates ``temperature`` when the temperature also moves this much (else nothing to model)
+TEMP_RANGE_K = 2.0
 #: rest detection: |I| below this multiple of the 1C current ...
 REST_MAX_C = 0.03
 #: ... for at least this many consecutive samples
@@ -498,12 +514,37 @@ def rest_branch_offset(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     return out
 
 
-def signatures(time_s: np.ndarray, current_a: np.ndarray, temperature_c: np.ndarray, capacity_ah: float) -> dict:
-    """``{effect: {"nominated": bool, "statistic": float, ...}}`` for the effects that have one."""
+def opening_temperature_c(time_s: np.ndarray, temperature_c: np.ndarray) -> float:
+    """Median temperature over the first :data:`OPENING_WINDOW_S` of the recording."""
+    first = time_s <= time_s[0] + OPENING_WINDOW_S
+    return float(np.median(temperature_c[first]))
+
+
+def temperature_signature(time_s: np.ndarray, current_a: np.ndarray, temperature_c: np.ndarray, capacity_ah: float,
+                          nominal_ambient_c: float | None = NOMINAL_AMBIENT_C) -> dict:
+    """The ``temperature`` signature: the constant-ambient misfit, or an opening away from the
+    nominal ambient followed by a moving temperature (module docstring).  ``nominal_ambient_c``
+    None: the misfit alone."""
     amb = ambient_drift_k(time_s, current_a, temperature_c, capacity_ah)
+    t_open = opening_temperature_c(time_s, temperature_c)
+    drift = amb["rms_k"] >= AMBIENT_DRIFT_K
+    off_nominal = (nominal_ambient_c is not None and abs(t_open - nominal_ambient_c) >= OPENING_TEMP_K
+                   and amb["range_k"] >= TEMP_RANGE_K)
+    why = ("the temperature does not follow a constant ambient" if drift else
+           f"it opens {t_open - nominal_ambient_c:+.1f} K from the nominal {nominal_ambient_c:g} °C ambient and then "
+           f"moves {amb['range_k']:.1f} K" if off_nominal else "")
+    return {"nominated": bool(drift or off_nominal), "statistic": round(amb["rms_k"], 3),
+            "what": "RMS misfit (K) of a constant-ambient self-heating model to the temperature; opening temperature "
+                    "against the nominal ambient",
+            "threshold": AMBIENT_DRIFT_K, **{k: round(v, 3) for k, v in amb.items()},
+            "opening_temp_c": round(t_open, 2), "nominal_ambient_c": nominal_ambient_c,
+            "opening_threshold_k": OPENING_TEMP_K, "range_threshold_k": TEMP_RANGE_K, "why": why}
+
+
+def signatures(time_s: np.ndarray, current_a: np.ndarray, temperature_c: np.ndarray, capacity_ah: float,
+               nominal_ambient_c: float | None = NOMINAL_AMBIENT_C) -> dict:
+    """``{effect: {"nominated": bool, "statistic": float, ...}}`` for the effects that have one."""
     return {
         "current_bias": rest_current_offset(time_s, current_a, capacity_ah),
-        "temperature": {"nominated": bool(amb["rms_k"] >= AMBIENT_DRIFT_K), "statistic": round(amb["rms_k"], 3),
-                        "what": "RMS misfit (K) of a constant-ambient self-heating model to the temperature",
-                        "threshold": AMBIENT_DRIFT_K, **{k: round(v, 3) for k, v in amb.items()}},
+        "temperature": temperature_signature(time_s, current_a, temperature_c, capacity_ah, nominal_ambient_c),
     }
