@@ -266,3 +266,29 @@ def test_evaluate_runs_a_profile_with_the_surface_lag(tmp_path, capsys):
           "--json", str(out), str(rec)])
     res = json.loads(out.read_text())["results"]
     assert res and all(np.isfinite(r["soc_rmse_pct"]) for r in res)
+
+
+def test_a_tie_goes_to_measured_then_nominated_evidence_then_delta_bic():
+    """Held-out RMSEs within the noise margin are tied: a direct measurement first, then an
+    effect a signature nominated, then ΔBIC; an effect beyond the margin keeps its place."""
+    from service.diagnosis.pipeline import EffectOutcome, rank
+
+    def outcome(name, after, dbic, evidence, significant=True):
+        return EffectOutcome(name=name, title=name, score=1 - after / 30.0, significant=significant,
+                             rmse_before_mv=30.0, rmse_after_mv=after, params={}, params_std={}, delta_bic=dbic,
+                             detection=0.0, whiteness_before=0.0, whiteness_after=0.0, rmse_fit_after_mv=after,
+                             fit_seconds=0.0, profile=base_profile(), v_sim=np.zeros(1), evidence=evidence)
+
+    kinetics = outcome("kinetics", 21.52, 117.0, "fit")
+    temperature = outcome("temperature", 21.24, 79.0, "nominated")
+    assert [o.name for o in rank([kinetics, temperature], tie_mv=0.75)] == ["temperature", "kinetics"]
+    bias = outcome("current_bias", 21.9, 5.0, "direct")
+    assert [o.name for o in rank([kinetics, temperature, bias], tie_mv=0.75)][0] == "current_bias"
+    # outside the margin the better held-out fit wins whatever its evidence
+    assert [o.name for o in rank([kinetics, temperature], tie_mv=0.1)][0] == "temperature"
+    far = outcome("kinetics", 18.0, 117.0, "fit")
+    assert [o.name for o in rank([far, temperature], tie_mv=0.75)] == ["kinetics", "temperature"]
+    # two fit-only effects in a tie: the higher ΔBIC; an insignificant one comes last
+    hyst = outcome("hysteresis", 21.3, 40.0, "fit")
+    ocv = outcome("ocv", 15.0, 300.0, "fit", significant=False)
+    assert [o.name for o in rank([hyst, kinetics, ocv], tie_mv=0.75)] == ["kinetics", "hysteresis", "ocv"]
