@@ -283,9 +283,9 @@ def test_a_tie_goes_to_measured_then_nominated_evidence_then_delta_bic():
     temperature = outcome("temperature", 21.24, 79.0, "nominated")
     assert [o.name for o in rank([kinetics, temperature], tie_mv=0.75)] == ["temperature", "kinetics"]
     bias = outcome("current_bias", 21.9, 5.0, "direct")
-    assert [o.name for o in rank([kinetics, temperature, bias], tie_mv=0.75)][0] == "current_bias"
+    assert rank([kinetics, temperature, bias], tie_mv=0.75)[0].name == "current_bias"
     # outside the margin the better held-out fit wins whatever its evidence
-    assert [o.name for o in rank([kinetics, temperature], tie_mv=0.1)][0] == "temperature"
+    assert rank([kinetics, temperature], tie_mv=0.1)[0].name == "temperature"
     far = outcome("kinetics", 18.0, 117.0, "fit")
     assert [o.name for o in rank([far, temperature], tie_mv=0.75)] == ["kinetics", "temperature"]
     # two fit-only effects in a tie: the higher ΔBIC; an insignificant one comes last
