@@ -23,11 +23,10 @@ from service.cell.fitting import (
     simulate_batch,
 )
 from service.cell.model import simulate
-from service.cell.profile import CellProfile, HysteresisSpec, OcvSpec, ParameterPoint
+from service.cell.profile import CellProfile, HysteresisSpec, OcvSpec
 from service.characterisation.characterise import split_at_rests
 from service.recording import Recording
-
-POINT = ParameterPoint(r_ohm=0.030, r_ct=0.015, c_dl=300.0, m=0.9, r_df=0.020, c_df=9000.0, n=0.85)
+from tests.test_fitting import TRUE as POINT
 
 
 def lfp_like_table() -> OcvSpec:
