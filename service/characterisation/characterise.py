@@ -96,11 +96,11 @@ def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest
     full = float(soc[0]) >= FULL_SOC
     for a, b in pairwise(starts):
         if b - a >= 5 and np.abs(rec.current_a[a:b]).max() > 5 * rest_a:
-            branch = last_current_direction(rec.current_a[1:a + 1], rest_a) if a > 0 else 0.0
-            if branch == 0.0 and full:
-                branch = 1.0
-            if not track_branch:
-                branch = 0.0
+            branch = 0.0
+            if track_branch:
+                branch = last_current_direction(rec.current_a[1:a + 1], rest_a) if a > 0 else 0.0
+                if branch == 0.0 and full:
+                    branch = 1.0
             segs.append(FitSegment(rec.time_s[a:b], rec.current_a[a:b], rec.voltage_v[a:b],
                                    rec.temperature_c[a:b], float(soc[a]), u_h0_branch=branch))
     return segs
