@@ -292,3 +292,23 @@ def test_a_tie_goes_to_measured_then_nominated_evidence_then_delta_bic():
     hyst = outcome("hysteresis", 21.3, 40.0, "fit")
     ocv = outcome("ocv", 15.0, 300.0, "fit", significant=False)
     assert [o.name for o in rank([hyst, kinetics, ocv], tie_mv=0.75)] == ["kinetics", "hysteresis", "ocv"]
+
+
+def test_a_directly_measured_effect_needs_only_agreement_within_the_noise():
+    """A signature that measured the departure (a rest current, a rest-end branch offset) is
+    named unless the held-out RMSE rises by more than half the noise; nominated and fit-only
+    effects keep their gain bars, the absolute drop and ΔBIC."""
+    from service.diagnosis.pipeline import DiagnoseOptions, significance_reasons
+
+    opt = DiagnoseOptions()
+    # the PyBaMM Marquis2019 sensor offset: 6.073 -> 6.118 mV at 1.45 mV noise
+    assert significance_reasons(-0.0074, 6.073, 6.118, -3.0, 1.45, "direct", opt) == []
+    worse = significance_reasons(-0.136, 14.87, 16.90, -3.0, 1.45, "direct", opt)
+    assert len(worse) == 1 and "rises 2.03 mV" in worse[0]
+    # the same small change does not make a nominated or a fit-only effect significant
+    assert any("gain" in r for r in significance_reasons(-0.0074, 6.073, 6.118, 5.0, 1.45, "nominated", opt))
+    assert significance_reasons(0.12, 20.0, 17.6, 5.0, 1.45, "nominated", opt) == []
+    fit_only = significance_reasons(0.12, 20.0, 17.6, -1.0, 1.45, "fit", opt)
+    assert any("< 30%" in r for r in fit_only) and any("dBIC" in r for r in fit_only)
+    assert significance_reasons(0.40, 20.0, 12.0, 5.0, 1.45, "fit", opt) == []
+    assert any("drop" in r for r in significance_reasons(0.40, 1.0, 0.6, 5.0, 1.45, "fit", opt))

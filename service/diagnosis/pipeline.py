@@ -28,9 +28,11 @@ Protocol (stated in every report and JSON):
   the full ``min_rel_gain`` applies.  A signature that *measures* the departure directly
   (``current_bias``: the mean measured current in rests, where the true current is zero;
   ``capacity``: the two-point check; ``hysteresis``: the branch offset at the ends of long rests)
-  makes its effect significant when the held-out RMSE does not get worse
-  (``min_rel_gain_direct`` = 0); the voltage channel then only has to agree, because a
-  sensor offset changes the voltage only through a slow SOC drift.
+  makes its effect significant when the held-out RMSE does not rise by more than the
+  noise margin (``direct_max_rise_noise`` × the voltage noise, the margin of the other
+  tests); the voltage channel then only has to agree, because a sensor offset changes the
+  voltage only through a slow SOC drift, and a change smaller than the noise is no
+  disagreement.
 * **Confirmation** (:func:`confirm_nominated`): when the verdict is ``none`` and a signature
   nominated an effect whose extension missed its bar, that effect alone is refitted with a
   fresh base on ``confirm_split`` (default ``interleaved``: blocks spread over the whole
@@ -101,8 +103,8 @@ class DiagnoseOptions:
     # an effect nominated by its own signature (service.cell.diagnosis.signatures) needs less
     min_rel_gain_nominated: float = 0.10
     # an effect whose signature is a direct measurement (current_bias: the rest current) needs
-    # only that the held-out RMSE does not get worse
-    min_rel_gain_direct: float = 0.0
+    # only that the held-out RMSE does not rise by more than this many x the voltage noise
+    direct_max_rise_noise: float = 0.5
     min_delta_bic: float = 0.0
     min_abs_gain_noise: float = 0.5
     # a none verdict with an effect nominated (not measured) by its signature whose extension
@@ -271,6 +273,35 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
             "signature_without_extension": signed,
             "explained_noise_factor": EXPLAINED_NOISE_FACTOR, "fit_only_gain": FIT_ONLY_GAIN,
             "fit_without_generalising": fit_only}
+
+
+def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: float, delta_bic: float,
+                         noise_mv: float, evidence: str, opt: DiagnoseOptions) -> list[str]:
+    """Why an extension is *not* significant (empty: it is), by its evidence (module docstring).
+
+    ``direct``: the signature measured the departure, and the held-out RMSE only must not rise
+    by more than ``direct_max_rise_noise`` × the noise (a smaller change is no disagreement: a
+    PyBaMM ``Marquis2019`` sensor offset measured at z = 66 moved the held-out RMSE from 6.07 to
+    6.12 mV at 1.45 mV noise).  ``nominated`` / ``fit``: the relative gain bar, the absolute
+    drop of ``min_abs_gain_noise`` × the noise and ΔBIC."""
+    reasons = []
+    if evidence == "direct":
+        rise_mv = opt.direct_max_rise_noise * noise_mv
+        if rmse_after_mv - rmse_before_mv > rise_mv:
+            reasons.append(f"held-out RMSE rises {rmse_after_mv - rmse_before_mv:.2f} mV > "
+                           f"{opt.direct_max_rise_noise:g} x noise ({rise_mv:.2f} mV) (measured directly by its signature)")
+        return reasons
+    nominated = evidence == "nominated"
+    bar = opt.min_rel_gain_nominated if nominated else opt.min_rel_gain
+    if score < bar:
+        reasons.append(f"held-out gain {score:.1%} < {bar:.0%}"
+                       + (" (nominated by its signature)" if nominated else " (no signature of its own)"))
+    if rmse_before_mv - rmse_after_mv < opt.min_abs_gain_noise * noise_mv:
+        reasons.append(f"held-out RMSE drop {rmse_before_mv - rmse_after_mv:.2f} mV < {opt.min_abs_gain_noise:g} x noise "
+                       f"({noise_mv:.2f} mV)")
+    if delta_bic < opt.min_delta_bic:
+        reasons.append(f"dBIC {delta_bic:.1f} < {opt.min_delta_bic:g}")
+    return reasons
 
 
 def rank(outcomes: list[EffectOutcome], tie_mv: float) -> list[EffectOutcome]:
@@ -552,21 +583,10 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
                 for key, val in ph2.items():
                     d = abs(val - phys[key])
                     params_std[key] = float(math.hypot(params_std.get(key, 0.0), d))
-        reasons = []
         nominated = bool(sig.get(name, {}).get("nominated", False))
         direct = nominated and bool(sig.get(name, {}).get("direct", False))
-        bar = opt.min_rel_gain_direct if direct else opt.min_rel_gain_nominated if nominated else opt.min_rel_gain
-        if score < bar:
-            reasons.append(f"held-out gain {score:.1%} < {bar:.0%}"
-                           + (" (measured directly by its signature)" if direct else
-                              " (nominated by its signature)" if nominated else " (no signature of its own)"))
-        if direct:
-            pass  # the signature measured the departure; the held-out voltage only has to agree
-        elif rmse_before - after < opt.min_abs_gain_noise * 1000 * sigma:
-            reasons.append(f"held-out RMSE drop {rmse_before - after:.2f} mV < {opt.min_abs_gain_noise:g} x noise "
-                           f"({1000 * sigma:.2f} mV)")
-        if not direct and dbic < opt.min_delta_bic:
-            reasons.append(f"dBIC {dbic:.1f} < {opt.min_delta_bic:g}")
+        evidence = "direct" if direct else "nominated" if nominated else "fit"
+        reasons = significance_reasons(score, rmse_before, after, dbic, 1000 * sigma, evidence, opt)
         why = eff.implausible(phys, problem.ctx) if eff.implausible else None
         if why:
             reasons.append(why)
@@ -575,8 +595,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
             rmse_after_mv=after, params={k: float(v) for k, v in phys.items()}, params_std=params_std,
             delta_bic=dbic, detection=eff.detect(full_ctx), whiteness_before=lag1(r_base[held]),
             whiteness_after=lag1(r_ext[held]), rmse_fit_after_mv=rmse_mv(r_ext[fit_full]), fit_seconds=res.seconds,
-            profile=prof, v_sim=v_ext, u_h0=u_h0, reasons=reasons,
-            evidence="direct" if direct else "nominated" if nominated else "fit",
+            profile=prof, v_sim=v_ext, u_h0=u_h0, reasons=reasons, evidence=evidence,
         ))
     outcomes = rank(outcomes, opt.min_abs_gain_noise * 1000 * sigma)
     verdict = outcomes[0].name if outcomes and outcomes[0].significant else "none"
@@ -586,7 +605,8 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
     located.sort(key=lambda g: -g["concentration"])
     thresholds = {
         "min_rel_gain": opt.min_rel_gain, "min_rel_gain_nominated": opt.min_rel_gain_nominated,
-        "min_rel_gain_direct": opt.min_rel_gain_direct,
+        "direct_max_rise_noise": opt.direct_max_rise_noise,
+        "direct_max_rise_mv": round(opt.direct_max_rise_noise * 1000 * sigma, 3),
         "signatures": {k: {kk: v[kk] for kk in ("threshold", "min_drift_soc", "min_frac_1c") if kk in v}
                        for k, v in sig.items()},
         "min_delta_bic": opt.min_delta_bic,

@@ -196,10 +196,12 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"{th['min_abs_gain_mv']:.2f} mV; ΔBIC ≥ {th['min_delta_bic']:g} on the fit part with "
         f"n_eff = {dg.base['n_eff']:.0f} (n / τ_int, τ_int = {dg.base['tau_int_samples']:.1f} samples). "
         f"An effect whose signature measures it directly (current_bias: the rest current; capacity: the "
-        f"two-point check; hysteresis: the branch offset at the ends of long rests) needs only a held-out "
-        f"gain ≥ {100 * th.get('min_rel_gain_direct', 0.0):.0f} %.",
+        f"two-point check; hysteresis: the branch offset at the ends of long rests) needs only that its held-out "
+        f"RMSE does not rise by more than {th.get('direct_max_rise_noise', 0.0):g} × voltage noise = "
+        f"{th.get('direct_max_rise_mv', 0.0):.2f} mV.",
         f"- Ranking: significant effects whose held-out RMSEs lie within {th['min_abs_gain_mv']:.2f} mV of the best "
-        "are tied (the voltage cannot tell them apart); a directly measured one goes first, then the higher ΔBIC.",
+        "are tied (the voltage cannot tell them apart); a directly measured one goes first, then one its signature "
+        "nominated, then the higher ΔBIC.",
         *_confirmation_lines(dg),
         "",
         "## Signatures (evidence outside the voltage fit)",
@@ -217,9 +219,9 @@ def write_report(dg, out_dir: str | Path) -> Path:
            f"{100 * dg.signatures['current_bias']['min_drift_soc']:.1f} % SOC and |offset| ≥ "
            f"{100 * dg.signatures['current_bias']['min_frac_1c']:.2f} % of 1C.", ""]
           if dg.signatures.get("current_bias", {}).get("se_a") else []),
-        *([f"Temperature: {dg.signatures['temperature']['why']} (opening temperature "
-           f"{dg.signatures['temperature']['opening_temp_c']:.1f} °C, range {dg.signatures['temperature']['range_k']:.1f} K, "
-           f"constant-ambient misfit {dg.signatures['temperature']['rms_k']:.2f} K).", ""]
+        *([(f"Temperature: {dg.signatures['temperature']['why']} (opening temperature "
+            f"{dg.signatures['temperature']['opening_temp_c']:.1f} °C, range {dg.signatures['temperature']['range_k']:.1f} K, "
+            f"constant-ambient misfit {dg.signatures['temperature']['rms_k']:.2f} K)."), ""]
           if dg.signatures.get("temperature", {}).get("why") else []),
         *(_capacity_lines(dg.signatures["capacity"]) if "capacity_scale" in dg.signatures.get("capacity", {}) else []),
         *(_branch_lines(dg.signatures["hysteresis"]) if "half_gap_v" in dg.signatures.get("hysteresis", {}) else []),
