@@ -31,7 +31,7 @@ from tests.test_fitting import TRUE as POINT
 
 def lfp_like_table() -> OcvSpec:
     soc = np.linspace(0, 1, 41)
-    ocv = 3.30 + 0.05 * soc + 0.3 * np.exp(-soc / 0.04) * -1 + 0.15 * np.exp((soc - 1) / 0.03)
+    ocv = 3.30 + 0.05 * soc - 0.3 * np.exp(-soc / 0.04) + 0.15 * np.exp((soc - 1) / 0.03)
     return OcvSpec(soc=soc.tolist(), ocv_v=[ocv.tolist()])
 
 
