@@ -18,6 +18,26 @@ def test_drive_opens_and_ends_with_rests_and_draws_three_quarters(kind):
     assert not np.array_equal(drive(kind, 4, 5.0)[:2000], i[:2000]), "the seed changes the drive"
 
 
+def test_smooth_drive_is_like_the_labelled_randomwalk():
+    """The smooth drive stands in for the labelled ``randomwalk`` files: a correlated current with
+    a quarter or so of the time charging, few long rests and no regen while the first 10 % is drawn."""
+    for seed in (1, 2, 3):
+        i = drive("smooth", seed, 5.0) / 5.0
+        assert np.all(i[:60] == 0.0) and np.all(i[-600:] == 0.0)
+        load = i[60:-600]
+        assert 0.2 <= load.mean() <= 0.5 and 0.4 <= load.std() <= 0.9
+        assert 0.1 <= np.mean(load < -0.03) <= 0.35
+        assert load.min() >= -1.6 and load.max() <= 2.7
+        x = load - load.mean()
+        assert np.corrcoef(x[:-20], x[20:])[0, 1] > 0.4, "correlated over tens of seconds"
+        rest = np.abs(load) < 0.01
+        starts = np.flatnonzero(np.diff(rest.astype(int)) == 1)
+        lengths = [int(np.argmin(rest[s + 1:])) for s in starts]
+        assert 2 <= sum(n >= 240 for n in lengths) <= 3, "two or three rests of 4-8 min"
+        first = np.cumsum(load) < 0.1 * 3600.0
+        assert np.all(load[: int(np.argmin(first))] >= 0.0), "no regen near full"
+
+
 def _row(cell, effect, verdict):
     return Row(effect=effect, level="moderate", seed=1, verdict=verdict, state="named", top=verdict, top_score=0.5,
                seconds=1.0, stem=f"{cell}_{effect}", cell=cell, rmse_before_mv=10.0, rmse_after_mv=5.0)

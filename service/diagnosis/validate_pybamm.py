@@ -25,8 +25,11 @@ The effects (how each recording departs from its parameter set):
 * ``temperature`` — the ambient moves by 8 / 15 / 25 K (warming or cooling, time constant a
   third of the run).
 * ``current_bias`` — the current sensor reads true + 0.2 / 0.4 / 0.8 % of 1C (either sign).
-* ``hysteresis`` — a one-state hysteresis voltage (half-gap 6 / 11 / 18 mV, rate 120, starting
-  on the discharge branch) added to the simulated voltage: PyBaMM's models here have none.
+* ``hysteresis`` — a one-state hysteresis voltage (half-gap 6 / 11 / 18 mV, rate 120) added to
+  the simulated voltage: PyBaMM's models here have none.  It starts on the after-charge branch
+  (:data:`HYSTERESIS_START`), as the labelled file does: ``hppc_s102`` opens 10.75 mV above the
+  table at its true SOC, its half-gap there.  Runs before this change started on the discharge
+  branch.
 
 Noise as the labelled files: voltage σ 1.5 mV, current σ 0.5 % |I| + 5 mA, temperature σ 0.1 K.
 Every drive opens with a 60 s rest near 95 % SOC, draws about 75 % of the capacity (a DST-like
@@ -57,6 +60,8 @@ LEVELS = ("subtle", "moderate", "clear")
 V_NOISE = 0.0015
 I_NOISE_REL, I_NOISE_ABS = 0.005, 0.005
 T_NOISE = 0.1
+#: the hysteresis state at the first sample (+1: the after-charge branch, -1: the discharge one)
+HYSTERESIS_START = 1.0
 
 
 def _pybamm():
@@ -92,8 +97,11 @@ def ocv_table(cell: str) -> tuple[np.ndarray, np.ndarray, float]:
 
 def drive(kind: str, seed: int, capacity_ah: float, max_s: int = 4 * 3600) -> np.ndarray:
     """1 Hz current (A, + = discharge): a 60 s rest, the profile until 75 % of the capacity is
-    drawn, a 600 s rest.  ``kind`` "dst": a DST-like 20-step table; "walk": a random walk;
-    "hppc": 10 % of the capacity at 1C, a 12-20 min rest, a 10 s discharge pulse (1.5-2.5C), 40 s
+    drawn, a 600 s rest.  ``kind`` "dst": a DST-like 20-step table; "walk": a random walk of
+    constant-current segments with frequent rests; "smooth": a smooth random current like the
+    labelled ``randomwalk`` files (mean 0.35C, sd 0.7C, correlation time about 40 s, a quarter of
+    the time charging, peaks -1.6C / 2.7C, two or three rests of 4-8 min, no regen above about 90 %
+    of the charge); "hppc": 10 % of the capacity at 1C, a 12-20 min rest, a 10 s discharge pulse (1.5-2.5C), 40 s
     rest, a 10 s charge pulse at 0.75 x the discharge pulse, 40 s rest (the labelled files' hppc)."""
     rng = np.random.default_rng(seed)
     i: list[float] = [0.0] * 60
@@ -114,6 +122,20 @@ def drive(kind: str, seed: int, capacity_ah: float, max_s: int = 4 * 3600) -> np
             for c, n in zip(table, steps):
                 i += [c * capacity_ah] * int(n)
                 drawn += c * capacity_ah * n
+    elif kind == "smooth":
+        x, tau, sd = 0.35, 40.0, 0.7
+        near_full = True
+        rests = set(rng.integers(900, int(target / (0.35 * capacity_ah)) - 600, int(rng.integers(2, 4))).tolist())
+        while drawn < target and len(i) < max_s:
+            if any(abs(len(i) - r) < 1 for r in rests):
+                i += [0.0] * int(rng.integers(240, 480))
+            x += (0.35 - x) / tau + sd * math.sqrt(2.0 / tau) * rng.normal()
+            c = float(np.clip(x, -1.6, 2.7))
+            near_full = near_full and drawn < 0.1 * capacity_ah * 3600.0
+            if near_full:
+                c = abs(c)  # no regen near full (folded, not clipped: a clip at 0 would make rests)
+            i.append(c * capacity_ah)
+            drawn += c * capacity_ah
     else:
         while drawn < target and len(i) < max_s:
             if rng.random() < 0.15:
@@ -185,7 +207,7 @@ def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -
     i_true = current[:n]
     if effect == "hysteresis":
         info["half_gap_v"] = half = (0.006, 0.011, 0.018)[k]
-        h, state = -1.0, np.empty(n)
+        h, state = HYSTERESIS_START, np.empty(n)
         for j in range(n):  # Zeng Eq. 1 with U_H = 1, rate 120 per unit SOC
             h += (math.copysign(1.0, -i_true[j]) - h) * (1.0 - math.exp(-120.0 * abs(i_true[j]) / (3600.0 * cap)))
             state[j] = h
@@ -345,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="recordings simulated and diagnosed at once (default 1)")
     ap.add_argument("--workdir", default="out/validate_pybamm", help="where the recordings are written")
     ap.add_argument("--json", help="write the rows as JSON")
-    ap.add_argument("--drive", choices=("alternate", "dst", "walk", "hppc"), default="alternate",
+    ap.add_argument("--drive", choices=("alternate", "dst", "walk", "smooth", "hppc"), default="alternate",
                     help="drive of every recording (default: alternate the step table and the walk over effects)")
     ap.add_argument("--split", choices=("chronological", "interleaved", "blocks"), default="chronological",
                     help="held-out protocol of each diagnosis, as socd diagnose --split (default: %(default)s)")
