@@ -219,3 +219,53 @@ def test_a_nominal_or_constant_temperature_recording_is_not_nominated(t_start, t
     temp = _thermal(t, i, t_start, np.full(t.size, t_amb_c), heat_k=heat_k)
     sig = signatures(t, i, temp, CAP)["temperature"]
     assert not sig["nominated"], sig
+
+
+# -- kinetics: the curvature of the voltage across current steps ---------------------------------
+@pytest.mark.parametrize(("level", "i0_c"), [("clear", 0.03), ("moderate", 0.06)])
+def test_current_steps_measure_a_slow_exchange_current(level, i0_c):
+    """The estimator's own model with a Butler-Volmer term (service.diagnosis.validate's grid,
+    i0 0.03 / 0.06 C): the step statistic finds i0 within 10 % and nominates kinetics."""
+    from service.diagnosis.signatures import step_kinetics
+    from service.diagnosis.validate import CAP as GRID_CAP
+    from service.diagnosis.validate import simulate_case
+
+    for seed in (0, 1):
+        c = simulate_case("kinetics", level, seed)
+        k = step_kinetics(c[:, 0], c[:, 1], c[:, 2], c[:, 3], GRID_CAP)
+        assert k["nominated"], k
+        assert k["i0_c"] == pytest.approx(i0_c, rel=0.10)
+        assert k["i0_upper_c"] < 0.1 and k["n_steps"] >= 20
+
+
+@pytest.mark.parametrize("effect", ["none", "diffusion", "hysteresis", "temperature"])
+def test_current_steps_of_a_linear_cell_do_not_nominate_kinetics(effect):
+    """Without a Butler-Volmer term the steps are linear in the current (every other effect of
+    the grid is linear or slow), whatever else the cell does."""
+    from service.diagnosis.signatures import step_kinetics
+    from service.diagnosis.validate import CAP as GRID_CAP
+    from service.diagnosis.validate import simulate_case
+
+    for seed in (0, 1):
+        c = simulate_case(effect, "clear", seed)
+        k = step_kinetics(c[:, 0], c[:, 1], c[:, 2], c[:, 3], GRID_CAP)
+        assert not k["nominated"], k
+        assert k["i0_upper_c"] > 0.1
+
+
+def test_current_steps_outside_the_usable_part_or_too_few_are_not_read():
+    from service.diagnosis.signatures import STEP_MIN_STEPS, step_kinetics
+    from service.diagnosis.validate import CAP as GRID_CAP
+    from service.diagnosis.validate import simulate_case
+
+    c = simulate_case("kinetics", "clear", 0)
+    t, i, v, temp = c.T
+    none_usable = step_kinetics(t, i, v, temp, GRID_CAP, usable=np.zeros(t.size, bool))
+    assert none_usable["n_steps"] == 0 and not none_usable["nominated"] and "needs" in none_usable["skipped"]
+    half = step_kinetics(t, i, v, temp, GRID_CAP, usable=t < t[t.size // 2])
+    whole = step_kinetics(t, i, v, temp, GRID_CAP)
+    assert 0 < half["n_steps"] < whole["n_steps"]
+    # a smooth current (a ramp) has no steps between two samples
+    ramp = np.linspace(0.0, 2.0 * GRID_CAP, t.size)
+    smooth = step_kinetics(t, ramp, 4.0 - 0.02 * ramp, temp, GRID_CAP)
+    assert smooth["n_steps"] < STEP_MIN_STEPS and not smooth["nominated"]

@@ -22,7 +22,8 @@ Protocol (stated in every report and JSON):
   independent); residual whiteness (lag-1 autocorrelation) before/after.
 * **Signatures** (:mod:`service.diagnosis.signatures`): evidence outside the voltage fit
   that an effect's departure is present (temperature: the ambient moves; diffusion: relaxation
-  still running at the ends of the fit part's long rests).  A nominated
+  still running at the ends of the fit part's long rests; kinetics: the voltage across the
+  fit part's current steps curves with the current as a slow Butler–Volmer term does).  A nominated
   effect needs only ``min_rel_gain_nominated``; flexible extensions also absorb the
   generic mismatch between the equivalent circuit and a real cell, so without a signature
   the full ``min_rel_gain`` applies.  A signature that *measures* the departure directly
@@ -74,6 +75,7 @@ from service.diagnosis.signatures import (
     rest_branch_offset,
     rest_relaxation,
     signatures,
+    step_kinetics,
     two_point_capacity,
 )
 from service.diagnosis.simulation import initial_soc
@@ -540,6 +542,8 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
     sig["hysteresis"] = branch
     # slow relaxation at the ends of the fit part's long rests (no held-out voltage enters it)
     sig["diffusion"] = rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, cap, usable=fit_full)
+    # the curvature of the voltage across the fit part's current steps (Butler-Volmer, no model)
+    sig["kinetics"] = step_kinetics(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, cap, usable=fit_full)
     bias_rest = (bias_sig.get("offset_a"), bias_sig.get("se_a")) if bias_sig.get("n_rest_samples") and bias_sig.get("se_a") else (None, None)
     problem.ctx = Context(
         time_s=grid.time_s, current_a=grid.current_a, temperature_c=grid.temperature_c,

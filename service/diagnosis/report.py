@@ -43,6 +43,16 @@ def _relaxation_lines(r: dict) -> list[str]:
              "all its relaxing after ten minutes). It nominates diffusion; it does not size the extension."), ""]
 
 
+def _kinetics_lines(k: dict) -> list[str]:
+    """The current-step kinetics signature in words (signatures.step_kinetics)."""
+    return [(f"Current steps: {k['n_steps']} steps of at least {k['min_step_c']:g}C in the fit part (up to "
+             f"{k['peak_c']:.2f}C); the voltage across them curves with the current as a Butler-Volmer term with an "
+             f"apparent exchange current of {k['i0_c']:.3f}C (95 % upper bound {k['i0_upper_c']:.3f}C) beside a "
+             f"linear {1000 * k['r_step_ohm']:.1f} mΩ (step residual RMS {k['rms_mv']:.2f} mV). Rule: upper bound "
+             f"< {k['threshold']:g}C, the healthy-cell bound the kinetics extension's own size must also meet. "
+             "It nominates kinetics; it does not size the extension."), ""]
+
+
 def _capacity_lines(c: dict) -> list[str]:
     """The two-point capacity check in words."""
     lo, hi = c["capacity_scale_range"]
@@ -226,6 +236,7 @@ def write_report(dg, out_dir: str | Path) -> Path:
         *(_capacity_lines(dg.signatures["capacity"]) if "capacity_scale" in dg.signatures.get("capacity", {}) else []),
         *(_branch_lines(dg.signatures["hysteresis"]) if "half_gap_v" in dg.signatures.get("hysteresis", {}) else []),
         *(_relaxation_lines(dg.signatures["diffusion"]) if "ratio" in dg.signatures.get("diffusion", {}) else []),
+        *(_kinetics_lines(dg.signatures["kinetics"]) if "i0_c" in dg.signatures.get("kinetics", {}) else []),
         "## Base model (MTS-FOM, refitted on the fit part)",
         "",
         "| " + " | ".join(k for k in dg.base["point"]) + " |",

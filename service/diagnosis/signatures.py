@@ -65,6 +65,19 @@ departure the effect describes is present.  An effect whose signature fires is
   extrapolated from their last quarter as ``2·t·dV/dt``, at most :data:`BRANCH_MAX_RELAXATION`
   × ``U_H``: a slow diffusion leaves every post-discharge rest low too).  A recording without
   such rests (a drive cycle) has no signature here.
+* ``kinetics`` — slow charge transfer is an overpotential that appears within a second of a
+  current change and is non-linear in the current: the apparent resistance falls as the
+  current rises (Butler–Volmer, ``η = (2RT/F)·asinh(I/(2·i0))``).  :func:`step_kinetics`
+  reads the voltage change across every current step between two samples (at least
+  :data:`STEP_MIN_C` × 1C, the current steady in the sample before and the one after: a
+  step table, a pulse), where neither the OCV nor a slower branch has time to move, and fits
+  ``ΔV = −R·ΔI − (2RT/F)·[asinh(c₂/2x) − asinh(c₁/2x)]`` with ``c`` the C-rates before and after
+  and ``x = i0`` in C.  Everything linear (ohmic drop, the first second of a fast RC branch)
+  goes into ``R``; only the curvature fixes ``x``.  Nominated when at least
+  :data:`STEP_MIN_STEPS` steps reach :data:`STEP_MIN_PEAK_C` and the upper end of the
+  two-sided 95 % interval of ``x`` lies below the healthy-cell bound
+  :data:`service.diagnosis.effects.KINETICS_MAX_I0_C` (the bound the kinetics extension's
+  own fitted size must meet).  Only the fit part's steps are read.
 * ``diffusion`` — a slow solid diffusion shows as relaxation that is still running at the end
   of a long rest (:func:`rest_relaxation`).  For each rest of at least
   :data:`RELAX_REST_MIN_S` after a load step of at least :data:`RELAX_MIN_STEP_C` × 1C, the
@@ -86,7 +99,9 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
+from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN
 from service.characterisation.relaxation import rc_voltage
+from service.diagnosis.effects import KINETICS_MAX_I0_C
 
 #: RMS misfit of the constant-ambient thermal model above which the ambient is taken to move
 AMBIENT_DRIFT_K = 0.5
@@ -147,6 +162,14 @@ RELAX_MIN_STEP_C = 0.2
 RELAX_MIN_RATIO = 0.3
 #: pooled z of the remaining relaxation needed besides
 RELAX_MIN_Z = 5.0
+#: kinetics: current steps between two samples of at least this C-rate ...
+STEP_MIN_C = 0.2
+#: ... with the current steady (within this share of 1C, plus 1 % of |I|) in the samples either side
+STEP_STEADY_C = 0.02
+#: at least this many such steps ...
+STEP_MIN_STEPS = 20
+#: ... reaching at least this C-rate (the curvature of asinh needs a current well above i0)
+STEP_MIN_PEAK_C = 0.5
 #: the opening point must be a rest at least this long (a recording that opens under load has
 #: no OCV-anchored start)
 CAPACITY_MIN_OPENING_REST_S = 30.0
@@ -548,3 +571,62 @@ def signatures(time_s: np.ndarray, current_a: np.ndarray, temperature_c: np.ndar
         "current_bias": rest_current_offset(time_s, current_a, capacity_ah),
         "temperature": temperature_signature(time_s, current_a, temperature_c, capacity_ah, nominal_ambient_c),
     }
+
+
+def step_kinetics(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, temperature_c: np.ndarray,
+                  capacity_ah: float, usable: np.ndarray | None = None) -> dict:
+    """The apparent exchange current from the voltage across current steps (module docstring,
+    ``kinetics``).  ``usable`` (optional mask): only steps whose four samples lie inside it."""
+    out = {"nominated": False, "statistic": None, "threshold": KINETICS_MAX_I0_C, "min_steps": STEP_MIN_STEPS,
+           "min_step_c": STEP_MIN_C, "min_peak_c": STEP_MIN_PEAK_C,
+           "what": "apparent exchange current i0 (C) from the curvature of the voltage change across current "
+                   "steps against the current (Butler-Volmer; the 95 % upper bound must be below the threshold; "
+                   "no model)"}
+    n = current_a.size
+    if n < 4:
+        out.update(n_steps=0, skipped="fewer than 4 samples")
+        return out
+    dt = np.diff(time_s)
+    di = np.diff(current_a)
+    j = np.arange(1, n - 2)
+    steady = STEP_STEADY_C * capacity_ah
+    ok = ((np.abs(di[j]) >= STEP_MIN_C * capacity_ah)
+          & (np.abs(di[j - 1]) <= steady + 0.01 * np.abs(current_a[j]))
+          & (np.abs(di[j + 1]) <= steady + 0.01 * np.abs(current_a[j + 1]))
+          & (dt[j] <= 2.0 * float(np.median(dt))))
+    if usable is not None:
+        ok &= usable[j - 1] & usable[j] & usable[j + 1] & usable[j + 2]
+    j = j[ok]
+    c1, c2 = current_a[j] / capacity_ah, current_a[j + 1] / capacity_ah
+    out["n_steps"] = int(j.size)
+    peak = float(np.max(np.abs(np.concatenate([c1, c2])))) if j.size else 0.0
+    out["peak_c"] = round(peak, 3)
+    if j.size < STEP_MIN_STEPS or peak < STEP_MIN_PEAK_C:
+        out["skipped"] = (f"{j.size} current steps of at least {STEP_MIN_C:g}C reaching {peak:.2f}C "
+                          f"(needs {STEP_MIN_STEPS} reaching {STEP_MIN_PEAK_C:g}C)")
+        return out
+    dv = voltage_v[j + 1] - voltage_v[j]
+    d_amp = current_a[j + 1] - current_a[j]
+    vt = 2.0 * GAS_CONSTANT * (0.5 * (temperature_c[j] + temperature_c[j + 1]) + KELVIN) / FARADAY
+
+    def resid(th):
+        x = math.exp(th[1])
+        return dv + th[0] * d_amp + vt * (np.arcsinh(c2 / (2 * x)) - np.arcsinh(c1 / (2 * x)))
+
+    lo, hi = math.log(0.005), math.log(100.0)
+    r0 = float(max(-(dv @ d_amp) / max(float(d_amp @ d_amp), 1e-30), 0.0))
+    best = None
+    for x0 in (0.03, 0.1, 0.3, 1.0, 3.0, 10.0):
+        fit = least_squares(resid, [r0, math.log(x0)], bounds=([0.0, lo], [10.0, hi]))
+        if best is None or fit.cost < best.cost:
+            best = fit
+    dof = max(j.size - 2, 1)
+    var = 2.0 * best.cost / dof
+    cov = np.linalg.pinv(best.jac.T @ best.jac) * var
+    ln_x, se = float(best.x[1]), float(math.sqrt(max(cov[1, 1], 0.0)))
+    upper = math.exp(min(ln_x + 1.96 * se, hi))
+    i0_c = math.exp(ln_x)
+    out.update(statistic=round(i0_c, 4), i0_c=i0_c, i0_upper_c=upper, ln_i0_se=se, r_step_ohm=float(best.x[0]),
+               rms_mv=round(1000 * math.sqrt(var), 3),
+               nominated=bool(upper < KINETICS_MAX_I0_C and ln_x - 1.96 * se > lo))
+    return out
