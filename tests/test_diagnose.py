@@ -93,6 +93,18 @@ def test_kinetics_of_a_healthy_cell_is_not_named(tmp_path):
     assert dg.verdict != "kinetics"
 
 
+def test_a_fast_surface_lag_is_not_slow_diffusion():
+    """The diffusion extension's size test: a lag that relaxes within three minutes is a fast
+    branch the equivalent circuit lacks, whatever it gains; a lag of minutes passes."""
+    from service.diagnosis.effects import DIFFUSION_MIN_TAU_S, EFFECTS
+
+    implausible = EFFECTS["diffusion"].implausible
+    why = implausible({"tau_s": 0.9 * DIFFUSION_MIN_TAU_S, "gain_soc_per_c": 0.03}, None)
+    assert why and "not slow diffusion" in why and f"{0.9 * DIFFUSION_MIN_TAU_S:.0f} s" in why
+    assert implausible({"tau_s": 1.5 * DIFFUSION_MIN_TAU_S, "gain_soc_per_c": 0.03}, None) is None
+    assert implausible({"tau_s": 1200.0, "gain_soc_per_c": 0.16}, None) is None
+
+
 def test_none_with_a_large_residual_says_the_physics_is_missing(tmp_path):
     """Hysteresis left out of the candidates: the verdict is none, and the assessment says the
     residual is far above noise (not that the model is fine) and which candidate fitted best."""

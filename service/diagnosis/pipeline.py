@@ -47,7 +47,8 @@ Protocol (stated in every report and JSON):
   effect, else ``none``.
 * **Size**: an effect whose fitted size is that of a healthy cell is not significant
   (:attr:`Effect.implausible`; kinetics: apparent exchange current ``>= 0.1 C``,
-  :data:`service.diagnosis.effects.KINETICS_MAX_I0_C`).
+  :data:`service.diagnosis.effects.KINETICS_MAX_I0_C`; diffusion: a surface lag faster than
+  :data:`service.diagnosis.effects.DIFFUSION_MIN_TAU_S`).
 * **Ranking** (:func:`rank`): significant effects whose held-out RMSEs lie within the
   noise margin of the best are tied (the voltage cannot tell them apart); a directly
   measured one goes first, then one its signature nominated, then the higher ΔBIC.
@@ -64,7 +65,7 @@ import numpy as np
 from service.cell.fitting import FitSegment, encode_point, estimate_r_ohm, fit_parameters
 from service.cell.model import simulate
 from service.cell.profile import CellProfile
-from service.diagnosis.effects import EFFECTS, KINETICS_MAX_I0_C, Context, Effect
+from service.diagnosis.effects import DIFFUSION_MIN_TAU_S, EFFECTS, KINETICS_MAX_I0_C, Context, Effect
 from service.diagnosis.locate import locate
 from service.diagnosis.refit import Problem, parameter_std, refit
 from service.diagnosis.signatures import (
@@ -618,6 +619,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
         "min_abs_gain_mv": round(opt.min_abs_gain_noise * 1000 * sigma, 3),
         "concentration_flag": 1.5,
         "kinetics_max_i0_c": KINETICS_MAX_I0_C,
+        "diffusion_min_tau_s": DIFFUSION_MIN_TAU_S,
     }
     base = {
         "point": point.model_dump(), "rmse_fit_mv": round(rmse_fit_base, 3),

@@ -209,6 +209,9 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"two-point check; hysteresis: the branch offset at the ends of long rests) needs only that its held-out "
         f"RMSE does not rise by more than {th.get('direct_max_rise_noise', 0.0):g} × voltage noise = "
         f"{th.get('direct_max_rise_mv', 0.0):.2f} mV.",
+        (f"- Size: a fitted term the size of a healthy cell's is no departure and is not significant (kinetics: "
+         f"exchange current ≥ {th.get('kinetics_max_i0_c', 0.1):g}C; diffusion: surface lag τ < "
+         f"{th.get('diffusion_min_tau_s', 60.0):.0f} s, which relaxes within three minutes)."),
         f"- Ranking: significant effects whose held-out RMSEs lie within {th['min_abs_gain_mv']:.2f} mV of the best "
         "are tied (the voltage cannot tell them apart); a directly measured one goes first, then one its signature "
         "nominated, then the higher ΔBIC.",
