@@ -65,7 +65,13 @@ import numpy as np
 from service.cell.fitting import FitSegment, encode_point, estimate_r_ohm, fit_parameters
 from service.cell.model import simulate
 from service.cell.profile import CellProfile
-from service.diagnosis.effects import DIFFUSION_MIN_TAU_S, EFFECTS, KINETICS_MAX_I0_C, Context, Effect
+from service.diagnosis.effects import (
+    DIFFUSION_MIN_TAU_S,
+    EFFECTS,
+    KINETICS_MAX_I0_C,
+    Context,
+    Effect,
+)
 from service.diagnosis.locate import locate
 from service.diagnosis.refit import Problem, parameter_std, refit
 from service.diagnosis.signatures import (

@@ -194,11 +194,11 @@ def write_report(dg, out_dir: str | Path) -> Path:
          "- Split: interleaved; the duration is cut into 10 blocks and blocks 2, 4, 7, 9 are held out")
         + f" ({dg.protocol['fit_samples']} samples fitted, {dg.protocol['heldout_samples']} held out). The model "
         "runs through the whole recording; only the scored samples differ.",
-        f"- Initial state: {dg.protocol['initial_state']}; SOC0 = {dg.base['soc0']:.3f} "
-        f"from {dg.base['v_rest0']:.4f} V.",
-        "- Every model is fitted at the recording's own rate; held-out RMSEs come from "
-        "`service.cell.model.simulate` on the saved profiles (the model `socd evaluate` runs).",
-        f"- Significance (all required): held-out gain ≥ {100 * th['min_rel_gain']:.0f} % "
+        (f"- Initial state: {dg.protocol['initial_state']}; SOC0 = {dg.base['soc0']:.3f} "
+        f"from {dg.base['v_rest0']:.4f} V."),
+        ("- Every model is fitted at the recording's own rate; held-out RMSEs come from "
+        "`service.cell.model.simulate` on the saved profiles (the model `socd evaluate` runs)."),
+        (f"- Significance (all required): held-out gain ≥ {100 * th['min_rel_gain']:.0f} % "
         f"({100 * th.get('min_rel_gain_nominated', th['min_rel_gain']):.0f} % for an effect its own signature "
         f"nominates: {', '.join(k for k, v in dg.signatures.items() if v.get('nominated')) or 'none here'}); "
         f"held-out RMSE drop ≥ "
@@ -208,13 +208,13 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"An effect whose signature measures it directly (current_bias: the rest current; capacity: the "
         f"two-point check; hysteresis: the branch offset at the ends of long rests) needs only that its held-out "
         f"RMSE does not rise by more than {th.get('direct_max_rise_noise', 0.0):g} × voltage noise = "
-        f"{th.get('direct_max_rise_mv', 0.0):.2f} mV.",
+        f"{th.get('direct_max_rise_mv', 0.0):.2f} mV."),
         (f"- Size: a fitted term the size of a healthy cell's is no departure and is not significant (kinetics: "
          f"exchange current ≥ {th.get('kinetics_max_i0_c', 0.1):g}C; diffusion: surface lag τ < "
          f"{th.get('diffusion_min_tau_s', 60.0):.0f} s, which relaxes within three minutes)."),
-        f"- Ranking: significant effects whose held-out RMSEs lie within {th['min_abs_gain_mv']:.2f} mV of the best "
+        (f"- Ranking: significant effects whose held-out RMSEs lie within {th['min_abs_gain_mv']:.2f} mV of the best "
         "are tied (the voltage cannot tell them apart); a directly measured one goes first, then one its signature "
-        "nominated, then the higher ΔBIC.",
+        "nominated, then the higher ΔBIC."),
         *_confirmation_lines(dg),
         "",
         "## Signatures (evidence outside the voltage fit)",
@@ -224,13 +224,13 @@ def write_report(dg, out_dir: str | Path) -> Path:
         *[(f"| {k} | {'**yes**' if v.get('nominated') else 'no'} | {v.get('statistic')} | {v.get('threshold')} | "
            f"{v.get('what', '')} |") for k, v in dg.signatures.items()],
         "",
-        *([f"Rest current (true current 0): {1000 * dg.signatures['current_bias']['offset_a']:+.2f} ± "
+        *([(f"Rest current (true current 0): {1000 * dg.signatures['current_bias']['offset_a']:+.2f} ± "
            f"{1000 * dg.signatures['current_bias']['se_a']:.2f} mA over {dg.signatures['current_bias']['n_rests']} "
            f"rests ({dg.signatures['current_bias']['n_rest_samples']} samples), a Coulomb-count drift of "
            f"{100 * dg.signatures['current_bias']['drift_soc']:.2f} % SOC over the recording; rule: |z| ≥ "
            f"{dg.signatures['current_bias']['threshold']:g}, drift ≥ "
            f"{100 * dg.signatures['current_bias']['min_drift_soc']:.1f} % SOC and |offset| ≥ "
-           f"{100 * dg.signatures['current_bias']['min_frac_1c']:.2f} % of 1C.", ""]
+           f"{100 * dg.signatures['current_bias']['min_frac_1c']:.2f} % of 1C."), ""]
           if dg.signatures.get("current_bias", {}).get("se_a") else []),
         *([(f"Temperature: {dg.signatures['temperature']['why']} (opening temperature "
             f"{dg.signatures['temperature']['opening_temp_c']:.1f} °C, range {dg.signatures['temperature']['range_k']:.1f} K, "
@@ -265,8 +265,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
     lines += [
         "## Candidate physics, best first",
         "",
-        "| effect | significant | held-out gain | RMSE before → after, mV | fit part after, mV | ΔBIC | detection "
-        "| lag-1 autocorr before → after |",
+        ("| effect | significant | held-out gain | RMSE before → after, mV | fit part after, mV | ΔBIC | detection "
+        "| lag-1 autocorr before → after |"),
         "|---|---|---|---|---|---|---|---|",
     ]
     for e in dg.effects:
@@ -284,8 +284,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
         where = "" if e.split == dg.protocol["split"] else f" (fitted and scored on the {e.split} split)"
         lines.append(f"- **{e.name}** ({e.title}){where}: {ps}{why}")
     lines += ["", "## Plots", ""] + [f"![{f}]({f})" for f in files] + [
-        "", f"_{dg.seconds:.0f} s. Detection statistics are |correlation| of the base residual with the effect's "
-        "feature (ocv: share of residual variance explained by SOC); they point, the refit decides._", ""]
+        "", (f"_{dg.seconds:.0f} s. Detection statistics are |correlation| of the base residual with the effect's "
+        "feature (ocv: share of residual variance explained by SOC); they point, the refit decides._"), ""]
     path = out / "report.md"
     path.write_text("\n".join(lines))
     return path
