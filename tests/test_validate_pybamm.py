@@ -55,16 +55,20 @@ def test_table_counts_right_wrong_and_false_positives():
 def test_signature_table_counts_each_signature_and_lists_failed_simulations():
     from service.diagnosis.validate_pybamm import signature_table
 
-    def row(effect, hyst, diff, n_rests=5):
+    def row(effect, hyst, diff, kin=False, n_rests=5):
         return {"stem": f"A_{effect}", "cell": "A", "effect": effect, "nominated": hyst, "n_rests": n_rests,
                 "half_gap_v": 0.01, "statistic": 9.0, "spread": 0.05, "relaxation": 0.2,
-                "diffusion": {"nominated": diff, "n_rests": 4, "statistic": 0.5 if diff else 0.1, "z": 20.0}}
+                "diffusion": {"nominated": diff, "n_rests": 4, "statistic": 0.5 if diff else 0.1, "z": 20.0},
+                "kinetics": {"nominated": kin, "n_steps": 40, "i0_c": 0.05 if kin else 0.3, "i0_upper_c": 0.06 if kin else 0.35}}
 
     rows = [row("hysteresis", True, False), row("diffusion", False, True), row("diffusion", False, False),
-            row("none", False, False), {"stem": "B_capacity", "cell": "B", "effect": "capacity", "error": "SolverError: x"}]
+            row("none", False, False), row("kinetics", False, False, kin=True),
+            {"stem": "B_capacity", "cell": "B", "effect": "capacity", "error": "SolverError: x"}]
     text = signature_table(rows)
-    assert "hysteresis signature: nominated on 1/1 hysteresis recordings and on 0/3 others" in text
-    assert "diffusion signature: nominated on 1/2 diffusion recordings and on 0/2 others" in text
+    assert "hysteresis signature: nominated on 1/1 hysteresis recordings and on 0/4 others" in text
+    assert "diffusion signature: nominated on 1/2 diffusion recordings and on 0/3 others" in text
+    assert "kinetics signature: nominated on 1/1 kinetics recordings and on 0/4 others" in text
+    assert "| 40 | 0.050 (0.060) | **yes** |" in text
     assert "not simulated: B_capacity (SolverError: x)" in text
 
 

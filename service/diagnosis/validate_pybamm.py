@@ -286,12 +286,13 @@ def run_one(job: tuple[str, str, str, int, str, str], split: str = "chronologica
 
 
 def signature_one(job: tuple[str, str, str, int, str, str]) -> dict:
-    """Simulate one recording and compute only the rest signatures (no diagnosis): the
-    hysteresis branch offset over the whole recording and the diffusion relaxation over the
-    fit part (the first ``fit_fraction`` of the duration), as :func:`run_diagnosis` reads them."""
+    """Simulate one recording and compute only the model-free signatures (no diagnosis): the
+    hysteresis branch offset over the whole recording, the diffusion relaxation and the
+    current-step kinetics over the fit part (the first ``fit_fraction`` of the duration), as
+    :func:`run_diagnosis` reads them."""
     from service.cell.ocv import OcvTable
     from service.diagnosis.pipeline import DiagnoseOptions, chronological_fit_mask
-    from service.diagnosis.signatures import rest_branch_offset, rest_relaxation
+    from service.diagnosis.signatures import rest_branch_offset, rest_relaxation, step_kinetics
 
     cell, effect = job[0], job[1]
     stem, sim = _simulated(job)
@@ -300,29 +301,38 @@ def signature_one(job: tuple[str, str, str, int, str, str]) -> dict:
     data, soc, ocv, info = sim
     t, i, v, temp = data.T
     b = rest_branch_offset(t, i, v, temp, OcvTable.from_points(soc, ocv), info["capacity_ah"])
-    d = rest_relaxation(t, i, v, info["capacity_ah"], usable=chronological_fit_mask(t, DiagnoseOptions().fit_fraction))
+    fit = chronological_fit_mask(t, DiagnoseOptions().fit_fraction)
+    d = rest_relaxation(t, i, v, info["capacity_ah"], usable=fit)
+    k = step_kinetics(t, i, v, temp, info["capacity_ah"], usable=fit)
     return {"stem": stem, "cell": cell, "effect": effect,
             **{k: b[k] for k in ("nominated", "n_rests", "half_gap_v", "statistic", "spread", "relaxation", "rate",
                                  "skipped") if k in b},
-            "diffusion": {k: d[k] for k in ("nominated", "n_rests", "statistic", "z", "skipped") if k in d}}
+            "diffusion": {k: d[k] for k in ("nominated", "n_rests", "statistic", "z", "skipped") if k in d},
+            "kinetics": {key: k[key] for key in ("nominated", "n_steps", "i0_c", "i0_upper_c", "skipped") if key in k}}
 
 
 def signature_table(rows: list[dict]) -> str:
     out = [("| recording | rests | U_H mV | z | spread | relaxation | hysteresis | fit-part rests | relaxation left / "
-            "ohmic step | z | diffusion |"), "|---|---|---|---|---|---|---|---|---|---|---|"]
+            "ohmic step | z | diffusion | fit-part steps | i0 (95 % upper), C | kinetics |"),
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     failed = [r for r in rows if "error" in r]
     rows = [r for r in rows if "error" not in r]
     for r in rows:
         d = r["diffusion"]
         relax = (f"{d['n_rests']} | {d['statistic']:.3f} | {d['z']:+.1f} | {'**yes**' if d['nominated'] else 'no'}"
                  if "z" in d else f"{d['n_rests']} | - | - | no")
+        k = r.get("kinetics", {})
+        steps = (f"{k['n_steps']} | {k['i0_c']:.3f} ({k['i0_upper_c']:.3f}) | {'**yes**' if k['nominated'] else 'no'}"
+                 if "i0_c" in k else f"{k.get('n_steps', 0)} | - | no")
         if "half_gap_v" not in r:
-            out.append(f"| {r['stem']} | {r['n_rests']} | - | - | - | - | no | {relax} |")
+            out.append(f"| {r['stem']} | {r['n_rests']} | - | - | - | - | no | {relax} | {steps} |")
             continue
         out.append(f"| {r['stem']} | {r['n_rests']} | {1000 * r['half_gap_v']:+.2f} | {r['statistic']:+.1f} | "
-                   f"{r['spread']:.2f} | {r['relaxation']:.2f} | {'**yes**' if r['nominated'] else 'no'} | {relax} |")
+                   f"{r['spread']:.2f} | {r['relaxation']:.2f} | {'**yes**' if r['nominated'] else 'no'} | {relax} | "
+                   f"{steps} |")
     out.append("")
-    for name, nominated in (("hysteresis", lambda r: r["nominated"]), ("diffusion", lambda r: r["diffusion"]["nominated"])):
+    for name, nominated in (("hysteresis", lambda r: r["nominated"]), ("diffusion", lambda r: r["diffusion"]["nominated"]),
+                            ("kinetics", lambda r: r.get("kinetics", {}).get("nominated", False))):
         mine = [r for r in rows if r["effect"] == name]
         other = [r for r in rows if r["effect"] != name]
         out.append(f"{name} signature: nominated on {sum(map(nominated, mine))}/{len(mine)} {name} recordings and "
@@ -372,8 +382,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--split", choices=("chronological", "interleaved", "blocks"), default="chronological",
                     help="held-out protocol of each diagnosis, as socd diagnose --split (default: %(default)s)")
     ap.add_argument("--signature-only", action="store_true",
-                    help="compute only the rest signatures of each recording (hysteresis branch offset, "
-                         "diffusion relaxation), without diagnosing")
+                    help="compute only the model-free signatures of each recording (hysteresis branch offset, "
+                         "diffusion relaxation, current-step kinetics), without diagnosing")
     args = ap.parse_args(argv)
     _pybamm()
     cells = [c for c in args.cells.split(",") if c]
