@@ -379,12 +379,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write the rows as JSON")
     ap.add_argument("--drive", choices=("alternate", "dst", "walk", "smooth", "hppc"), default="alternate",
                     help="drive of every recording (default: alternate the step table and the walk over effects)")
+    ap.add_argument("--hysteresis-start", choices=("charge", "discharge"), default="charge",
+                    help="branch the hysteresis recordings open on (default charge, as the labelled file; "
+                         "runs before this option opened on the discharge branch)")
     ap.add_argument("--split", choices=("chronological", "interleaved", "blocks"), default="chronological",
                     help="held-out protocol of each diagnosis, as socd diagnose --split (default: %(default)s)")
     ap.add_argument("--signature-only", action="store_true",
                     help="compute only the model-free signatures of each recording (hysteresis branch offset, "
                          "diffusion relaxation, current-step kinetics), without diagnosing")
     args = ap.parse_args(argv)
+    global HYSTERESIS_START  # read by simulate() in the worker processes, which fork after this
+    HYSTERESIS_START = 1.0 if args.hysteresis_start == "charge" else -1.0
     _pybamm()
     cells = [c for c in args.cells.split(",") if c]
     effects = [e for e in args.effects.split(",") if e]
