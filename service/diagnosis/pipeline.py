@@ -31,7 +31,7 @@ Protocol (stated in every report and JSON):
   ``capacity``: the two-point check; ``hysteresis``: the branch offset at the ends of long rests)
   makes its effect significant when the held-out RMSE does not rise by more than the
   noise margin (``direct_max_rise_noise`` × the voltage noise, the margin of the other
-  tests); the voltage channel then only has to agree, because a sensor offset changes the
+  tests, or ``direct_max_rise_rel`` of the base's held-out RMSE, the nominated bar mirrored); the voltage channel then only has to agree, because a sensor offset changes the
   voltage only through a slow SOC drift, and a change smaller than the noise is no
   disagreement.
 * **Confirmation** (:func:`confirm_nominated`): when the verdict is ``none`` and a signature
@@ -114,6 +114,9 @@ class DiagnoseOptions:
     # an effect whose signature is a direct measurement (current_bias: the rest current) needs
     # only that the held-out RMSE does not rise by more than this many x the voltage noise
     direct_max_rise_noise: float = 0.5
+    # ... or by more than this share of the base's held-out RMSE, whichever is larger: the nominated
+    # bar mirrored (a voltage change inside the base model's own misfit neither confirms nor refutes)
+    direct_max_rise_rel: float = 0.10
     min_delta_bic: float = 0.0
     min_abs_gain_noise: float = 0.5
     # a none verdict with an effect nominated (not measured) by its signature whose extension
@@ -289,16 +292,20 @@ def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: flo
     """Why an extension is *not* significant (empty: it is), by its evidence (module docstring).
 
     ``direct``: the signature measured the departure, and the held-out RMSE only must not rise
-    by more than ``direct_max_rise_noise`` × the noise (a smaller change is no disagreement: a
-    PyBaMM ``Marquis2019`` sensor offset measured at z = 66 moved the held-out RMSE from 6.07 to
-    6.12 mV at 1.45 mV noise).  ``nominated`` / ``fit``: the relative gain bar, the absolute
-    drop of ``min_abs_gain_noise`` × the noise and ΔBIC."""
+    by more than ``direct_max_rise_noise`` × the noise or ``direct_max_rise_rel`` × its base
+    value, whichever is larger (a smaller change is no disagreement: a PyBaMM ``Marquis2019``
+    sensor offset measured at z = 66 moved the held-out RMSE from 6.07 to 6.12 mV at 1.45 mV
+    noise; a ``Chen2020`` one measured at z = 122 moved it from 17.25 to 18.52 mV, inside the
+    base model's own misfit, while the real +70.8 mA of the Panasonic 10 °C stops doubles it).
+    ``nominated`` / ``fit``: the relative gain bar, the absolute drop of ``min_abs_gain_noise`` ×
+    the noise and ΔBIC."""
     reasons = []
     if evidence == "direct":
-        rise_mv = opt.direct_max_rise_noise * noise_mv
+        rise_mv = max(opt.direct_max_rise_noise * noise_mv, opt.direct_max_rise_rel * rmse_before_mv)
         if rmse_after_mv - rmse_before_mv > rise_mv:
-            reasons.append(f"held-out RMSE rises {rmse_after_mv - rmse_before_mv:.2f} mV > "
-                           f"{opt.direct_max_rise_noise:g} x noise ({rise_mv:.2f} mV) (measured directly by its signature)")
+            reasons.append(f"held-out RMSE rises {rmse_after_mv - rmse_before_mv:.2f} mV > {rise_mv:.2f} mV, the larger "
+                           f"of {opt.direct_max_rise_noise:g} x noise and {opt.direct_max_rise_rel:.0%} of its base value "
+                           "(measured directly by its signature)")
         return reasons
     nominated = evidence == "nominated"
     bar = opt.min_rel_gain_nominated if nominated else opt.min_rel_gain
@@ -617,7 +624,8 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
     thresholds = {
         "min_rel_gain": opt.min_rel_gain, "min_rel_gain_nominated": opt.min_rel_gain_nominated,
         "direct_max_rise_noise": opt.direct_max_rise_noise,
-        "direct_max_rise_mv": round(opt.direct_max_rise_noise * 1000 * sigma, 3),
+        "direct_max_rise_rel": opt.direct_max_rise_rel,
+        "direct_max_rise_mv": round(max(opt.direct_max_rise_noise * 1000 * sigma, opt.direct_max_rise_rel * rmse_before), 3),
         "signatures": {k: {kk: v[kk] for kk in ("threshold", "min_drift_soc", "min_frac_1c") if kk in v}
                        for k, v in sig.items()},
         "min_delta_bic": opt.min_delta_bic,

@@ -207,8 +207,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"n_eff = {dg.base['n_eff']:.0f} (n / τ_int, τ_int = {dg.base['tau_int_samples']:.1f} samples). "
         f"An effect whose signature measures it directly (current_bias: the rest current; capacity: the "
         f"two-point check; hysteresis: the branch offset at the ends of long rests) needs only that its held-out "
-        f"RMSE does not rise by more than {th.get('direct_max_rise_noise', 0.0):g} × voltage noise = "
-        f"{th.get('direct_max_rise_mv', 0.0):.2f} mV."),
+        f"RMSE does not rise by more than the larger of {th.get('direct_max_rise_noise', 0.0):g} × voltage noise "
+        f"and {100 * th.get('direct_max_rise_rel', 0.0):.0f} % of its base value = {th.get('direct_max_rise_mv', 0.0):.2f} mV."),
         (f"- Size: a fitted term the size of a healthy cell's is no departure and is not significant (kinetics: "
          f"exchange current ≥ {th.get('kinetics_max_i0_c', 0.1):g}C; diffusion: surface lag τ < "
          f"{th.get('diffusion_min_tau_s', 60.0):.0f} s, which relaxes within three minutes)."),
