@@ -30,10 +30,11 @@ Protocol (stated in every report and JSON):
   (``current_bias``: the mean measured current in rests, where the true current is zero;
   ``capacity``: the two-point check; ``hysteresis``: the branch offset at the ends of long rests)
   makes its effect significant when the held-out RMSE does not rise by more than the
-  noise margin (``direct_max_rise_noise`` × the voltage noise, the margin of the other
-  tests, or ``direct_max_rise_rel`` of the base's held-out RMSE, the nominated bar mirrored); the voltage channel then only has to agree, because a sensor offset changes the
-  voltage only through a slow SOC drift, and a change smaller than the noise is no
-  disagreement.
+  larger of ``direct_max_rise_noise`` × the voltage noise (the margin of the other tests)
+  and ``direct_max_rise_rel`` × the base's held-out RMSE (the nominated bar mirrored); the
+  voltage channel then only has to agree, because a sensor offset changes the voltage only
+  through a slow SOC drift, and a change smaller than the noise, or inside the base model's
+  own misfit, is no disagreement.
 * **Confirmation** (:func:`confirm_nominated`): when the verdict is ``none`` and a signature
   nominated an effect whose extension missed its bar, that effect alone is refitted with a
   fresh base on ``confirm_split`` (default ``interleaved``: blocks spread over the whole

@@ -127,7 +127,7 @@ def drive(kind: str, seed: int, capacity_ah: float, max_s: int = 4 * 3600) -> np
         near_full = True
         rests = set(rng.integers(900, int(target / (0.35 * capacity_ah)) - 600, int(rng.integers(2, 4))).tolist())
         while drawn < target and len(i) < max_s:
-            if any(abs(len(i) - r) < 1 for r in rests):
+            if len(i) in rests:
                 i += [0.0] * int(rng.integers(240, 480))
             x += (0.35 - x) / tau + sd * math.sqrt(2.0 / tau) * rng.normal()
             c = float(np.clip(x, -1.6, 2.7))
@@ -303,12 +303,12 @@ def signature_one(job: tuple[str, str, str, int, str, str]) -> dict:
     b = rest_branch_offset(t, i, v, temp, OcvTable.from_points(soc, ocv), info["capacity_ah"])
     fit = chronological_fit_mask(t, DiagnoseOptions().fit_fraction)
     d = rest_relaxation(t, i, v, info["capacity_ah"], usable=fit)
-    k = step_kinetics(t, i, v, temp, info["capacity_ah"], usable=fit)
+    kin = step_kinetics(t, i, v, temp, info["capacity_ah"], usable=fit)
     return {"stem": stem, "cell": cell, "effect": effect,
             **{k: b[k] for k in ("nominated", "n_rests", "half_gap_v", "statistic", "spread", "relaxation", "rate",
                                  "skipped") if k in b},
             "diffusion": {k: d[k] for k in ("nominated", "n_rests", "statistic", "z", "skipped") if k in d},
-            "kinetics": {key: k[key] for key in ("nominated", "n_steps", "i0_c", "i0_upper_c", "skipped") if key in k}}
+            "kinetics": {k: kin[k] for k in ("nominated", "n_steps", "i0_c", "i0_upper_c", "skipped") if k in kin}}
 
 
 def signature_table(rows: list[dict]) -> str:
