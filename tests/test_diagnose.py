@@ -138,6 +138,10 @@ def test_cli_json_report_and_profile(tmp_path, capsys):
     assert scores == sorted(scores, reverse=True)
     assert (tmp_path / "rep" / "report.md").is_file()
     assert (tmp_path / "rep" / "residual_time.png").is_file()
+    # the drive-cycle hysteresis test runs on every recording and is reported in words
+    direction = res["signatures"]["hysteresis"]["direction"]
+    assert {"statistic", "half_gap_v", "rate", "nominated"} <= set(direction)
+    assert "Direction state in the base residual" in (tmp_path / "rep" / "report.md").read_text()
     saved = CellProfile.model_validate_json((tmp_path / "cell.json").read_text())
     assert saved.extensions.capacity_scale == pytest.approx(0.85, abs=0.05)
 

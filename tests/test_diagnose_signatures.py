@@ -269,3 +269,35 @@ def test_current_steps_outside_the_usable_part_or_too_few_are_not_read():
     ramp = np.linspace(0.0, 2.0 * GRID_CAP, t.size)
     smooth = step_kinetics(t, ramp, 4.0 - 0.02 * ramp, temp, GRID_CAP)
     assert smooth["n_steps"] < STEP_MIN_STEPS and not smooth["nominated"]
+
+
+# -- hysteresis on a drive cycle: the direction state in the base residual -------------------------
+def _lowpassed(x: np.ndarray, t: np.ndarray, tau: float) -> np.ndarray:
+    from service.diagnosis.effects import _lowpass
+
+    return _lowpass(x, t, tau)
+
+
+def test_direction_state_in_the_residual_nominates_hysteresis_beyond_any_linear_polarisation():
+    """A residual that holds a 12 mV branch voltage (Eq. 1, rate 100) on top of polarisation the base
+    model got wrong (two low-passed currents) and noise: the half-gap is found and nominated; the
+    same residual without the branch voltage is not, however large the polarisation error."""
+    from service.diagnosis.signatures import DIRECTION_MIN_Z, direction_offset, direction_state
+
+    t, i = drive(seed=3, hours=3.0)
+    rng = np.random.default_rng(3)
+    crate = i / CAP
+    polarisation = 0.015 * _lowpassed(crate, t, 40.0) - 0.008 * _lowpassed(crate, t, 400.0)
+    noise = rng.normal(0.0, 0.0015, t.size)
+    usable = t < 0.6 * t[-1]
+    branch = 0.012 * direction_state(t, i, CAP, 100.0)
+    with_branch = direction_offset(t, i, branch - polarisation + noise, CAP, usable)
+    assert with_branch["nominated"] and with_branch["statistic"] >= DIRECTION_MIN_Z, with_branch
+    assert with_branch["half_gap_v"] == pytest.approx(0.012, rel=0.15)
+    without = direction_offset(t, i, -polarisation + noise, CAP, usable)
+    assert not without["nominated"] and abs(without["statistic"]) < DIRECTION_MIN_Z, without
+    # the wrong sign (the discharge branch above the table) is not hysteresis
+    assert not direction_offset(t, i, -branch - polarisation + noise, CAP, usable)["nominated"]
+    # too short a usable part: skipped, not nominated
+    short = direction_offset(t, i, branch + noise, CAP, t < 900.0)
+    assert not short["nominated"] and "needs" in short["skipped"]

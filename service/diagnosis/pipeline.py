@@ -79,6 +79,7 @@ from service.diagnosis.signatures import (
     NOMINAL_AMBIENT_C,
     REST_MAX_C,
     capacity_end_point,
+    direction_offset,
     integrated_autocorr_time,
     rest_branch_offset,
     rest_relaxation,
@@ -555,6 +556,10 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
                                          bias=bias_sig)
     cap_sig = sig["capacity"]
     sig["hysteresis"] = branch
+    # a drive cycle has no long rests: the direction state in the base residual may nominate it
+    branch["direction"] = direction_offset(rec.time_s, rec.current_a, r_base, cap, fit_full)
+    if not branch["nominated"] and branch["direction"]["nominated"]:
+        branch.update(nominated=True, direct=False, nominated_by="direction state in the base residual")
     # slow relaxation at the ends of the fit part's long rests (no held-out voltage enters it)
     sig["diffusion"] = rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, cap, usable=fit_full)
     # the curvature of the voltage across the fit part's current steps (Butler-Volmer, no model)

@@ -20,6 +20,16 @@ def _branch_lines(b: dict) -> list[str]:
             "left out of every held-out score."), ""]
 
 
+def _direction_lines(d: dict) -> list[str]:
+    """The drive-cycle hysteresis test in words (signatures.direction_offset)."""
+    return [(f"Direction state in the base residual (drive cycles): beyond the C-rate and its low-passes, the Eq.-1 "
+             f"direction state (rate {d['rate']:g}) explains a half-gap of {1000 * d['half_gap_v']:+.2f} ± "
+             f"{1000 * d['half_gap_se_v']:.2f} mV (z {d['statistic']:g}, τ_int {d['tau_int']:g} samples, "
+             f"{d['n_samples']} fit-part samples, high-passed). Rule: z ≥ {d['threshold']:g} and U_H ≥ "
+             f"{1000 * d['min_half_gap_v']:g} mV; it nominates hysteresis (the 10 % bar), it does not measure it"
+             + (" — **nominated here**." if d["nominated"] else ".")), ""]
+
+
 def _confirmation_lines(dg) -> list[str]:
     """The protocol line for the second look at a nominated effect (pipeline.confirm_nominated)."""
     c = dg.protocol.get("confirmation")
@@ -238,6 +248,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
           if dg.signatures.get("temperature", {}).get("why") else []),
         *(_capacity_lines(dg.signatures["capacity"]) if "capacity_scale" in dg.signatures.get("capacity", {}) else []),
         *(_branch_lines(dg.signatures["hysteresis"]) if "half_gap_v" in dg.signatures.get("hysteresis", {}) else []),
+        *(_direction_lines(dg.signatures["hysteresis"]["direction"])
+          if "half_gap_v" in dg.signatures.get("hysteresis", {}).get("direction", {}) else []),
         *(_relaxation_lines(dg.signatures["diffusion"]) if "ratio" in dg.signatures.get("diffusion", {}) else []),
         *(_kinetics_lines(dg.signatures["kinetics"]) if "i0_c" in dg.signatures.get("kinetics", {}) else []),
         "## Base model (MTS-FOM, refitted on the fit part)",
