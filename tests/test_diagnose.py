@@ -285,8 +285,8 @@ def test_evaluate_runs_a_profile_with_the_surface_lag(tmp_path, capsys):
 
 
 def test_a_tie_goes_to_measured_then_nominated_evidence_then_delta_bic():
-    """Held-out RMSEs within the noise margin are tied: a direct measurement first, then an
-    effect a signature nominated, then ΔBIC; an effect beyond the margin keeps its place."""
+    """A direct measurement first; among the rest, held-out RMSEs within the noise margin are
+    tied: an effect a signature nominated, then ΔBIC; an effect beyond the margin keeps its place."""
     from service.diagnosis.pipeline import EffectOutcome, rank
 
     def outcome(name, after, dbic, evidence, significant=True):
@@ -304,6 +304,11 @@ def test_a_tie_goes_to_measured_then_nominated_evidence_then_delta_bic():
     assert rank([kinetics, temperature], tie_mv=0.1)[0].name == "temperature"
     far = outcome("kinetics", 18.0, 117.0, "fit")
     assert [o.name for o in rank([far, temperature], tie_mv=0.75)] == ["kinetics", "temperature"]
+    # a direct measurement outranks every fitted effect, however much better their held-out fit
+    # (PyBaMM Mohtat2020: a rest-measured sensor offset at 8.03 mV against a surface lag at 4.66 mV)
+    lag = outcome("diffusion", 4.66, 60.0, "fit")
+    measured = outcome("current_bias", 8.03, -2.0, "direct")
+    assert [o.name for o in rank([lag, measured, far], tie_mv=0.75)] == ["current_bias", "diffusion", "kinetics"]
     # two fit-only effects in a tie: the higher ΔBIC; an insignificant one comes last
     hyst = outcome("hysteresis", 21.3, 40.0, "fit")
     ocv = outcome("ocv", 15.0, 300.0, "fit", significant=False)
