@@ -50,9 +50,10 @@ Protocol (stated in every report and JSON):
   (:attr:`Effect.implausible`; kinetics: apparent exchange current ``>= 0.1 C``,
   :data:`service.diagnosis.effects.KINETICS_MAX_I0_C`; diffusion: a surface lag faster than
   :data:`service.diagnosis.effects.DIFFUSION_MIN_TAU_S`).
-* **Ranking** (:func:`rank`): significant effects whose held-out RMSEs lie within the
-  noise margin of the best are tied (the voltage cannot tell them apart); a directly
-  measured one goes first, then one its signature nominated, then the higher ΔBIC.
+* **Ranking** (:func:`rank`): a significant effect its signature measured directly goes
+  before every fitted one; among the rest, held-out RMSEs within the noise margin of the
+  best are tied (the voltage cannot tell them apart), and a tie goes to one its signature
+  nominated, then to the higher ΔBIC.
 """
 
 from __future__ import annotations
