@@ -231,8 +231,11 @@ def write_report(dg, out_dir: str | Path) -> Path:
         "",
         "| effect | nominated | statistic | threshold | what |",
         "|---|---|---|---|---|",
-        *[(f"| {k} | {'**yes**' if v.get('nominated') else 'no'} | {v.get('statistic')} | {v.get('threshold')} | "
-           f"{v.get('what', '')} |") for k, v in dg.signatures.items()],
+        *[(f"| {k} | {'by the drive-cycle test below' if v.get('nominated_by') else '**yes**' if v.get('nominated') else 'no'} "
+           f"| {v.get('statistic')} | {v.get('threshold')} | {v.get('what', '')} |") for k, v in dg.signatures.items()],
+        *([(f"| hysteresis (drive cycle) | {'**yes**' if d['nominated'] else 'no'} | {d.get('statistic')} | "
+            f"{d.get('threshold')} | {d.get('what', '')} |")]
+          if (d := dg.signatures.get("hysteresis", {}).get("direction")) else []),
         "",
         *([(f"Rest current (true current 0): {1000 * dg.signatures['current_bias']['offset_a']:+.2f} ± "
            f"{1000 * dg.signatures['current_bias']['se_a']:.2f} mA over {dg.signatures['current_bias']['n_rests']} "
