@@ -110,7 +110,7 @@ from scipy.optimize import least_squares
 
 from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN
 from service.characterisation.relaxation import rc_voltage
-from service.diagnosis.effects import KINETICS_MAX_I0_C
+from service.diagnosis.effects import KINETICS_MAX_I0_C, _lowpass
 
 #: RMS misfit of the constant-ambient thermal model above which the ambient is taken to move
 AMBIENT_DRIFT_K = 0.5
@@ -661,8 +661,6 @@ def direction_offset(time_s: np.ndarray, current_a: np.ndarray, residual_v: np.n
     """Hysteresis on a drive cycle: the part of the base residual the Eq.-1 direction state
     explains beyond any linear filter of the current (module docstring, ``hysteresis``).
     ``usable``: the samples that enter the regression (the pipeline passes the fit part)."""
-    from service.diagnosis.effects import _lowpass
-
     out = {"nominated": False, "statistic": 0.0, "threshold": DIRECTION_MIN_Z, "min_half_gap_v": BRANCH_MIN_HALF_GAP_V,
            "what": "z of the half-gap the Eq.-1 direction state explains in the high-passed base residual beyond "
                    "the C-rate and its low-passes (drive cycles; model-based)"}
