@@ -202,8 +202,16 @@ def test_slow_consumer_never_stalls_and_drops_are_counted(publisher) -> None:
     try:
         slow = _Collector(delay_s=0.002)
         sub = sub_session.declare_subscriber("bms/packT/**", slow)
-        pub.submit(_round(50, 0, health))
-        slow.wait(lambda: slow.count() > 0)
+        # until the subscriber's session has connected a round is lost, so keep publishing one until
+        # it arrives (a single round published too early, on a loaded machine, never does)
+        end = time.monotonic() + 30.0
+        warmup = 0
+        while slow.count() == 0:
+            assert time.monotonic() < end, "the subscriber never received a round"
+            pub.submit(_round(50, 0, health))
+            warmup += 1
+            time.sleep(0.2)
+        dropped_before = health.counters["zenoh_dropped_rounds"]
         worst = total = 0.0
         rounds = 300
         for k in range(rounds):
@@ -217,10 +225,10 @@ def test_slow_consumer_never_stalls_and_drops_are_counted(publisher) -> None:
         # between this thread and the publisher's (switch interval 5 ms).
         assert total < 0.5, f"300 submits took {total:.2f} s"
         assert worst < 0.1, f"submit blocked for {worst * 1e3:.1f} ms"
-        assert health.counters["zenoh_dropped_rounds"] > 0
+        assert health.counters["zenoh_dropped_rounds"] > dropped_before
         assert health.counters["zenoh_dropped"] == 102 * health.counters["zenoh_dropped_rounds"]
         assert health.flags()["publish_drops"]
-        assert pub.rounds_published + health.counters["zenoh_dropped_rounds"] <= rounds + 1
+        assert pub.rounds_published + health.counters["zenoh_dropped_rounds"] <= rounds + warmup
         sub.undeclare()
     finally:
         sub_session.close()
