@@ -290,6 +290,12 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
             "fit_without_generalising": fit_only}
 
 
+def direct_max_rise_mv(opt: DiagnoseOptions, noise_mv: float, rmse_before_mv: float) -> float:
+    """How far a directly measured effect may raise the held-out RMSE (mV): the larger of
+    ``direct_max_rise_noise`` × the noise and ``direct_max_rise_rel`` × the base's held-out RMSE."""
+    return max(opt.direct_max_rise_noise * noise_mv, opt.direct_max_rise_rel * rmse_before_mv)
+
+
 def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: float, delta_bic: float,
                          noise_mv: float, evidence: str, opt: DiagnoseOptions) -> list[str]:
     """Why an extension is *not* significant (empty: it is), by its evidence (module docstring).
@@ -304,7 +310,7 @@ def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: flo
     the noise and ΔBIC."""
     reasons = []
     if evidence == "direct":
-        rise_mv = max(opt.direct_max_rise_noise * noise_mv, opt.direct_max_rise_rel * rmse_before_mv)
+        rise_mv = direct_max_rise_mv(opt, noise_mv, rmse_before_mv)
         if rmse_after_mv - rmse_before_mv > rise_mv:
             reasons.append(f"held-out RMSE rises {rmse_after_mv - rmse_before_mv:.2f} mV > {rise_mv:.2f} mV, the larger "
                            f"of {opt.direct_max_rise_noise:g} x noise and {opt.direct_max_rise_rel:.0%} of its base value "
@@ -641,7 +647,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
         "min_rel_gain": opt.min_rel_gain, "min_rel_gain_nominated": opt.min_rel_gain_nominated,
         "direct_max_rise_noise": opt.direct_max_rise_noise,
         "direct_max_rise_rel": opt.direct_max_rise_rel,
-        "direct_max_rise_mv": round(max(opt.direct_max_rise_noise * 1000 * sigma, opt.direct_max_rise_rel * rmse_before), 3),
+        "direct_max_rise_mv": round(direct_max_rise_mv(opt, 1000 * sigma, rmse_before), 3),
         "signatures": {k: {kk: v[kk] for kk in ("threshold", "min_drift_soc", "min_frac_1c") if kk in v}
                        for k, v in sig.items()},
         "min_delta_bic": opt.min_delta_bic,
