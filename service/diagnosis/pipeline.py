@@ -357,14 +357,14 @@ def rank(outcomes: list[EffectOutcome], tie_mv: float) -> list[EffectOutcome]:
 
 
 def _rank_significant(sig: list[EffectOutcome], tie_mv: float) -> list[EffectOutcome]:
-    """:func:`rank` within one class of evidence: the tie on held-out RMSE, then evidence, ΔBIC, score."""
+    """:func:`rank` within one class of evidence: the tie on held-out RMSE, then a nominated effect
+    before a fit-only one, then ΔBIC, then score."""
     if not sig:
         return []
     best_after = min(o.rmse_after_mv for o in sig)
     tied = [o for o in sig if o.rmse_after_mv <= best_after + tie_mv]
     others = [o for o in sig if o.rmse_after_mv > best_after + tie_mv]
-    evidence_rank = {"direct": 0, "nominated": 1}
-    return (sorted(tied, key=lambda o: (evidence_rank.get(o.evidence, 2), -o.delta_bic, -o.score))
+    return (sorted(tied, key=lambda o: (o.evidence != "nominated", -o.delta_bic, -o.score))
             + sorted(others, key=lambda o: -o.score))
 
 
