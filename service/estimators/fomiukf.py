@@ -117,7 +117,7 @@ class FoMiUkf:
         P_pred = self.P * (f[:, :, None] * f[:, None, :])
         # process noise: SOC from the current sensor, small for the branches and U_h
         q = np.zeros((self.n, self.nx))
-        q[:, :b] = (1e-4 * np.sqrt(max(dt_s, 1e-3))) ** 2
+        q[:, :b] = (self.settings.branch_noise_v_per_sqrt_s * np.sqrt(max(dt_s, 1e-3))) ** 2
         q[:, self.i_soc] = (self.settings.current_noise_a * dt_s / (3600.0 * params.capacity_ah)) ** 2
         q[:, self.i_uh] = (1e-4 * (1.0 - a_h) + 1e-6) ** 2 + ((1.0 - a_h) * params.u_h_max) ** 2 * 0.01
         # fractional memory covariance (Table 3 step 5): Σ_{j≥2} (w_j/d)^2 P_{k-j}

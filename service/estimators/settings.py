@@ -63,6 +63,10 @@ class EstimatorSettings(BaseModel):
         "so the model error learned under load does not drown the rests (service.estimators.adaptive_noise)",
     )
     current_noise_a: float = Field(0.02, ge=0, description="current-sensor noise σ driving SOC process noise")
+    branch_noise_v_per_sqrt_s: float = Field(
+        1e-4, ge=0, description="random walk of the CPE branch voltages U_cd, U_df in the SOC filter (V/√s): "
+        "how much model error the polarisation states may take up instead of SOC"
+    )
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
     ukf_alpha: float = Field(1.0, gt=0, le=1)
     ukf_beta: float = Field(2.0, ge=0)
