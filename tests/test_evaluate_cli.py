@@ -253,6 +253,57 @@ def test_other_argument_errors(tmp_path: Path, nmc_recording, nmc_profile_file, 
     assert "no_such_knob" in err
     err = _fail(base + ["--settings", str(tmp_path / "none.toml")], capsys)
     assert "none.toml" in err
+    settings.write_text("[ecm2rc_ekf]\nu_noise = 1e-3\n")
+    err = _fail(base + ["--settings", str(settings)], capsys)
+    assert str(settings) in err and "ecm2rc_ekf.u_noise" in err and "u_noise_v_per_sqrt_s" in err
+    settings.write_text("[ecm2rc_ekf]\nu_noise_v_per_sqrt_s = [1]\n")
+    err = _fail(base + ["--settings", str(settings)], capsys)
+    assert "ecm2rc_ekf.u_noise_v_per_sqrt_s" in err
+
+
+def test_current_bias_reaches_the_estimators_not_the_truth(tmp_path: Path, nmc_recording, nmc_profile_file,
+                                                           capsys) -> None:
+    """Coulomb counting from the true start drifts by exactly offset x time / capacity."""
+    rec = nmc_recording(name="drive", duration_s=900, seed=5, soc0=0.9)
+
+    def max_error(bias: str) -> float:
+        assert main(["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "coulomb",
+                     "--init-soc-error", "0", "--current-bias-c", bias, "--quiet",
+                     "--json", str(tmp_path / "r.json")]) == 0
+        doc = json.loads((tmp_path / "r.json").read_text())
+        assert doc["current_bias_c"] == float(bias)
+        return doc["results"][0]["soc_max_pct"]
+
+    duration_h = (rec.time_s[-1] - rec.time_s[0]) / 3600.0
+    assert max_error("0") == pytest.approx(0.0, abs=1e-9)
+    assert max_error("0.01") == pytest.approx(100 * 0.01 * duration_h, rel=1e-3)
+    assert max_error("-0.02") == pytest.approx(100 * 0.02 * duration_h, rel=1e-3)
+    for bad in ("nan", "0.9"):
+        err = _fail(["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--current-bias-c", bad], capsys)
+        assert "--current-bias-c" in err
+
+
+def test_settings_file_tunes_both_the_pipeline_and_the_ekf(tmp_path: Path, nmc_recording, nmc_profile_file,
+                                                          capsys) -> None:
+    """One settings file: top-level fields tune the pipeline, [ecm2rc_ekf] the 2-RC EKF (same file
+    for a grid over both); each table reaches its own estimator and only it."""
+    rec = nmc_recording(name="drive", duration_s=900, seed=5, soc0=0.9)
+
+    def run(text: str | None) -> dict[str, float]:
+        argv = ["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "foukf",
+                "--estimator", "ecm2rc-ekf", "--quiet", "--json", str(tmp_path / "r.json")]
+        if text is not None:
+            (tmp_path / "s.toml").write_text(text)
+            argv += ["--settings", str(tmp_path / "s.toml")]
+        assert main(argv) == 0, capsys.readouterr().err
+        doc = json.loads((tmp_path / "r.json").read_text())
+        return {r["estimator"]: r["soc_rmse_pct"] for r in doc["results"]}
+
+    ref = run(None)
+    ekf = run("[ecm2rc_ekf]\nu_noise_v_per_sqrt_s = 2e-2\nvoltage_noise_v = 0.05\n")
+    assert ekf["foukf"] == ref["foukf"] and ekf["ecm2rc-ekf"] != ref["ecm2rc-ekf"]
+    pipe = run("branch_noise_v_per_sqrt_s = 2e-2\n")
+    assert pipe["ecm2rc-ekf"] == ref["ecm2rc-ekf"] and pipe["foukf"] != ref["foukf"]
 
 
 def test_argparse_usage_errors_exit_2(capsys) -> None:

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +46,13 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="drive the estimators' polarisation states (RC/CPE branches, hysteresis) with the "
                         "current recorded before the full point, as a service that had been running would "
                         "have them; SOC still starts wrong. Default: every estimator starts relaxed")
-    p.add_argument("--settings", metavar="TOML", help="pipeline settings (EstimatorSettings fields) to override")
+    p.add_argument("--current-bias-c", type=float, default=0.0, metavar="F",
+                   help="add a current-sensor offset of F x 1C (signed, e.g. 0.01) to the current every "
+                        "estimator reads; the truth keeps the recorded current. Shows what an estimator "
+                        "does with a sensor error that coulomb counting (and the truth) cannot see. Default 0")
+    p.add_argument("--settings", metavar="TOML",
+                   help="pipeline settings (EstimatorSettings fields, top level or under [estimator]) to "
+                        "override; an [ecm2rc_ekf] table sets the 2-RC EKF's tuning (EkfTuning fields)")
     p.add_argument("--json", metavar="OUT", help="write results as JSON")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots per recording")
     p.add_argument("--traces", metavar="DIR",
@@ -66,10 +74,30 @@ def load_settings(path: str | None) -> EstimatorSettings:
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise UserError(f"{path}: cannot read settings: {exc}") from exc
     try:
-        return EstimatorSettings.model_validate(raw.get("estimator", raw))
+        table = raw.get("estimator", {k: v for k, v in raw.items() if k != "ecm2rc_ekf"})
+        return EstimatorSettings.model_validate(table)
     except ValidationError as exc:
         err = exc.errors()[0]
         raise UserError(f"{path}: field '{'.'.join(map(str, err['loc']))}': {err['msg']}") from exc
+
+
+def load_ekf_tuning(path: str | None) -> dict:
+    """The ``[ecm2rc_ekf]`` table of a settings file: fields of
+    :class:`service.estimators.ecm2rc_ekf.EkfTuning` (empty when absent)."""
+    if path is None:
+        return {}
+    import tomllib
+
+    from service.estimators.ecm2rc_ekf import EkfTuning
+
+    raw = tomllib.loads(Path(path).read_text()).get("ecm2rc_ekf", {})
+    known = {f.name: f.type for f in fields(EkfTuning)}
+    for key, value in raw.items():
+        if key not in known:
+            raise UserError(f"{path}: field 'ecm2rc_ekf.{key}' is not an EKF tuning option; known: {', '.join(known)}")
+        if not isinstance(value, (int, float, str)) or isinstance(value, bool):
+            raise UserError(f"{path}: field 'ecm2rc_ekf.{key}': expected a number or a string, got {value!r}")
+    return raw
 
 
 def run(args: argparse.Namespace) -> int:
@@ -77,12 +105,15 @@ def run(args: argparse.Namespace) -> int:
         profile = load_profile(args.cell)
     except ProfileError as exc:
         raise UserError(str(exc)) from exc
+    if not math.isfinite(args.current_bias_c) or abs(args.current_bias_c) > 0.5:
+        raise UserError(f"--current-bias-c must be a finite fraction of 1C within ±0.5, got {args.current_bias_c}")
     if not 0.0 <= args.init_soc_error < 1.0:
         raise UserError(f"--init-soc-error must be in [0, 1), got {args.init_soc_error}")
     names = args.estimator or DEFAULT_ESTIMATORS
     settings = load_settings(args.settings)
+    ekf_tuning = load_ekf_tuning(args.settings)
     try:
-        estimators = [create(n, settings) for n in names]
+        estimators = [create(n, settings, ekf_tuning) for n in names]
     except UnknownEstimator as exc:
         raise UserError(str(exc)) from exc
     full = per_recording(args.full_at, len(args.recordings), "--full-at")
@@ -95,12 +126,18 @@ def run(args: argparse.Namespace) -> int:
         # the samples up to the start: the start sample's own interval is spent here, and
         # the scored part's first step has dt = 0 (Recording.dt_s), so nothing is counted twice
         history = rec.slice(0, len(rec) - len(part) + 1) if args.warm_start and len(part) < len(rec) else None
+        if args.current_bias_c:
+            bias_a = args.current_bias_c * capacity
+            part_seen = replace(part, current_a=part.current_a + bias_a)
+            history = None if history is None else replace(history, current_a=history.current_a + bias_a)
+        else:
+            part_seen = part
         traces = {}
         for est in estimators:
             if not args.quiet:
                 print(f"[evaluate] {rec.name}: {est.name} ({len(part)} samples)...", file=sys.stderr, flush=True)
             t0 = time.perf_counter()
-            trace = est.run(part, profile, soc0, history=history)
+            trace = est.run(part_seen, profile, soc0, history=history)
             us = 1e6 * (time.perf_counter() - t0) / len(part)
             traces[est.name] = trace
             s = score(part.time_s, trace.soc, truth, trace.v_pred, part.voltage_v)
@@ -126,7 +163,9 @@ def run(args: argparse.Namespace) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"results": results, "cell": str(args.cell),
                                                "init_soc_error": args.init_soc_error,
-                                               "warm_start": bool(args.warm_start)}, indent=1))
+                                               "warm_start": bool(args.warm_start),
+                                               "current_bias_c": args.current_bias_c,
+                                               "settings": args.settings}, indent=1))
     return 0
 
 

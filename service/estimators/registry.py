@@ -28,7 +28,8 @@ class UnknownEstimator(ValueError):
     pass
 
 
-def create(name: str, settings: EstimatorSettings | None = None) -> Estimator:
+def create(name: str, settings: EstimatorSettings | None = None, ekf_tuning: dict | None = None) -> Estimator:
+    """``settings`` go to the paper's pipeline, ``ekf_tuning`` (EkfTuning fields) to the 2-RC EKF."""
     if name not in ESTIMATORS:
         close = difflib.get_close_matches(name, ESTIMATORS, n=3)
         hint = f" Best matches: {', '.join(close)}." if close else ""
@@ -37,4 +38,6 @@ def create(name: str, settings: EstimatorSettings | None = None) -> Estimator:
     factory: Callable[..., Estimator] = getattr(importlib.import_module(module_name), attr)
     if module_name.endswith("pipeline"):
         return factory(settings)
+    if name == "ecm2rc-ekf" and ekf_tuning:
+        return factory(**ekf_tuning)
     return factory()
