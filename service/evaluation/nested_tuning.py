@@ -1,0 +1,131 @@
+"""Choose a tuning value for each scored file without looking at that file (leave one out).
+
+``socd evaluate`` runs of one estimator over a grid of a setting (one ``--settings`` file per
+value) give each recording a score per value.  For every recording this picks the value with
+the lowest mean score over the *other* recordings of the same cell (the cell profile named in
+the JSON), then reports the recording's score at that value.  So no file is scored with a
+value chosen on it (DESIGN §7: never fit on the file being scored), and two estimators swept
+over the same grid are tuned with the same care.
+
+    python -m service.evaluation.nested_tuning --estimator ecm2rc-ekf \\
+        1e-4=out/a_1e-4.json 1e-4=out/b_1e-4.json 1e-3=out/a_1e-3.json 1e-3=out/b_1e-3.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+METRIC = "soc_rmse_after_600s_pct"
+
+
+class GridError(ValueError):
+    pass
+
+
+def _condition(doc: dict) -> str:
+    """The test condition a results file was run under (its current-sensor offset)."""
+    return f"bias {float(doc.get('current_bias_c') or 0.0):+g}C"
+
+
+def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[list[str], list[str], dict]:
+    """``VALUE=JSON`` pairs -> (values, conditions, {cell: {recording: {value: {condition: score}}}}).
+
+    A condition is what a file was run under (``socd evaluate --current-bias-c``); the same
+    recording under several conditions is scored by its mean over them."""
+    values: list[str] = []
+    conditions: list[str] = []
+    grid: dict = defaultdict(lambda: defaultdict(lambda: defaultdict(dict)))
+    for pair in pairs:
+        value, sep, path = pair.partition("=")
+        if not sep or not value or not path:
+            raise GridError(f"'{pair}': expected VALUE=RESULTS.json")
+        try:
+            doc = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise GridError(f"{path}: cannot read results: {exc}") from exc
+        rows = [r for r in doc.get("results", []) if r.get("estimator") == estimator]
+        if not rows:
+            raise GridError(f"{path}: no results for estimator '{estimator}'")
+        cond = _condition(doc)
+        values += [value] if value not in values else []
+        conditions += [cond] if cond not in conditions else []
+        cell = str(doc.get("cell", path))
+        for r in rows:
+            score = r.get(metric)
+            if score is None:
+                raise GridError(f"{path}: recording {r.get('recording')}: no '{metric}'")
+            grid[cell][r["recording"]][value][cond] = float(score)
+    for cell, recs in grid.items():
+        for rec, by_value in recs.items():
+            for v in values:
+                missing = [c for c in conditions if c not in by_value.get(v, {})]
+                if missing:
+                    raise GridError(f"{cell}: {rec} has no result for value {v} under {', '.join(missing)}")
+    return values, conditions, grid
+
+
+def leave_one_out(values: list[str], conditions: list[str], grid: dict) -> list[dict]:
+    """One row per recording: the value chosen on the cell's other recordings (mean score over
+    them and every condition) and the recording's scores at it.  A cell with a single
+    recording has nothing to choose on and is reported unchosen."""
+    rows = []
+    for cell, recs in grid.items():
+        mean = {r: {v: sum(by_value[v].values()) / len(conditions) for v in values} for r, by_value in recs.items()}
+        for rec, by_value in recs.items():
+            others = [m for r, m in mean.items() if r != rec]
+            row = {"cell": cell, "recording": rec, "mean_by_value": mean[rec], "chosen": None, "scores": None}
+            if others:
+                pooled = {v: sum(o[v] for o in others) / len(others) for v in values}
+                chosen = min(values, key=lambda v: (pooled[v], values.index(v)))
+                row.update(chosen=chosen, scores=dict(by_value[chosen]))
+            rows.append(row)
+    return rows
+
+
+def markdown(values: list[str], conditions: list[str], rows: list[dict], estimator: str) -> str:
+    head = ("| recording | chosen on the others | " + " | ".join(f"{estimator} {c}" for c in conditions)
+            + " | " + " | ".join(f"mean at {v}" for v in values) + " |")
+    out = [head, "|" + "---|" * (2 + len(conditions) + len(values))]
+    for r in rows:
+        got = " | ".join("-" if r["scores"] is None else f"**{r['scores'][c]:.2f}**" for c in conditions)
+        at = " | ".join(f"{r['mean_by_value'][v]:.2f}" for v in values)
+        out.append(f"| {r['recording']} | {r['chosen'] or '-'} | {got} | {at} |")
+    scored = [r for r in rows if r["scores"] is not None]
+    if scored:
+        got = " | ".join(f"**{sum(r['scores'][c] for r in scored) / len(scored):.2f}**" for c in conditions)
+        at = " | ".join(f"{sum(r['mean_by_value'][v] for r in rows) / len(rows):.2f}" for v in values)
+        out.append(f"| **mean** | | {got} | {at} |")
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m service.evaluation.nested_tuning",
+        description="Leave-one-out choice of a tuning value: each recording is scored with the value that "
+                    "did best on the other recordings of its cell (never on itself).",
+    )
+    p.add_argument("pairs", nargs="+", metavar="VALUE=RESULTS.json",
+                   help="a 'socd evaluate --json' file run with the setting at VALUE (repeat per file)")
+    p.add_argument("--estimator", required=True, help="estimator whose rows are tuned, e.g. fomiukf")
+    p.add_argument("--metric", default=METRIC, help=f"score to minimise (default {METRIC})")
+    p.add_argument("--json", metavar="OUT", help="write the rows as JSON")
+    args = p.parse_args(argv)
+    try:
+        values, conditions, grid = load_grid(args.pairs, args.estimator, args.metric)
+    except GridError as exc:
+        print(f"nested_tuning: error: {exc}", file=sys.stderr)
+        return 2
+    rows = leave_one_out(values, conditions, grid)
+    print(markdown(values, conditions, rows, args.estimator))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"estimator": args.estimator, "metric": args.metric,
+                                               "values": values, "conditions": conditions, "rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,73 @@
+"""Leave-one-out choice of a tuning value (service.evaluation.nested_tuning) on real JSON files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from service.evaluation.nested_tuning import GridError, leave_one_out, load_grid, main
+
+
+def _results(path: Path, cell: str, scores: dict[str, float], estimator: str = "ecm2rc-ekf",
+             bias: float = 0.0) -> str:
+    path.write_text(json.dumps({"cell": cell, "current_bias_c": bias, "results": [
+        {"recording": r, "estimator": estimator, "soc_rmse_after_600s_pct": s} for r, s in scores.items()]}))
+    return str(path)
+
+
+def test_each_file_gets_the_value_best_on_the_others(tmp_path: Path) -> None:
+    # value "lo" is best on a and b, "hi" on c; c alone prefers hi, but c never votes for itself
+    lo = _results(tmp_path / "lo.json", "cellA", {"a": 0.2, "b": 0.3, "c": 0.9})
+    hi = _results(tmp_path / "hi.json", "cellA", {"a": 0.4, "b": 0.5, "c": 0.1})
+    single = _results(tmp_path / "x.json", "cellB", {"z": 0.5})
+    single_hi = _results(tmp_path / "xh.json", "cellB", {"z": 0.4})
+    values, conds, grid = load_grid([f"lo={lo}", f"hi={hi}", f"lo={single}", f"hi={single_hi}"], "ecm2rc-ekf")
+    rows = {r["recording"]: r for r in leave_one_out(values, conds, grid)}
+    assert values == ["lo", "hi"] and conds == ["bias +0C"]
+    # a: others b (lo 0.3, hi 0.5) and c (0.9, 0.1): means 0.6 vs 0.3 -> hi
+    assert rows["a"]["chosen"] == "hi" and rows["a"]["scores"]["bias +0C"] == pytest.approx(0.4)
+    assert rows["b"]["chosen"] == "hi" and rows["b"]["scores"]["bias +0C"] == pytest.approx(0.5)
+    # c: others a, b prefer lo, so c is scored at lo (0.9) although hi would give 0.1
+    assert rows["c"]["chosen"] == "lo" and rows["c"]["scores"]["bias +0C"] == pytest.approx(0.9)
+    assert rows["z"]["chosen"] is None and rows["z"]["scores"] is None  # nothing to choose on
+
+
+def test_a_value_that_only_wins_without_an_offset_is_not_chosen(tmp_path: Path) -> None:
+    """Pooled over conditions: "hi" wins without a sensor offset and loses more with one."""
+    f = {}
+    for v, clean, biased in (("lo", {"a": 0.3, "b": 0.3, "c": 0.3}, {"a": 0.5, "b": 0.5, "c": 0.5}),
+                             ("hi", {"a": 0.1, "b": 0.1, "c": 0.1}, {"a": 1.0, "b": 1.0, "c": 1.0})):
+        f[v] = [_results(tmp_path / f"{v}0.json", "c", clean), _results(tmp_path / f"{v}1.json", "c", biased, bias=0.01)]
+    values, conds, grid = load_grid([f"{v}={p}" for v in f for p in f[v]], "ecm2rc-ekf")
+    assert conds == ["bias +0C", "bias +0.01C"]
+    rows = leave_one_out(values, conds, grid)
+    assert {r["chosen"] for r in rows} == {"lo"}
+    assert rows[0]["scores"] == {"bias +0C": pytest.approx(0.3), "bias +0.01C": pytest.approx(0.5)}
+    # only the clean runs: hi is chosen
+    values, conds, grid = load_grid([f"{v}={f[v][0]}" for v in f], "ecm2rc-ekf")
+    assert {r["chosen"] for r in leave_one_out(values, conds, grid)} == {"hi"}
+
+
+def test_bad_grids_name_the_problem(tmp_path: Path, capsys) -> None:
+    a = _results(tmp_path / "a.json", "c", {"r1": 0.1, "r2": 0.2})
+    b = _results(tmp_path / "b.json", "c", {"r1": 0.1})
+    with pytest.raises(GridError, match="r2 has no result for value 2 under bias"):
+        load_grid([f"1={a}", f"2={b}"], "ecm2rc-ekf")
+    with pytest.raises(GridError, match="no results for estimator 'fomiukf'"):
+        load_grid([f"1={a}"], "fomiukf")
+    with pytest.raises(GridError, match="expected VALUE=RESULTS.json"):
+        load_grid([a], "ecm2rc-ekf")
+    assert main(["--estimator", "ecm2rc-ekf", f"1={tmp_path / 'missing.json'}"]) == 2
+    assert "missing.json" in capsys.readouterr().err
+
+
+def test_cli_prints_table_and_writes_json(tmp_path: Path, capsys) -> None:
+    lo = _results(tmp_path / "lo.json", "c", {"a": 0.2, "b": 0.3})
+    hi = _results(tmp_path / "hi.json", "c", {"a": 0.4, "b": 0.1})
+    assert main(["--estimator", "ecm2rc-ekf", f"lo={lo}", f"hi={hi}", "--json", str(tmp_path / "o.json")]) == 0
+    out = capsys.readouterr().out
+    assert "| a | hi | **0.40** |" in out and "| b | lo | **0.30** |" in out and "ecm2rc-ekf bias +0C" in out
+    doc = json.loads((tmp_path / "o.json").read_text())
+    assert doc["values"] == ["lo", "hi"] and len(doc["rows"]) == 2
