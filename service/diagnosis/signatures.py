@@ -106,6 +106,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 from scipy.optimize import least_squares
 
 from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN
@@ -650,12 +651,6 @@ def step_kinetics(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarr
     return out
 
 
-def _moving_mean(x: np.ndarray, n: int) -> np.ndarray:
-    """Centred moving mean over ``n`` samples, the ends padded with the edge values."""
-    pad = np.pad(x, (n // 2, n - 1 - n // 2), mode="edge")
-    return np.convolve(pad, np.ones(n) / n, mode="valid")
-
-
 def direction_offset(time_s: np.ndarray, current_a: np.ndarray, residual_v: np.ndarray, capacity_ah: float,
                      usable: np.ndarray) -> dict:
     """Hysteresis on a drive cycle: the part of the base residual the Eq.-1 direction state
@@ -675,11 +670,11 @@ def direction_offset(time_s: np.ndarray, current_a: np.ndarray, residual_v: np.n
         return out
     crate = current_a / capacity_ah
     linear = [crate] + [_lowpass(crate, time_s, tau) for tau in DIRECTION_LOWPASS_S]
-    y = (residual_v - _moving_mean(residual_v, width))[mask]
+    y = (residual_v - uniform_filter1d(residual_v, width, mode="nearest"))[mask]
     best = None
     for rate in BRANCH_RATES:
         cols = [*linear, direction_state(time_s, current_a, capacity_ah, rate)]
-        a = np.column_stack([(c - _moving_mean(c, width))[mask] for c in cols])
+        a = np.column_stack([(c - uniform_filter1d(c, width, mode="nearest"))[mask] for c in cols])
         coef, *_ = np.linalg.lstsq(a, y, rcond=None)
         e = y - a @ coef
         sse = float(e @ e)
