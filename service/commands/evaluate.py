@@ -49,7 +49,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--current-bias-c", type=float, default=0.0, metavar="F",
                    help="add a current-sensor offset of F x 1C (signed, e.g. 0.01) to the current every "
                         "estimator reads; the truth keeps the recorded current. Shows what an estimator "
-                        "does with a sensor error that coulomb counting (and the truth) cannot see. Default 0")
+                        "does with a sensor error the truth does not contain: coulomb counting drifts by F "
+                        "per hour, a filter that reads the voltage should not. Default 0")
     p.add_argument("--settings", metavar="TOML",
                    help="pipeline settings (EstimatorSettings fields, top level or under [estimator]) to "
                         "override; an [ecm2rc_ekf] table sets the 2-RC EKF's tuning (EkfTuning fields)")
