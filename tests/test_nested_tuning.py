@@ -70,4 +70,20 @@ def test_cli_prints_table_and_writes_json(tmp_path: Path, capsys) -> None:
     out = capsys.readouterr().out
     assert "| a | hi | **0.40** |" in out and "| b | lo | **0.30** |" in out and "ecm2rc-ekf bias +0C" in out
     doc = json.loads((tmp_path / "o.json").read_text())
-    assert doc["values"] == ["lo", "hi"] and len(doc["rows"]) == 2
+    assert doc["values"] == ["lo", "hi"] and len(doc["estimators"]["ecm2rc-ekf"]) == 2
+
+
+def test_two_estimators_side_by_side_each_tuned_on_its_own(tmp_path: Path, capsys) -> None:
+    pairs = []
+    for v, ekf, ours in (("lo", {"a": 0.2, "b": 0.3}, {"a": 0.5, "b": 0.6}), ("hi", {"a": 0.4, "b": 0.1}, {"a": 0.1, "b": 0.2})):
+        path = tmp_path / f"{v}.json"
+        path.write_text(json.dumps({"cell": "c", "results": [
+            *({"recording": r, "estimator": "ecm2rc-ekf", "soc_rmse_after_600s_pct": x} for r, x in ekf.items()),
+            *({"recording": r, "estimator": "fomiukf", "soc_rmse_after_600s_pct": x} for r, x in ours.items())]}))
+        pairs.append(f"{v}={path}")
+    assert main(["--estimator", "fomiukf", "--estimator", "ecm2rc-ekf", *pairs]) == 0
+    out = capsys.readouterr().out
+    # fomiukf: hi is best on either other file; the EKF: a chooses on b (hi), b on a (lo)
+    assert "| a | hi | **0.10** | hi | **0.40** |" in out
+    assert "| b | hi | **0.20** | lo | **0.30** |" in out
+    assert "mean at" not in out

@@ -86,19 +86,32 @@ def leave_one_out(values: list[str], conditions: list[str], grid: dict) -> list[
     return rows
 
 
-def markdown(values: list[str], conditions: list[str], rows: list[dict], estimator: str) -> str:
-    head = ("| recording | chosen on the others | " + " | ".join(f"{estimator} {c}" for c in conditions)
-            + " | " + " | ".join(f"mean at {v}" for v in values) + " |")
-    out = [head, "|" + "---|" * (2 + len(conditions) + len(values))]
-    for r in rows:
-        got = " | ".join("-" if r["scores"] is None else f"**{r['scores'][c]:.2f}**" for c in conditions)
-        at = " | ".join(f"{r['mean_by_value'][v]:.2f}" for v in values)
-        out.append(f"| {r['recording']} | {r['chosen'] or '-'} | {got} | {at} |")
-    scored = [r for r in rows if r["scores"] is not None]
-    if scored:
-        got = " | ".join(f"**{sum(r['scores'][c] for r in scored) / len(scored):.2f}**" for c in conditions)
-        at = " | ".join(f"{sum(r['mean_by_value'][v] for r in rows) / len(rows):.2f}" for v in values)
-        out.append(f"| **mean** | | {got} | {at} |")
+def markdown(values: list[str], conditions: list[str], tuned: dict[str, list[dict]]) -> str:
+    """One table: per estimator the value chosen for each recording and its scores at it; with a
+    single estimator also every recording's mean score at each value of the grid."""
+    one = len(tuned) == 1
+    head = "| recording | " + " | ".join(
+        f"{e} chosen | " + " | ".join(f"{e} {c}" for c in conditions) for e in tuned)
+    head += (" | " + " | ".join(f"mean at {v}" for v in values) if one else "") + " |"
+    width = 1 + len(tuned) * (1 + len(conditions)) + (len(values) if one else 0)
+    out = [head, "|" + "---|" * width]
+    per_est = list(tuned.values())
+    for i, first in enumerate(per_est[0]):
+        cells = []
+        for rows in per_est:
+            r = rows[i]
+            got = " | ".join("-" if r["scores"] is None else f"**{r['scores'][c]:.2f}**" for c in conditions)
+            cells.append(f"{r['chosen'] or '-'} | {got}")
+        at = (" | " + " | ".join(f"{first['mean_by_value'][v]:.2f}" for v in values)) if one else ""
+        out.append(f"| {first['recording']} | " + " | ".join(cells) + at + " |")
+    cells = []
+    for rows in per_est:
+        scored = [r for r in rows if r["scores"] is not None]
+        got = " | ".join(f"**{sum(r['scores'][c] for r in scored) / max(len(scored), 1):.2f}**" for c in conditions)
+        cells.append(f" | {got}")
+    rows0 = per_est[0]
+    at = (" | " + " | ".join(f"{sum(r['mean_by_value'][v] for r in rows0) / len(rows0):.2f}" for v in values)) if one else ""
+    out.append("| **mean** | " + " | ".join(cells) + at + " |")
     return "\n".join(out)
 
 
@@ -110,20 +123,28 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("pairs", nargs="+", metavar="VALUE=RESULTS.json",
                    help="a 'socd evaluate --json' file run with the setting at VALUE (repeat per file)")
-    p.add_argument("--estimator", required=True, help="estimator whose rows are tuned, e.g. fomiukf")
+    p.add_argument("--estimator", action="append", required=True,
+                   help="estimator whose rows are tuned, e.g. fomiukf (repeat to tune several side by side, "
+                        "each on its own)")
     p.add_argument("--metric", default=METRIC, help=f"score to minimise (default {METRIC})")
     p.add_argument("--json", metavar="OUT", help="write the rows as JSON")
     args = p.parse_args(argv)
+    tuned: dict[str, list[dict]] = {}
     try:
-        values, conditions, grid = load_grid(args.pairs, args.estimator, args.metric)
+        for est in args.estimator:
+            values, conditions, grid = load_grid(args.pairs, est, args.metric)
+            tuned[est] = leave_one_out(values, conditions, grid)
     except GridError as exc:
         print(f"nested_tuning: error: {exc}", file=sys.stderr)
         return 2
-    rows = leave_one_out(values, conditions, grid)
-    print(markdown(values, conditions, rows, args.estimator))
+    recs = [[r["recording"] for r in rows] for rows in tuned.values()]
+    if any(r != recs[0] for r in recs):
+        print("nested_tuning: error: the estimators were not run on the same recordings", file=sys.stderr)
+        return 2
+    print(markdown(values, conditions, tuned))
     if args.json:
-        Path(args.json).write_text(json.dumps({"estimator": args.estimator, "metric": args.metric,
-                                               "values": values, "conditions": conditions, "rows": rows}, indent=1))
+        Path(args.json).write_text(json.dumps({"metric": args.metric, "values": values, "conditions": conditions,
+                                               "estimators": tuned}, indent=1))
     return 0
 
 
