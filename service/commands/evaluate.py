@@ -63,42 +63,33 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def load_settings(path: str | None) -> EstimatorSettings:
+def load_settings(path: str | None) -> tuple[EstimatorSettings, dict]:
+    """The pipeline's settings (top level or ``[estimator]``) and the 2-RC EKF's tuning (the
+    ``[ecm2rc_ekf]`` table, EkfTuning fields; empty when absent) from one settings file."""
     if path is None:
-        return EstimatorSettings()
+        return EstimatorSettings(), {}
     import tomllib
 
     from pydantic import ValidationError
+
+    from service.estimators.ecm2rc_ekf import EkfTuning
 
     try:
         raw = tomllib.loads(Path(path).read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise UserError(f"{path}: cannot read settings: {exc}") from exc
-    try:
-        table = raw.get("estimator", {k: v for k, v in raw.items() if k != "ecm2rc_ekf"})
-        return EstimatorSettings.model_validate(table)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        raise UserError(f"{path}: field '{'.'.join(map(str, err['loc']))}': {err['msg']}") from exc
-
-
-def load_ekf_tuning(path: str | None) -> dict:
-    """The ``[ecm2rc_ekf]`` table of a settings file: fields of
-    :class:`service.estimators.ecm2rc_ekf.EkfTuning` (empty when absent)."""
-    if path is None:
-        return {}
-    import tomllib
-
-    from service.estimators.ecm2rc_ekf import EkfTuning
-
-    raw = tomllib.loads(Path(path).read_text()).get("ecm2rc_ekf", {})
-    known = {f.name: f.type for f in fields(EkfTuning)}
-    for key, value in raw.items():
+    ekf = raw.pop("ecm2rc_ekf", {})
+    known = [f.name for f in fields(EkfTuning)]
+    for key, value in ekf.items():  # checked here, whether or not the EKF runs, before the long work
         if key not in known:
             raise UserError(f"{path}: field 'ecm2rc_ekf.{key}' is not an EKF tuning option; known: {', '.join(known)}")
         if not isinstance(value, (int, float, str)) or isinstance(value, bool):
             raise UserError(f"{path}: field 'ecm2rc_ekf.{key}': expected a number or a string, got {value!r}")
-    return raw
+    try:
+        return EstimatorSettings.model_validate(raw.get("estimator", raw)), ekf
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise UserError(f"{path}: field '{'.'.join(map(str, err['loc']))}': {err['msg']}") from exc
 
 
 def run(args: argparse.Namespace) -> int:
@@ -111,10 +102,9 @@ def run(args: argparse.Namespace) -> int:
     if not 0.0 <= args.init_soc_error < 1.0:
         raise UserError(f"--init-soc-error must be in [0, 1), got {args.init_soc_error}")
     names = args.estimator or DEFAULT_ESTIMATORS
-    settings = load_settings(args.settings)
-    ekf_tuning = load_ekf_tuning(args.settings)
+    settings, ekf_tuning = load_settings(args.settings)
     try:
-        estimators = [create(n, settings, ekf_tuning) for n in names]
+        estimators = [create(n, settings, ekf_tuning if n == "ecm2rc-ekf" else None) for n in names]
     except UnknownEstimator as exc:
         raise UserError(str(exc)) from exc
     full = per_recording(args.full_at, len(args.recordings), "--full-at")

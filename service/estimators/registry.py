@@ -28,8 +28,9 @@ class UnknownEstimator(ValueError):
     pass
 
 
-def create(name: str, settings: EstimatorSettings | None = None, ekf_tuning: dict | None = None) -> Estimator:
-    """``settings`` go to the paper's pipeline, ``ekf_tuning`` (EkfTuning fields) to the 2-RC EKF."""
+def create(name: str, settings: EstimatorSettings | None = None, options: dict | None = None) -> Estimator:
+    """``settings`` go to the paper's pipeline variants, ``options`` (keyword arguments) to a
+    baseline's factory, e.g. the 2-RC EKF's EkfTuning fields."""
     if name not in ESTIMATORS:
         close = difflib.get_close_matches(name, ESTIMATORS, n=3)
         hint = f" Best matches: {', '.join(close)}." if close else ""
@@ -38,6 +39,4 @@ def create(name: str, settings: EstimatorSettings | None = None, ekf_tuning: dic
     factory: Callable[..., Estimator] = getattr(importlib.import_module(module_name), attr)
     if module_name.endswith("pipeline"):
         return factory(settings)
-    if name == "ecm2rc-ekf" and ekf_tuning:
-        return factory(**ekf_tuning)
-    return factory()
+    return factory(**(options or {}))
