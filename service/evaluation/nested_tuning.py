@@ -14,6 +14,7 @@ over the same grid are tuned with the same care.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from collections import defaultdict
@@ -24,6 +25,15 @@ METRIC = "soc_rmse_after_600s_pct"
 
 class GridError(ValueError):
     pass
+
+
+@functools.cache
+def _read(path: str) -> dict:
+    """One results file, parsed once however many estimators are tuned from it."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise GridError(f"{path}: cannot read results: {exc}") from exc
 
 
 def _condition(doc: dict) -> str:
@@ -43,10 +53,7 @@ def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[l
         value, sep, path = pair.partition("=")
         if not sep or not value or not path:
             raise GridError(f"'{pair}': expected VALUE=RESULTS.json")
-        try:
-            doc = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise GridError(f"{path}: cannot read results: {exc}") from exc
+        doc = _read(path)
         rows = [r for r in doc.get("results", []) if r.get("estimator") == estimator]
         if not rows:
             raise GridError(f"{path}: no results for estimator '{estimator}'")
