@@ -668,13 +668,15 @@ def direction_offset(time_s: np.ndarray, current_a: np.ndarray, residual_v: np.n
     if int(mask.sum()) < n_min:
         out["skipped"] = f"{int(mask.sum())} usable samples (needs {n_min})"
         return out
+    def highpass(x: np.ndarray) -> np.ndarray:
+        return (x - uniform_filter1d(x, width, mode="nearest"))[mask]
+
     crate = current_a / capacity_ah
-    linear = [crate] + [_lowpass(crate, time_s, tau) for tau in DIRECTION_LOWPASS_S]
-    y = (residual_v - uniform_filter1d(residual_v, width, mode="nearest"))[mask]
+    linear = [highpass(c) for c in [crate] + [_lowpass(crate, time_s, tau) for tau in DIRECTION_LOWPASS_S]]
+    y = highpass(residual_v)
     best = None
     for rate in BRANCH_RATES:
-        cols = [*linear, direction_state(time_s, current_a, capacity_ah, rate)]
-        a = np.column_stack([(c - uniform_filter1d(c, width, mode="nearest"))[mask] for c in cols])
+        a = np.column_stack([*linear, highpass(direction_state(time_s, current_a, capacity_ah, rate))])
         coef, *_ = np.linalg.lstsq(a, y, rcond=None)
         e = y - a @ coef
         sse = float(e @ e)
