@@ -363,3 +363,51 @@ def test_adaptive_noise_grows_only_when_the_model_is_wrong(nmc_recording, nmc_pr
     err_off = np.sqrt(np.mean((soc_off - rec.soc_true) ** 2))
     assert err_on < err_off
     assert np.sqrt(np.mean((soc_right - rec.soc_true) ** 2)) < 0.01
+
+
+# -- current-sensor offset state ---------------------------------------------------------------------
+def _offset_run(rec, profile, settings: EstimatorSettings, offset_a: float):
+    """foukf from a wrong start on ``rec`` with ``offset_a`` added to the current it reads."""
+    import dataclasses
+
+    recording = load_recording(rec.path)
+    biased = dataclasses.replace(recording, current_a=recording.current_a + offset_a)
+    return foukf(settings).run(biased, profile, 0.7)
+
+
+def test_current_offset_state_learns_a_sensor_offset(nmc_recording, nmc_profile) -> None:
+    """The model is exact here, so a drift of SOC against the OCV is the offset's alone: with
+    the offset state the filter learns it (sign and size) and keeps SOC closer to the truth
+    than the same filter without the state."""
+    rec = nmc_recording(duration_s=7200, seed=3, soc0=0.9)
+    offset = 0.03 * nmc_profile.capacity_ah
+    on = EstimatorSettings(current_bias_state=True, current_bias_init_std_c=0.05)
+    with_state = _offset_run(rec, nmc_profile, on, offset)
+    without = _offset_run(rec, nmc_profile, EstimatorSettings(), offset)
+    learned = with_state.params["current_bias_a"]
+    assert learned[-1] == pytest.approx(offset, rel=0.3)
+    assert "current_bias_a" not in without.params
+    err_on = _rmse_after(with_state.soc - rec.soc_true, rec.time_s, 3600.0)
+    err_off = _rmse_after(without.soc - rec.soc_true, rec.time_s, 3600.0)
+    assert err_on < 0.5 * err_off, (err_on, err_off)
+
+
+def test_current_offset_state_stays_near_zero_without_an_offset(nmc_recording, nmc_profile) -> None:
+    rec = nmc_recording(duration_s=7200, seed=3, soc0=0.9)
+    on = EstimatorSettings(current_bias_state=True, current_bias_init_std_c=0.05)
+    trace = _offset_run(rec, nmc_profile, on, 0.0)
+    assert abs(trace.params["current_bias_a"][-1]) < 0.005 * nmc_profile.capacity_ah
+    assert _rmse_after(trace.soc - rec.soc_true, rec.time_s) < 0.01
+
+
+def test_current_offset_state_keeps_covariance_spd_and_batch_equal_to_single(nmc_profile) -> None:
+    settings = EstimatorSettings(current_bias_state=True, slow_identifier=False)
+    cells = [0, 77, 199]
+    pack, singles = _batch_vs_single(nmc_profile, settings, cells)
+    assert pack.ukf.P.shape[1] == pack.n_branches + 3
+    P = pack.ukf.P
+    assert np.allclose(P, np.swapaxes(P, 1, 2), atol=1e-12)
+    assert (np.linalg.eigvalsh(0.5 * (P + np.swapaxes(P, 1, 2))) > 0).all()
+    for c, one in zip(cells, singles):
+        assert pack.soc[c] == pytest.approx(one.soc[0], rel=1e-9, abs=1e-10), c
+        assert pack.ukf.current_bias_a[c] == pytest.approx(one.ukf.current_bias_a[0], rel=1e-7, abs=1e-12), c

@@ -15,6 +15,13 @@ as printed.  The covariance update subtracts (Table 3 step 8 prints ``+``):
 ``P+ = P- - K Pyy Kᵀ``, using the current gain only.  The single-innovation posterior
 ``x- + K e`` is kept as ``x_single`` for the fast identifier (see
 ``EstimatorSettings.identifier_sees``).
+
+With ``current_bias_state`` the state gains a last element ``b``, the current sensor's offset
+in A (not in the paper): SOC integrates ``I - b`` (Zeng Eq. 4 with the measured current
+corrected), ``b`` is a slow random walk, and the update learns it through its covariance with
+SOC, i.e. from a drift of SOC against the OCV.  The offset enters only the integral: its
+instantaneous effect on the branch and ohmic drops (tens of mA times tens of mΩ) is below
+the voltage noise and is left out, so the output does not depend on ``b`` directly.
 """
 
 from __future__ import annotations
@@ -43,9 +50,11 @@ class FoMiUkf:
         self.settings = settings
         self.n = n_cells
         self.b = n_branches
-        self.nx = n_branches + 2
+        self.nx = n_branches + 2 + int(settings.current_bias_state)
         self.i_soc = n_branches
         self.i_uh = n_branches + 1
+        #: index of the current-offset state (None without ``current_bias_state``)
+        self.i_bias: int | None = n_branches + 2 if settings.current_bias_state else None
         L = settings.memory_length
         p = settings.innovation_length
         self.x = np.zeros((n_cells, self.nx))
@@ -71,8 +80,11 @@ class FoMiUkf:
         self.x_single = self.x
 
     # -- initialisation -----------------------------------------------------------------
-    def reset(self, cells: np.ndarray, soc: np.ndarray, soc_std: float, u_h_std: float) -> None:
-        """(Re)start ``cells`` (bool mask) at ``soc`` with relaxed branches."""
+    def reset(
+        self, cells: np.ndarray, soc: np.ndarray, soc_std: float, u_h_std: float, bias_std_a: float = 0.0
+    ) -> None:
+        """(Re)start ``cells`` (bool mask) at ``soc`` with relaxed branches (and a zero
+        current offset of σ ``bias_std_a`` when the filter has that state)."""
         self.x[cells] = 0.0
         self.x[cells, self.i_soc] = soc
         self.hist[cells] = 0.0
@@ -84,6 +96,8 @@ class FoMiUkf:
         diag = np.full(self.nx, 1e-4)
         diag[self.i_soc] = soc_std**2
         diag[self.i_uh] = max(u_h_std, 1e-3) ** 2
+        if self.i_bias is not None:
+            diag[self.i_bias] = max(bias_std_a, 1e-6) ** 2
         self.P[cells] = np.diag(diag)
 
     # -- Table 3 steps 3-5 --------------------------------------------------------------
@@ -107,14 +121,28 @@ class FoMiUkf:
         d_soc = -i * dt_s / (3600.0 * params.capacity_ah)
 
         # Zeng Eq. 5 is linear in the state for a known current, so the unscented
-        # transform of Table 3 steps 3-5 is exact and equals F P Fᵀ with a diagonal F:
-        # computed directly (same result as propagating sigma points, a fraction of the work).
-        f = np.concatenate([a, np.ones((self.n, 1)), a_h[:, None]], axis=1)
+        # transform of Table 3 steps 3-5 is exact and equals F P Fᵀ with a diagonal F
+        # (plus one coupling SOC <- offset): computed directly (same result as
+        # propagating sigma points, a fraction of the work).
+        cols = [a, np.ones((self.n, 1)), a_h[:, None]]
+        if self.i_bias is not None:
+            cols.append(np.ones((self.n, 1)))
+        f = np.concatenate(cols, axis=1)
         x_pred = np.empty_like(self.x)
         x_pred[:, :b] = a * self.x[:, :b] + drive
         x_pred[:, self.i_soc] = self.x[:, self.i_soc] + d_soc
         x_pred[:, self.i_uh] = a_h * self.x[:, self.i_uh] + h_target
-        P_pred = self.P * (f[:, :, None] * f[:, None, :])
+        if self.i_bias is None:
+            P_pred = self.P * (f[:, :, None] * f[:, None, :])
+        else:
+            # F = diag(f) + c e_soc e_bᵀ, c = dt / 3600 Q: SOC integrates I - b
+            c = dt_s / (3600.0 * params.capacity_ah)
+            x_pred[:, self.i_bias] = self.x[:, self.i_bias]
+            x_pred[:, self.i_soc] += c * self.x[:, self.i_bias]
+            fp = f[:, :, None] * self.P
+            fp[:, self.i_soc, :] += c[:, None] * self.P[:, self.i_bias, :]
+            P_pred = fp * f[:, None, :]
+            P_pred[:, :, self.i_soc] += c[:, None] * fp[:, :, self.i_bias]
         # process noise: SOC from the current sensor, small for the branches and U_h
         q = np.zeros((self.n, self.nx))
         q[:, :b] = (self.settings.branch_noise_v_per_sqrt_s * np.sqrt(max(dt_s, 1e-3))) ** 2
@@ -122,6 +150,9 @@ class FoMiUkf:
         q[:, self.i_uh] = (1e-4 * (1.0 - a_h) + 1e-6) ** 2 + ((1.0 - a_h) * params.u_h_max) ** 2 * 0.01
         # fractional memory covariance (Table 3 step 5): Σ_{j≥2} (w_j/d)^2 P_{k-j}
         q[:, :b] += (mem_w * mem_w * self.var_hist[..., 1:]).sum(axis=-1)
+        if self.i_bias is not None:
+            walk = self.settings.current_bias_walk_c_per_sqrt_s * params.capacity_ah
+            q[:, self.i_bias] = walk * walk * max(dt_s, 1e-3)
         P_pred[:, np.arange(self.nx), np.arange(self.nx)] += q
         self.x, self.P = x_pred, P_pred
         self.transition = f
@@ -228,6 +259,11 @@ class FoMiUkf:
     @property
     def soc(self) -> np.ndarray:
         return self.x[:, self.i_soc]
+
+    @property
+    def current_bias_a(self) -> np.ndarray:
+        """Learned current-sensor offset per cell, A (zeros without ``current_bias_state``)."""
+        return self.x[:, self.i_bias].copy() if self.i_bias is not None else np.zeros(self.n)
 
     @property
     def soc_std(self) -> np.ndarray:

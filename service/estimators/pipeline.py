@@ -70,7 +70,7 @@ class PackEstimator:
         self.params = self.nominal.copy()
         self.soc_scale = profile.soc_scale_table()
         self.nominal_now = self.nominal
-        nx = self.n_branches + 2
+        nx = self.n_branches + 2 + int(s.current_bias_state)  # FoMiUkf's state length
         self.fast: ParameterEkf | None = None
         self.slow: SlowIdentifier | None = None
         if identification == "multi" and s.fast_identifier:
@@ -178,7 +178,8 @@ class PackEstimator:
         cells = np.ones(self.n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
         soc_arr = np.broadcast_to(np.asarray(soc, float), (self.n,))
         std = self.settings.soc_init_std if soc_std is None else soc_std
-        self.ukf.reset(cells, soc_arr[cells], std, float(self.profile.hysteresis.u_h_max_v))
+        bias_std = self.settings.current_bias_init_std_c * self.profile.capacity_ah
+        self.ukf.reset(cells, soc_arr[cells], std, float(self.profile.hysteresis.u_h_max_v), bias_std)
         self.surface_deficit[cells] = 0.0
         if self.fast is not None:
             self.fast.reset(cells)
@@ -395,6 +396,7 @@ class PipelineEstimator:
         std = np.empty(T)
         vp = np.empty(T)
         params = {k: np.empty(T) for k in PARAM_NAMES}
+        bias = np.empty(T) if self.settings.current_bias_state else None
         dt = recording.dt_s()
         one = np.ones(1, dtype=bool)
         for k in range(T):
@@ -404,6 +406,10 @@ class PipelineEstimator:
             p = est.params
             params["r_ohm"][k], params["r_ct"][k], params["c_dl"][k], params["m"][k] = p.r_ohm[0], p.r[0, 0], p.c[0, 0], p.alpha[0, 0]
             params["r_df"][k], params["c_df"][k], params["n"][k] = p.r[0, 1], p.c[0, 1], p.alpha[0, 1]
+            if bias is not None:
+                bias[k] = est.ukf.current_bias_a[0]
+        if bias is not None:
+            params["current_bias_a"] = bias
         return EstimateTrace(soc=soc, v_pred=vp, soc_std=std, params=params)
 
 

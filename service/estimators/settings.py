@@ -67,6 +67,18 @@ class EstimatorSettings(BaseModel):
         1e-4, ge=0, description="random walk of the CPE branch voltages U_cd, U_df in the SOC filter (V/√s): "
         "how much model error the polarisation states may take up instead of SOC"
     )
+    current_bias_state: bool = Field(
+        False, description="augment the SOC filter with a current-sensor offset state b (A): SOC integrates "
+        "I - b, b walks slowly; the offset is then learned from the voltage instead of drifting SOC. Off by "
+        "default (README: measured with and without a sensor offset)"
+    )
+    current_bias_init_std_c: float = Field(
+        0.01, gt=0, le=1, description="σ of the offset state at a start, as a fraction of 1C (0.01 = 1 % of "
+        "the capacity in A)"
+    )
+    current_bias_walk_c_per_sqrt_s: float = Field(
+        1e-5, ge=0, description="random walk of the offset state, fraction of 1C per √s"
+    )
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
     ukf_alpha: float = Field(1.0, gt=0, le=1)
     ukf_beta: float = Field(2.0, ge=0)
