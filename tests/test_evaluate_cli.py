@@ -283,6 +283,22 @@ def test_current_bias_reaches_the_estimators_not_the_truth(tmp_path: Path, nmc_r
         assert "--current-bias-c" in err
 
 
+def test_offset_state_learns_the_evaluate_offset_and_writes_it_to_the_traces(
+        tmp_path: Path, nmc_recording, nmc_profile_file, nmc_profile, capsys) -> None:
+    """``current_bias_state`` in the settings file: the traces CSV gains the learned offset,
+    which approaches the offset ``--current-bias-c`` added (the model is exact here)."""
+    rec = nmc_recording(name="drive", duration_s=5400, seed=3, soc0=0.9)
+    (tmp_path / "s.toml").write_text("current_bias_state = true\ncurrent_bias_init_std_c = 0.05\n")
+    rc = main(["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "foukf",
+               "--estimator", "coulomb", "--current-bias-c", "0.03", "--settings", str(tmp_path / "s.toml"),
+               "--quiet", "--traces", str(tmp_path / "tr")])
+    assert rc == 0, capsys.readouterr().err
+    tr = np.genfromtxt(tmp_path / "tr" / "drive_traces.csv", delimiter=",", names=True)
+    assert "current_bias_a_foukf" in tr.dtype.names and "current_bias_a_coulomb" not in tr.dtype.names
+    assert tr["current_bias_a_foukf"][0] == pytest.approx(0.0, abs=1e-3)
+    assert tr["current_bias_a_foukf"][-1] == pytest.approx(0.03 * nmc_profile.capacity_ah, rel=0.3)
+
+
 def test_settings_file_tunes_both_the_pipeline_and_the_ekf(tmp_path: Path, nmc_recording, nmc_profile_file,
                                                           capsys) -> None:
     """One settings file: top-level fields tune the pipeline, [ecm2rc_ekf] the 2-RC EKF (same file

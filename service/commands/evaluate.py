@@ -162,11 +162,14 @@ def run(args: argparse.Namespace) -> int:
 
 def write_traces(path: Path, time_s: np.ndarray, truth: np.ndarray, voltage_v: np.ndarray, traces: dict) -> None:
     """One CSV row per scored sample: ``time_s, soc_true, voltage_v`` then ``soc_<estimator>`` and
-    ``v_pred_<estimator>`` (empty where an estimator predicts no voltage, e.g. coulomb counting)."""
+    ``v_pred_<estimator>`` (empty where an estimator predicts no voltage, e.g. coulomb counting),
+    and ``current_bias_a_<estimator>`` for a filter that learns the sensor offset."""
     cols = {"time_s": time_s, "soc_true": truth, "voltage_v": voltage_v}
     for name, tr in traces.items():
         cols[f"soc_{name}"] = tr.soc
         cols[f"v_pred_{name}"] = tr.v_pred if tr.v_pred is not None else np.full(time_s.shape, np.nan)
+        if "current_bias_a" in tr.params:
+            cols[f"current_bias_a_{name}"] = tr.params["current_bias_a"]
     path.parent.mkdir(parents=True, exist_ok=True)
     data = np.column_stack(list(cols.values()))
     digits = [12] + [7] * (data.shape[1] - 1)  # time to the recording's own precision
