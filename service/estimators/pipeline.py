@@ -70,7 +70,7 @@ class PackEstimator:
         self.params = self.nominal.copy()
         self.soc_scale = profile.soc_scale_table()
         self.nominal_now = self.nominal
-        nx = self.n_branches + 2 + int(s.current_bias_state)  # FoMiUkf's state length
+        nx = self.ukf.nx
         self.fast: ParameterEkf | None = None
         self.slow: SlowIdentifier | None = None
         if identification == "multi" and s.fast_identifier:
@@ -178,7 +178,8 @@ class PackEstimator:
         cells = np.ones(self.n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
         soc_arr = np.broadcast_to(np.asarray(soc, float), (self.n,))
         std = self.settings.soc_init_std if soc_std is None else soc_std
-        bias_std = self.settings.current_bias_init_std_c * self.profile.capacity_ah
+        capacity = self.profile.capacity_ah * self.profile.extensions.capacity_scale
+        bias_std = self.settings.current_bias_init_std_c * capacity
         self.ukf.reset(cells, soc_arr[cells], std, float(self.profile.hysteresis.u_h_max_v), bias_std)
         self.surface_deficit[cells] = 0.0
         if self.fast is not None:
