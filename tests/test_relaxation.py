@@ -83,3 +83,36 @@ def test_profile_carries_the_measured_branch():
     assert branch.r * branch.c == pytest.approx(SLOW.r * SLOW.c, rel=0.1)
     assert "slow_branch" in prof.notes
     assert prof.n_branches == 3
+
+
+def _table_error_at_rests_mv(prof: CellProfile, rec: Recording) -> list[float]:
+    """Fitted table minus the relaxed voltage at the end of each long rest after the load."""
+    from service.characterisation.ocv_sources import rest_points
+
+    table = prof.ocv_table()
+    return [1000 * float(table.ocv(np.array([p.soc]), 25.0)[0] - p.ocv_v) for p in rest_points(rec, 2.0, 1.0)[1:]]
+
+
+def test_rest_anchor_puts_the_joint_table_through_the_relaxed_rest_voltages():
+    """A cell with a slow branch, fitted without one: the jointly fitted OCV takes up the slow
+    polarisation; --rest-anchor shifts it back onto the voltages the rests relaxed to."""
+    rec = _lab_test(True)
+    free, _ = characterise([rec], 2.0, [None], max_seconds=4)
+    anchored, report = characterise([rec], 2.0, [None], rest_anchor=True, max_seconds=4)
+    err_free = _table_error_at_rests_mv(free, rec)
+    err_anchored = _table_error_at_rests_mv(anchored, rec)
+    assert len(err_anchored) == 2
+    assert max(abs(e) for e in err_anchored) < 0.5, err_anchored
+    assert max(abs(e) for e in err_free) > 1.0, err_free
+    assert any("anchored at the relaxed rest voltage" in line for line in report.lines)
+
+
+def test_rest_anchor_needs_a_jointly_fitted_table_and_a_long_rest():
+    rec = _lab_test(True)
+    with pytest.raises(ValueError, match="--rest-anchor"):
+        characterise([rec], 2.0, [None], ocv_table=(np.array(nmc_like_ocv().soc), np.array(nmc_like_ocv().ocv_v[0])),
+                     rest_anchor=True, max_seconds=2)
+    with pytest.raises(ValueError, match="--rest-anchor: no rest of 600 s"):
+        short = _lab_test(True, rest_s=300.0)
+        characterise([short.slice(int(np.searchsorted(short.time_s, 600.0)))], 2.0, [None], rest_anchor=True,
+                     max_seconds=2)

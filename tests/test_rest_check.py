@@ -84,3 +84,21 @@ def test_cli_table_json_and_errors(tmp_path: Path, capsys) -> None:
     assert "nope.toml" in capsys.readouterr().err
     assert main([str(path), str(path), "--cell", str(cell), "--full-at", "0", "--full-at", "1", "--full-at", "2"]) == 2
     assert "--full-at" in capsys.readouterr().err
+
+
+def test_a_rest_logged_with_two_samples_has_no_tail(tmp_path: Path, capsys) -> None:
+    """A123-style log: the end rest is one sample when the current stops and one 300 s later."""
+    profile = make_nmc_profile()
+    t = np.concatenate([np.arange(600.0), [600.0, 900.0]])
+    i = np.concatenate([np.full(600, profile.capacity_ah), [0.0, 0.0]])
+    temp = np.full(t.size, 25.0)
+    v, _ = simulate(profile, t, i, temp, 1.0)
+    path = write_recording_csv(tmp_path / "sparse.csv", t, i, v, temp)
+    cell = tmp_path / "nmc.toml"
+    save_profile(profile, cell)
+    out = tmp_path / "r.json"
+    assert main([str(path), "--cell", str(cell), "--json", str(out)]) == 0
+    (row,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| sparse |")]
+    assert row.endswith("| – |")
+    (reading,) = json.loads(out.read_text())["rests"]
+    assert reading["tail_mv_per_min"] is None and reading["rest_s"] == 300.0

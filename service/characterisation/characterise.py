@@ -46,6 +46,7 @@ from service.cell.profile import (
 from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
+    REST_MIN_S,
     initial_ocv_from_drive,
     is_ocv_test,
     ocv_correction_from_residual,
@@ -162,14 +163,20 @@ def characterise(
     seed: int = 0,
     slow_branch: bool = False,
     ocv_branch: str = "mean",
+    rest_anchor: bool = False,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
     table or test is (:class:`HysteresisSpec` ``table_branch``; needs ``fit_hysteresis``
-    unless ``mean``)."""
+    unless ``mean``).  ``rest_anchor``: a jointly fitted OCV table (no table, no OCV test) is
+    shifted to pass through the relaxed voltages at the ends of the recordings' long rests
+    (one or more) before the parameters are fitted on it."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
     rep = FitReport()
     ocv_tests = [r for r in recordings if is_ocv_test(r, capacity_ah)]
+    if rest_anchor and (ocv_table is not None or ocv_tests):
+        raise ValueError("--rest-anchor anchors a jointly fitted OCV table; with an OCV table or test given, "
+                         "the table is already shifted to the rests of each temperature")
     dynamic = [(r, fa) for r, fa in zip(recordings, full_at) if not is_ocv_test(r, capacity_ah)]
     if not dynamic:
         raise ValueError("socd fit needs at least one dynamic recording (drive cycle or HPPC) to fit the model")
@@ -252,6 +259,14 @@ def characterise(
             corr = ocv_correction_from_residual(np.concatenate(socs), np.concatenate(resid), grid)
             ocv_rows[ref_t] = make_monotone(ocv_rows[ref_t] + corr)
             rep.say(f"joint OCV iteration {it + 1}: model RMSE {res.rmse_mv:.1f} mV, mean |ΔOCV| {1000 * np.mean(np.abs(corr)):.1f} mV")
+        if rest_anchor:
+            anchors = points_by_t[ref_t]
+            if not anchors:
+                raise ValueError(f"--rest-anchor: no rest of {REST_MIN_S:g} s or more in the recordings at "
+                                 f"{ref_t:g} °C to anchor the OCV table on")
+            rep.say("joint OCV anchored at the relaxed rest voltage(s): " + ", ".join(
+                f"SOC {a.soc:.3f} {1000 * (a.ocv_v - np.interp(a.soc, grid, ocv_rows[ref_t])):+.1f} mV" for a in anchors))
+            ocv_rows[ref_t] = ocv_row_from_rests(grid, ocv_rows[ref_t], anchors, min_points=1)
         base = ocv_rows[ref_t]
         for t in temps:
             if t != ref_t:

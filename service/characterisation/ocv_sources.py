@@ -80,10 +80,12 @@ def rest_spans(rec: Recording, capacity_ah: float, min_rest_s: float) -> list[tu
     return spans
 
 
-def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[RestPoint]) -> np.ndarray:
-    """Base curve shifted by the (smoothly interpolated) offset of the rest points."""
+def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[RestPoint],
+                       min_points: int = 3) -> np.ndarray:
+    """Base curve shifted by the (smoothly interpolated) offset of the rest points; beyond the
+    outermost points the outermost offset holds.  Fewer than ``min_points``: unchanged."""
     pts = sorted((p for p in points if -0.02 <= p.soc <= 1.02), key=lambda p: p.soc)
-    if len(pts) < 3:
+    if len(pts) < max(min_points, 1):
         return base_ocv
     s = np.array([p.soc for p in pts])
     off = np.array([p.ocv_v for p in pts]) - np.interp(s, base_soc, base_ocv)

@@ -52,6 +52,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "in rests of 30 min or more at the reference temperature, then fit the rest of the model with it; "
                    "for cells characterised without an OCV test, whose jointly fitted OCV otherwise absorbs the slow "
                    "polarisation (README: CALCE INR18650-20R)")
+    p.add_argument("--rest-anchor", action="store_true",
+                   help="with no OCV table or test (the OCV fitted jointly with the model): shift the fitted table to "
+                   "pass through the relaxed voltages at the ends of the recordings' rests of 600 s or more (the "
+                   "outermost offset holds beyond them); off by default (README: CALCE INR18650-20R)")
     p.add_argument("--max-seconds", type=float, default=60.0, help="optimiser time per temperature (default 60)")
     p.add_argument("--memory-length", type=int, default=16, help="G-L memory length used in the fit (default 16)")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
@@ -78,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
                                        fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
                                        min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
-                                       slow_branch=args.slow_branch, ocv_branch=args.ocv_branch,
+                                       slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed)
     except ValueError as exc:
         raise UserError(str(exc)) from exc

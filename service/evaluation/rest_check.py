@@ -53,7 +53,7 @@ class RestReading:
     soc_ocv: float
     soc_true: float
     diff_pct: float  # (SOC_ocv - truth) x 100
-    tail_mv_per_min: float
+    tail_mv_per_min: float | None  # None: fewer than three samples in the rest
 
 
 def _last_current_sign(current_a: np.ndarray, before: int, rest_a: float) -> float:
@@ -76,12 +76,13 @@ def read_rests(part: Recording, truth: np.ndarray, profile: CellProfile,
         t_rest, v_rest = part.time_s[first:last + 1], part.voltage_v[first:last + 1]
         k0 = min(int(np.searchsorted(t_rest, t_rest[-1] - TAIL_S)), max(t_rest.size - 3, 0))
         t_tail, v_tail = t_rest[k0:], v_rest[k0:]  # the last minute, or 3 samples of a sparse log
-        slope = float(np.polyfit(t_tail - t_tail[0], v_tail, 1)[0]) if t_tail.size >= 3 else float("nan")
+        slope = float(np.polyfit(t_tail - t_tail[0], v_tail, 1)[0]) if t_tail.size >= 3 else None
         out.append(RestReading(
             recording=part.name, t_s=float(part.time_s[last] - part.time_s[0]),
             rest_s=float(part.time_s[last] - part.time_s[first]), voltage_v=v, temperature_c=temp,
             u_h_v=u_h, soc_ocv=soc_ocv, soc_true=float(truth[last]),
-            diff_pct=100.0 * (soc_ocv - float(truth[last])), tail_mv_per_min=60e3 * slope,
+            diff_pct=100.0 * (soc_ocv - float(truth[last])),
+            tail_mv_per_min=None if slope is None else 60e3 * slope,
         ))
     return out
 
@@ -91,7 +92,8 @@ def markdown(readings: list[RestReading]) -> str:
            "|---|---|---|---|---|---|---|---|---|"]
     for r in readings:
         out.append(f"| {r.recording} | {r.t_s:.0f} | {r.rest_s:.0f} | {r.voltage_v:.4f} | {r.temperature_c:.1f} | "
-                   f"{r.soc_ocv:.3f} | {r.soc_true:.3f} | {r.diff_pct:+.2f} | {r.tail_mv_per_min:+.2f} |")
+                   f"{r.soc_ocv:.3f} | {r.soc_true:.3f} | {r.diff_pct:+.2f} | "
+                   + ("–" if r.tail_mv_per_min is None else f"{r.tail_mv_per_min:+.2f}") + " |")
     return "\n".join(out)
 
 
