@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.cell.fitting import last_current_direction
 from service.cell.profile import CellProfile, ProfileError, load_profile
 from service.characterisation.ocv_sources import REST_CURRENT_C, rest_spans
 from service.cli import UserError
@@ -56,11 +57,6 @@ class RestReading:
     tail_mv_per_min: float | None  # None: fewer than three samples in the rest
 
 
-def _last_current_sign(current_a: np.ndarray, before: int, rest_a: float) -> float:
-    moving = np.flatnonzero(np.abs(current_a[:before]) >= rest_a)
-    return 0.0 if moving.size == 0 else float(np.sign(current_a[moving[-1]]))
-
-
 def read_rests(part: Recording, truth: np.ndarray, profile: CellProfile,
                min_rest_s: float = DEFAULT_MIN_REST_S) -> list[RestReading]:
     """One reading at the end of every rest of at least ``min_rest_s`` in ``part``."""
@@ -70,7 +66,7 @@ def read_rests(part: Recording, truth: np.ndarray, profile: CellProfile,
     rest_a = REST_CURRENT_C * capacity
     out = []
     for first, last in rest_spans(part, capacity, min_rest_s):
-        u_h = -_last_current_sign(part.current_a, first, rest_a) * u_h_max
+        u_h = last_current_direction(part.current_a[:first], rest_a) * u_h_max
         v, temp = float(part.voltage_v[last]), float(part.temperature_c[last])
         soc_ocv = float(table.soc_from_ocv(np.array([v - u_h]), np.array([temp]))[0])
         t_rest, v_rest = part.time_s[first:last + 1], part.voltage_v[first:last + 1]
