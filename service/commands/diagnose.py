@@ -58,7 +58,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 def _profile_from_args(args):
     from service.cell.ocv import load_ocv_csv
-    from service.cell.profile import CellProfile, OcvSpec, ParameterPoint, ProfileError, load_profile
+    from service.cell.profile import ProfileError, load_profile
+    from service.diagnosis.pipeline import table_profile
 
     if args.cell:
         try:
@@ -76,12 +77,7 @@ def _profile_from_args(args):
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     try:
-        profile = CellProfile(
-            name=Path(args.ocv).stem, capacity_ah=args.capacity_ah,
-            ocv=OcvSpec(soc=[float(s) for s in soc], ocv_v=[[float(v) for v in ocv]]),
-            # a placeholder: diagnose fits the base parameters itself
-            parameters=[ParameterPoint(r_ohm=0.02, r_ct=0.01, c_dl=100.0, m=0.9, r_df=0.01, c_df=1000.0, n=0.8)],
-        )
+        profile = table_profile(Path(args.ocv).stem, args.capacity_ah, soc, ocv)
         profile.ocv_table()
     except ValueError as exc:
         raise UserError(f"{args.ocv}: unusable OCV table: {exc}") from exc

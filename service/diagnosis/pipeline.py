@@ -66,7 +66,7 @@ import numpy as np
 
 from service.cell.fitting import FitSegment, encode_point, estimate_r_ohm, fit_parameters
 from service.cell.model import simulate
-from service.cell.profile import CellProfile
+from service.cell.profile import CellProfile, OcvSpec, ParameterPoint
 from service.diagnosis.effects import (
     DIFFUSION_MIN_TAU_S,
     EFFECTS,
@@ -92,6 +92,16 @@ from service.diagnosis.simulation import initial_soc
 from service.recording import Recording
 
 VOCABULARY = ("hysteresis", "temperature", "diffusion", "capacity", "current_bias", "kinetics", "ocv", "none")
+
+
+def table_profile(name: str, capacity_ah: float, soc, ocv_v) -> CellProfile:
+    """The profile ``socd diagnose --ocv TABLE --capacity-ah X`` starts from: the table, the
+    capacity and placeholder parameters (the diagnosis fits the base model itself)."""
+    return CellProfile(
+        name=name, capacity_ah=capacity_ah,
+        ocv=OcvSpec(soc=[float(s) for s in soc], ocv_v=[[float(v) for v in ocv_v]]),
+        parameters=[ParameterPoint(r_ohm=0.02, r_ct=0.01, c_dl=100.0, m=0.9, r_df=0.01, c_df=1000.0, n=0.8)],
+    )
 
 
 @dataclass

@@ -254,8 +254,7 @@ def run_one(job: tuple[str, str, str, int, str, str], split: str = "chronologica
     """Simulate one recording, write it (CSV, OCV CSV, JSON facts) and diagnose it with the
     held-out protocol ``split`` (``socd diagnose --split``); a recording the solver cannot run
     comes back as a ``{stem, cell, effect, error}`` dict."""
-    from service.cell.profile import CellProfile, OcvSpec, ParameterPoint
-    from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
+    from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis, table_profile
     from service.recording import load_recording
 
     cell, effect, level, seed, _kind, workdir = job
@@ -270,10 +269,7 @@ def run_one(job: tuple[str, str, str, int, str, str], split: str = "chronologica
                comments="", fmt="%.5f")
     (out / f"{stem}.json").write_text(json.dumps(info, indent=1))
     # what `socd diagnose --ocv ... --capacity-ah ...` builds (placeholder parameters, refitted)
-    profile = CellProfile(name=stem, capacity_ah=info["capacity_ah"],
-                          ocv=OcvSpec(soc=soc.tolist(), ocv_v=[ocv.tolist()]),
-                          parameters=[ParameterPoint(r_ohm=0.02, r_ct=0.01, c_dl=100.0, m=0.9, r_df=0.01,
-                                                     c_df=1000.0, n=0.8)])
+    profile = table_profile(stem, info["capacity_ah"], soc, ocv)
     t0 = time.perf_counter()
     dg = run_diagnosis(load_recording(out / f"{stem}.csv"), profile, DiagnoseOptions(split=split))
     top = dg.effects[0]
