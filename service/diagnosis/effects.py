@@ -95,6 +95,12 @@ class Effect:
     # not significant), or None.  For terms every cell has to some degree (Butler-Volmer
     # kinetics), which a flexible fit also bends to absorb model-form error
     implausible: Callable[[dict[str, float], Context], str | None] | None = None
+    # the effect is a statement about an input its signature reads directly, so without the
+    # signature it is not named, whatever the voltage gain: ``temperature`` means the ambient
+    # moved, and when the measured temperature is a constant nominal ambient plus self-heating
+    # an Arrhenius law's gain is the cell's resistance following its own heating, which every
+    # cell does (a clean PyBaMM recording that heats 14 K gains 32 % from it)
+    needs_signature: bool = False
 
     @property
     def k(self) -> int:
@@ -182,6 +188,7 @@ TEMPERATURE = Effect(
     to_profile=_temp_profile,
     detect=_temp_detect,
     feature=_temp_feature,
+    needs_signature=True,
 )
 
 

@@ -91,6 +91,9 @@ from service.diagnosis.signatures import (
 from service.diagnosis.simulation import initial_soc
 from service.recording import Recording
 
+#: the start of the reason an effect that needs its signature (Effect.needs_signature) is refused
+SIGNATURE_REQUIRED = "not named without its signature: "
+
 VOCABULARY = ("hysteresis", "temperature", "diffusion", "capacity", "current_bias", "kinetics", "ocv", "none")
 
 
@@ -268,10 +271,13 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
     fit the fit part well without generalising are listed as leads, not as a verdict.
     """
     ratio = rmse_held_base_mv / max(noise_mv, 1e-9)
+    # held-out gain enough, but refused: the input the effect is about does not show it
+    refused = [e for e in outcomes if not e.significant and len(e.reasons) == 1
+               and e.reasons[0].startswith(SIGNATURE_REQUIRED)]
     fit_only = []
     for e in outcomes:
         fit_gain = 1.0 - e.rmse_fit_after_mv / rmse_fit_base_mv if rmse_fit_base_mv > 0 else 0.0
-        if not e.significant and fit_gain >= FIT_ONLY_GAIN:
+        if not e.significant and e not in refused and fit_gain >= FIT_ONLY_GAIN:
             fit_only.append({"name": e.name, "fit_gain": round(fit_gain, 4), "heldout_gain": round(e.score, 4)})
     fit_only.sort(key=lambda d: -d["fit_gain"])
     signed = [{"name": e.name, "heldout_gain": round(e.score, 4)} for e in outcomes
@@ -287,15 +293,21 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
         state = "unexplained"
         leads = ", ".join(f"{d['name']} (fit part {100 * d['fit_gain']:.0f} % lower, held out "
                           f"{100 * d['heldout_gain']:+.0f} %)" for d in fit_only) or "none"
-        text = (f"no candidate generalises, yet the base model leaves {rmse_held_base_mv:.2f} mV on the held-out "
+        text = (f"{'no candidate is named' if refused else 'no candidate generalises'}, yet the base model leaves {rmse_held_base_mv:.2f} mV on the held-out "
                 f"part ({ratio:.0f} x the voltage noise): the model's form, or physics outside the candidate "
                 f"library, or physics that does not extrapolate from the fit part to the held-out one; "
                 f"candidates that fit the fit part without generalising: {leads}")
         if signed:
             text += ("; nominated by a signature, but the extension does not predict the held-out part: "
                      + ", ".join(f"{d['name']} (held out {100 * d['heldout_gain']:+.0f} %)" for d in signed))
+    if refused:
+        text += ("; " + ", ".join(f"{e.name} (held out {100 * e.score:+.0f} %)" for e in refused)
+                 + " would generalise but its signature did not fire: the input it is about does not show the "
+                   "effect, and the gain is physics every cell has (temperature: the resistance following the "
+                   "cell's own self-heating); `--save-effect` keeps it in the profile if you want it modelled")
     return {"state": state, "text": text, "heldout_rmse_over_noise": round(ratio, 2),
             "signature_without_extension": signed,
+            "refused_without_signature": [{"name": e.name, "heldout_gain": round(e.score, 4)} for e in refused],
             "explained_noise_factor": EXPLAINED_NOISE_FACTOR, "fit_only_gain": FIT_ONLY_GAIN,
             "fit_without_generalising": fit_only}
 
@@ -640,6 +652,11 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
         why = eff.implausible(phys, problem.ctx) if eff.implausible else None
         if why:
             reasons.append(why)
+        if eff.needs_signature and not nominated:
+            s_ = sig.get(name, {})
+            reasons.append(f"{SIGNATURE_REQUIRED}the input it is about does not show it ({s_.get('what', 'signature')}: "
+                           f"{s_.get('statistic', float('nan')):.3g} < {s_.get('threshold', float('nan')):.3g}); "
+                           "the voltage gain is physics every cell has, not this effect")
         outcomes.append(EffectOutcome(
             name=name, title=eff.title, score=score, significant=not reasons, rmse_before_mv=rmse_before,
             rmse_after_mv=after, params={k: float(v) for k, v in phys.items()}, params_std=params_std,
