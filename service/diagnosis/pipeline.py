@@ -293,7 +293,8 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
         state = "unexplained"
         leads = ", ".join(f"{d['name']} (fit part {100 * d['fit_gain']:.0f} % lower, held out "
                           f"{100 * d['heldout_gain']:+.0f} %)" for d in fit_only) or "none"
-        text = (f"{'no candidate is named' if refused else 'no candidate generalises'}, yet the base model leaves {rmse_held_base_mv:.2f} mV on the held-out "
+        opening = "no candidate is named" if refused else "no candidate generalises"
+        text = (f"{opening}, yet the base model leaves {rmse_held_base_mv:.2f} mV on the held-out "
                 f"part ({ratio:.0f} x the voltage noise): the model's form, or physics outside the candidate "
                 f"library, or physics that does not extrapolate from the fit part to the held-out one; "
                 f"candidates that fit the fit part without generalising: {leads}")
@@ -653,9 +654,9 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
         if why:
             reasons.append(why)
         if eff.needs_signature and not nominated:
-            s_ = sig.get(name, {})
-            reasons.append(f"{SIGNATURE_REQUIRED}the input it is about does not show it ({s_.get('what', 'signature')}: "
-                           f"{s_.get('statistic', float('nan')):.3g} < {s_.get('threshold', float('nan')):.3g}); "
+            own = sig.get(name, {})
+            reasons.append(f"{SIGNATURE_REQUIRED}the input it is about does not show it ({own.get('what', 'signature')}: "
+                           f"{own.get('statistic', float('nan')):.3g} < {own.get('threshold', float('nan')):.3g}); "
                            "the voltage gain is physics every cell has, not this effect")
         outcomes.append(EffectOutcome(
             name=name, title=eff.title, score=score, significant=not reasons, rmse_before_mv=rmse_before,
