@@ -66,6 +66,14 @@ def _first_unparsable(path: Path, idx: list[int], cols: list[str]) -> str | None
     return None
 
 
+def save_recording(path: str | Path, columns: np.ndarray, fmt: str = "%.4f") -> Path:
+    """Write ``[T, 4]`` columns time_s, current_a, voltage_v, temperature_c as the CSV
+    :func:`load_recording` reads (simulated recordings: the validation grids, clean twins)."""
+    path = Path(path)
+    np.savetxt(path, columns, delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt=fmt)
+    return path
+
+
 def load_recording(path: str | Path) -> Recording:
     """Read and validate a recording; raise :class:`UserError` naming file, row or column."""
     path = Path(path)

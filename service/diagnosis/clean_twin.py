@@ -157,7 +157,7 @@ def run_stem(job: tuple[str, str, str]) -> TwinRow:
     """Build, check, write and diagnose one recording's twin, and diagnose the recording."""
     from service.cell.ocv import load_ocv_csv
     from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis, table_profile
-    from service.recording import load_recording
+    from service.recording import load_recording, save_recording
 
     data_dir, stem, workdir = Path(job[0]), job[1], Path(job[2])
     t0 = time.perf_counter()
@@ -180,11 +180,11 @@ def run_stem(job: tuple[str, str, str]) -> TwinRow:
     rng = np.random.default_rng(zlib.crc32(stem.encode()))
     workdir.mkdir(parents=True, exist_ok=True)
     twin_csv = workdir / f"{stem}_twin.csv"
-    np.savetxt(twin_csv, np.column_stack([
+    save_recording(twin_csv, np.column_stack([
         rec.time_s, np.round(i_true, 4),
         np.round(v_twin + rng.normal(0.0, 1e-3 * float(noise["v_sigma_mv"]), n), 4),
         np.round(t_twin + rng.normal(0.0, float(noise.get("t_sigma_c", 0.1)), n), 2),
-    ]), delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.4f")
+    ]))
 
     dg = run_diagnosis(rec, profile, DiagnoseOptions())
     dg_twin = run_diagnosis(load_recording(twin_csv), profile, DiagnoseOptions())

@@ -39,6 +39,7 @@ from service.cell.profile import (
     SurfaceDiffusionSpec,
     kinetic_linear_ohm,
 )
+from service.recording import save_recording
 
 CAP = 2.0
 DT = 4.0
@@ -155,9 +156,7 @@ def simulate_cell(case: dict, current_a: np.ndarray, seed: int) -> tuple[np.ndar
 
 
 def write_case(path: Path, effect: str, level: str = "clear", seed: int = 0, case: dict | None = None) -> Path:
-    np.savetxt(path, simulate_case(effect, level, seed, case), delimiter=",",
-               header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.6f")
-    return path
+    return save_recording(path, simulate_case(effect, level, seed, case), fmt="%.6f")
 
 
 @dataclass

@@ -255,7 +255,7 @@ def run_one(job: tuple[str, str, str, int, str, str], split: str = "chronologica
     held-out protocol ``split`` (``socd diagnose --split``); a recording the solver cannot run
     comes back as a ``{stem, cell, effect, error}`` dict."""
     from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis, table_profile
-    from service.recording import load_recording
+    from service.recording import load_recording, save_recording
 
     cell, effect, level, seed, _kind, workdir = job
     stem, sim = _simulated(job)
@@ -263,8 +263,7 @@ def run_one(job: tuple[str, str, str, int, str, str], split: str = "chronologica
         return sim
     data, soc, ocv, info = sim
     out = Path(workdir)
-    np.savetxt(out / f"{stem}.csv", data, delimiter=",", header="time_s,current_a,voltage_v,temperature_c",
-               comments="", fmt="%.4f")
+    save_recording(out / f"{stem}.csv", data)
     np.savetxt(out / f"{stem}_ocv.csv", np.column_stack([soc, ocv]), delimiter=",", header="soc,ocv_v",
                comments="", fmt="%.5f")
     (out / f"{stem}.json").write_text(json.dumps(info, indent=1))
