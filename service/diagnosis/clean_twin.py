@@ -186,8 +186,9 @@ def run_stem(job: tuple[str, str, str]) -> TwinRow:
         np.round(t_twin + rng.normal(0.0, float(noise.get("t_sigma_c", 0.1)), n), 2),
     ]))
 
+    twin = load_recording(twin_csv)  # read back: the twin is diagnosed from the file a user would have
     dg = run_diagnosis(rec, profile, DiagnoseOptions())
-    dg_twin = run_diagnosis(load_recording(twin_csv), profile, DiagnoseOptions())
+    dg_twin = run_diagnosis(twin, profile, DiagnoseOptions())
     for name, d in (("recording", dg), ("twin", dg_twin)):
         (workdir / f"{stem}_{name}.diagnosis.json").write_text(json.dumps(d.to_json(), indent=1, default=float))
     effect = label.get("effect", "none")
@@ -196,7 +197,7 @@ def run_stem(job: tuple[str, str, str]) -> TwinRow:
     floor = float(dg_twin.base["rmse_heldout_mv"])
     if outcome.split != "chronological":
         # the floor on the split the effect was scored on: the twin's base alone there
-        floor = float(run_diagnosis(load_recording(twin_csv), profile,
+        floor = float(run_diagnosis(twin, profile,
                                     DiagnoseOptions(split=outcome.split, effects=())).base["rmse_heldout_mv"])
     return TwinRow(stem=stem, effect=effect, model=label["model"], twin_diff_mv=round(twin_mv, 2),
                    label_diff_mv=label_mv, twin_faithful=faithful(twin_mv, label_mv),
