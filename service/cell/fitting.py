@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -112,6 +112,8 @@ class FitResult:
     hysteresis: HysteresisSpec | None
     rmse_mv: float
     n_evaluations: int
+    #: the search coordinates that ended on a bound (:func:`coordinates_at_bounds`)
+    at_bounds: list[str] = field(default_factory=list)
 
 
 # -- data helpers -------------------------------------------------------------------------
@@ -301,18 +303,19 @@ def simulate_batch(
 
 # -- parameter coding ---------------------------------------------------------------------
 def decode(x: np.ndarray, profile: CellProfile, temp_c: float, fit_hysteresis: bool,
-           fit_kinetics: bool = False) -> CellParameters:
+           fit_kinetics: bool = False, max_tau_df_s: float | None = None) -> CellParameters:
     """Search coordinates ``x[N, p]`` -> :class:`CellParameters` for ``N`` candidates.
 
     Coordinates: the 7 base ones, then ``U_H, ln rate`` (``fit_hysteresis``), then
     ``ln i0`` (``fit_kinetics``, the Butler-Volmer term of :func:`kinetic_overpotential`).
+    ``max_tau_df_s`` caps the diffusion branch's time constant (:func:`diffusion_tau`).
     """
     x = np.atleast_2d(x)
     n = x.shape[0]
     base = profile.parameters_at(temp_c, n_cells=n)
     r_ohm = np.exp(x[:, 0])
     r_ct, tau_ct, m = np.exp(x[:, 1]), np.exp(x[:, 2]), x[:, 3]
-    r_df, tau_df, nn = np.exp(x[:, 4]), np.exp(x[:, 2] + x[:, 5]), x[:, 6]
+    r_df, tau_df, nn = np.exp(x[:, 4]), diffusion_tau(x[:, 2] + x[:, 5], max_tau_df_s), x[:, 6]
     r = np.array(base.r, copy=True)
     c = np.array(base.c, copy=True)
     alpha = np.array(base.alpha, copy=True)
@@ -334,6 +337,14 @@ def decode(x: np.ndarray, profile: CellProfile, temp_c: float, fit_hysteresis: b
     return p
 
 
+def diffusion_tau(ln_tau: np.ndarray | float, max_tau_s: float | None) -> np.ndarray:
+    """The diffusion branch's time constant from its log, capped at ``max_tau_s``: a branch
+    slower than the recordings it is fitted to acts as an integrator that absorbs OCV and
+    capacity error instead of describing the cell (``socd fit`` caps it; diagnose does not)."""
+    tau = np.exp(ln_tau)
+    return tau if max_tau_s is None else np.minimum(tau, max_tau_s)
+
+
 def encode_point(point: ParameterPoint) -> np.ndarray:
     """A :class:`ParameterPoint` -> base search coordinates (clipped into the bounds)."""
     tau_ct = (point.r_ct * point.c_dl) ** (1.0 / point.m)
@@ -346,9 +357,10 @@ def encode_point(point: ParameterPoint) -> np.ndarray:
     return np.clip(x, lo, hi)
 
 
-def point_from_x(x: np.ndarray, temp_c: float, i0_a: float | None = None) -> ParameterPoint:
+def point_from_x(x: np.ndarray, temp_c: float, i0_a: float | None = None,
+                 max_tau_df_s: float | None = None) -> ParameterPoint:
     r_ct, tau_ct, m = math.exp(x[1]), math.exp(x[2]), float(x[3])
-    r_df, tau_df, n = math.exp(x[4]), math.exp(x[2] + x[5]), float(x[6])
+    r_df, tau_df, n = math.exp(x[4]), float(diffusion_tau(x[2] + x[5], max_tau_df_s)), float(x[6])
     return ParameterPoint(
         temp_c=float(temp_c), r_ohm=math.exp(x[0]), r_ct=r_ct, c_dl=tau_ct**m / r_ct, m=min(m, 1.0),
         r_df=r_df, c_df=tau_df**n / r_df, n=min(n, 1.0), i0_a=i0_a,
@@ -359,7 +371,9 @@ def point_from_x(x: np.ndarray, temp_c: float, i0_a: float | None = None) -> Par
 class _Objective:
     """Residuals of ``N`` candidates over all segments, one vectorised simulation each."""
 
-    def __init__(self, profile, segments, memory_length, fit_hysteresis, temp_c, fit_kinetics=False):
+    def __init__(self, profile, segments, memory_length, fit_hysteresis, temp_c, fit_kinetics=False,
+                 max_tau_df_s=None):
+        self.max_tau_df_s = max_tau_df_s
         self.profile = profile
         self.segments = segments
         self.memory_length = memory_length
@@ -372,7 +386,7 @@ class _Objective:
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """``[N, samples]`` simulated minus measured voltage."""
         x = np.atleast_2d(x)
-        params = decode(x, self.profile, self.temp_c, self.fit_hysteresis, self.fit_kinetics)
+        params = decode(x, self.profile, self.temp_c, self.fit_hysteresis, self.fit_kinetics, self.max_tau_df_s)
         out = []
         for s in self.segments:
             v, _ = simulate_batch(
@@ -405,6 +419,7 @@ def fit_parameters(
     warmer: ParameterPoint | None = None,
     colder: ParameterPoint | None = None,
     min_order: float | None = None,
+    max_tau_df_s: float | None = None,
 ) -> FitResult:
     """Fit R_ohm, R_ct, C_dl, m, R_df, C_df, n (and U_H, rate; and the Butler-Volmer i0) to ``segments``.
 
@@ -417,6 +432,8 @@ def fit_parameters(
     ``min_order`` raises the lower bound of the CPE orders ``m, n`` (default 0.3).  With the
     short G-L memory (L = 16 samples) the truncated tail of the weights grows as the order
     falls (|w_j| ~ j^(-1-α)), so a low-order branch fitted at one rate is mostly truncation.
+
+    ``max_tau_df_s`` caps the diffusion branch's time constant (:func:`diffusion_tau`).
 
     ``warmer`` / ``colder``: points already fitted at a warmer / colder temperature.  The
     three resistances are then bounded to be at least the warmer point's and at most the
@@ -469,7 +486,7 @@ def fit_parameters(
     # 1. global search on full-rate windows
     cap = profile.capacity_ah * profile.extensions.capacity_scale
     coarse = [excited_window(s, max(200, int(global_points * len(s) / total)), cap) for s in segments]
-    obj_g = _Objective(profile, coarse, memory_length, fit_hysteresis, temp_c, fit_kinetics)
+    obj_g = _Objective(profile, coarse, memory_length, fit_hysteresis, temp_c, fit_kinetics, max_tau_df_s)
     g_deadline = t_start + 0.6 * max_seconds
 
     def cost(xt: np.ndarray) -> np.ndarray:  # xt: [p, S] (vectorised DE)
@@ -488,7 +505,7 @@ def fit_parameters(
 
     # 2. local polish on (nearly) full-rate data
     fine = [excited_window(s, max(200, int(polish_points * len(s) / total)), cap) for s in segments]
-    obj = _Objective(profile, fine, memory_length, fit_hysteresis, temp_c, fit_kinetics)
+    obj = _Objective(profile, fine, memory_length, fit_hysteresis, temp_c, fit_kinetics, max_tau_df_s)
     steps = np.full(p, 1e-4)
     best = {"x": x_best, "cost": np.inf}
     cache: dict[str, np.ndarray] = {}
@@ -531,10 +548,26 @@ def fit_parameters(
                                                      "rate": float(math.exp(x_fin[8]))})
     i0 = float(math.exp(x_fin[-1])) if fit_kinetics else None
     # R_ohm as decode() simulated it
-    point = lift_to_kinetic_floor(point_from_x(x_fin, temp_c, i0), i0, profile.min_r_ohm_scale(temp_c))
+    point = lift_to_kinetic_floor(point_from_x(x_fin, temp_c, i0, max_tau_df_s), i0, profile.min_r_ohm_scale(temp_c))
+    names = list(base_bounds) + (list(HYSTERESIS_BOUNDS) if fit_hysteresis else []) + (list(KINETICS_BOUNDS) if fit_kinetics else [])
     return FitResult(
         point=point,
         hysteresis=hyst,
         rmse_mv=rmse_mv,
         n_evaluations=obj_g.n_evaluations + obj.n_evaluations,
+        at_bounds=coordinates_at_bounds(x_fin, names, lo, hi),
     )
+
+
+def coordinates_at_bounds(x: np.ndarray, names: list[str], lo: np.ndarray, hi: np.ndarray,
+                          rel: float = 1e-3) -> list[str]:
+    """``name = value (lower|upper bound)`` for every search coordinate within ``rel`` of the
+    width of its range from a bound (log coordinates shown as their value)."""
+    out = []
+    for name, v, a, b in zip(names, x, lo, hi):
+        edge = "lower" if v <= a + rel * (b - a) else "upper" if v >= b - rel * (b - a) else None
+        if edge is None:
+            continue
+        shown = f"{name[3:]} = {math.exp(v):.4g}" if name.startswith("ln_") else f"{name} = {v:.3g}"
+        out.append(f"{shown} ({edge} bound)")
+    return out

@@ -179,6 +179,51 @@ class Extensions(_Strict):
     soc_resistance: SocResistanceSpec | None = None
 
 
+class Ecm2RcPoint(_Strict):
+    """Textbook 2-RC parameters at one temperature (``V = OCV - R0 I - U1 - U2``)."""
+
+    temp_c: float = 25.0
+    r0: float = Field(gt=0, description="ohmic resistance, ohm")
+    r1: float = Field(ge=0, description="fast RC branch resistance, ohm")
+    tau1_s: float = Field(gt=0, description="fast RC branch time constant, s")
+    r2: float = Field(ge=0, description="slow RC branch resistance, ohm")
+    tau2_s: float = Field(gt=0, description="slow RC branch time constant, s")
+    fit_rmse_mv: float | None = Field(None, ge=0, description="fit RMSE on the characterisation data, mV")
+
+
+class Ecm2RcSpec(_Strict):
+    """The textbook 2-RC model fitted beside the fractional one by ``socd fit``
+    (:mod:`service.characterisation.ecm2rc_fit`), with its own OCV: what the ``ecm2rc-ekf``
+    baseline runs on, so every evaluation shows the bar a 200-line EKF sets."""
+
+    ocv: OcvSpec
+    points: list[Ecm2RcPoint] = Field(min_length=1)
+
+    @field_validator("points")
+    @classmethod
+    def _sorted(cls, v: list[Ecm2RcPoint]) -> list[Ecm2RcPoint]:
+        temps = [p.temp_c for p in v]
+        if len(set(temps)) != len(temps):
+            raise ValueError(f"duplicate temperatures in ecm2rc points: {temps}")
+        return sorted(v, key=lambda p: p.temp_c)
+
+    def ocv_table(self) -> OcvTable:
+        return OcvTable.from_points(np.array(self.ocv.soc), np.array(self.ocv.ocv_v), np.array(self.ocv.temps_c))
+
+    def at(self, temp_c: np.ndarray) -> dict[str, np.ndarray]:
+        """``r0 [N]``, ``r [N, 2]``, ``tau [N, 2]`` at ``temp_c [N]``: log-linear in 1/T between
+        the fitted temperatures (:func:`arrhenius_interp`), like the fractional parameters."""
+        temp = np.atleast_1d(np.asarray(temp_c, dtype=float))
+        grid = np.array([p.temp_c for p in self.points])
+
+        def interp(name: str) -> np.ndarray:
+            vals = np.maximum(np.array([getattr(p, name) for p in self.points]), 1e-9)
+            return np.exp(arrhenius_interp(temp, grid, np.log(vals)))
+
+        return {"r0": interp("r0"), "r": np.stack([interp("r1"), interp("r2")], axis=-1),
+                "tau": np.stack([interp("tau1_s"), interp("tau2_s")], axis=-1)}
+
+
 class CellProfile(_Strict):
     """Everything known about one cell type; loaded by estimators and the service."""
 
@@ -189,6 +234,8 @@ class CellProfile(_Strict):
     parameters: list[ParameterPoint] = Field(min_length=1)
     hysteresis: HysteresisSpec = HysteresisSpec()
     extensions: Extensions = Extensions()
+    #: the textbook 2-RC model fitted from the same recordings (``ecm2rc-ekf`` runs on it)
+    ecm2rc: Ecm2RcSpec | None = None
     notes: dict[str, str] = {}
 
     @field_validator("parameters")

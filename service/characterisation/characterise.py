@@ -36,6 +36,8 @@ from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.profile import (
     BranchSpec,
     CellProfile,
+    Ecm2RcPoint,
+    Ecm2RcSpec,
     Extensions,
     HysteresisSpec,
     OcvSpec,
@@ -44,19 +46,18 @@ from service.cell.profile import (
     lift_to_kinetic_floor,
 )
 from service.cell.soc_dependence import pulse_resistances, scale_rows
+from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
     REST_MIN_S,
-    initial_ocv_from_drive,
     is_ocv_test,
-    ocv_correction_from_residual,
     ocv_from_test,
     ocv_row_from_rests,
     rest_points,
     rest_spans,
 )
 from service.characterisation.relaxation import measure_slow_relaxation
-from service.evaluation.truth import coulomb_soc, truth_and_start
+from service.evaluation.truth import truth_and_start
 from service.recording import Recording
 
 TEMP_GROUP_C = 5.0
@@ -69,11 +70,44 @@ FULL_SOC = 0.98
 MIN_FIT_SOC = 0.1
 #: SOC points of the resistance-scale table (--soc-resistance)
 SOC_RESISTANCE_POINTS = 21
+#: the fractional diffusion branch's time constant is capped at the textbook slow branch's bound
+MAX_TAU_DF_S = TAU2_BOUNDS_S[1]
+#: a temperature whose fit RMSE [mV] is above this is refused (Zeng's bound on the voltage error)
+POOR_FIT_MV = 50.0
+#: the fractional fit may be worse than the textbook 2-RC fit of the same data by this much
+#: (relative, and absolute mV) before the temperature is refused
+ECM_TOLERANCE = (0.05, 0.5)
+
+
+class FitQualityError(ValueError):
+    """A fit that must not be written as a profile; the message names the temperature(s), what
+    went wrong and what data would help."""
+
+
+@dataclass(frozen=True)
+class TemperatureFit:
+    """How one temperature's fit went: both models' RMSE [mV] on the same segments."""
+
+    temp_c: float
+    rmse_mv: float
+    ecm_rmse_mv: float
+    at_bounds: list[str]
+    source: str  # "fractional fit" or "2-RC start" (the fractional fit did no better than its start)
+
+    def problem(self) -> str | None:
+        if not np.isfinite(self.rmse_mv) or self.rmse_mv > POOR_FIT_MV:
+            return f"fit RMSE {self.rmse_mv:.1f} mV is above {POOR_FIT_MV:g} mV"
+        rel, abs_mv = ECM_TOLERANCE
+        if self.rmse_mv > self.ecm_rmse_mv * (1.0 + rel) + abs_mv:
+            return (f"fit RMSE {self.rmse_mv:.1f} mV is worse than the textbook 2-RC fit of the same data "
+                    f"({self.ecm_rmse_mv:.1f} mV)")
+        return None
 
 
 @dataclass
 class FitReport:
     lines: list[str] = field(default_factory=list)
+    temperatures: list[TemperatureFit] = field(default_factory=list)
 
     def say(self, msg: str) -> None:
         self.lines.append(msg)
@@ -233,32 +267,29 @@ def characterise(
             ocv_rows[t] = ocv_row_from_rests(grid, base, points_by_t[t])
             if len(points_by_t[t]) >= 3:
                 rep.say(f"OCV at {t:g} °C: shifted to {len(points_by_t[t])} relaxed rest voltages")
-    points: dict[float, ParameterPoint] = {}
-    hyst: HysteresisSpec | None = None
-
+    # the textbook 2-RC model on the same segments: the bar the fractional fit must clear, and
+    # (with no OCV table or test) the monotone joint OCV the fractional fit starts from
+    ecm: dict[float, Ecm2RcFit] = {}
+    cap = capacity_ah
+    for t in sorted(temps, key=lambda t: abs(t - ref_t)):
+        segs = segments_of(t)
+        if not segs:
+            raise FitQualityError(f"no stretch of the recordings at {t:g} °C starts from a known state above SOC "
+                                  f"{MIN_FIT_SOC:g} with current on it: nothing to fit there")
+        if base is not None:
+            ecm[t] = fit_ecm2rc(segs, cap, ocv_soc=grid, ocv_v=ocv_rows[t])
+        else:
+            prior = None if t == ref_t else ecm[ref_t].ocv_v
+            ecm[t] = fit_ecm2rc(segs, cap, prior_v=prior)
+        f = ecm[t]
+        rep.say(f"textbook 2-RC at {t:g} °C: R0 {f.r0 * 1e3:.1f} mΩ, R1 {f.r1 * 1e3:.1f} mΩ / τ1 {f.tau1_s:.1f} s, "
+                f"R2 {f.r2 * 1e3:.1f} mΩ / τ2 {f.tau2_s:.0f} s; fit RMSE {f.rmse_mv:.1f} mV"
+                + (" (OCV fitted jointly)" if base is None else ""))
     if base is None:
-        # joint OCV + parameter fit at the reference temperature
-        rep.say("OCV: no table or OCV test given: fitting it jointly with the model to the drive cycle(s)")
-        segs = segments_of(ref_t)
-        grid41, guess = initial_ocv_from_drive([coulomb_soc(s.time_s, s.current_a, capacity_ah, s.soc0) for s in segs],
-                                               [s.voltage_v for s in segs], [s.current_a for s in segs], 0.05)
-        ocv_rows[ref_t] = make_monotone(np.interp(grid, grid41, guess))
-        for it in range(4):
-            prof = template({ref_t: ocv_rows[ref_t]})
-            res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis,
-                                 max_seconds=max_seconds / 4, seed=seed)
-            prof = prof.model_copy(update={"parameters": [res.point]}
-                                   | ({"hysteresis": res.hysteresis} if res.hysteresis is not None else {}))
-            socs, resid = [], []
-            for s in segs:
-                u_h0 = s.u_h0 + s.u_h0_branch * prof.hysteresis.u_h_max_v
-                v, soc = simulate(prof, s.time_s, s.current_a, s.temperature_c, s.soc0, memory_length=memory_length,
-                                  u_h0=u_h0)
-                socs.append(soc)
-                resid.append(s.voltage_v - v)
-            corr = ocv_correction_from_residual(np.concatenate(socs), np.concatenate(resid), grid)
-            ocv_rows[ref_t] = make_monotone(ocv_rows[ref_t] + corr)
-            rep.say(f"joint OCV iteration {it + 1}: model RMSE {res.rmse_mv:.1f} mV, mean |ΔOCV| {1000 * np.mean(np.abs(corr)):.1f} mV")
+        rep.say("OCV: no table or OCV test given: the monotone OCV fitted jointly with the textbook 2-RC model "
+                "at each temperature")
+        for t in temps:
+            ocv_rows[t] = make_monotone(ecm[t].ocv_on(grid))
         if rest_anchor:
             anchors = points_by_t[ref_t]
             if not anchors:
@@ -267,16 +298,19 @@ def characterise(
             rep.say("joint OCV anchored at the relaxed rest voltage(s): " + ", ".join(
                 f"SOC {a.soc:.3f} {1000 * (a.ocv_v - np.interp(a.soc, grid, ocv_rows[ref_t])):+.1f} mV" for a in anchors))
             ocv_rows[ref_t] = ocv_row_from_rests(grid, ocv_rows[ref_t], anchors, min_points=1)
-        base = ocv_rows[ref_t]
-        for t in temps:
-            if t != ref_t:
-                ocv_rows[t] = ocv_row_from_rests(grid, base, points_by_t[t])
+    ecm_spec = Ecm2RcSpec(
+        ocv=OcvSpec(soc=grid.tolist(), temps_c=temps,
+                    ocv_v=[(make_monotone(ecm[t].ocv_on(grid)) if base is None else ocv_rows[t]).tolist() for t in temps]),
+        points=[Ecm2RcPoint(temp_c=t, r0=max(ecm[t].r0, 1e-6), r1=ecm[t].r1, tau1_s=ecm[t].tau1_s, r2=ecm[t].r2,
+                            tau2_s=ecm[t].tau2_s, fit_rmse_mv=round(ecm[t].rmse_mv, 3)) for t in temps],
+    )
 
     prof = template(ocv_rows)
     if soc_resistance:
         spec = measure_soc_resistance(groups, capacity_ah, prof.ocv_table(), rep)
         prof = prof.model_copy(update={"extensions": prof.extensions.model_copy(update={"soc_resistance": spec})})
-    previous: ParameterPoint | None = None
+    points: dict[float, ParameterPoint] = {}
+    hyst: HysteresisSpec | None = None
     for t in sorted(temps, key=lambda t: abs(t - ref_t)):
         segs = segments_of(t)
         rep.say(f"fitting parameters at {t:g} °C on {len(segs)} segment(s), {sum(len(s) for s in segs)} samples "
@@ -286,23 +320,78 @@ def characterise(
             # resistances monotone in temperature: bounded by the nearest fitted warmer / colder point
             warmer = min((p for tp, p in points.items() if tp > t), key=lambda p: p.temp_c, default=None)
             colder = max((p for tp, p in points.items() if tp < t), key=lambda p: p.temp_c, default=None)
+        start = ecm_start_point(ecm[t], t)
         res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis and t == ref_t,
-                             fit_kinetics=fit_kinetics, max_seconds=max_seconds, seed=seed, x0=previous,
-                             warmer=warmer, colder=colder, min_order=min_order)
+                             fit_kinetics=fit_kinetics, max_seconds=max_seconds, seed=seed, x0=start,
+                             warmer=warmer, colder=colder, min_order=min_order, max_tau_df_s=MAX_TAU_DF_S)
         # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
         pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": t}), res.point.i0_a,
                                    prof.min_r_ohm_scale(t))
+        hyst_t = res.hysteresis or prof.hysteresis
+        rmse = segments_rmse_mv(prof, pt, hyst_t, segs, memory_length)
+        source = "fractional fit"
+        if not fit_kinetics and not (fit_hysteresis and t == ref_t):
+            # the search may end worse than the point it started from (a time-bounded global
+            # stage on windows): keep whichever fits the whole segments better
+            start_rmse = segments_rmse_mv(prof, start, hyst_t, segs, memory_length)
+            if start_rmse < rmse:
+                pt, rmse, source = start, start_rmse, "2-RC start"
         points[t] = pt
-        previous = pt
         if res.hysteresis is not None:
             hyst = res.hysteresis
+        outcome = TemperatureFit(temp_c=t, rmse_mv=rmse, ecm_rmse_mv=ecm[t].rmse_mv,
+                                 at_bounds=res.at_bounds if source == "fractional fit" else [], source=source)
+        rep.temperatures.append(outcome)
         rep.say(f"  {t:g} °C: R_ohm {pt.r_ohm * 1e3:.1f} mΩ, R_ct {pt.r_ct * 1e3:.1f} mΩ, m {pt.m:.2f}, "
                 f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}"
-                + (f", i0 {pt.i0_a:.2f} A" if pt.i0_a is not None else "") + f"; fit RMSE {res.rmse_mv:.1f} mV")
+                + (f", i0 {pt.i0_a:.2f} A" if pt.i0_a is not None else "")
+                + f"; fit RMSE {rmse:.1f} mV (textbook 2-RC {ecm[t].rmse_mv:.1f} mV)"
+                + (" from the 2-RC start point" if source != "fractional fit" else ""))
+        if outcome.at_bounds:
+            rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}")
     profile = prof.model_copy(update={
         "parameters": [points[t] for t in sorted(points)],
         "hysteresis": hyst or HysteresisSpec(table_branch=ocv_branch),
+        "ecm2rc": ecm_spec,
         "notes": {"fitted_from": ", ".join(r.name for r in recordings), "memory_length": str(memory_length)}
         | ({"slow_branch": slow_note} if slow_note else {}),
     })
     return CellProfile.model_validate(profile.model_dump()), rep
+
+
+def ecm_start_point(fit: Ecm2RcFit, temp_c: float) -> ParameterPoint:
+    """The fractional model's point that is the textbook 2-RC model (orders 1, ``C = τ/R``):
+    where the fractional search starts, so it begins at the bar it has to clear."""
+    r1, r2 = max(fit.r1, 1e-5), max(fit.r2, 1e-5)
+    tau2 = max(fit.tau2_s, 3.0 * fit.tau1_s)
+    return ParameterPoint(temp_c=temp_c, r_ohm=max(fit.r0, 1e-4), r_ct=r1, c_dl=fit.tau1_s / r1, m=1.0,
+                          r_df=r2, c_df=tau2 / r2, n=1.0)
+
+
+def segments_rmse_mv(template: CellProfile, point: ParameterPoint, hysteresis: HysteresisSpec,
+                     segments: list[FitSegment], memory_length: int) -> float:
+    """RMSE [mV] of the fractional model with ``point`` over whole ``segments``."""
+    prof = template.model_copy(update={"parameters": [point.model_copy(update={"temp_c": 25.0})],
+                                       "hysteresis": hysteresis})
+    sq, n = 0.0, 0
+    for s in segments:
+        u_h0 = s.u_h0 + s.u_h0_branch * hysteresis.u_h_max_v
+        params = prof.parameters_at(float(s.temperature_c[0]), n_cells=1)
+        v, _ = simulate(prof, s.time_s, s.current_a, s.temperature_c, s.soc0, params=params,
+                        memory_length=memory_length, u_h0=u_h0)
+        err = v[:, 0] - s.voltage_v
+        sq += float(np.sum(np.where(np.isfinite(err), err, 10.0) ** 2))
+        n += err.size
+    return 1000.0 * float(np.sqrt(sq / max(n, 1)))
+
+
+def check_fit_quality(report: FitReport) -> None:
+    """Raise :class:`FitQualityError` naming every temperature whose fit must not be used."""
+    bad = [(t, t.problem()) for t in report.temperatures if t.problem() is not None]
+    if not bad:
+        return
+    what = "; ".join(f"{t.temp_c:g} °C: {why}" for t, why in bad)
+    raise FitQualityError(
+        f"{what}. Nothing written. Data that would help at that temperature: an OCV test (a C/20 discharge "
+        "and charge, or rests of an hour or more at five or more SOC levels) given with --ocv or among the "
+        "recordings, or an HPPC test; --force writes the profile anyway")

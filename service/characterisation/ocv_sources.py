@@ -90,33 +90,3 @@ def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[
     s = np.array([p.soc for p in pts])
     off = np.array([p.ocv_v for p in pts]) - np.interp(s, base_soc, base_ocv)
     return make_monotone(base_ocv + np.interp(base_soc, s, off))
-
-
-def initial_ocv_from_drive(segments_soc: list[np.ndarray], segments_v: list[np.ndarray],
-                           segments_i: list[np.ndarray], r_guess: float) -> tuple[np.ndarray, np.ndarray]:
-    """First OCV guess from a drive cycle: SOC-binned mean of ``V + R·I``."""
-    soc = np.concatenate(segments_soc)
-    v = np.concatenate(segments_v) + r_guess * np.concatenate(segments_i)
-    grid = np.linspace(0, 1, 41)
-    idx = np.clip(np.round(soc * 40).astype(int), 0, 40)
-    sums = np.bincount(idx, v, minlength=41)
-    counts = np.bincount(idx, minlength=41)
-    have = counts > 0
-    ocv = np.interp(grid, grid[have], sums[have] / counts[have])
-    return grid, make_monotone(ocv, 1e-5)
-
-
-def ocv_correction_from_residual(soc: np.ndarray, residual: np.ndarray, grid: np.ndarray,
-                                 weight: np.ndarray | None = None) -> np.ndarray:
-    """SOC-binned mean residual on ``grid`` (bins without data: nearest neighbour)."""
-    nb = grid.size - 1
-    idx = np.clip(np.round(soc * nb).astype(int), 0, nb)
-    w = np.ones_like(residual) if weight is None else weight
-    sums = np.bincount(idx, residual * w, minlength=grid.size)
-    counts = np.bincount(idx, w, minlength=grid.size)
-    have = counts > 0
-    if not have.any():
-        return np.zeros_like(grid)
-    corr = np.interp(grid, grid[have], sums[have] / counts[have])
-    # light smoothing (3-point) so the correction does not chase noise
-    return np.convolve(np.pad(corr, 1, mode="edge"), np.ones(3) / 3, mode="valid")

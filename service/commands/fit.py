@@ -19,8 +19,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Fit a cell profile from recordings whose SOC is known: an OCV test, HPPC tests or lab drive "
             "cycles that start from a full charge. OCV comes from --ocv, else an OCV test among the "
-            "recordings, else a joint fit; recordings at several temperatures give OCV(SOC, T) and "
-            "temperature-dependent parameters (scipy differential evolution + least squares)."
+            "recordings, else a monotone OCV fitted jointly with a textbook 2-RC model; recordings at several "
+            "temperatures give OCV(SOC, T) and temperature-dependent parameters (scipy differential evolution + "
+            "least squares). The textbook 2-RC model (OCV, R0, R1/tau1, R2/tau2 per temperature) is fitted to the "
+            "same data and stored beside the fractional one: 'ecm2rc-ekf' runs on it, and a temperature whose "
+            "fractional fit is poor or worse than it fails the command (exit 2, nothing written) unless --force."
         ),
     )
     p.add_argument("recordings", nargs="+", metavar="RECORDING")
@@ -58,6 +61,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "outermost offset holds beyond them); off by default (README: CALCE INR18650-20R)")
     p.add_argument("--max-seconds", type=float, default=60.0, help="optimiser time per temperature (default 60)")
     p.add_argument("--memory-length", type=int, default=16, help="G-L memory length used in the fit (default 16)")
+    p.add_argument("--force", action="store_true",
+                   help="write the profile even when a temperature's fit is poor (RMSE above 50 mV) or worse than "
+                   "the textbook 2-RC fit of the same data; without it such a fit exits 2 and writes nothing")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", help="profile to write (.toml or .json)")
@@ -65,7 +71,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.characterisation.characterise import characterise
+    from service.characterisation.characterise import characterise, check_fit_quality
 
     if not args.capacity_ah > 0:
         raise UserError(f"--capacity-ah must be > 0, got {args.capacity_ah}")
@@ -84,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
                                        min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
                                        slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed)
+        if not args.force:
+            check_fit_quality(report)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     save_profile(profile, out)

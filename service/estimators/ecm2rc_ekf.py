@@ -9,7 +9,12 @@ Model, per cell, in this project's convention (current positive = discharge)::
 
 with state ``x = [SOC, U_1, U_2]`` and the actual interval ``dt_k`` of every sample.
 
-Parameters are what a user would read off the profile (:meth:`CellProfile.parameters_at`
+Parameters: a profile from ``socd fit`` carries the textbook 2-RC model fitted from the same
+recordings (:class:`service.cell.profile.Ecm2RcSpec`: its own OCV, ``R0``, ``R_b``, ``τ_b``
+per temperature); the filter runs on that, as a user who wrote a 2-RC EKF and characterised
+it would, and ignores the fractional model and its extensions except the capacity scale.
+A profile without one (written before it existed, or by hand) falls back to
+what a user would read off the fractional parameters (:meth:`CellProfile.parameters_at`
 at the recorded temperature, refreshed when a cell's temperature has moved more than
 ``temp_update_c``): ``R0 = r_ohm``, branch ``b``: ``R_b = r[b]``, ``τ_b = (r c)^(1/α)`` —
 the characteristic time of the CPE branch (for ``α = 1`` exactly ``R C``).  Capacity
@@ -96,7 +101,13 @@ def ecm_parameters(profile: CellProfile, temp_c: np.ndarray) -> dict[str, np.nda
     ``τ = (R C)^(1/α)``: the CPE branch's characteristic time (its impedance
     ``R / (1 + R C (jω)^α)`` has its corner at ``ω = (R C)^(-1/α)``).
     """
-    p = profile.parameters_at(np.asarray(temp_c, dtype=float))
+    temp = np.atleast_1d(np.asarray(temp_c, dtype=float))
+    if profile.ecm2rc is not None:
+        own = profile.ecm2rc.at(temp)
+        ones = np.ones_like(temp)
+        return own | {"capacity": profile.capacity_ah * profile.extensions.capacity_scale * ones,
+                      "bias": np.zeros_like(temp), "i0": np.inf * ones}
+    p = profile.parameters_at(temp)
     r = p.r[:, :2]
     tau = np.power(p.r[:, :2] * p.c[:, :2], 1.0 / p.alpha[:, :2])
     return {"r0": p.r_ohm, "r": r, "tau": tau, "capacity": p.capacity_ah, "bias": p.current_bias_a,
@@ -121,7 +132,8 @@ class Ecm2RcEkfBank:
     ) -> None:
         self.profile = profile
         self.tuning = tuning or EkfTuning()
-        self.ocv = ocv if ocv is not None else profile.ocv_table()
+        textbook = profile.ecm2rc is not None
+        self.ocv = ocv if ocv is not None else (profile.ecm2rc.ocv_table() if textbook else profile.ocv_table())
         shape = np.broadcast_shapes(np.shape(soc0), np.shape(temp0_c), (n_cells or 1,))
         n = shape[0] if shape else 1
         self.x = np.zeros((n, N_STATES))
@@ -133,9 +145,9 @@ class Ecm2RcEkfBank:
         self._temp_params = np.broadcast_to(np.asarray(temp0_c, dtype=float), (n,)).copy()
         self._params = ecm_parameters(profile, self._temp_params)
         #: any Butler–Volmer term in the profile (at some temperature, or the extension)
-        self._kinetic = bool(profile.extensions.kinetics_i0_a is not None
-                             or any(pt.i0_a is not None for pt in profile.parameters))
-        self._soc_scale = profile.soc_scale_table()
+        self._kinetic = not textbook and bool(profile.extensions.kinetics_i0_a is not None
+                                              or any(pt.i0_a is not None for pt in profile.parameters))
+        self._soc_scale = None if textbook else profile.soc_scale_table()
         self.noise = AdaptiveNoise(n, max(t.adaptive_noise_samples, 1), t.adaptive_noise_shape)  # type: ignore[arg-type]
 
     @property

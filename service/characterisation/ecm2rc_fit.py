@@ -1,0 +1,332 @@
+"""Textbook 2-RC characterisation: the bar every fractional-order profile is held to.
+
+The model is the one the 2-RC EKF runs (:mod:`service.estimators.ecm2rc_ekf`, Plett 2004;
+Hu & Wang Eq. 2 for the branches)::
+
+    SOC_k = SOC_{k-1} - I_k dt_k / (3600 Q)
+    x_b,k = a_b x_b,k-1 + (1 - a_b) I_k,      a_b = exp(-dt_k / τ_b)     (b = 1, 2)
+    V_k   = OCV(SOC_k) - R0 I_k - R1 x_1,k - R2 x_2,k
+
+with every branch relaxed at the start of a segment.  For fixed ``τ1, τ2`` the voltage is
+linear in ``R0, R1, R2`` and in the OCV, so the fit is a bounded linear least-squares
+problem (:func:`scipy.optimize.lsq_linear`) solved for every candidate pair of time
+constants: the OCV as knot values on a SOC grid, monotone by construction (a free level
+plus non-negative increments), with a second-difference penalty that carries it across
+SOC the data does not visit, Huber weights (iteratively re-weighted) so a few bad samples
+cannot pull it, and ``τ1 ∈ [1, 100] s``, ``τ2 ∈ [10, 1000] s`` so neither branch can
+become an integrator that soaks up OCV or capacity error.  The pair is chosen on a
+log grid and polished with a bounded Nelder-Mead in ``ln τ``.
+
+When an OCV is already known (a table or an OCV test), it is held fixed and only the
+resistances and time constants are fitted.  Where the OCV is fitted, it can be pulled
+gently towards a ``prior`` row (another temperature's fit) where the data is thin.
+The result is stored in the profile (:class:`service.cell.profile.Ecm2RcSpec`) and is
+what ``ecm2rc-ekf`` runs on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+from scipy.optimize import lsq_linear, minimize
+
+from service.cell.fitting import FitSegment
+
+#: time-constant bounds of the two RC branches [s]
+TAU1_BOUNDS_S = (1.0, 100.0)
+TAU2_BOUNDS_S = (10.0, 1000.0)
+#: the slow branch is at least this many times slower than the fast one (no label switching)
+MIN_TAU_RATIO = 2.0
+#: resistance bounds [ohm]
+R_MAX_OHM = 2.0
+#: OCV knots on [0, 1] when the OCV is fitted
+OCV_KNOTS = 81
+#: Huber threshold in robust standard deviations (the usual 95 %-efficiency constant)
+HUBER_K = 1.345
+#: re-weighting passes of the Huber fit
+HUBER_PASSES = 3
+#: candidate time constants of the grid search, per branch
+TAU_GRID_POINTS = 9
+#: samples at most in one fit (whole segments are thinned evenly beyond it)
+MAX_FIT_SAMPLES = 40000
+
+
+@dataclass(frozen=True)
+class Ecm2RcFit:
+    """One temperature's textbook fit: OCV knot values (``ocv_soc``, ``ocv_v``), the
+    resistances [ohm] and time constants [s], and the fit RMSE [mV] on the segments."""
+
+    ocv_soc: np.ndarray
+    ocv_v: np.ndarray
+    r0: float
+    r1: float
+    tau1_s: float
+    r2: float
+    tau2_s: float
+    rmse_mv: float
+    n_samples: int
+
+    def ocv_on(self, grid: np.ndarray) -> np.ndarray:
+        """The OCV on ``grid`` (monotone cubic through the knots; linear beyond them)."""
+        inside = PchipInterpolator(self.ocv_soc, self.ocv_v, extrapolate=False)(np.clip(grid, self.ocv_soc[0], self.ocv_soc[-1]))
+        return np.asarray(inside, dtype=float)
+
+    def at_bounds(self) -> list[str]:
+        """Names of the parameters that ended on a bound of the search."""
+        out = []
+        for name, val, (lo, hi) in (("tau1", self.tau1_s, TAU1_BOUNDS_S), ("tau2", self.tau2_s, TAU2_BOUNDS_S)):
+            if val <= lo * 1.001 or val >= hi * 0.999:
+                out.append(f"{name} = {val:.3g} s")
+        for name, val in (("R0", self.r0), ("R1", self.r1), ("R2", self.r2)):
+            if val <= 1e-6 or val >= R_MAX_OHM * 0.999:
+                out.append(f"{name} = {val * 1e3:.3g} mΩ")
+        return out
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """The segments as one stacked problem: currents, voltages, interval per sample,
+    SOC by coulomb counting, and where each segment starts."""
+
+    current_a: np.ndarray
+    voltage_v: np.ndarray
+    dt_s: np.ndarray
+    soc: np.ndarray
+    starts: np.ndarray
+
+
+def coulomb_soc(seg: FitSegment, capacity_ah: float) -> np.ndarray:
+    """SOC of every sample of ``seg`` from its ``soc0`` by the EKF's own step (the current
+    held over the interval before each sample)."""
+    dt = np.diff(seg.time_s, prepend=seg.time_s[0])
+    return seg.soc0 - np.cumsum(seg.current_a * dt) / (3600.0 * capacity_ah)
+
+
+def _thin(segments: list[FitSegment], budget: int) -> list[FitSegment]:
+    total = sum(len(s) for s in segments)
+    if total <= budget:
+        return segments
+    stride = math.ceil(total / budget)
+    return [s for k, s in enumerate(segments) if k % stride == 0] or segments[:1]
+
+
+def _prepare(segments: list[FitSegment], capacity_ah: float) -> _Prepared:
+    cur, volt, dt, soc, starts = [], [], [], [], []
+    n = 0
+    for s in segments:
+        starts.append(n)
+        n += len(s)
+        cur.append(s.current_a)
+        volt.append(s.voltage_v)
+        d = np.diff(s.time_s, prepend=s.time_s[0])
+        dt.append(d)
+        soc.append(coulomb_soc(s, capacity_ah))
+    return _Prepared(np.concatenate(cur), np.concatenate(volt), np.concatenate(dt), np.concatenate(soc),
+                     np.asarray(starts))
+
+
+def branch_inputs(prep: _Prepared, taus_s: np.ndarray) -> np.ndarray:
+    """``x[k, j]``: the current through a unit resistance's RC branch of time constant
+    ``taus_s[j]`` (exact discretisation, relaxed at each segment's start)."""
+    taus = np.asarray(taus_s, dtype=float)
+    out = np.empty((prep.current_a.size, taus.size))
+    x = np.zeros(taus.size)
+    is_start = np.zeros(prep.current_a.size, dtype=bool)
+    is_start[prep.starts] = True
+    a_all = np.exp(-prep.dt_s[:, None] / taus[None, :])
+    for k in range(prep.current_a.size):
+        if is_start[k]:
+            x[:] = 0.0
+        x = a_all[k] * x + (1.0 - a_all[k]) * prep.current_a[k]
+        out[k] = x
+    return out
+
+
+def _hat_basis(soc: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """Linear-interpolation weights of each sample on the knots (``[n, K]``); SOC outside
+    the knots is held at the end knot."""
+    s = np.clip(soc, knots[0], knots[-1])
+    j = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, knots.size - 2)
+    u = (s - knots[j]) / (knots[j + 1] - knots[j])
+    basis = np.zeros((s.size, knots.size))
+    rows = np.arange(s.size)
+    basis[rows, j] = 1.0 - u
+    basis[rows, j + 1] += u
+    return basis
+
+
+def _triangular_factor(ab: np.ndarray) -> np.ndarray:
+    """Upper-triangular ``R`` with ``RᵀR = [A b]ᵀ[A b]`` (Cholesky of the Gram matrix, with a
+    jitter far below the data's scale where a column is empty)."""
+    gram = ab.T @ ab
+    jitter = 1e-12 * max(float(np.trace(gram)), 1e-12) / gram.shape[0]
+    for _ in range(6):
+        try:
+            return np.linalg.cholesky(gram + jitter * np.eye(gram.shape[0])).T
+        except np.linalg.LinAlgError:
+            jitter *= 100.0
+    return np.linalg.qr(ab, mode="r")
+
+
+class _LinearProblem:
+    """The bounded linear least-squares problem for fixed time constants.
+
+    Unknowns: ``[R0, R1, R2]`` then, when the OCV is fitted, ``[level, d_1 .. d_{K-1}]``
+    with the knot values ``v_j = level + Σ_{i ≤ j} d_i`` (``d ≥ 0``: monotone)."""
+
+    def __init__(self, prep: _Prepared, ocv_fixed: np.ndarray | None, knots: np.ndarray,
+                 prior_v: np.ndarray | None, smooth_weight: float, prior_weight: float) -> None:
+        self.prep = prep
+        self.knots = knots
+        self.fixed = ocv_fixed  # OCV at every sample, or None
+        n = prep.current_a.size
+        if ocv_fixed is None:
+            k = knots.size
+            cum = np.tril(np.ones((k, k)))  # v = cum @ [level, d_1..]
+            self.ocv_cols = _hat_basis(prep.soc, knots) @ cum
+            # penalty rows: second differences of v (= first differences of d), scaled so the
+            # penalty's weight grows with the data and does not depend on the knot count
+            scale = math.sqrt(n / k)
+            d2 = np.zeros((k - 2, k))
+            for r in range(k - 2):
+                d2[r, r:r + 3] = (1.0, -2.0, 1.0)
+            pen = [smooth_weight * scale * (d2 @ cum)]
+            pen_rhs = [np.zeros(k - 2)]
+            if prior_v is not None and prior_weight > 0:
+                pen.append(prior_weight * scale * cum)
+                pen_rhs.append(prior_weight * scale * prior_v)
+            self.pen = np.vstack(pen)
+            self.pen_rhs = np.concatenate(pen_rhs)
+        else:
+            self.ocv_cols = np.zeros((n, 0))
+            self.pen = np.zeros((0, 0))
+            self.pen_rhs = np.zeros(0)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        k = self.ocv_cols.shape[1]
+        lo = np.concatenate([[0.0, 0.0, 0.0], [-np.inf] if k else [], np.zeros(max(k - 1, 0))])
+        hi = np.concatenate([[R_MAX_OHM] * 3, [np.inf] if k else [], np.full(max(k - 1, 0), np.inf)])
+        return lo, hi
+
+    def design(self, x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        i = self.prep.current_a
+        a = np.column_stack([-i, -x1, -x2, self.ocv_cols])
+        rhs = self.prep.voltage_v - (self.fixed if self.fixed is not None else 0.0)
+        return a, rhs
+
+    def solve(self, x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """Huber-weighted solution: ``(coefficients, residuals, robust cost)``."""
+        a, rhs = self.design(x1, x2)
+        w = np.ones(rhs.size)
+        lo, hi = self.bounds()
+        coef = np.zeros(a.shape[1])
+        for _ in range(HUBER_PASSES):
+            sw = np.sqrt(w)
+            aw, bw = a * sw[:, None], rhs * sw
+            if self.pen.size:
+                pen = np.zeros((self.pen.shape[0], a.shape[1]))
+                pen[:, 3:] = self.pen
+                aw, bw = np.vstack([aw, pen]), np.concatenate([bw, self.pen_rhs])
+            # the tall problem compressed to its triangular factor: the same minimiser
+            # (||A x - b||² = ||R x - Qᵀb||² + const) at a fraction of the cost
+            tri = _triangular_factor(np.column_stack([aw, bw]))
+            p = aw.shape[1]
+            coef = lsq_linear(tri[:p, :p], tri[:p, p], bounds=(lo, hi), method="bvls", tol=1e-12).x
+            resid = rhs - a @ coef
+            scale = max(1.4826 * float(np.median(np.abs(resid - np.median(resid)))), 1e-4)
+            u = np.abs(resid) / (HUBER_K * scale)
+            w = np.where(u <= 1.0, 1.0, 1.0 / np.maximum(u, 1e-12))
+        c = HUBER_K * scale
+        r = np.abs(resid)
+        cost = float(np.sum(np.where(r <= c, 0.5 * r**2, c * r - 0.5 * c**2)))
+        return coef, resid, cost
+
+    def knot_values(self, coef: np.ndarray) -> np.ndarray | None:
+        if self.fixed is not None:
+            return None
+        return np.cumsum(coef[3:])
+
+
+def fit_ecm2rc(
+    segments: list[FitSegment],
+    capacity_ah: float,
+    *,
+    ocv_soc: np.ndarray | None = None,
+    ocv_v: np.ndarray | None = None,
+    prior_v: np.ndarray | None = None,
+    smooth_weight: float = 0.01,
+    prior_weight: float = 0.002,
+) -> Ecm2RcFit:
+    """Fit the textbook 2-RC model to ``segments`` (each starting relaxed, SOC0 known).
+
+    With ``ocv_soc, ocv_v`` the OCV is that curve, held fixed; without, it is fitted on
+    :data:`OCV_KNOTS` knots, monotone, smoothed by ``smooth_weight`` and pulled towards
+    ``prior_v`` (values on the same knots) by ``prior_weight`` where the data is thin.
+    """
+    if not segments:
+        raise ValueError("the 2-RC fit needs at least one segment")
+    if not capacity_ah > 0:
+        raise ValueError(f"capacity must be > 0, got {capacity_ah}")
+    segments = _thin(segments, MAX_FIT_SAMPLES)
+    prep = _prepare(segments, capacity_ah)
+    knots = np.linspace(0.0, 1.0, OCV_KNOTS)
+    fixed = None
+    if ocv_v is not None:
+        if ocv_soc is None:
+            raise ValueError("ocv_v needs ocv_soc")
+        fixed = np.interp(prep.soc, ocv_soc, ocv_v)
+    prior = None if prior_v is None else np.asarray(prior_v, dtype=float)
+    problem = _LinearProblem(prep, fixed, knots, prior, smooth_weight, prior_weight)
+
+    # candidate columns for the grid, computed once
+    g1 = np.geomspace(*TAU1_BOUNDS_S, TAU_GRID_POINTS)
+    g2 = np.geomspace(*TAU2_BOUNDS_S, TAU_GRID_POINTS)
+    cols = branch_inputs(prep, np.concatenate([g1, g2]))
+    best = (math.inf, g1[0], g2[-1])
+    for a, t1 in enumerate(g1):
+        for b, t2 in enumerate(g2):
+            if t2 < MIN_TAU_RATIO * t1:
+                continue
+            _, _, cost = problem.solve(cols[:, a], cols[:, TAU_GRID_POINTS + b])
+            if cost < best[0]:
+                best = (cost, t1, t2)
+
+    lo = np.log([TAU1_BOUNDS_S[0], TAU2_BOUNDS_S[0]])
+    hi = np.log([TAU1_BOUNDS_S[1], TAU2_BOUNDS_S[1]])
+
+    def objective(z: np.ndarray) -> float:
+        t1, t2 = np.exp(np.clip(z, lo, hi))
+        if t2 < MIN_TAU_RATIO * t1:
+            return math.inf
+        x = branch_inputs(prep, np.array([t1, t2]))
+        return problem.solve(x[:, 0], x[:, 1])[2]
+
+    z0 = np.log([best[1], best[2]])
+    polish = minimize(objective, z0, method="Nelder-Mead", bounds=list(zip(lo, hi)),
+                      options={"xatol": 0.02, "fatol": 1e-9, "maxfev": 40})
+    z = polish.x if polish.fun <= best[0] else z0
+    t1, t2 = (float(v) for v in np.exp(np.clip(z, lo, hi)))
+    x = branch_inputs(prep, np.array([t1, t2]))
+    coef, resid, _ = problem.solve(x[:, 0], x[:, 1])
+    knot_v = problem.knot_values(coef)
+    if knot_v is None:
+        out_soc, out_v = np.asarray(ocv_soc, dtype=float), np.asarray(ocv_v, dtype=float)
+    else:
+        out_soc, out_v = knots, knot_v
+    return Ecm2RcFit(
+        ocv_soc=out_soc, ocv_v=out_v, r0=float(coef[0]), r1=float(coef[1]), tau1_s=t1,
+        r2=float(coef[2]), tau2_s=t2, rmse_mv=1000.0 * float(np.sqrt(np.mean(resid**2))),
+        n_samples=int(resid.size),
+    )
+
+
+def simulate_ecm2rc(seg: FitSegment, capacity_ah: float, ocv_soc: np.ndarray, ocv_v: np.ndarray,
+                    r0: float, r1: float, tau1_s: float, r2: float, tau2_s: float) -> np.ndarray:
+    """Terminal voltage of the 2-RC model over ``seg`` (relaxed start, SOC from ``soc0``)."""
+    prep = _prepare([seg], capacity_ah)
+    x = branch_inputs(prep, np.array([tau1_s, tau2_s]))
+    ocv = np.interp(prep.soc, ocv_soc, ocv_v)
+    return ocv - r0 * prep.current_a - r1 * x[:, 0] - r2 * x[:, 1]

@@ -1,0 +1,119 @@
+"""The textbook 2-RC characterisation recovers the model it was simulated with, keeps its
+OCV monotone, shrugs off outliers, and is what the ``ecm2rc-ekf`` baseline runs on."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.cell.fitting import FitSegment
+from service.cell.profile import CellProfile, Ecm2RcPoint, Ecm2RcSpec, OcvSpec, ParameterPoint
+from service.characterisation.characterise import ECM_TOLERANCE, POOR_FIT_MV, FitQualityError, FitReport, \
+    TemperatureFit, check_fit_quality
+from service.characterisation.ecm2rc_fit import TAU1_BOUNDS_S, fit_ecm2rc, simulate_ecm2rc
+from service.estimators.ecm2rc_ekf import Ecm2RcEkf, ecm_parameters
+from service.recording import Recording
+
+CAPACITY_AH = 2.0
+TRUE = {"r0": 0.025, "r1": 0.012, "tau1_s": 8.0, "r2": 0.018, "tau2_s": 150.0}
+
+
+def ocv_curve(soc: np.ndarray) -> np.ndarray:
+    return 3.3 + 0.75 * soc + 0.12 * np.tanh((soc - 0.08) / 0.05) - 0.04 * np.exp(-((soc - 0.55) / 0.1) ** 2)
+
+
+def drive(n: int, seed: int) -> np.ndarray:
+    """Steps between -0.5C and 2C with rests, net discharge, starting at rest."""
+    rng = np.random.default_rng(seed)
+    out: list[float] = []
+    while len(out) < n:
+        level = rng.choice([2.0, 1.5, 1.0, 0.5, 0.0, 0.0, -0.5]) * CAPACITY_AH
+        out += [level] * int(rng.integers(10, 120))
+    cur = np.array(out[:n])
+    cur[:60] = 0.0
+    return cur
+
+
+def segment(n: int = 5000, seed: int = 0, noise_v: float = 0.001, soc0: float = 0.95) -> FitSegment:
+    t = np.arange(n, dtype=float)
+    cur = drive(n, seed)
+    grid = np.linspace(0, 1, 201)
+    base = FitSegment(t, cur, np.zeros(n), np.full(n, 25.0), soc0)
+    v = simulate_ecm2rc(base, CAPACITY_AH, grid, ocv_curve(grid), **TRUE)
+    v = v + np.random.default_rng(seed + 100).normal(0.0, noise_v, n)
+    return FitSegment(t, cur, v, np.full(n, 25.0), soc0)
+
+
+def test_recovers_parameters_with_a_known_ocv():
+    grid = np.linspace(0, 1, 201)
+    fit = fit_ecm2rc([segment()], CAPACITY_AH, ocv_soc=grid, ocv_v=ocv_curve(grid))
+    assert fit.r0 == pytest.approx(TRUE["r0"], rel=0.03)
+    assert fit.r1 == pytest.approx(TRUE["r1"], rel=0.15)
+    assert fit.r2 == pytest.approx(TRUE["r2"], rel=0.15)
+    assert fit.tau1_s == pytest.approx(TRUE["tau1_s"], rel=0.25)
+    assert fit.tau2_s == pytest.approx(TRUE["tau2_s"], rel=0.25)
+    assert fit.rmse_mv < 1.5
+    assert fit.at_bounds() == []
+
+
+def test_joint_ocv_is_monotone_and_close_where_the_data_went():
+    segs = [segment(6000, seed=s, soc0=0.98 - 0.3 * s) for s in range(3)]
+    fit = fit_ecm2rc(segs, CAPACITY_AH)
+    assert np.all(np.diff(fit.ocv_v) >= 0.0)
+    visited = (fit.ocv_soc > 0.2) & (fit.ocv_soc < 0.95)
+    err = fit.ocv_v[visited] - ocv_curve(fit.ocv_soc[visited])
+    assert np.max(np.abs(err)) < 0.012
+    assert fit.r0 == pytest.approx(TRUE["r0"], rel=0.1)
+    assert fit.rmse_mv < 3.0
+
+
+def test_huber_weights_hold_against_outliers():
+    seg = segment()
+    v = seg.voltage_v.copy()
+    rng = np.random.default_rng(7)
+    bad = rng.choice(v.size, size=v.size // 50, replace=False)
+    v[bad] += rng.choice([-0.5, 0.5], size=bad.size)  # 2 % of samples off by half a volt
+    grid = np.linspace(0, 1, 201)
+    fit = fit_ecm2rc([FitSegment(seg.time_s, seg.current_a, v, seg.temperature_c, seg.soc0)], CAPACITY_AH,
+                     ocv_soc=grid, ocv_v=ocv_curve(grid))
+    assert fit.r0 == pytest.approx(TRUE["r0"], rel=0.05)
+    assert fit.tau1_s >= TAU1_BOUNDS_S[0]
+
+
+def test_ekf_runs_on_the_textbook_spec_not_the_fractional_parameters():
+    grid = np.linspace(0, 1, 201)
+    spec = Ecm2RcSpec(ocv=OcvSpec(soc=grid.tolist(), ocv_v=[ocv_curve(grid).tolist()]),
+                      points=[Ecm2RcPoint(temp_c=25.0, **TRUE)])
+    wrong = ParameterPoint(r_ohm=0.2, r_ct=0.1, c_dl=10.0, m=0.5, r_df=0.3, c_df=10.0, n=0.5)
+    flat_ocv = OcvSpec(soc=[0.0, 1.0], ocv_v=[[3.6, 3.7]])
+    prof = CellProfile(capacity_ah=CAPACITY_AH, ocv=flat_ocv, parameters=[wrong], ecm2rc=spec)
+    par = ecm_parameters(prof, np.array([25.0]))
+    assert par["r0"][0] == pytest.approx(TRUE["r0"])
+    assert par["tau"][0, 1] == pytest.approx(TRUE["tau2_s"])
+    seg = segment(4000, noise_v=0.002)
+    truth = seg.soc0 - np.cumsum(seg.current_a * np.diff(seg.time_s, prepend=0.0)) / (3600 * CAPACITY_AH)
+    rec = Recording(path=Path("sim.csv"), time_s=seg.time_s, current_a=seg.current_a, voltage_v=seg.voltage_v,
+                    temperature_c=seg.temperature_c)
+    trace = Ecm2RcEkf().run(rec, prof, soc0=seg.soc0 - 0.2)
+    assert np.sqrt(np.mean((trace.soc[1000:] - truth[1000:]) ** 2)) < 0.01
+    # without the spec the same filter reads the (wrong) fractional parameters and flat OCV
+    plain = Ecm2RcEkf().run(rec, prof.model_copy(update={"ecm2rc": None}), soc0=seg.soc0 - 0.2)
+    assert np.sqrt(np.mean((plain.soc[1000:] - truth[1000:]) ** 2)) > 0.05
+
+
+@pytest.mark.parametrize(("rmse", "ecm", "bad"), [
+    (12.0, 11.0, False),                     # within the tolerance of the 2-RC fit
+    (12.0, 12.0 / (1 + ECM_TOLERANCE[0]) - 1.0, True),   # clearly worse than the 2-RC fit
+    (POOR_FIT_MV + 1.0, POOR_FIT_MV + 5.0, True),       # poor in itself
+    (float("nan"), 10.0, True),
+])
+def test_fit_quality_rule(rmse, ecm, bad):
+    rep = FitReport(temperatures=[TemperatureFit(temp_c=25.0, rmse_mv=rmse, ecm_rmse_mv=ecm, at_bounds=[],
+                                                 source="fractional fit")])
+    if bad:
+        with pytest.raises(FitQualityError, match="25 °C"):
+            check_fit_quality(rep)
+    else:
+        check_fit_quality(rep)
