@@ -1,0 +1,44 @@
+"""Opening the daemon's CAN bus with a limit on failed attempts in a row.
+
+:class:`~service.daemon.can_rx.CanReceiver` retries a failing open with backoff; a bus that
+never opens (wrong channel, interface down, driver missing) would keep ``socd run`` retrying
+for ever while it looks alive.  :class:`BusOpener` counts consecutive failures and, after
+``bus.max_open_retries`` retries, raises :class:`BusUnavailable`, which the receiver does not
+catch: the daemon stops and ``socd run`` exits 1 naming the interface and channel.  A
+successful open resets the count, so a bus that drops out later gets the same number of
+retries again.  ``max_open_retries = 0`` retries for ever.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import can
+
+
+class BusUnavailable(RuntimeError):
+    """The bus could not be opened ``max_open_retries + 1`` times in a row."""
+
+
+class BusOpener:
+    """``can.Bus(**bus.bus_kwargs())`` as a factory that gives up after too many failures."""
+
+    def __init__(self, bus: Any) -> None:
+        self.bus = bus
+        self.kwargs = bus.bus_kwargs()
+        self.max_retries = int(getattr(bus, "max_open_retries", 0))
+        self.failures = 0
+
+    def __call__(self) -> can.BusABC:
+        try:
+            opened = can.Bus(**self.kwargs)
+        except Exception as exc:
+            self.failures += 1
+            if self.max_retries and self.failures > self.max_retries:
+                raise BusUnavailable(
+                    f"cannot open CAN bus {self.bus.interface}:{self.bus.channel} after {self.failures} "
+                    f"attempts ({exc}); giving up (bus.max_open_retries = {self.max_retries}, "
+                    f"--max-bus-retries 0 retries for ever)") from exc
+            raise
+        self.failures = 0
+        return opened
