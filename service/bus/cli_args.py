@@ -69,14 +69,18 @@ class ResolvedBus:
         return self.bus.bus_kwargs()
 
 
-def python_can_config() -> dict[str, Any]:
-    """python-can's own bus configuration (environment, ``~/.canrc``, ...); ``{}`` when it has none."""
+def python_can_config(strict: bool = True) -> dict[str, Any]:
+    """python-can's own bus configuration (environment, ``~/.canrc``, ...); ``{}`` when it has none.
+
+    ``strict``: an interface name python-can does not know is a :class:`BusConfigError`
+    (else python-can's configuration is ignored, for when its interface would not be used).
+    """
     try:
         return dict(can.util.load_config())
     except can.CanInterfaceNotImplementedError:
         raw = {**can.util.load_file_config(), **can.util.load_environment_config()}
         name = raw.get("interface") or raw.get("bustype")
-        if name:
+        if name and strict:
             raise BusConfigError(
                 f"python-can configuration (CAN_INTERFACE or ~/.canrc): unknown interface {name!r}; "
                 f"known: {', '.join(sorted(can.VALID_INTERFACES))}") from None
@@ -116,7 +120,7 @@ def resolve_bus(ns: argparse.Namespace | None, config: SocdConfig, *, user_confi
 
     decided = flags.keys() | chosen
     if not {"interface", "channel"} <= decided:
-        pc = python_can_config()
+        pc = python_can_config(strict="interface" not in decided)
         pc.pop("bustype", None)
         pc_iface = pc.pop("interface", None)
         pc_channel = pc.pop("channel", None)
