@@ -50,6 +50,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         help="Zenoh endpoint of the service (default tcp/127.0.0.1:7447)")
     parser.add_argument("--prefix", default="bms", help="key prefix (default bms)")
     parser.add_argument("--pack", default="pack0", help="pack id (default pack0)")
+    parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE.json5",
+                        help="a Zenoh JSON5 config (TLS, auth, ...); --connect applies where it sets no endpoints")
     parser.add_argument("--plot", type=Path, default=None, metavar="FILE.png",
                         help=f"keep a PNG of SOC over time up to date (every {PLOT_EVERY_S:g} s)")
     parser.add_argument("--once", action="store_true", help="print one table (from the snapshot) and exit")
@@ -256,14 +258,16 @@ async def watch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     from rich.console import Console
 
     from service.daemon.payloads import keys
-    from service.daemon.zenoh_pub import zenoh_config
+    from service.daemon.zenoh_pub import ZenohConfigError
 
     k = keys(args.prefix, args.pack)
     loop = asyncio.get_running_loop()
     view = PackView()
     console = Console(file=out)
     try:
-        session = zenoh.open(zenoh_config("peer", [], [args.connect], False))
+        session = zenoh.open(_session_config(args))
+    except ZenohConfigError as exc:
+        raise UserError(str(exc).replace("zenoh.config_file", "--zenoh-config", 1)) from None
     except Exception as exc:  # noqa: BLE001 - zenoh.ZError
         raise UserError(f"cannot open a Zenoh session to {args.connect}: {exc}") from None
 
@@ -306,6 +310,15 @@ async def watch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         for s in subs:
             s.undeclare()
         session.close()
+
+
+def _session_config(args: argparse.Namespace):
+    """A peer that listens nowhere, connects to ``--connect``, no multicast; under ``--zenoh-config``."""
+    from service.daemon.zenoh_pub import config_from_section
+
+    section = argparse.Namespace(mode="peer", listen=[], connect=[args.connect], scouting_multicast=False,
+                                 config_file=getattr(args, "zenoh_config", None))
+    return config_from_section(section)
 
 
 async def _live(console: Any, view: PackView, title: str, args: argparse.Namespace) -> None:
