@@ -84,3 +84,55 @@ def test_missing_or_malformed_file_names_it(tmp_path: Path, content: str | None)
         config_from_section(cfg.zenoh)
     msg = str(exc.value)
     assert msg.startswith(f"zenoh.config_file: {f}: ") and "\n" not in msg
+
+
+def test_docs_python_subscriber_runs_against_a_real_publisher() -> None:
+    """The snippet in docs/zenoh.md, run as written (endpoint and wait shortened) on loopback."""
+    import argparse
+    import contextlib
+    import io
+    import re
+
+    import numpy as np
+
+    from service.daemon.health import HealthMonitor
+    from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
+
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "zenoh.md").read_text()
+    code = re.search(r"```python\n(.*?)```", doc, re.S).group(1)
+    port = _port()
+    assert 'ENDPOINT = "tcp/127.0.0.1:7447"' in code and "time.sleep(30)" in code
+    code = code.replace('ENDPOINT = "tcp/127.0.0.1:7447"', f'ENDPOINT = "tcp/127.0.0.1:{port}"')
+    code = code.replace("time.sleep(30)", "_wait_for_samples()")
+
+    section = argparse.Namespace(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], connect=[], scouting_multicast=False,
+                                 key_prefix="bms", pack_id="pack0", config_file=None)
+    health = HealthMonitor()
+    pub = ZenohPublisher(section, 8, health)
+
+    def round_() -> PublishRound:
+        return PublishRound(t_s=1.0, soc=np.array([0.5, 0.6]), soc_std=np.array([0.01, 0.02]),
+                            voltage_v=np.array([3.6, 3.7]), stale=np.zeros(2, bool), params={},
+                            health=health.payload(1.0), status_flags={})
+
+    out = io.StringIO()
+
+    def _wait_for_samples() -> None:
+        deadline = time.monotonic() + 10
+        while out.getvalue().count("cell/") < 2 and time.monotonic() < deadline:
+            pub.submit(round_())
+            time.sleep(0.1)
+
+    pub.start()
+    try:
+        pub.submit(round_())
+        deadline = time.monotonic() + 10
+        while pub.rounds_published < 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with contextlib.redirect_stdout(out):
+            exec(compile(code, "docs/zenoh.md", "exec"), {"_wait_for_samples": _wait_for_samples})
+    finally:
+        pub.stop()
+    text = out.getvalue()
+    assert "pack SOC mean 55.0 %" in text
+    assert "bms/pack0/cell/0/soc 50.0 ± 1.0 %" in text and "bms/pack0/cell/1/soc 60.0 ± 2.0 %" in text
