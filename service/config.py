@@ -69,8 +69,9 @@ class BusConfig(_Section):
     reconnect_max_s: float = Field(10.0, gt=0)
     max_open_retries: int = Field(
         10, ge=0,
-        description="failed bus opens in a row after which 'socd run' gives up with exit status 1 "
-        "(each retry waits reconnect_initial_s, doubling up to reconnect_max_s); 0 = retry for ever",
+        description="failed bus opens at start-up after which 'socd run' gives up with exit status 1 "
+        "(each retry waits reconnect_initial_s, doubling up to reconnect_max_s); 0 = retry for ever. "
+        "Once the bus has opened, a link that goes down later is reopened for as long as it takes",
     )
     kwargs: dict[str, Any] = Field(
         default_factory=dict,
@@ -271,7 +272,7 @@ class ZenohConfig(_Section):
         description="a Zenoh JSON5 config file (zenoh.Config.from_file: TLS, auth, routers, ...). "
         "Precedence: a key the file sets wins; mode, listen/endpoints, connect/endpoints and "
         "scouting/multicast/enabled from this section are applied only where the file leaves "
-        "them unset. Relative paths resolve against the socd config file's directory.",
+        "them at Zenoh's default. Relative paths resolve against the socd config file's directory.",
     )
 
     @field_validator("key_prefix", "pack_id")

@@ -203,3 +203,25 @@ def test_replay_plays_gzip_logs(tmp_path, capsys) -> None:
     bad = tmp_path / "frames.txt.gz"
     shutil.copy(gz, bad)
     assert main(["replay", str(bad), "--no-send"]) == 2
+
+
+def test_opener_limits_start_up_only() -> None:
+    """The retry limit is for a bus that never opened; one that opened once is reopened for ever."""
+    from service.config import BusConfig
+    from service.daemon.bus_open import BusOpener, BusUnavailable
+
+    missing = BusConfig(interface="socketcan", channel="socd_no_such_if2", max_open_retries=2)
+    opener = BusOpener(missing)
+    for _ in range(2):
+        with pytest.raises((can.CanError, OSError)):
+            opener()
+    with pytest.raises(BusUnavailable, match="socketcan:socd_no_such_if2 after 3 attempts"):
+        opener()
+
+    opener = BusOpener(BusConfig(interface="virtual", channel="socd_opener", max_open_retries=2))
+    opener().shutdown()  # opened once
+    opener.kwargs = missing.bus_kwargs()  # ... then the link goes away
+    for _ in range(6):
+        with pytest.raises((can.CanError, OSError)):
+            opener()
+    assert opener.failures == 6

@@ -3,7 +3,7 @@
 The bus is python-can's flags, else the config's ``[bus]``, else python-can's own
 configuration (``CAN_INTERFACE``/``CAN_CHANNEL``, ``~/.canrc``), else the bundled default
 (see :mod:`service.bus.cli_args`).  Exit status: 0 after SIGTERM/SIGINT, 1 when the bus
-could not be opened ``bus.max_open_retries + 1`` times in a row, 2 for a bad config.
+failed to open ``bus.max_open_retries + 1`` times at start-up, 2 for a bad config.
 """
 
 from __future__ import annotations
@@ -37,8 +37,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         help="socd TOML config (default: the bundled configs/default.toml)")
     add_bus_arguments(parser)
     parser.add_argument("--max-bus-retries", type=non_negative_int, default=None, metavar="N",
-                        help="give up (exit 1) after N failed bus opens in a row; 0 = retry for ever "
-                             "(default: the config's bus.max_open_retries)")
+                        help="give up (exit 1) when the bus has failed to open N + 1 times at start-up; 0 = retry "
+                             "for ever (default: the config's bus.max_open_retries). A bus that opened once is "
+                             "reopened for as long as it takes")
     add_common_arguments(parser, log_level="info")
     parser.set_defaults(func=_run)
 
