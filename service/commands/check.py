@@ -168,7 +168,7 @@ def _check_zenoh(config: Any, res: CheckResult) -> None:
 
 def _summary(config: Any, dbs: dict[str, Any], profile: Any) -> list[str]:
     m, n = config.mapping, config.pack.n_cells
-    db_in, db_out = dbs["input"], dbs["output"]
+    db_in = dbs["input"]
     names = {name for _, name in m.all_signals()}
     used = sorted({msg.name for msg in db_in.messages if names & {s.name for s in msg.signals}})
     z = config.zenoh

@@ -16,7 +16,6 @@ residual is left that no candidate removes; the candidates that only fit the fit
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 

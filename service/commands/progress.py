@@ -70,7 +70,8 @@ def open_progress(enabled: bool, description: str, total: float | None, *, unit:
     if unit:
         columns.append(TextColumn(unit))
     columns += [TextColumn("•"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn()]
-    progress = Progress(*columns, console=console, transient=False, refresh_per_second=5)
+    # into a file or pipe (forced), redraw once a second rather than five times
+    progress = Progress(*columns, console=console, transient=False, refresh_per_second=5 if isatty else 1)
     task = progress.add_task(description, total=total)
     progress.start()
     return Bar(progress, task)
