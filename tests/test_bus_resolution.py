@@ -225,3 +225,17 @@ def test_opener_limits_start_up_only() -> None:
         with pytest.raises((can.CanError, OSError)):
             opener()
     assert opener.failures == 6
+
+
+def test_run_on_the_default_virtual_bus_warns(tmp_path, capsys) -> None:
+    """socd run with nothing set listens on the in-process virtual bus: it says so (and stops on SIGINT)."""
+    import signal
+
+    path = _run_config(tmp_path, "")
+    timer = threading.Timer(1.5, lambda: signal.raise_signal(signal.SIGINT))
+    timer.start()
+    try:
+        assert main(["run", "--config", str(path), "--log-level", "error"]) == 0
+    finally:
+        timer.cancel()
+    assert "warning: listening on python-can's in-process 'virtual' bus virtual:vcan0" in capsys.readouterr().err

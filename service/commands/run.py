@@ -79,6 +79,10 @@ def _run(args: argparse.Namespace) -> int:
         except ZenohConfigError as exc:
             raise UserError(str(exc)) from None
     log.info("CAN bus %s", resolved.describe())
+    if config.bus.interface == "virtual":
+        print(f"socd run: warning: listening on python-can's in-process 'virtual' bus {resolved.describe()}: "
+              f"no other process can send to it; give -i/-c (e.g. -i socketcan -c can0), [bus] in --config, "
+              f"or CAN_INTERFACE/CAN_CHANNEL", file=sys.stderr)
     try:
         daemon = Daemon(config)
     except (ProfileError, MetricsError) as exc:
