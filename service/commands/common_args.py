@@ -155,6 +155,17 @@ def bus_gap(text: str) -> tuple[float, float]:
             f"expected T0:DURATION (T0 >= 0 s, DURATION > 0 s), got {text!r}") from None
 
 
+def full_at(text: str) -> str:
+    """``auto`` or a time in s (>= 0); kept as text for :func:`service.evaluation.truth.per_recording`."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        non_negative_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a time in s (>= 0) or 'auto', got {text!r}") from None
+    return text
+
+
 def existing_file(text: str) -> Path:
     p = Path(text)
     if not p.is_file():

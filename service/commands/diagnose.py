@@ -48,13 +48,26 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="held-out protocol: the last 40 %% of the duration (default), or blocks 2,4,7,9 of 10")
     add_soc0_argument(p, help="known initial SOC in [0, 1] (default: from the opening rest voltage)")
     p.add_argument("--effects", help="comma-separated subset of candidate effects to try (default: all)")
-    p.add_argument("--nominal-ambient-c", default="25", metavar="C",
+    p.add_argument("--nominal-ambient-c", type=_ambient, default=25.0, metavar="C",
                    help="the ambient a nominal recording is in (default 25 °C); a recording that opens 5 K or more "
                    "away from it and whose temperature then moves by 2 K or more has its temperature effect "
                    "nominated; 'none' judges the temperature only by how well a constant ambient explains it")
     p.add_argument("--seed", type=int, default=0)
     add_common_arguments(p, progress=True, json_out="the result")
     p.set_defaults(func=run)
+
+
+def _ambient(text: str) -> float | None:
+    """A temperature in °C (-60..100), or 'none'."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        x = float(text)
+    except ValueError:
+        x = float("nan")
+    if not -60.0 <= x <= 100.0:
+        raise argparse.ArgumentTypeError(f"must be a temperature in °C (-60..100) or 'none', got {text!r}")
+    return x
 
 
 def _fit_fraction(text: str) -> float:
@@ -124,16 +137,7 @@ def run(args: argparse.Namespace) -> int:
         if args.save_effect != "none" and args.save_effect not in effects:
             raise UserError(f"--save-effect: '{args.save_effect}' is not among the candidates tried "
                             f"({', '.join(effects)}) or 'none'")
-    if args.nominal_ambient_c.strip().lower() == "none":
-        nominal = None
-    else:
-        try:
-            nominal = float(args.nominal_ambient_c)
-        except ValueError:
-            nominal = float("nan")
-        if not -60.0 <= nominal <= 100.0:
-            raise UserError(f"--nominal-ambient-c must be a temperature in °C (-60..100) or 'none', "
-                            f"got {args.nominal_ambient_c!r}")
+    nominal = args.nominal_ambient_c
     opt = DiagnoseOptions(fit_fraction=args.fit_fraction, split=args.split, soc0=args.soc0, effects=effects,
                           seed=args.seed, fit_base=fit_base, nominal_ambient_c=nominal)
     # one step for the base fit and one per candidate refit: each announced fit ends the one before

@@ -13,8 +13,8 @@ import numpy as np
 
 from service.cell.profile import ProfileError, load_profile
 from service.cli import UserError
-from service.commands.common_args import (add_cell_argument, add_common_arguments, finite_float, progress_enabled,
-                                          setup_logging, text_stream, write_json)
+from service.commands.common_args import (add_cell_argument, add_common_arguments, finite_float, full_at,
+                                          progress_enabled, setup_logging, text_stream, write_json)
 from service.commands.progress import open_progress
 from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
 from service.estimators.settings import EstimatorSettings
@@ -39,7 +39,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     add_cell_argument(p, required=True)
     p.add_argument("--estimator", action="append", metavar="NAME",
                    help=f"estimator to run (repeatable; default all: {', '.join(DEFAULT_ESTIMATORS)})")
-    p.add_argument("--full-at", action="append", metavar="S",
+    p.add_argument("--full-at", action="append", type=full_at, metavar="S",
                    help="time [s] of the full-charge point, or 'auto' to detect the end of the CC-CV charge; "
                         "give once for all recordings or once per recording (default: the file's start)")
     p.add_argument("--init-soc-error", type=_soc_error, default=0.20, metavar="E",

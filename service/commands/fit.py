@@ -8,7 +8,8 @@ from pathlib import Path
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cli import UserError
-from service.commands.common_args import add_common_arguments, positive_float, positive_int, setup_logging
+from service.commands.common_args import (add_common_arguments, full_at, positive_float, positive_int,
+                                          setup_logging)
 from service.evaluation.truth import per_recording
 from service.recording import load_recording
 
@@ -26,7 +27,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("recordings", nargs="+", metavar="RECORDING")
     p.add_argument("--capacity-ah", type=positive_float, required=True, metavar="X", help="cell capacity [Ah]")
-    p.add_argument("--full-at", action="append", metavar="S",
+    p.add_argument("--full-at", action="append", type=full_at, metavar="S",
                    help="time [s] of the full-charge point ('auto' to detect; once, or once per recording; default: file start)")
     p.add_argument("--ocv", metavar="OCV_CSV", help="OCV table CSV: soc + ocv_v (or ocv_avg_v/...)")
     p.add_argument("--hysteresis", action="store_true", help="also fit the one-state hysteresis (LFP cells)")
