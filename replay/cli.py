@@ -150,7 +150,8 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UserError(str(exc)) from None
         per_sample = sum(1 for _ in _one_sample(config, args.cells))
-        total = per_sample * len(pack)
+        # a --start/--stop window plays an unknown share of the frames: no total, no ETA
+        total = per_sample * len(pack) if args.start is None and args.stop is None else None
         if args.truth_out:
             pack.write_truth_csv(args.truth_out)
     else:
