@@ -166,17 +166,3 @@ def resolve_bus(ns: argparse.Namespace | None, config: SocdConfig, *, user_confi
         raise BusConfigError(f"bus settings: {exc}") from None
     return ResolvedBus(bus, origin["interface"], origin["channel"])
 
-
-def bus_kwargs_from_namespace(ns: argparse.Namespace, config: SocdConfig | None = None) -> dict[str, Any]:
-    """``can.Bus`` keyword arguments: command-line flags first, then ``config.bus``."""
-    from service.config import SocdConfig as _Cfg
-
-    return resolve_bus(ns, config if config is not None else _Cfg(), user_config=config is not None).kwargs()
-
-
-def create_bus_from_namespace(ns: argparse.Namespace, config: SocdConfig | None = None,
-                              **kwargs: Any) -> can.BusABC:
-    """Open the bus :func:`resolve_bus` describes (``kwargs`` override it)."""
-    kw = bus_kwargs_from_namespace(ns, config)
-    kw.update(kwargs)
-    return can.Bus(**kw)
