@@ -4,6 +4,8 @@ every command; old spellings still work as deprecated aliases; ``--json -`` keep
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -98,11 +100,14 @@ def test_quiet_and_progress_exclude_each_other(capsys) -> None:
     assert "not allowed with argument" in capsys.readouterr().err
 
 
-def test_json_dash_keeps_stdout_json(tmp_path: Path, capsys) -> None:
-    """``--json -``: the JSON document alone on stdout, the human summary on stderr."""
-    assert main(["bench", "--cells", "2", "--steps", "10", "--reference-steps", "2", "--cell", str(PROFILE),
-                 "--json", "-"]) == 0
-    out, err = capsys.readouterr()
+def test_json_dash_keeps_stdout_json() -> None:
+    """``--json -``: the JSON document alone on stdout, the human summary on stderr (a subprocess:
+    bench pins its process to one CPU)."""
+    proc = subprocess.run([sys.executable, "-m", "service.cli", "bench", "--cells", "2", "--steps", "10",
+                           "--reference-steps", "2", "--cell", str(PROFILE), "--json", "-"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    out, err = proc.stdout, proc.stderr
     doc = json.loads(out)
     assert doc["cells"] == 2 and doc["cell_steps_per_s"] > 0
     assert "vectorised pipeline" in err
