@@ -120,3 +120,15 @@ def test_schema_files_validate_their_examples(tmp_path: Path, capsys) -> None:
     f = tmp_path / "file"
     f.write_text("x")
     assert main(["schema", "-o", str(f)]) == 2
+
+
+def test_docs_examples_are_what_socd_schema_writes(tmp_path: Path) -> None:
+    """The example payloads quoted in docs/zenoh.md equal the command's own output."""
+    import re
+
+    out = tmp_path / "schema"
+    assert main(["schema", "-o", str(out)]) == 0
+    doc = (ROOT / "docs" / "zenoh.md").read_text()
+    blocks = [json.loads(b) for b in re.findall(r"```json\n(.*?)```", doc, re.S)]
+    assert blocks[0] == json.loads((out / "cell_soc.example.json").read_text())
+    assert blocks[1] == json.loads((out / "summary.example.json").read_text())

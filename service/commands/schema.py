@@ -52,6 +52,7 @@ def payload_docs() -> list[PayloadDoc]:
     """Every Zenoh payload with an example built by the publisher's code."""
     import numpy as np
 
+    from service.bus.types import STATUS_FLAGS
     from service.daemon.health import HealthMonitor
     from service.daemon.payloads import CellParams, CellSoc, Health, Snapshot, Summary, keys
     from service.daemon.zenoh_pub import PublishRound, build_payloads
@@ -65,7 +66,8 @@ def payload_docs() -> list[PayloadDoc]:
     health.record_latency("estimate", 0.0008)
     health.record_latency("publish", 0.0031)
     health.checkpoint_state = "restored"
-    flags = {"stale_cells": False, "diverged": False, "zenoh_down": False, "bus_error": False}
+    # every flag of the status word, as the daemon publishes them; this one restored its checkpoint
+    flags = {name: name == "checkpoint_restored" for name in STATUS_FLAGS}
     t_s = 1732443600.25
     r = PublishRound(
         t_s=t_s,
