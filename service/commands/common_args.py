@@ -118,19 +118,6 @@ def int_range(lo: int, hi: int) -> Callable[[str], int]:
     return parse
 
 
-def int_list(text: str) -> list[int]:
-    """Comma-separated non-negative integers: ``"0,3,7"``."""
-    out = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        out.append(non_negative_int(part))
-    if not out:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}")
-    return out
-
-
 def stuck_cell(text: str) -> tuple[int, float]:
     """``I`` or ``I:T0``: cell index (0-based) and the time (s, >= 0) it freezes from."""
     cell, sep, t0 = text.partition(":")
@@ -164,13 +151,6 @@ def full_at(text: str) -> str:
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(f"expected a time in s (>= 0) or 'auto', got {text!r}") from None
     return text
-
-
-def existing_file(text: str) -> Path:
-    p = Path(text)
-    if not p.is_file():
-        raise argparse.ArgumentTypeError(f"no such file: {text}")
-    return p
 
 
 # ---------------------------------------------------------------------------------------
