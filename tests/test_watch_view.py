@@ -135,3 +135,50 @@ def test_once_against_a_real_publisher(tmp_path) -> None:
     assert "socd watch bms/w" in text and f"{n} cells" in text
     assert _cells_in_order(text) == list(range(n))[::-1]  # lowest SOC first: the last cell
     assert plot.stat().st_size > 1000
+
+
+class _Terminal(io.StringIO):
+    """A stream that says it is a terminal, so watch takes its live (rich.live) path."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+def test_live_view_redraws_from_subscriptions() -> None:
+    port = _port()
+    section = argparse.Namespace(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], connect=[], scouting_multicast=False,
+                                 key_prefix="bms", pack_id="live", config_file=None)
+    health = HealthMonitor(pack="live")
+    pub = ZenohPublisher(section, 8, health)
+    n = 96
+
+    def round_(t: float) -> PublishRound:
+        return PublishRound(t_s=t, soc=np.full(n, 0.7), soc_std=np.full(n, 0.01), voltage_v=np.full(n, 3.7),
+                            stale=np.arange(n) == STALE, params={}, health=health.payload(t), status_flags={},
+                            current_a=2.0)
+
+    out = _Terminal()
+    args = argparse.Namespace(connect=f"tcp/127.0.0.1:{port}", prefix="bms", pack="live", plot=None, once=False,
+                              timeout=5.0, sort="cell")
+
+    async def scenario() -> None:
+        task = asyncio.create_task(watch(args, out))
+        for k in range(30):  # keep publishing while the view subscribes and redraws
+            pub.submit(round_(float(k)))
+            await asyncio.sleep(0.1)
+            if "t 2" in out.getvalue():
+                break
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    pub.start()
+    try:
+        pub.submit(round_(0.0))
+        asyncio.run(scenario())
+    finally:
+        pub.stop()
+    text = out.getvalue()
+    assert "\x1b[?1049h" in text  # the alternate screen: the header never scrolls away
+    assert f"{n} cells" in text and f"{STALE}~" in text
+    assert re.search(r"t [2-9]\.0 s", text), "no redraw with a later round"
