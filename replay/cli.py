@@ -3,11 +3,15 @@
     socd replay recording.csv                        # a cell recording -> 96-cell pack, virtual bus
     socd replay -i socketcan -c vcan0 drive.csv --speed 10 --spread-soc 0.02 --seed 1
     socd replay capture.blf --loop --drop 0.01 --jitter 0.002
+    socd replay capture.log.gz                       # gzip-compressed logs play too
     socd replay drive.csv --fast --record pack.mf4   # only write a python-can log
 
 A cell recording (CSV ``time_s,current_a,voltage_v,temperature_c``) is expanded to a pack
 and encoded with the config's input DBC and mapping; anything else is read with python-can's
-``LogReader`` (asc, blf, csv, log, mf4, trc) and played frame by frame.
+``LogReader`` (asc, blf, csv, log, mf4, trc, and each of them ``.gz``-compressed) and played
+frame by frame.  The bus is chosen as for ``socd run`` (flags > ``--config``'s ``[bus]`` >
+python-can's ``CAN_INTERFACE``/``~/.canrc`` > the bundled default); sending to python-can's
+in-process ``virtual`` bus draws a warning, since no other process can hear it.
 """
 
 from __future__ import annotations
@@ -18,11 +22,16 @@ import sys
 import threading
 from pathlib import Path
 
-from replay.faults import FaultSpec, parse_gap, parse_stuck
+import can
+
+from replay.faults import FaultSpec
 from replay.pack import SpreadSpec, pack_frames
-from replay.player import LOG_SUFFIXES, play, read_log
-from service.bus.cli_args import add_bus_arguments, create_bus_from_namespace
+from replay.player import LOG_SUFFIXES, log_format, play, read_log
+from service.bus.cli_args import BusConfigError, add_bus_arguments, bus_flags_given, resolve_bus
 from service.cli import UserError
+from service.commands.common_args import (add_cell_argument, add_common_arguments, add_soc0_argument, bus_gap,
+                                          finite_float, non_negative_float, positive_int, probability,
+                                          progress_enabled, setup_logging, stuck_cell)
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -32,50 +41,56 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
         description=__doc__.split("\n\n")[0],
         epilog="Cell recordings are expanded to a pack; python-can logs are played as they are.",
     )
-    p.add_argument("input", help="cell recording CSV, or a python-can log (" + ", ".join(LOG_SUFFIXES) + ")")
+    p.add_argument("input", help="cell recording CSV, or a python-can log (" + ", ".join(LOG_SUFFIXES)
+                   + ", optionally .gz)")
     p.add_argument("--config", help="SocdConfig TOML for the DBC, mapping and pack size "
                    "(default: configs/default.toml); its [bus] fills bus flags not given")
     add_bus_arguments(p)
 
     g = p.add_argument_group("pack (cell recordings only)")
-    g.add_argument("--cells", type=int, help="cells in the pack (default: the config's pack.n_cells)")
-    g.add_argument("--profile", help="cell profile for the OCV table (default: the config's cell_profile)")
-    g.add_argument("--start-soc", type=float, help="SOC at the first sample, 0..1 (default: from the "
-                   "first rest voltage)")
-    g.add_argument("--spread-capacity", type=float, default=0.0, metavar="REL", help="σ of capacity (relative)")
-    g.add_argument("--spread-resistance", type=float, default=0.0, metavar="REL", help="σ of R_ohm (relative)")
-    g.add_argument("--spread-soc", type=float, default=0.0, metavar="SOC", help="σ of start SOC (absolute)")
-    g.add_argument("--spread-temperature", type=float, default=0.0, metavar="DEGC",
+    g.add_argument("--cells", type=positive_int, help="cells in the pack (default: the config's pack.n_cells)")
+    add_cell_argument(g, old_profile_alias=True,
+                      help="cell profile for the OCV table (default: the config's cell_profile)")
+    add_soc0_argument(g, old_start_soc_alias=True,
+                      help="SOC at the first sample, 0..1 (default: from the first rest voltage)")
+    g.add_argument("--spread-capacity", type=non_negative_float, default=0.0, metavar="REL",
+                   help="σ of capacity (relative)")
+    g.add_argument("--spread-resistance", type=non_negative_float, default=0.0, metavar="REL",
+                   help="σ of R_ohm (relative)")
+    g.add_argument("--spread-soc", type=non_negative_float, default=0.0, metavar="SOC",
+                   help="σ of start SOC (absolute)")
+    g.add_argument("--spread-temperature", type=non_negative_float, default=0.0, metavar="DEGC",
                    help="σ of per-sensor temperature offset")
     g.add_argument("--seed", type=int, default=0, help="seed of the spread and the faults (default 0)")
-    g.add_argument("--time-offset", type=float, default=0.0, metavar="S", help="add to frame timestamps")
+    g.add_argument("--time-offset", type=finite_float, default=0.0, metavar="S", help="add to frame timestamps")
     g.add_argument("--truth-out", metavar="FILE.csv", help="write per-cell truth SOC")
 
     g = p.add_argument_group("pacing")
-    g.add_argument("--speed", type=float, default=None, help="1 = real time (default), 10 = ten times "
+    g.add_argument("--speed", type=non_negative_float, default=None, help="1 = real time (default), 10 = ten times "
                    "faster, 0 = as fast as possible")
     g.add_argument("--fast", action="store_true", help="same as --speed 0")
-    g.add_argument("--loop", nargs="?", const=True, default=False, type=int, metavar="N",
+    g.add_argument("--loop", nargs="?", const=True, default=False, type=positive_int, metavar="N",
                    help="repeat (forever, or N passes); timestamps keep increasing")
-    g.add_argument("--start", type=float, metavar="S", help="skip the first S seconds")
-    g.add_argument("--stop", type=float, metavar="S", help="stop at S seconds (from the first frame)")
-    g.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    g.add_argument("--start", type=non_negative_float, metavar="S", help="skip the first S seconds")
+    g.add_argument("--stop", type=non_negative_float, metavar="S", help="stop at S seconds (from the first frame)")
 
     g = p.add_argument_group("faults (seeded by --seed)")
-    g.add_argument("--drop", type=float, default=0.0, metavar="P", help="drop each frame with probability P")
-    g.add_argument("--duplicate", type=float, default=0.0, metavar="P", help="send a frame twice")
-    g.add_argument("--reorder", type=float, default=0.0, metavar="P", help="swap a frame with the next")
-    g.add_argument("--jitter", type=float, default=0.0, metavar="SECONDS", help="delay frames by U(0, S)")
-    g.add_argument("--corrupt", type=float, default=0.0, metavar="P", help="flip a payload bit or change DLC")
-    g.add_argument("--stuck-cell", action="append", default=[], metavar="I[:T0]",
-                   help="freeze cell I's voltage from T0 s (repeatable)")
-    g.add_argument("--bus-gap", action="append", default=[], metavar="T0:DURATION",
+    g.add_argument("--drop", type=probability, default=0.0, metavar="P", help="drop each frame with probability P")
+    g.add_argument("--duplicate", type=probability, default=0.0, metavar="P", help="send a frame twice")
+    g.add_argument("--reorder", type=probability, default=0.0, metavar="P", help="swap a frame with the next")
+    g.add_argument("--jitter", type=non_negative_float, default=0.0, metavar="SECONDS",
+                   help="delay frames by U(0, S)")
+    g.add_argument("--corrupt", type=probability, default=0.0, metavar="P", help="flip a payload bit or change DLC")
+    g.add_argument("--stuck-cell", action="append", default=[], type=stuck_cell, metavar="I[:T0]",
+                   help="freeze cell I's (0-based) voltage from T0 s (repeatable)")
+    g.add_argument("--bus-gap", action="append", default=[], type=bus_gap, metavar="T0:DURATION",
                    help="no frames from T0 for DURATION s (repeatable)")
 
     g = p.add_argument_group("output")
     g.add_argument("--record", metavar="OUT", help="write the frames to a python-can log "
                    "(" + ", ".join(LOG_SUFFIXES) + "); with no bus flags only the log is written")
     g.add_argument("--no-send", action="store_true", help="do not open a bus")
+    add_common_arguments(p, progress=True, old_no_progress_alias=True)
     p.set_defaults(func=run)
     return p
 
@@ -102,15 +117,17 @@ def _config(args):
 
 
 def run(args: argparse.Namespace) -> int:
+    setup_logging(args)
     path = Path(args.input)
     if not path.is_file():
         raise UserError(f"{path}: no such file")
     config = _config(args)
+    if args.stop is not None and args.start is not None and args.stop <= args.start:
+        raise UserError(f"--stop ({args.stop:g} s) must be after --start ({args.start:g} s)")
     try:
         faults = FaultSpec(
             drop=args.drop, duplicate=args.duplicate, reorder=args.reorder, jitter_s=args.jitter,
-            corrupt=args.corrupt, stuck_cells=[parse_stuck(s) for s in args.stuck_cell],
-            bus_gaps=[parse_gap(s) for s in args.bus_gap], seed=args.seed,
+            corrupt=args.corrupt, stuck_cells=list(args.stuck_cell), bus_gaps=list(args.bus_gap), seed=args.seed,
         )
     except ValueError as exc:
         raise UserError(str(exc)) from None
@@ -121,31 +138,32 @@ def run(args: argparse.Namespace) -> int:
         from service.recording import load_recording
 
         recording = load_recording(path)
-        profile_path = Path(args.profile) if args.profile else config.cell_profile
+        profile_path = Path(args.cell) if args.cell else config.cell_profile
         try:
             profile = load_profile(profile_path)
         except ProfileError as exc:
-            raise UserError(f"{exc} (give --profile or set cell_profile in the config)") from None
+            raise UserError(f"{exc} (give --cell or set cell_profile in the config)") from None
         spread = SpreadSpec(args.spread_capacity, args.spread_resistance, args.spread_soc, args.spread_temperature)
         try:
             frames, pack = pack_frames(recording, config, profile, args.cells, spread, args.seed,
-                                       start_soc=args.start_soc, time_offset_s=args.time_offset, lazy=True)
+                                       start_soc=args.soc0, time_offset_s=args.time_offset, lazy=True)
         except ValueError as exc:
             raise UserError(str(exc)) from None
         per_sample = sum(1 for _ in _one_sample(config, args.cells))
-        total = per_sample * len(pack)
+        # a --start/--stop window plays an unknown share of the frames: no total, no ETA
+        total = per_sample * len(pack) if args.start is None and args.stop is None else None
         if args.truth_out:
             pack.write_truth_csv(args.truth_out)
     else:
-        if path.suffix.lower() not in LOG_SUFFIXES:
-            raise UserError(f"{path}: not a cell recording and not a python-can log ({', '.join(LOG_SUFFIXES)})")
+        if log_format(path) is None:
+            raise UserError(f"{path}: not a cell recording and not a python-can log "
+                            f"({', '.join(LOG_SUFFIXES)}, optionally .gz)")
         if args.time_offset:
             frames = _offset(read_log(path), args.time_offset)
         else:
             frames = read_log(path)
 
-    bus_flags_given = any(k in args for k in ("interface", "channel"))
-    send = not args.no_send and (bus_flags_given or not args.record)
+    send = not args.no_send and (bus_flags_given(args) or not args.record)
     speed = 0.0 if args.fast else args.speed
     if speed is None:
         speed = 1.0 if send else 0.0
@@ -153,8 +171,6 @@ def run(args: argparse.Namespace) -> int:
     listeners = []
     logger = None
     if args.record:
-        import can
-
         try:
             logger = can.Logger(args.record)
         except Exception as exc:  # noqa: BLE001 - unknown suffix, unwritable path
@@ -164,13 +180,21 @@ def run(args: argparse.Namespace) -> int:
     try:
         if send:
             try:
-                bus = create_bus_from_namespace(args, config)
-            except Exception as exc:  # noqa: BLE001
-                raise UserError(f"cannot open bus: {exc}") from None
+                resolved = resolve_bus(args, config, user_config=args.config is not None)
+            except BusConfigError as exc:
+                raise UserError(str(exc)) from None
+            if resolved.bus.interface == "virtual":
+                print(f"socd replay: warning: sending to python-can's in-process 'virtual' bus "
+                      f"{resolved.describe()}: no other process can hear it; give -i/-c (e.g. -i socketcan "
+                      f"-c vcan0) or set CAN_INTERFACE/CAN_CHANNEL", file=sys.stderr)
+            try:
+                bus = can.Bus(**resolved.kwargs())
+            except Exception as exc:  # noqa: BLE001 - every backend raises its own kinds
+                raise UserError(f"cannot open bus {resolved.describe()}: {exc}") from None
         stop_event = threading.Event()
         try:
             stats = play(bus, frames, speed=speed, faults=faults if faults.active else None, stop_event=stop_event,
-                         progress=not args.no_progress and sys.stderr.isatty() or False, start=args.start,
+                         progress=progress_enabled(args), start=args.start,
                          stop=args.stop, loop=args.loop, listeners=listeners, total=total, config=config)
         except KeyboardInterrupt:
             stop_event.set()

@@ -59,20 +59,6 @@ class FaultSpec:
                     or self.stuck_cells or self.bus_gaps)
 
 
-def parse_stuck(text: str) -> tuple[int, float]:
-    """``"5"`` -> (5, 0.0); ``"5:120"`` -> (5, 120.0)."""
-    cell, _, t0 = text.partition(":")
-    return int(cell), float(t0) if t0 else 0.0
-
-
-def parse_gap(text: str) -> tuple[float, float]:
-    """``"30:5"`` -> (30.0, 5.0)."""
-    t0, sep, dur = text.partition(":")
-    if not sep:
-        raise ValueError(f"bus gap must be T0:DURATION, got {text!r}")
-    return float(t0), float(dur)
-
-
 class FaultInjector:
     """Applies a :class:`FaultSpec` to frames; ``counts`` says what it did."""
 

@@ -10,7 +10,6 @@ format python-can reads are streamed with :func:`read_log`.
 from __future__ import annotations
 
 import math
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -45,40 +44,53 @@ class ReplayStats:
         return self.frames_sent / self.duration_s if self.duration_s > 0 else math.inf
 
 
+def log_format(path: str | Path) -> str | None:
+    """The python-can log format of ``path`` (``".blf"``; ``".log"`` for ``x.log.gz``), or None."""
+    suffixes = [s.lower() for s in Path(path).suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        suffixes = suffixes[:-1]
+    return suffixes[-1] if suffixes and suffixes[-1] in LOG_SUFFIXES else None
+
+
 def read_log(path: str | Path) -> Iterator[can.Message]:
-    """Frames of a python-can log file (asc, blf, csv, log, mf4, trc), one at a time."""
+    """Frames of a python-can log file (asc, blf, csv, log, mf4, trc, or any of them .gz), one at a time."""
     path = Path(path)
+    fmt = log_format(path)
+    if path.suffix.lower() == ".gz" and fmt is not None and len(path.suffixes) != 2:
+        # python-can finds the format of a .gz only in "name.fmt.gz": open it the same way for "a.b.fmt.gz"
+        import gzip
+
+        from can.io.player import MESSAGE_READERS
+
+        reader_type = MESSAGE_READERS[fmt]
+        binary = fmt in (".blf", ".mf4")
+        with reader_type(gzip.open(path, mode="rb" if binary else "rt")) as reader:
+            yield from reader
+        return
     with can.LogReader(path) as reader:
         yield from reader
 
 
 class _Progress:
+    """The replay's bar (rich, with ETA when the frame count is known) and its recording time."""
+
     def __init__(self, total: int | None, enabled: bool, stream=None) -> None:
-        self.total = total
-        self.enabled = enabled
-        self.stream = stream or sys.stderr
+        from service.commands.progress import open_progress
+
+        self._bar = open_progress(enabled, "replay", total, unit="frames", stream=stream)
         self._last = 0.0
 
     def update(self, n: int, rel_s: float, force: bool = False) -> None:
-        if not self.enabled:
+        if not self._bar.enabled:
             return
         now = time.monotonic()
         if not force and now - self._last < 0.2:
             return
         self._last = now
-        if self.total:
-            frac = min(1.0, n / self.total)
-            bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
-            text = f"\r[{bar}] {100 * frac:5.1f}% {n}/{self.total} frames  t={rel_s:9.2f} s"
-        else:
-            text = f"\r{n} frames  t={rel_s:9.2f} s"
-        self.stream.write(text)
-        self.stream.flush()
+        self._bar.update(completed=n, description=f"replay t={rel_s:9.2f} s")
 
     def close(self) -> None:
-        if self.enabled:
-            self.stream.write("\n")
-            self.stream.flush()
+        self._bar.close()
 
 
 def _window(frames: Iterable[can.Message], start: float | None, stop: float | None,

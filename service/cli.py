@@ -24,6 +24,8 @@ SUBCOMMANDS: dict[str, str] = {
     "evaluate": "service.commands.evaluate",
     "bench": "service.commands.bench",
     "diagnose": "service.commands.diagnose",
+    "check": "service.commands.check",
+    "schema": "service.commands.schema",
 }
 
 
@@ -62,7 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse's own error (exit 2, flag named on stderr), --help, --version
+        return exc.code if isinstance(exc.code, int) else 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

@@ -60,13 +60,19 @@ class BusConfig(_Section):
     """The CAN bus, as python-can's ``can.Bus(interface=..., channel=..., ...)``."""
 
     interface: str = "virtual"
-    channel: str = "vcan0"
+    channel: str | int = "vcan0"
     bitrate: int | None = Field(500000, gt=0)
     fd: bool = False
     data_bitrate: int | None = Field(None, gt=0)
     receive_own_messages: bool = False
     reconnect_initial_s: float = Field(0.5, gt=0)
     reconnect_max_s: float = Field(10.0, gt=0)
+    max_open_retries: int = Field(
+        10, ge=0,
+        description="failed bus opens at start-up after which 'socd run' gives up with exit status 1 "
+        "(each retry waits reconnect_initial_s, doubling up to reconnect_max_s); 0 = retry for ever. "
+        "Once the bus has opened, a link that goes down later is reopened for as long as it takes",
+    )
     kwargs: dict[str, Any] = Field(
         default_factory=dict,
         description="extra can.Bus keyword arguments, like python-can's --bus-kwargs "
@@ -261,6 +267,13 @@ class ZenohConfig(_Section):
     scouting_multicast: bool = False
     key_prefix: str = Field("bms", min_length=1)
     pack_id: str = Field("pack0", min_length=1)
+    config_file: Path | None = Field(
+        None,
+        description="a Zenoh JSON5 config file (zenoh.Config.from_file: TLS, auth, routers, ...). "
+        "Precedence: a key the file sets wins; mode, listen/endpoints, connect/endpoints and "
+        "scouting/multicast/enabled from this section are applied only where the file leaves "
+        "them at Zenoh's default. Relative paths resolve against the socd config file's directory.",
+    )
 
     @field_validator("key_prefix", "pack_id")
     @classmethod
@@ -269,6 +282,14 @@ class ZenohConfig(_Section):
         if bad or v.startswith("/") or v.endswith("/") or "//" in v:
             raise ValueError(f"{v!r} is not a valid key-expression part")
         return v
+
+
+class MetricsConfig(_Section):
+    """An optional Prometheus ``/metrics`` endpoint (needs the ``prometheus-client`` package)."""
+
+    enabled: bool = False
+    host: str = Field("127.0.0.1", min_length=1, description="address to bind; loopback by default")
+    port: int = Field(9464, ge=0, le=65535, description="TCP port (0 = any free port)")
 
 
 class CheckpointConfig(_Section):
@@ -302,6 +323,7 @@ class SocdConfig(BaseSettings):
     zenoh: ZenohConfig = ZenohConfig()
     checkpoint: CheckpointConfig = CheckpointConfig()
     pack: PackConfig = PackConfig()
+    metrics: MetricsConfig = MetricsConfig()
 
     @classmethod
     def settings_customise_sources(
@@ -381,7 +403,8 @@ def _load_dbc_cached(path: str, _mtime_ns: int):
     return cantools.database.load_file(path, database_format="dbc", strict=True)
 
 
-_PATH_FIELDS = (("dbc", "input"), ("dbc", "output"), ("cell_profile",), ("checkpoint", "path"))
+_PATH_FIELDS = (("dbc", "input"), ("dbc", "output"), ("cell_profile",), ("checkpoint", "path"),
+                ("zenoh", "config_file"))
 
 
 def _resolve_relative(raw: dict[str, Any], base: Path) -> None:
@@ -461,7 +484,7 @@ def load_config(path: str | Path | None = None, *, check_files: bool = True) -> 
         for k in keys[:-1]:
             obj = getattr(obj, k)
         p = getattr(obj, keys[-1])
-        if not p.is_absolute():
+        if p is not None and not p.is_absolute():
             setattr(obj, keys[-1], p.resolve())
     if check_files:
         check_config_files(config, str(path))

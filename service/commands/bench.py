@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 
 from service.cli import UserError
+from service.commands.common_args import (add_cell_argument, add_common_arguments, int_range, positive_int,
+                                          setup_logging, text_stream, write_json)
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -24,11 +24,12 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "to one CPU. Inputs are a simulated drive (1 s steps) so the numbers do not depend on files."
         ),
     )
-    p.add_argument("--cells", type=int, default=200, help="cells in the pack (default 200)")
-    p.add_argument("--steps", type=int, default=400, help="time steps for the pack run (default 400)")
-    p.add_argument("--reference-steps", type=int, default=40, help="time steps for the per-cell loop (default 40)")
-    p.add_argument("--cell", metavar="CELL_FILE", help="cell profile (default: the bundled Panasonic 18650PF)")
-    p.add_argument("--json", metavar="OUT", help="write results as JSON")
+    p.add_argument("--cells", type=positive_int, default=200, help="cells in the pack (default 200)")
+    p.add_argument("--steps", type=int_range(10, 10**7), default=400, help="time steps for the pack run (default 400)")
+    p.add_argument("--reference-steps", type=int_range(2, 10**7), default=40,
+                   help="time steps for the per-cell loop (default 40)")
+    add_cell_argument(p, help="cell profile (default: the bundled Panasonic 18650PF)")
+    add_common_arguments(p, json_out="the results")
     p.set_defaults(func=run)
 
 
@@ -53,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from service.estimators.pipeline import PackEstimator
     from service.estimators.settings import EstimatorSettings
 
+    setup_logging(args)
     if args.cells < 1 or args.steps < 10 or args.reference_steps < 2:
         raise UserError("--cells must be ≥ 1, --steps ≥ 10 and --reference-steps ≥ 2")
     try:
@@ -100,10 +102,10 @@ def run(args: argparse.Namespace) -> int:
         "us_per_pack_step": 1e6 * pack_s / args.steps,
     }
     result["ratio"] = result["cell_steps_per_s"] / result["reference_cell_steps_per_s"]
-    print(f"pack of {n} cells, L={settings.memory_length}, p={settings.innovation_length}, one core")
-    print(f"  vectorised pipeline : {result['cell_steps_per_s']:12,.0f} cell-steps/s  ({result['us_per_pack_step']:.0f} µs per pack step)")
-    print(f"  per-cell loop (ref.): {result['reference_cell_steps_per_s']:12,.0f} cell-steps/s")
-    print(f"  ratio               : {result['ratio']:12.1f} x")
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
+    out = text_stream(args)
+    print(f"pack of {n} cells, L={settings.memory_length}, p={settings.innovation_length}, one core", file=out)
+    print(f"  vectorised pipeline : {result['cell_steps_per_s']:12,.0f} cell-steps/s  ({result['us_per_pack_step']:.0f} µs per pack step)", file=out)
+    print(f"  per-cell loop (ref.): {result['reference_cell_steps_per_s']:12,.0f} cell-steps/s", file=out)
+    print(f"  ratio               : {result['ratio']:12.1f} x", file=out)
+    write_json(args.json, result)
     return 0

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
 
 from service.cli import UserError
+from service.commands.common_args import (add_common_arguments, add_soc0_argument, int_range, non_negative_float,
+                                          positive_float, setup_logging, text_stream, write_json)
 
 MAX_DEMO_CELLS = 256  # the output DBC's cell index is 8 bits; above 96 an input DBC is generated
 
@@ -21,47 +22,43 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "(tcp/127.0.0.1, no multicast), and score every cell's SOC against the replay's truth."
         ),
     )
-    parser.add_argument("--cells", type=int, default=8, help=f"cells in the pack, 1-{MAX_DEMO_CELLS} (default 8)")
-    parser.add_argument("--speed", type=float, default=0.0,
+    parser.add_argument("--cells", type=int_range(1, MAX_DEMO_CELLS), default=8, help=f"cells in the pack, 1-{MAX_DEMO_CELLS} (default 8)")
+    parser.add_argument("--speed", type=non_negative_float, default=0.0,
                         help="replay speed: 1 = real time, 0 = as fast as possible (default 0)")
-    parser.add_argument("--seconds", type=float, default=None, metavar="S",
+    parser.add_argument("--seconds", type=positive_float, default=None, metavar="S",
                         help="replay only the first S seconds of the recording")
     parser.add_argument("--recording", type=Path, default=None, help="a recording CSV instead of the bundled one")
-    parser.add_argument("--start-soc", type=float, default=None, metavar="SOC",
-                        help="true SOC at the recording's first sample, 0-1 (default: 1.0 for the bundled "
-                             "drive, which starts fully charged; else estimated from the first rest voltage)")
+    add_soc0_argument(parser, old_start_soc_alias=True,
+                      help="true SOC at the recording's first sample, 0-1 (default: 1.0 for the bundled "
+                           "drive, which starts fully charged; else estimated from the first rest voltage)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the per-cell spread (default 0)")
-    parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the figures as JSON")
     parser.add_argument("--plot", type=Path, default=Path("socd-demo.png"), metavar="FILE", help="PNG of SOC vs truth (default socd-demo.png)")
-    parser.add_argument("--log-level", default="warning", choices=("debug", "info", "warning", "error"))
+    add_common_arguments(parser, json_out="the figures")
     parser.set_defaults(func=_demo)
 
 
 def _demo(args: argparse.Namespace) -> int:
     from service.cell.profile import ProfileError
-    from service.demo import run_demo, summary_text, write_json, write_plot
+    from service.demo import run_demo, summary_text, write_plot
 
-    logging.basicConfig(level=getattr(logging, args.log_level.upper()),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    setup_logging(args)
     if not 1 <= args.cells <= MAX_DEMO_CELLS:
         raise UserError(f"--cells must be 1..{MAX_DEMO_CELLS}, got {args.cells}")
     if args.speed < 0:
         raise UserError(f"--speed must be >= 0, got {args.speed}")
     if args.seconds is not None and args.seconds <= 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
-    if args.start_soc is not None and not 0.0 <= args.start_soc <= 1.0:
-        raise UserError(f"--start-soc must be in [0, 1], got {args.start_soc}")
     if args.recording is not None and not args.recording.is_file():
         raise UserError(f"{args.recording}: no such recording")
     try:
         result, traces = run_demo(args.cells, args.speed, args.seconds, recording_path=args.recording,
-                                  start_soc=args.start_soc, seed=args.seed)
+                                  start_soc=args.soc0, seed=args.seed)
     except (FileNotFoundError, ProfileError) as exc:
         raise UserError(str(exc)) from None
-    print(summary_text(result))
+    out = text_stream(args)
+    print(summary_text(result), file=out)
     if args.plot is not None:
-        print(f"plot: {write_plot(args.plot, traces, result)}")
-    if args.json is not None:
-        print(f"json: {write_json(args.json, result)}")
+        print(f"plot: {write_plot(args.plot, traces, result)}", file=out)
+    write_json(args.json, result.to_json())
     return 0 if result.steps > 0 else 1
 

@@ -16,11 +16,13 @@ residual is left that no candidate removes; the candidates that only fit the fit
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 from service.cli import UserError
+from service.commands.common_args import (add_cell_argument, add_common_arguments, add_soc0_argument, json_to_stdout,
+                                          positive_float, probability, progress_enabled, setup_logging, write_json)
+from service.commands.progress import open_progress
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -32,28 +34,52 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("recording", help="recording CSV (time_s,current_a,voltage_v,temperature_c)")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--cell", help="cell profile (TOML/JSON) to start from")
+    add_cell_argument(src, help="cell profile (TOML/JSON) to start from")
     src.add_argument("--ocv", help="OCV(SOC) table CSV (soc + ocv_v/ocv_avg_v/...); needs --capacity-ah")
-    p.add_argument("--capacity-ah", type=float, help="capacity in Ah (with --ocv)")
-    p.add_argument("--json", help="write the result as JSON here ('-' = stdout)")
+    p.add_argument("--capacity-ah", type=positive_float, help="capacity in Ah (with --ocv)")
     p.add_argument("--report", help="write report.md and PNG plots into this directory")
     p.add_argument("--save-profile", help="write the extended cell profile here (.json or .toml): the verdict's "
                    "extension, or the base model alone when the verdict is none")
     p.add_argument("--save-effect", metavar="NAME",
                    help="with --save-profile: save this candidate's extension instead of the verdict's, even when "
                    "it is not significant (your call, e.g. from other evidence); 'none' saves the base model")
-    p.add_argument("--fit-fraction", type=float, default=0.6, help="share of the duration fitted (default 0.6)")
+    p.add_argument("--fit-fraction", type=_fit_fraction, default=0.6, help="share of the duration fitted (default 0.6)")
     p.add_argument("--split", choices=("chronological", "interleaved", "blocks"), default="chronological",
                    help="held-out protocol: the last 40 %% of the duration (default), or blocks 2,4,7,9 of 10")
-    p.add_argument("--soc0", type=float, help="known initial SOC in [0, 1] (default: from the opening rest voltage)")
+    add_soc0_argument(p, help="known initial SOC in [0, 1] (default: from the opening rest voltage)")
     p.add_argument("--effects", help="comma-separated subset of candidate effects to try (default: all)")
-    p.add_argument("--nominal-ambient-c", default="25", metavar="C",
+    p.add_argument("--nominal-ambient-c", type=_ambient, default=25.0, metavar="C",
                    help="the ambient a nominal recording is in (default 25 °C); a recording that opens 5 K or more "
                    "away from it and whose temperature then moves by 2 K or more has its temperature effect "
                    "nominated; 'none' judges the temperature only by how well a constant ambient explains it")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    add_common_arguments(p, progress=True, json_out="the result")
     p.set_defaults(func=run)
+
+
+def _ambient(text: str) -> float | None:
+    """A temperature in °C (-60..100), or 'none'."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        x = float(text)
+    except ValueError:
+        x = float("nan")
+    if not -60.0 <= x <= 100.0:
+        raise argparse.ArgumentTypeError(f"must be a temperature in °C (-60..100) or 'none', got {text!r}")
+    return x
+
+
+def _fit_fraction(text: str) -> float:
+    x = probability(text)
+    if not 0.2 <= x <= 0.9:
+        raise argparse.ArgumentTypeError(f"must be in [0.2, 0.9], got {text}")
+    return x
+
+
+def _note(args: argparse.Namespace, message: str) -> None:
+    if not args.quiet:
+        print(f"socd diagnose: {message}", file=sys.stderr, flush=True)
 
 
 def _profile_from_args(args):
@@ -90,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
     from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
     from service.recording import load_recording
 
+    setup_logging(args)
     profile, fit_base = _profile_from_args(args)
     rec = load_recording(args.recording)
     if not 0.2 <= args.fit_fraction <= 0.9:
@@ -110,41 +137,46 @@ def run(args: argparse.Namespace) -> int:
         if args.save_effect != "none" and args.save_effect not in effects:
             raise UserError(f"--save-effect: '{args.save_effect}' is not among the candidates tried "
                             f"({', '.join(effects)}) or 'none'")
-    if args.nominal_ambient_c.strip().lower() == "none":
-        nominal = None
-    else:
-        try:
-            nominal = float(args.nominal_ambient_c)
-        except ValueError:
-            nominal = float("nan")
-        if not -60.0 <= nominal <= 100.0:
-            raise UserError(f"--nominal-ambient-c must be a temperature in °C (-60..100) or 'none', "
-                            f"got {args.nominal_ambient_c!r}")
+    nominal = args.nominal_ambient_c
     opt = DiagnoseOptions(fit_fraction=args.fit_fraction, split=args.split, soc0=args.soc0, effects=effects,
                           seed=args.seed, fit_base=fit_base, nominal_ambient_c=nominal)
-    say = (lambda m: None) if args.quiet else (lambda m: print(f"socd diagnose: {m}", file=sys.stderr, flush=True))
+    # one step for the base fit and one per candidate refit: each announced fit ends the one before
+    total = 1 + len(effects)
+    bar = open_progress(progress_enabled(args), "diagnose", total, unit="fits")
+    started = 0
+
+    def say(message: str) -> None:
+        nonlocal started, total
+        if message.startswith("confirming "):  # a second pass over the nominated effects on another split
+            total += 1 + len(message[len("confirming "):].split(" on the ")[0].split(", "))
+            bar.update(total=total)
+        if message.startswith(("fitting the base model", "refitting with")):
+            if started:
+                bar.advance(1)
+            started += 1
+            bar.update(description=message)
+        else:
+            bar.log(f"socd diagnose: {message}")
+
     try:
         dg = run_diagnosis(rec, profile, opt, progress=say)
+        bar.update(completed=total)
     except ValueError as exc:
         raise UserError(f"{rec.path}: {exc}") from exc
+    finally:
+        bar.close()
     result = dg.to_json()
-    if args.json:
-        text = json.dumps(result, indent=1)
-        if args.json == "-":
-            print(text)
-        else:
-            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.json).write_text(text)
+    write_json(args.json, result)
     if args.report:
         from service.diagnosis.report import write_report
 
         path = write_report(dg, args.report)
-        say(f"report: {path}")
+        _note(args, f"report: {path}")
     if args.save_profile:
         save_profile(dg.best_profile() if args.save_effect is None else dg.profile_of(args.save_effect),
                      args.save_profile)
-        say(f"profile: {args.save_profile}")
-    if args.json != "-":
+        _note(args, f"profile: {args.save_profile}")
+    if not json_to_stdout(args):
         print(f"verdict: {dg.verdict} ({dg.assessment['state']}: {dg.assessment['text']})")
         for e in dg.effects:
             flag = "*" if e.significant else " "

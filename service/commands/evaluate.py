@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -14,6 +13,9 @@ import numpy as np
 
 from service.cell.profile import ProfileError, load_profile
 from service.cli import UserError
+from service.commands.common_args import (add_cell_argument, add_common_arguments, finite_float, full_at,
+                                          progress_enabled, setup_logging, text_stream, write_json)
+from service.commands.progress import open_progress
 from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
 from service.estimators.settings import EstimatorSettings
 from service.evaluation.metrics import score
@@ -34,19 +36,19 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("recordings", nargs="+", metavar="RECORDING", help="CSV: time_s,current_a,voltage_v,temperature_c[,soc_true]")
-    p.add_argument("--cell", required=True, metavar="CELL_FILE", help="cell profile (TOML/JSON) from 'socd fit'")
+    add_cell_argument(p, required=True)
     p.add_argument("--estimator", action="append", metavar="NAME",
                    help=f"estimator to run (repeatable; default all: {', '.join(DEFAULT_ESTIMATORS)})")
-    p.add_argument("--full-at", action="append", metavar="S",
+    p.add_argument("--full-at", action="append", type=full_at, metavar="S",
                    help="time [s] of the full-charge point, or 'auto' to detect the end of the CC-CV charge; "
                         "give once for all recordings or once per recording (default: the file's start)")
-    p.add_argument("--init-soc-error", type=float, default=0.20, metavar="E",
+    p.add_argument("--init-soc-error", type=_soc_error, default=0.20, metavar="E",
                    help="initial SOC error (default 0.20; subtracted where truth starts above 0.8)")
     p.add_argument("--warm-start", action="store_true",
                    help="drive the estimators' polarisation states (RC/CPE branches, hysteresis) with the "
                         "current recorded before the full point, as a service that had been running would "
                         "have them; SOC still starts wrong. Default: every estimator starts relaxed")
-    p.add_argument("--current-bias-c", type=float, default=0.0, metavar="F",
+    p.add_argument("--current-bias-c", type=_bias_c, default=0.0, metavar="F",
                    help="add a current-sensor offset of F x 1C (signed, e.g. 0.01) to the current every "
                         "estimator reads; the truth keeps the recorded current. Shows what an estimator "
                         "does with a sensor error the truth does not contain: coulomb counting drifts by F "
@@ -54,13 +56,26 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--settings", metavar="TOML",
                    help="pipeline settings (EstimatorSettings fields, top level or under [estimator]) to "
                         "override; an [ecm2rc_ekf] table sets the 2-RC EKF's tuning (EkfTuning fields)")
-    p.add_argument("--json", metavar="OUT", help="write results as JSON")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots per recording")
     p.add_argument("--traces", metavar="DIR",
                    help="write <recording>_traces.csv per recording: time, truth, measured voltage and each "
                         "estimator's SOC and predicted voltage over the scored part (to look into a figure)")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    add_common_arguments(p, progress=True, json_out="the results")
     p.set_defaults(func=run)
+
+
+def _soc_error(text: str) -> float:
+    x = finite_float(text)
+    if not 0.0 <= x < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {text}")
+    return x
+
+
+def _bias_c(text: str) -> float:
+    x = finite_float(text)
+    if abs(x) > 0.5:
+        raise argparse.ArgumentTypeError(f"must be a fraction of 1C within ±0.5, got {text}")
+    return x
 
 
 def load_settings(path: str | None) -> tuple[EstimatorSettings, dict]:
@@ -93,6 +108,7 @@ def load_settings(path: str | None) -> tuple[EstimatorSettings, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
+    setup_logging(args)
     try:
         profile = load_profile(args.cell)
     except ProfileError as exc:
@@ -111,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
     recordings = [load_recording(p) for p in args.recordings]  # validate all before the long work
     results = []
     capacity = profile.capacity_ah * profile.extensions.capacity_scale
+    total = sum(len(r) for r in recordings) * len(estimators)
+    bar = open_progress(progress_enabled(args), "evaluate", total, unit="samples")
     for rec, fa in zip(recordings, full):
         part, truth = truth_and_start(rec, capacity, fa)
         soc0 = wrong_start(float(truth[0]), args.init_soc_error)
@@ -125,12 +143,12 @@ def run(args: argparse.Namespace) -> int:
             part_seen = part
         traces = {}
         for est in estimators:
-            if not args.quiet:
-                print(f"[evaluate] {rec.name}: {est.name} ({len(part)} samples)...", file=sys.stderr, flush=True)
+            bar.update(description=f"{rec.name[:28]}: {est.name}")
             t0 = time.perf_counter()
             trace = est.run(part_seen, profile, soc0, history=history)
             us = 1e6 * (time.perf_counter() - t0) / len(part)
             traces[est.name] = trace
+            bar.advance(len(rec))
             s = score(part.time_s, trace.soc, truth, trace.v_pred, part.voltage_v)
             results.append({
                 "recording": rec.name,
@@ -149,14 +167,11 @@ def run(args: argparse.Namespace) -> int:
             from service.evaluation.plots import plot_recording
 
             plot_recording(Path(args.plots), rec.name, part.time_s, truth, part.voltage_v, traces)
-    print_table(results)
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"results": results, "cell": str(args.cell),
-                                               "init_soc_error": args.init_soc_error,
-                                               "warm_start": bool(args.warm_start),
-                                               "current_bias_c": args.current_bias_c,
-                                               "settings": args.settings}, indent=1))
+    bar.close()
+    print_table(results, text_stream(args))
+    write_json(args.json, {"results": results, "cell": str(args.cell), "init_soc_error": args.init_soc_error,
+                           "warm_start": bool(args.warm_start), "current_bias_c": args.current_bias_c,
+                           "settings": args.settings})
     return 0
 
 
@@ -183,11 +198,12 @@ def _fmt(v: float | None, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
 
-def print_table(results: list[dict]) -> None:
+def print_table(results: list[dict], out=None) -> None:
+    out = out or sys.stdout
     head = f"{'recording':34s} {'estimator':17s} {'RMSE%':>6s} {'MAE%':>6s} {'max%':>6s} {'RMSE>600s%':>10s} {'conv s':>7s} {'V mV':>6s} {'us/step':>8s}"
-    print(head)
-    print("-" * len(head))
+    print(head, file=out)
+    print("-" * len(head), file=out)
     for r in results:
         print(f"{r['recording'][:34]:34s} {r['estimator']:17s} {r['soc_rmse_pct']:6.2f} {r['soc_mae_pct']:6.2f} "
               f"{r['soc_max_pct']:6.2f} {_fmt(r['soc_rmse_after_600s_pct'], '10.2f')} {_fmt(r['convergence_s'], '7.0f')} "
-              f"{_fmt(r['v_rmse_mv'], '6.1f')} {r['us_per_step']:8.1f}")
+              f"{_fmt(r['v_rmse_mv'], '6.1f')} {r['us_per_step']:8.1f}", file=out)

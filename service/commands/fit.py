@@ -8,6 +8,8 @@ from pathlib import Path
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cli import UserError
+from service.commands.common_args import (add_common_arguments, full_at, positive_float, positive_int,
+                                          setup_logging)
 from service.evaluation.truth import per_recording
 from service.recording import load_recording
 
@@ -27,8 +29,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("recordings", nargs="+", metavar="RECORDING")
-    p.add_argument("--capacity-ah", type=float, required=True, metavar="X", help="cell capacity [Ah]")
-    p.add_argument("--full-at", action="append", metavar="S",
+    p.add_argument("--capacity-ah", type=positive_float, required=True, metavar="X", help="cell capacity [Ah]")
+    p.add_argument("--full-at", action="append", type=full_at, metavar="S",
                    help="time [s] of the full-charge point ('auto' to detect; once, or once per recording; default: file start)")
     p.add_argument("--ocv", metavar="OCV_CSV", help="OCV table CSV: soc + ocv_v (or ocv_avg_v/...)")
     p.add_argument("--hysteresis", action="store_true", help="also fit the one-state hysteresis (LFP cells)")
@@ -59,20 +61,22 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="with no OCV table or test (the OCV fitted jointly with the model): shift the fitted table to "
                    "pass through the relaxed voltages at the ends of the recordings' rests of 600 s or more (the "
                    "outermost offset holds beyond them); off by default (README: CALCE INR18650-20R)")
-    p.add_argument("--max-seconds", type=float, default=60.0, help="optimiser time per temperature (default 60)")
-    p.add_argument("--memory-length", type=int, default=16, help="G-L memory length used in the fit (default 16)")
+    p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time per temperature (default 60)")
+    p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
     p.add_argument("--force", action="store_true",
                    help="write the profile even when a temperature's fit is poor (RMSE above 50 mV) or worse than "
                    "the textbook 2-RC fit of the same data; without it such a fit exits 2 and writes nothing")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", help="profile to write (.toml or .json)")
+    add_common_arguments(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from service.characterisation.characterise import characterise, check_fit_quality
 
+    setup_logging(args)
     if not args.capacity_ah > 0:
         raise UserError(f"--capacity-ah must be > 0, got {args.capacity_ah}")
     recs = [load_recording(p) for p in args.recordings]

@@ -1,5 +1,11 @@
 """``socd watch``: a live terminal table of a pack's cells from Zenoh (and optionally a PNG).
 
+The view (rich.live + rich.table) is a summary header (pack SOC min/mean/max with their
+cells, current, health flags and counters, latency) above a grid of cells that puts as many
+``cell SOC σ V`` groups side by side as the terminal is wide, so a 96-cell pack fits one
+screen.  Stale cells are yellow, cells whose filter was re-initialised (diverged) red;
+``--sort soc|cell|sigma|voltage`` orders the grid (read down each column, then across).
+
 Subscribes to ``<prefix>/<pack>/cell/*/soc``, ``.../summary`` and ``.../health``; joins late
 by asking the ``<prefix>/<pack>/snapshot`` queryable for every cell's latest state first.
 Zenoh's callbacks run on Zenoh's threads and are handed to the asyncio loop with
@@ -21,9 +27,17 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from service.cli import UserError
+from service.commands.common_args import add_common_arguments, positive_float, setup_logging
 
 PLOT_EVERY_S = 2.0
 HISTORY = 3600
+SORT_KEYS = ("cell", "soc", "sigma", "voltage")
+#: characters one ``cell SOC σ V`` group takes in the grid (columns plus padding), and one
+#: compact ``cell SOC`` group (used when the full grid would be taller than the terminal)
+GROUP_WIDTH = 32
+COMPACT_GROUP_WIDTH = 16
+#: lines the header, the grid's column titles and its caption take
+HEADER_LINES = 12
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -36,11 +50,17 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         help="Zenoh endpoint of the service (default tcp/127.0.0.1:7447)")
     parser.add_argument("--prefix", default="bms", help="key prefix (default bms)")
     parser.add_argument("--pack", default="pack0", help="pack id (default pack0)")
+    parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE.json5",
+                        help="a Zenoh JSON5 config (TLS, auth, ...); --connect applies where it sets no endpoints")
     parser.add_argument("--plot", type=Path, default=None, metavar="FILE.png",
                         help=f"keep a PNG of SOC over time up to date (every {PLOT_EVERY_S:g} s)")
     parser.add_argument("--once", action="store_true", help="print one table (from the snapshot) and exit")
-    parser.add_argument("--timeout", type=float, default=5.0, metavar="S",
+    parser.add_argument("--timeout", type=positive_float, default=5.0, metavar="S",
                         help="--once: give up after S seconds without data (default 5)")
+    parser.add_argument("--sort", choices=SORT_KEYS, default="cell",
+                        help="order of the cells: index (default), SOC (lowest first), σ (largest first) or "
+                             "voltage (lowest first)")
+    add_common_arguments(parser)
     parser.set_defaults(func=_watch)
 
 
@@ -86,45 +106,128 @@ class PackView:
         self.summary = self.summary or snap.summary
         self.health = self.health or snap.health
 
-    def table(self, title: str) -> str:
+    def sorted_cells(self, key: str = "cell") -> list:
+        """The cells in display order; cells without a value sort last."""
+        from service.daemon.payloads import CellSoc
+
+        def missing_last(x: float | None, sign: float = 1.0) -> tuple[bool, float]:
+            return (x is None, 0.0 if x is None else sign * x)
+
+        order = {
+            "cell": lambda c: (False, float(c.cell)),
+            "soc": lambda c: missing_last(c.soc_pct),
+            "sigma": lambda c: missing_last(c.soc_std_pct, -1.0),
+            "voltage": lambda c: missing_last(c.voltage_v),
+        }[key]
+        cells: list[CellSoc] = list(self.cells.values())
+        return sorted(cells, key=lambda c: (order(c), c.cell))
+
+    def render(self, title: str, sort: str = "cell", width: int = 120, height: int | None = None):
+        """The whole view as one rich renderable: summary header above the cell grid.
+
+        With ``height`` (the terminal's), a grid that would not fit drops the σ and V
+        columns to put more cells on each line.
+        """
+        from rich.console import Group
+
+        compact = False
+        if height is not None and self.cells:
+            groups = max(1, width // GROUP_WIDTH)
+            compact = HEADER_LINES + -(-len(self.cells) // groups) > height
+        return Group(self.header(title), self.grid(sort, width, compact=compact))
+
+    def header(self, title: str):
+        from rich.table import Table
+        from rich.text import Text
+
+        t = Table.grid(padding=(0, 2))
+        t.add_column(style="bold")
+        t.add_column()
+        t.title = title
+        t.title_justify = "left"
+        t.title_style = "bold"
         s = self.summary
-        lines = [title]
         if s is not None:
-            flags = [k for k, v in s.status_flags.items() if v]
-            lines.append(
-                f"t={s.t_s:.1f} s  cells {s.n_cells}  SOC mean {_pct(s.soc_mean_pct)}  "
-                f"min {_pct(s.soc_min_pct)} (cell {s.cell_min})  max {_pct(s.soc_max_pct)} (cell {s.cell_max})  "
-                f"I {'-' if s.current_a is None else f'{s.current_a:.2f} A'}  stale {s.n_stale}"
-            )
-            lines.append("flags: " + (", ".join(sorted(flags)) if flags else "none"))
+            t.add_row("SOC", Text(
+                f"min {_pct(s.soc_min_pct)} (cell {_opt(s.cell_min)})  mean {_pct(s.soc_mean_pct)}  "
+                f"max {_pct(s.soc_max_pct)} (cell {_opt(s.cell_max)})  σ max {_pct(s.soc_std_max_pct)}"))
+            t.add_row("pack", Text(
+                f"{s.n_cells} cells   I {'-' if s.current_a is None else f'{s.current_a:.2f} A'}   "
+                f"t {s.t_s:.1f} s"))
+            raised = sorted(k for k, v in s.status_flags.items() if v)
+            counts = Text(f"stale {s.n_stale}", style="yellow" if s.n_stale else "")
+            counts.append(f"   diverged {sum(1 for c in self.cells.values() if c.resets)}",
+                          style="red" if any(c.resets for c in self.cells.values()) else "")
+            t.add_row("cells", counts)
+            t.add_row("health", Text(", ".join(raised), style="bold red") if raised else Text("ok", style="green"))
+        else:
+            t.add_row("pack", Text("(no summary yet)", style="dim"))
         if self.health is not None:
             c, lat = self.health.counters, self.health.latency_ms
-            lines.append(
-                f"frames in {c.get('frames_in', 0)}  rejected {c.get('frames_rejected', 0)}  "
-                f"resets {c.get('filter_resets', 0)}  zenoh drops {c.get('zenoh_dropped', 0)}  "
-                f"latency p50/p99 {lat.get('publish_p50')}/{lat.get('publish_p99')} ms"
-            )
-        lines.append(f"{'cell':>5} {'SOC %':>7} {'σ %':>6} {'V':>7}  flags")
-        for i in sorted(self.cells):
-            c = self.cells[i]
-            flags = []
-            if c.stale:
-                flags.append("STALE")
-            if c.resets:
-                flags.append(f"resets={c.resets}")
-            lines.append(f"{i:>5} {_num(c.soc_pct, 7, 2)} {_num(c.soc_std_pct, 6, 2)} {_num(c.voltage_v, 7, 3)}  "
-                         + " ".join(flags))
-        if not self.cells:
-            lines.append("  (no cells yet)")
-        return "\n".join(lines)
+            t.add_row("counters", Text(
+                f"frames in {c.get('frames_in', 0)}   rejected {c.get('frames_rejected', 0)}   "
+                f"filter resets {c.get('filter_resets', 0)}   zenoh drops {c.get('zenoh_dropped', 0)}   "
+                f"bus reconnects {c.get('bus_reconnects', 0)}"))
+            t.add_row("latency", Text(
+                f"estimate p50/p99 {_ms(lat.get('estimate_p50'))}/{_ms(lat.get('estimate_p99'))}   "
+                f"publish p50/p99 {_ms(lat.get('publish_p50'))}/{_ms(lat.get('publish_p99'))}   "
+                f"checkpoint: {self.health.checkpoint}"))
+        t.add_row("watch", Text(f"{self.messages} messages, {self.bad} invalid", style="dim"))
+        return t
+
+    def grid(self, sort: str = "cell", width: int = 120, compact: bool = False):
+        """Cells in side-by-side column groups sized to ``width``, read down then across."""
+        from rich import box
+        from rich.table import Table
+        from rich.text import Text
+
+        cells = self.sorted_cells(sort)
+        groups = max(1, min(len(cells) or 1, width // (COMPACT_GROUP_WIDTH if compact else GROUP_WIDTH)))
+        per_cell = 2 if compact else 4
+        rows = -(-len(cells) // groups) if cells else 0
+        t = Table(box=box.SIMPLE_HEAD, padding=(0, 1), pad_edge=False, show_edge=False,
+                  caption=f"sorted by {sort}, read down then across; ~ stale, ! filter re-initialised"
+                + ("; σ and V hidden to fit the screen" if compact else ""),
+                  caption_justify="left")
+        for _ in range(groups):
+            t.add_column("cell", justify="right", style="bold", min_width=4, no_wrap=True)
+            t.add_column("SOC %", justify="right", min_width=6, no_wrap=True)
+            if not compact:
+                t.add_column("σ %", justify="right", min_width=5, no_wrap=True)
+                t.add_column("V", justify="right", min_width=6, no_wrap=True)
+        for r in range(rows):
+            row: list = []
+            for g in range(groups):
+                k = g * rows + r
+                if k < len(cells):
+                    c = cells[k]
+                    style = "red" if c.resets else ("yellow" if c.stale else "")
+                    mark = "!" if c.resets else ("~" if c.stale else " ")
+                    row += [Text(f"{c.cell}{mark}", style=style or "bold"), Text(_num(c.soc_pct, 2), style)]
+                    if not compact:
+                        row += [Text(_num(c.soc_std_pct, 2), style), Text(_num(c.voltage_v, 3), style)]
+                else:
+                    row += [""] * per_cell
+            t.add_row(*row)
+        if not cells:
+            t.add_row(Text("(no cells yet)", style="dim"), *[""] * (per_cell * groups - 1))
+        return t
 
 
 def _pct(x: float | None) -> str:
     return "-" if x is None else f"{x:.2f} %"
 
 
-def _num(x: float | None, width: int, nd: int) -> str:
-    return f"{'-':>{width}}" if x is None else f"{x:>{width}.{nd}f}"
+def _opt(x: int | None) -> str:
+    return "-" if x is None else str(x)
+
+
+def _ms(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f} ms"
+
+
+def _num(x: float | None, nd: int) -> str:
+    return "-" if x is None else f"{x:.{nd}f}"
 
 
 def write_plot(path: Path, view: PackView, title: str) -> None:
@@ -152,15 +255,19 @@ def write_plot(path: Path, view: PackView, title: str) -> None:
 
 async def watch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     import zenoh
+    from rich.console import Console
 
     from service.daemon.payloads import keys
-    from service.daemon.zenoh_pub import zenoh_config
+    from service.daemon.zenoh_pub import ZenohConfigError
 
     k = keys(args.prefix, args.pack)
     loop = asyncio.get_running_loop()
     view = PackView()
+    console = Console(file=out)
     try:
-        session = zenoh.open(zenoh_config("peer", [], [args.connect], False))
+        session = zenoh.open(_session_config(args))
+    except ZenohConfigError as exc:
+        raise UserError(str(exc).replace("zenoh.config_file", "--zenoh-config", 1)) from None
     except Exception as exc:  # noqa: BLE001 - zenoh.ZError
         raise UserError(f"cannot open a Zenoh session to {args.connect}: {exc}") from None
 
@@ -193,27 +300,54 @@ async def watch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
             if snap is None:
                 print(f"socd watch: no snapshot from {k.snapshot} within {args.timeout:g} s", file=sys.stderr)
                 return 1
-            print(view.table(title), file=out)
+            console.print(view.render(title, args.sort, console.width, console.height if console.is_terminal else None))
             if args.plot:
                 write_plot(args.plot, view, title)
             return 0
-        tty = out.isatty()
-        last_plot = 0.0
-        while True:
-            text = view.table(title + f"  ({view.messages} messages)")
-            out.write(("\x1b[H\x1b[2J" + text + "\n") if tty else (text + "\n\n"))
-            out.flush()
-            if args.plot and time.monotonic() - last_plot > PLOT_EVERY_S:
-                last_plot = time.monotonic()
-                await asyncio.to_thread(write_plot, args.plot, view, title)
-            await asyncio.sleep(0.5 if tty else 2.0)
+        await _live(console, view, title, args)
+        return 0
     finally:
         for s in subs:
             s.undeclare()
         session.close()
 
 
+def _session_config(args: argparse.Namespace):
+    """A peer that listens nowhere, connects to ``--connect``, no multicast; under ``--zenoh-config``."""
+    from service.daemon.zenoh_pub import config_from_section
+
+    section = argparse.Namespace(mode="peer", listen=[], connect=[args.connect], scouting_multicast=False,
+                                 config_file=getattr(args, "zenoh_config", None))
+    return config_from_section(section)
+
+
+async def _live(console: Any, view: PackView, title: str, args: argparse.Namespace) -> None:
+    """Redraw in place on a terminal (rich.live); print a fresh table every 2 s otherwise."""
+    from rich.live import Live
+
+    last_plot = 0.0
+
+    async def plot_now() -> None:
+        nonlocal last_plot
+        if args.plot and time.monotonic() - last_plot > PLOT_EVERY_S:
+            last_plot = time.monotonic()
+            await asyncio.to_thread(write_plot, args.plot, view, title)
+
+    if not console.is_terminal:
+        while True:
+            console.print(view.render(title, args.sort, console.width))
+            await plot_now()
+            await asyncio.sleep(2.0)
+    with Live(view.render(title, args.sort, console.width, console.height), console=console, auto_refresh=False,
+              screen=True, vertical_overflow="crop") as live:
+        while True:
+            live.update(view.render(title, args.sort, console.width, console.height), refresh=True)
+            await plot_now()
+            await asyncio.sleep(0.5)
+
+
 def _watch(args: argparse.Namespace) -> int:
+    setup_logging(args)
     try:
         return asyncio.run(watch(args))
     except KeyboardInterrupt:

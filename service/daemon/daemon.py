@@ -102,13 +102,23 @@ class Daemon:
             self.receiver = CanReceiver(self.health, bus=bus, reconnect_initial_s=b.reconnect_initial_s,
                                         reconnect_max_s=b.reconnect_max_s)
         else:
-            self.receiver = CanReceiver(self.health, open_bus=lambda: can.Bus(**b.bus_kwargs()),
+            from service.daemon.bus_open import BusOpener
+
+            self.receiver = CanReceiver(self.health, open_bus=BusOpener(b),
                                         reconnect_initial_s=b.reconnect_initial_s, reconnect_max_s=b.reconnect_max_s)
         self.publisher: ZenohPublisher | None = None
         if config.output.zenoh_enabled:
             self.publisher = ZenohPublisher(config.zenoh, config.output.queue_size, self.health,
                                             session_factory=zenoh_session_factory)
         self._install_signals = install_signal_handlers
+        self.metrics = None
+        metrics_cfg = getattr(config, "metrics", None)
+        if metrics_cfg is not None and metrics_cfg.enabled:
+            from service.daemon.metrics import MetricsServer
+
+            self.metrics = MetricsServer(self.counters, self.health.flags, self.health.uptime_s, self.n,
+                                         host=metrics_cfg.host, port=metrics_cfg.port)
+            self.metrics.attach(self.health)
 
         # estimation state
         self.initialised = False
@@ -140,6 +150,8 @@ class Daemon:
         loop = asyncio.get_running_loop()
         installed = self._add_signal_handlers(loop, stop) if self._install_signals else []
         self.restore()
+        if self.metrics is not None:
+            self.metrics.start()
         if self.publisher is not None:
             self.publisher.start()
         tasks = {
@@ -178,6 +190,8 @@ class Daemon:
             if self.publisher is not None:
                 self.publisher.stop()
             self.receiver.close()
+            if self.metrics is not None:
+                self.metrics.stop()
             for sig in installed:
                 loop.remove_signal_handler(sig)
         if crashed is not None:

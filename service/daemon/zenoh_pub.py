@@ -15,7 +15,10 @@ Zenoh's Python API has no asyncio interface; nothing here touches the event loop
 
 Session config: ``mode``, ``listen`` (always set explicitly: Zenoh's unset default
 listens on every interface), ``connect``, and multicast scouting as configured (off by
-default and in every test).
+default and in every test).  ``[zenoh] config_file`` names a Zenoh JSON5 config (TLS,
+access control, routers, ...) read with ``zenoh.Config.from_file``; those four settings of
+the section are then applied only where the file leaves them at Zenoh's default, so a key
+the file sets always wins (see :func:`config_from_section`).
 """
 
 from __future__ import annotations
@@ -53,9 +56,37 @@ def zenoh_config(mode: str, listen: Sequence[str], connect: Sequence[str], scout
     return cfg
 
 
+class ZenohConfigError(ValueError):
+    """``zenoh.config_file`` cannot be read or parsed; the message names the file."""
+
+
+#: the section's network keys, as Zenoh config paths
+SECTION_KEYS = ("mode", "listen/endpoints", "connect/endpoints", "scouting/multicast/enabled")
+
+
 def config_from_section(z: Any):
-    """A ``zenoh.Config`` from the ``[zenoh]`` section of :class:`service.config.SocdConfig`."""
-    return zenoh_config(z.mode, z.listen, z.connect, z.scouting_multicast)
+    """A ``zenoh.Config`` from the ``[zenoh]`` section of :class:`service.config.SocdConfig`.
+
+    With ``config_file``: the user's file, then each of :data:`SECTION_KEYS` from the section
+    only where the file leaves it at Zenoh's default value (the file wins where it sets one).
+    Raises :class:`ZenohConfigError` for a missing or malformed file.
+    """
+    path = getattr(z, "config_file", None)
+    if path is None:
+        return zenoh_config(z.mode, z.listen, z.connect, z.scouting_multicast)
+    import zenoh
+
+    try:
+        cfg = zenoh.Config.from_file(str(path))
+    except Exception as exc:  # noqa: BLE001 - zenoh.ZError for a missing or malformed file
+        detail = str(exc).split(" at /")[0].strip().replace("\n", " ")
+        raise ZenohConfigError(f"zenoh.config_file: {path}: {' '.join(detail.split())}") from None
+    default = zenoh.Config()
+    ours = dict(zip(SECTION_KEYS, (z.mode, list(z.listen), list(z.connect), bool(z.scouting_multicast))))
+    for key, value in ours.items():
+        if cfg.get_json(key) == default.get_json(key):
+            cfg.insert_json5(key, json.dumps(value))
+    return cfg
 
 
 @dataclass

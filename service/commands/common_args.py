@@ -1,0 +1,277 @@
+"""The flags every ``socd`` command shares, defined once (like python-can's :mod:`can.cli`).
+
+One vocabulary across commands:
+
+==================  =====================================================================
+flag                meaning
+==================  =====================================================================
+``--cell FILE``     cell profile (TOML/JSON from ``socd fit``)
+``--soc0 SOC``      initial/known SOC, a fraction in [0, 1]
+``-q/--quiet``      no progress on stderr (``--progress`` forces it when stderr is no TTY)
+``--log-level``     ``debug|info|warning|error``
+``--json OUT``      results as JSON to a file, or ``-`` for stdout (human text then goes to
+                    stderr so stdout stays valid JSON)
+==================  =====================================================================
+
+Older spellings still parse as hidden, deprecated aliases that say so on stderr:
+``--profile`` (→ ``--cell``), ``--start-soc`` (→ ``--soc0``), ``--no-progress`` (→ ``--quiet``).
+
+Every value is checked by an argparse ``type=`` function, so a bad value is argparse's own
+one-line error naming the flag (``argument --speed: must be >= 0, got -1``), exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TextIO
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+# ---------------------------------------------------------------------------------------
+# value types (argparse ``type=``): raise ArgumentTypeError with a message that reads
+# after "argument --flag: "
+# ---------------------------------------------------------------------------------------
+def _float(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(x):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return x
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text, 10)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0."""
+    x = _float(text)
+    if x <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return x
+
+
+def non_negative_float(text: str) -> float:
+    """A finite number >= 0."""
+    x = _float(text)
+    if x < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return x
+
+
+def finite_float(text: str) -> float:
+    return _float(text)
+
+
+def probability(text: str) -> float:
+    """A probability in [0, 1]."""
+    x = _float(text)
+    if not 0.0 <= x <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be a probability in [0, 1], got {text}")
+    return x
+
+
+def soc_fraction(text: str) -> float:
+    """A state of charge as a fraction in [0, 1] (not percent)."""
+    x = _float(text)
+    if not 0.0 <= x <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be a SOC fraction in [0, 1], got {text}")
+    return x
+
+
+def positive_int(text: str) -> int:
+    n = _int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    return n
+
+
+def non_negative_int(text: str) -> int:
+    n = _int(text)
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return n
+
+
+def int_range(lo: int, hi: int) -> Callable[[str], int]:
+    """An integer in [lo, hi]."""
+
+    def parse(text: str) -> int:
+        n = _int(text)
+        if not lo <= n <= hi:
+            raise argparse.ArgumentTypeError(f"must be {lo}..{hi}, got {text}")
+        return n
+
+    parse.__name__ = f"int {lo}..{hi}"
+    return parse
+
+
+def stuck_cell(text: str) -> tuple[int, float]:
+    """``I`` or ``I:T0``: cell index (0-based) and the time (s, >= 0) it freezes from."""
+    cell, sep, t0 = text.partition(":")
+    try:
+        i = non_negative_int(cell.strip())
+        t = non_negative_float(t0) if sep else 0.0
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected I[:T0] (cell index >= 0, start time >= 0 s), got {text!r}") from None
+    return i, t
+
+
+def bus_gap(text: str) -> tuple[float, float]:
+    """``T0:DURATION``: start (s, >= 0) and length (s, > 0) of a silence on the bus."""
+    t0, sep, dur = text.partition(":")
+    try:
+        if not sep:
+            raise argparse.ArgumentTypeError("no ':'")
+        return non_negative_float(t0), positive_float(dur)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected T0:DURATION (T0 >= 0 s, DURATION > 0 s), got {text!r}") from None
+
+
+def full_at(text: str) -> str:
+    """``auto`` or a time in s (>= 0); kept as text for :func:`service.evaluation.truth.per_recording`."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        non_negative_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a time in s (>= 0) or 'auto', got {text!r}") from None
+    return text
+
+
+# ---------------------------------------------------------------------------------------
+# deprecated spellings
+# ---------------------------------------------------------------------------------------
+class _DeprecatedAlias(argparse.Action):
+    """Stores like the new flag and says once on stderr that the old spelling is deprecated."""
+
+    def __init__(self, option_strings, dest, new_flag: str, store_true: bool = False, **kw):
+        self.new_flag = new_flag
+        self.store_true = store_true
+        if store_true:
+            kw["nargs"] = 0
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"socd: warning: {option_string} is deprecated; use {self.new_flag}", file=sys.stderr)
+        setattr(namespace, self.dest, True if self.store_true else values)
+
+
+def _alias(parser: Any, old: str, new: str, dest: str, type: Callable | None = None,
+           store_true: bool = False, metavar: str | None = None) -> None:
+    parser.add_argument(old, dest=dest, action=_DeprecatedAlias, new_flag=new, store_true=store_true,
+                        type=type, default=argparse.SUPPRESS, help=argparse.SUPPRESS, metavar=metavar)
+
+
+# ---------------------------------------------------------------------------------------
+# the shared flags
+# ---------------------------------------------------------------------------------------
+def add_cell_argument(parser: Any, *, required: bool = False, help: str | None = None,
+                      old_profile_alias: bool = False) -> None:
+    """``--cell CELL_FILE`` (``--profile`` kept as a hidden alias where it was used)."""
+    parser.add_argument("--cell", metavar="CELL_FILE", required=required, default=None,
+                        help=help or "cell profile (TOML/JSON) from 'socd fit'")
+    if old_profile_alias:
+        _alias(parser, "--profile", "--cell", "cell", metavar="CELL_FILE")
+
+
+def add_soc0_argument(parser: Any, *, help: str | None = None, old_start_soc_alias: bool = False) -> None:
+    """``--soc0 SOC`` in [0, 1] (``--start-soc`` kept as a hidden alias where it was used)."""
+    parser.add_argument("--soc0", type=soc_fraction, default=None, metavar="SOC",
+                        help=help or "initial SOC, a fraction in [0, 1]")
+    if old_start_soc_alias:
+        _alias(parser, "--start-soc", "--soc0", "soc0", type=soc_fraction, metavar="SOC")
+
+
+def add_progress_arguments(parser: Any, *, old_no_progress_alias: bool = False) -> None:
+    """``-q/--quiet`` and ``--progress`` (progress bars on stderr even when it is no TTY)."""
+    g = parser.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    g.add_argument("--progress", action="store_true",
+                   help="show progress even when stderr is not a terminal (default: only on a terminal)")
+    if old_no_progress_alias:
+        _alias(parser, "--no-progress", "--quiet", "quiet", store_true=True)
+
+
+def add_log_level_argument(parser: Any, default: str = "warning") -> None:
+    parser.add_argument("--log-level", default=default, choices=LOG_LEVELS, help=f"default: {default}")
+
+
+def add_json_argument(parser: Any, what: str = "the results") -> None:
+    parser.add_argument("--json", metavar="OUT", default=None,
+                        help=f"write {what} as JSON to OUT ('-' = stdout; the text summary then goes to stderr)")
+
+
+def add_common_arguments(parser: argparse.ArgumentParser, *, progress: bool = False, json_out: str | None = None,
+                         log_level: str = "warning", old_no_progress_alias: bool = False) -> None:
+    """``--log-level`` on every command; ``--quiet/--progress`` and ``--json`` where they apply."""
+    add_log_level_argument(parser, log_level)
+    if progress:
+        add_progress_arguments(parser, old_no_progress_alias=old_no_progress_alias)
+    if json_out is not None:
+        add_json_argument(parser, json_out)
+
+
+# ---------------------------------------------------------------------------------------
+# what commands do with them
+# ---------------------------------------------------------------------------------------
+def setup_logging(args: argparse.Namespace) -> None:
+    level = getattr(args, "log_level", None) or "warning"
+    logging.basicConfig(level=getattr(logging, level.upper()),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def progress_enabled(args: argparse.Namespace, stream: TextIO | None = None) -> bool:
+    """Progress on stderr: never with ``--quiet``; always with ``--progress``; else only on a TTY."""
+    if getattr(args, "quiet", False):
+        return False
+    if getattr(args, "progress", False):
+        return True
+    stream = stream or sys.stderr
+    return bool(getattr(stream, "isatty", lambda: False)())
+
+
+def json_to_stdout(args: argparse.Namespace) -> bool:
+    return getattr(args, "json", None) == "-"
+
+
+def text_stream(args: argparse.Namespace) -> TextIO:
+    """Where a command's human-readable summary goes: stderr when stdout carries ``--json -``."""
+    return sys.stderr if json_to_stdout(args) else sys.stdout
+
+
+def _plain(x: Any) -> Any:
+    """numpy scalars and paths as JSON values."""
+    if isinstance(x, Path):
+        return str(x)
+    if hasattr(x, "item"):
+        return x.item()
+    raise TypeError(f"{type(x).__name__} is not JSON serialisable")
+
+
+def write_json(dest: str | None, obj: Any) -> None:
+    """Write ``obj`` as JSON to ``dest`` (a path, ``-`` for stdout, None for nowhere)."""
+    if dest is None:
+        return
+    text = json.dumps(obj, indent=1, default=_plain)
+    if dest == "-":
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+        return
+    path = Path(dest)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text + "\n")
