@@ -23,6 +23,7 @@ from replay.pack import SpreadSpec, pack_frames
 from replay.player import LOG_SUFFIXES, play, read_log
 from service.bus.cli_args import add_bus_arguments, create_bus_from_namespace
 from service.cli import UserError
+from service.extras import install_hint, installed
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -105,6 +106,9 @@ def run(args: argparse.Namespace) -> int:
     path = Path(args.input)
     if not path.is_file():
         raise UserError(f"{path}: no such file")
+    mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
+    if mf4_files and not installed("asammdf"):
+        raise UserError(f"{mf4_files[0]}: MF4 {install_hint('asammdf')}")
     config = _config(args)
     try:
         faults = FaultSpec(

@@ -9,6 +9,7 @@ from pathlib import Path
 from service.cli import UserError
 
 MAX_DEMO_CELLS = 256  # the output DBC's cell index is 8 bits; above 96 an input DBC is generated
+DEFAULT_PLOT = Path("socd-demo.png")
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -32,7 +33,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                              "drive, which starts fully charged; else estimated from the first rest voltage)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the per-cell spread (default 0)")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the figures as JSON")
-    parser.add_argument("--plot", type=Path, default=Path("socd-demo.png"), metavar="FILE", help="PNG of SOC vs truth (default socd-demo.png)")
+    parser.add_argument("--plot", type=Path, default=None, metavar="FILE",
+                        help=f"PNG of SOC vs truth (default {DEFAULT_PLOT} where matplotlib, of the "
+                             "'fit' extra, is installed)")
     parser.add_argument("--log-level", default="warning", choices=("debug", "info", "warning", "error"))
     parser.set_defaults(func=_demo)
 
@@ -40,6 +43,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 def _demo(args: argparse.Namespace) -> int:
     from service.cell.profile import ProfileError
     from service.demo import run_demo, summary_text, write_json, write_plot
+    from service.extras import install_hint, installed
 
     logging.basicConfig(level=getattr(logging, args.log_level.upper()),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -53,14 +57,22 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(f"--start-soc must be in [0, 1], got {args.start_soc}")
     if args.recording is not None and not args.recording.is_file():
         raise UserError(f"{args.recording}: no such recording")
+    plot = args.plot
+    if not installed("matplotlib"):
+        if plot is not None:
+            raise UserError(f"--plot {install_hint('matplotlib')}")
+    elif plot is None:
+        plot = DEFAULT_PLOT
     try:
         result, traces = run_demo(args.cells, args.speed, args.seconds, recording_path=args.recording,
                                   start_soc=args.start_soc, seed=args.seed)
     except (FileNotFoundError, ProfileError) as exc:
         raise UserError(str(exc)) from None
     print(summary_text(result))
-    if args.plot is not None:
-        print(f"plot: {write_plot(args.plot, traces, result)}")
+    if plot is not None:
+        print(f"plot: {write_plot(plot, traces, result)}")
+    else:
+        print(f"plot: not written ({install_hint('matplotlib')})")
     if args.json is not None:
         print(f"json: {write_json(args.json, result)}")
     return 0 if result.steps > 0 else 1
