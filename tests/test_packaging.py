@@ -5,11 +5,13 @@ errors for a missing extra, and the deployment files (systemd unit, Dockerfile).
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import re
 import shutil
 import subprocess
 import sys
+import time
 import tomllib
 from pathlib import Path
 
@@ -198,3 +200,22 @@ def test_dockerfile_runs_socd_as_a_non_root_user_with_a_state_volume():
     assert re.search(r"install -d -o socd -g socd -m 0750 /var/lib/socd", text)
     # the default command's config is one the package ships
     assert assets.config_path("socketcan_can0.toml").is_file()
+
+
+def test_docker_health_check_is_the_checkpoint_age(tmp_path):
+    text = (ROOT / "Dockerfile").read_text()
+    health = re.search(r"^HEALTHCHECK .*\\\n\s+CMD (\[.*\])$", text, re.M)
+    assert health, "HEALTHCHECK ... CMD [exec form] not found"
+    argv = json.loads(health.group(1))
+    checkpoint = tmp_path / "socd-state.npz"
+
+    def healthy() -> bool:
+        env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "STATE_DIRECTORY": str(tmp_path)}
+        return subprocess.run(argv, env=env, capture_output=True, timeout=30).returncode == 0
+
+    assert not healthy()  # no checkpoint yet: the daemon has not estimated anything
+    checkpoint.write_bytes(b"x")
+    assert healthy()
+    old = time.time() - 180
+    os.utime(checkpoint, (old, old))
+    assert not healthy()  # not rewritten for three minutes
