@@ -35,7 +35,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     )
     p.add_argument("input", help="cell recording CSV, or a python-can log (" + ", ".join(LOG_SUFFIXES) + ")")
     p.add_argument("--config", help="SocdConfig TOML for the DBC, mapping and pack size "
-                   "(default: configs/default.toml); its [bus] fills bus flags not given")
+                   "(default: the packaged default.toml); its [bus] fills bus flags not given")
     add_bus_arguments(p)
 
     g = p.add_argument_group("pack (cell recordings only)")

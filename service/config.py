@@ -21,6 +21,7 @@ names no file there falls back to the file of that name that socd ships
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import os
 import tomllib
@@ -37,6 +38,8 @@ DEFAULT_INPUT_DBC = dbc_path("bms_pack.dbc")
 DEFAULT_OUTPUT_DBC = dbc_path("socd_output.dbc")
 DEFAULT_CELL_PROFILE = profile_path("panasonic_18650pf.toml")
 DEFAULT_CONFIG = config_path("default.toml")
+log = logging.getLogger(__name__)
+
 #: file name of the checkpoint when the config gives no ``[checkpoint] path``
 CHECKPOINT_FILE_NAME = "socd-state.npz"
 
@@ -480,6 +483,7 @@ def find_config(path: str | Path | None) -> Path:
         return p
     for candidate in (config_path(str(p)), config_path(p.name)):
         if candidate.is_file():
+            log.info("config %s: not in the working directory; using socd's example %s", p, candidate)
             return candidate
     return p
 
