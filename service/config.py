@@ -25,6 +25,7 @@ import logging
 import math
 import os
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -34,12 +35,12 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from service.assets import config_path, dbc_path, example_configs, profile_path
 from service.estimators.settings import EstimatorSettings
 
+log = logging.getLogger(__name__)
+
 DEFAULT_INPUT_DBC = dbc_path("bms_pack.dbc")
 DEFAULT_OUTPUT_DBC = dbc_path("socd_output.dbc")
 DEFAULT_CELL_PROFILE = profile_path("panasonic_18650pf.toml")
 DEFAULT_CONFIG = config_path("default.toml")
-log = logging.getLogger(__name__)
-
 #: file name of the checkpoint when the config gives no ``[checkpoint] path``
 CHECKPOINT_FILE_NAME = "socd-state.npz"
 
@@ -573,11 +574,11 @@ def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
         )
 
 
-def _no_packaged(missing: Path, packaged) -> str:
+def _no_packaged(missing: Path, packaged: Callable[[str], Path]) -> str:
     """The tail of a missing-file error: what socd ships of that kind, and where."""
     own = packaged(missing.name)
     if own.is_file():
-        return f" (an absolute path is taken as given; socd's own {missing.name} is {own})"
+        return f" (socd's own {missing.name} is {own})"
     names = sorted(p.name for p in own.parent.iterdir() if p.suffix == missing.suffix)
     return f", and socd ships no file of that name (it ships {', '.join(names)} in {own.parent})"
 
