@@ -32,6 +32,7 @@ from service.cli import UserError
 from service.commands.common_args import (add_cell_argument, add_common_arguments, add_soc0_argument, bus_gap,
                                           finite_float, non_negative_float, positive_int, probability,
                                           progress_enabled, setup_logging, stuck_cell)
+from service.extras import install_hint, installed
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -44,7 +45,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     p.add_argument("input", help="cell recording CSV, or a python-can log (" + ", ".join(LOG_SUFFIXES)
                    + ", optionally .gz)")
     p.add_argument("--config", help="SocdConfig TOML for the DBC, mapping and pack size "
-                   "(default: configs/default.toml); its [bus] fills bus flags not given")
+                   "(default: the packaged default.toml); its [bus] fills bus flags not given")
     add_bus_arguments(p)
 
     g = p.add_argument_group("pack (cell recordings only)")
@@ -121,6 +122,9 @@ def run(args: argparse.Namespace) -> int:
     path = Path(args.input)
     if not path.is_file():
         raise UserError(f"{path}: no such file")
+    mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
+    if mf4_files and not installed("asammdf"):
+        raise UserError(f"{mf4_files[0]}: MF4 {install_hint('asammdf')}")
     config = _config(args)
     if args.stop is not None and args.start is not None and args.stop <= args.start:
         raise UserError(f"--stop ({args.stop:g} s) must be after --start ({args.start:g} s)")

@@ -13,6 +13,7 @@ import os
 import sys
 
 from service import __version__
+from service.extras import missing_extra
 
 #: subcommand name -> module that defines ``add_subparser(subparsers)``
 SUBCOMMANDS: dict[str, str] = {
@@ -34,10 +35,11 @@ class UserError(Exception):
 
 
 def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: BaseException) -> None:
-    parser = subparsers.add_parser(name, help=f"(unavailable: {exc})")
+    reason = missing_extra(exc) or f"unavailable because its module failed to import: {exc}"
+    parser = subparsers.add_parser(name, help=f"(unavailable: {reason})")
 
     def _fail(_args: argparse.Namespace) -> int:
-        print(f"socd {name}: unavailable because its module failed to import: {exc}", file=sys.stderr)
+        print(f"socd {name}: {reason}", file=sys.stderr)
         return 3
 
     parser.set_defaults(func=_fail)
@@ -76,6 +78,13 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:
         print(f"socd {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except ModuleNotFoundError as exc:
+        # an optional dependency a command imports when it runs: name the extra, no traceback
+        hint = missing_extra(exc)
+        if hint is None:
+            raise
+        print(f"socd {args.command}: {hint}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:

@@ -12,29 +12,37 @@ which are temperatures (and which cells each covers) is configuration, not code
 0-based everywhere in the config.
 
 Relative paths in the file resolve against the file's directory; relative paths from the
-environment resolve against the working directory.
+environment resolve against the working directory.  A relative DBC or cell-profile path that
+names no file there falls back to the file of that name that socd ships
+(:mod:`service.assets`), so an example config copied to ``/etc/socd/`` still finds
+``bms_pack.dbc``; ``--config`` itself falls back the same way to a packaged example config.
 """
 
 from __future__ import annotations
 
 import functools
+import logging
 import math
+import os
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
+from service.assets import config_path, dbc_path, example_configs, profile_path
 from service.estimators.settings import EstimatorSettings
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-DBC_DIR = REPO_ROOT / "dbc"
-CONFIG_DIR = REPO_ROOT / "configs"
-DEFAULT_INPUT_DBC = DBC_DIR / "bms_pack.dbc"
-DEFAULT_OUTPUT_DBC = DBC_DIR / "socd_output.dbc"
-DEFAULT_CELL_PROFILE = CONFIG_DIR / "cells" / "panasonic_18650pf.toml"
-DEFAULT_CONFIG = CONFIG_DIR / "default.toml"
+log = logging.getLogger(__name__)
+
+DEFAULT_INPUT_DBC = dbc_path("bms_pack.dbc")
+DEFAULT_OUTPUT_DBC = dbc_path("socd_output.dbc")
+DEFAULT_CELL_PROFILE = profile_path("panasonic_18650pf.toml")
+DEFAULT_CONFIG = config_path("default.toml")
+#: file name of the checkpoint when the config gives no ``[checkpoint] path``
+CHECKPOINT_FILE_NAME = "socd-state.npz"
 
 #: messages/signals the encoder needs in ``dbc.output``
 OUTPUT_MESSAGES: dict[str, tuple[str, ...]] = {
@@ -292,8 +300,19 @@ class MetricsConfig(_Section):
     port: int = Field(9464, ge=0, le=65535, description="TCP port (0 = any free port)")
 
 
+def default_checkpoint_path() -> Path:
+    """``$STATE_DIRECTORY/socd-state.npz``, else ``socd-state.npz`` in the working directory.
+
+    systemd sets ``STATE_DIRECTORY`` for a unit with ``StateDirectory=`` (a colon-separated
+    list; the first is ours), and the Docker image sets it to its state volume, so a config
+    without ``[checkpoint] path`` checkpoints to the one directory the service may write.
+    """
+    state_dir = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    return Path(state_dir or ".") / CHECKPOINT_FILE_NAME
+
+
 class CheckpointConfig(_Section):
-    path: Path = Path("socd-state.npz")
+    path: Path = Field(default_factory=default_checkpoint_path)
     interval_s: float = Field(30.0, gt=0)
 
 
@@ -406,6 +425,23 @@ def _load_dbc_cached(path: str, _mtime_ns: int):
 _PATH_FIELDS = (("dbc", "input"), ("dbc", "output"), ("cell_profile",), ("checkpoint", "path"),
                 ("zenoh", "config_file"))
 
+#: input files socd ships a default of: field -> the packaged file of a given name
+_PACKAGED = {("dbc", "input"): dbc_path, ("dbc", "output"): dbc_path, ("cell_profile",): profile_path}
+
+
+def resolve_path(keys: tuple[str, ...], value: str | Path, base: Path) -> Path:
+    """A config path made absolute: against ``base``; for an input file that is not there,
+    the packaged file of that name if socd ships one (else ``base / value``, which
+    :func:`check_config_files` reports as missing)."""
+    p = Path(value).expanduser()
+    if p.is_absolute():
+        return p
+    local = (base / p).resolve()
+    packaged = _PACKAGED.get(keys)
+    if packaged is not None and not local.exists() and packaged(p.name).is_file():
+        return packaged(p.name)
+    return local
+
 
 def _resolve_relative(raw: dict[str, Any], base: Path) -> None:
     for keys in _PATH_FIELDS:
@@ -413,8 +449,7 @@ def _resolve_relative(raw: dict[str, Any], base: Path) -> None:
         for k in keys[:-1]:
             node = node.get(k) if isinstance(node, dict) else None
         if isinstance(node, dict) and isinstance(node.get(keys[-1]), str):
-            p = Path(node[keys[-1]]).expanduser()
-            node[keys[-1]] = str(p if p.is_absolute() else (base / p).resolve())
+            node[keys[-1]] = str(resolve_path(keys, node[keys[-1]], base))
 
 
 def format_loc(loc: tuple[Any, ...]) -> str:
@@ -461,18 +496,38 @@ def _deepcopy(d: Any) -> Any:
     return d
 
 
+def find_config(path: str | Path | None) -> Path:
+    """The config file ``path`` names: the file itself if it exists (or is absolute), else the
+    packaged example of that relative path or file name (``socketcan_can0.toml``); ``None``
+    is the packaged ``default.toml``."""
+    if path is None:
+        return DEFAULT_CONFIG
+    p = Path(path).expanduser()
+    if p.is_absolute() or p.exists():
+        return p
+    for candidate in (config_path(str(p)), config_path(p.name)):
+        if candidate.is_file():
+            log.info("config %s: not in the working directory; using socd's example %s", p, candidate)
+            return candidate
+    return p
+
+
 def load_config(path: str | Path | None = None, *, check_files: bool = True) -> SocdConfig:
-    """Load ``path`` (default ``configs/default.toml``), apply ``SOCD_*`` env, validate.
+    """Load ``path`` (see :func:`find_config`; default the packaged ``default.toml``), apply
+    ``SOCD_*`` env, validate.
 
     With ``check_files`` (default) also checks that both DBCs load, that every mapped signal
     exists in ``dbc.input`` (naming the first missing one), that ``dbc.output`` has the
     frames the encoder writes, and that ``cell_profile`` exists.
     """
-    path = Path(DEFAULT_CONFIG if path is None else path)
+    path = find_config(path)
     try:
         text = path.read_text()
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config: {exc.strerror or exc}") from None
+        raise ConfigError(
+            f"{path}: cannot read config: {exc.strerror or exc} "
+            f"(socd ships these examples: {', '.join(example_configs())})"
+        ) from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -485,7 +540,7 @@ def load_config(path: str | Path | None = None, *, check_files: bool = True) -> 
             obj = getattr(obj, k)
         p = getattr(obj, keys[-1])
         if p is not None and not p.is_absolute():
-            setattr(obj, keys[-1], p.resolve())
+            setattr(obj, keys[-1], resolve_path(keys, p, Path.cwd()))
     if check_files:
         check_config_files(config, str(path))
     return config
@@ -499,7 +554,7 @@ def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
         try:
             dbs[field] = load_dbc(p)
         except FileNotFoundError:
-            raise ConfigError(f"{source}: dbc.{field}: no such file {p}") from None
+            raise ConfigError(f"{source}: dbc.{field}: no such file {p}{_no_packaged(p, dbc_path)}") from None
         except Exception as exc:  # cantools raises many kinds for a bad file
             raise ConfigError(f"{source}: dbc.{field}: cannot load DBC {p}: {exc}") from None
     db_in = dbs["input"]
@@ -536,7 +591,19 @@ def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
                 if s not in have:
                     raise ConfigError(f"{source}: dbc.output: signal {s!r} missing from {msg_name}")
     if not config.cell_profile.is_file():
-        raise ConfigError(f"{source}: cell_profile: no such file {config.cell_profile}")
+        raise ConfigError(
+            f"{source}: cell_profile: no such file {config.cell_profile}"
+            f"{_no_packaged(config.cell_profile, profile_path)}"
+        )
+
+
+def _no_packaged(missing: Path, packaged: Callable[[str], Path]) -> str:
+    """The tail of a missing-file error: what socd ships of that kind, and where."""
+    own = packaged(missing.name)
+    if own.is_file():
+        return f" (socd's own {missing.name} is {own})"
+    names = sorted(p.name for p in own.parent.iterdir() if p.suffix == missing.suffix)
+    return f", and socd ships no file of that name (it ships {', '.join(names)} in {own.parent})"
 
 
 def _close(name: str, names) -> str | None:

@@ -91,18 +91,15 @@ class DemoResult:
 SHIPPED_DBC_CELLS = 96
 
 
-def _generated_input_dbc(n_cells: int, workdir: Path, dbc_dir: Path) -> Path:
-    """A BMS DBC for a pack larger than the shipped one, made by ``dbc/generate_dbc.py``
-    (same layout: 4 cells per voltage frame, one temperature sensor per 4 cells)."""
-    import importlib.util
+def _generated_input_dbc(n_cells: int, workdir: Path) -> Path:
+    """A BMS DBC for a pack larger than the shipped one, made by the generator of the shipped
+    ones (same layout: 4 cells per voltage frame, one temperature sensor per 4 cells)."""
+    from service.assets.dbc.generate_dbc import bms_database
+    from service.config import MappingConfig
 
-    spec = importlib.util.spec_from_file_location("socd_generate_dbc", dbc_dir / "generate_dbc.py")
-    if spec is None or spec.loader is None:
-        raise FileNotFoundError(f"{dbc_dir / 'generate_dbc.py'} is needed for more than {SHIPPED_DBC_CELLS} cells")
-    gen = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gen)
+    cells_per_sensor = MappingConfig.model_fields["cells_per_sensor"].default  # the demo config's
     path = workdir / f"bms_pack_{n_cells}.dbc"
-    path.write_text(gen.bms_database(n_cells, -(-n_cells // 4)).as_dbc_string())
+    path.write_text(bms_database(n_cells, -(-n_cells // cells_per_sensor)).as_dbc_string())
     return path
 
 
@@ -111,7 +108,7 @@ def _demo_config(n_cells: int, channel: str, port: int, workdir: Path, profile_p
 
     input_dbc = DEFAULT_INPUT_DBC
     if n_cells > SHIPPED_DBC_CELLS:
-        input_dbc = _generated_input_dbc(n_cells, workdir, DEFAULT_INPUT_DBC.parent)
+        input_dbc = _generated_input_dbc(n_cells, workdir)
     return build_config({
         "cell_profile": str(profile_path),
         "dbc": {"input": str(input_dbc), "output": str(DEFAULT_OUTPUT_DBC)},

@@ -50,7 +50,7 @@ def _inputs(n_cells: int, steps: int, profile, seed: int = 0) -> tuple[np.ndarra
 
 def run(args: argparse.Namespace) -> int:
     from service.cell.profile import ProfileError, load_profile
-    from service.commands.demo_assets import default_profile_path
+    from service.config import DEFAULT_CELL_PROFILE
     from service.estimators.pipeline import PackEstimator
     from service.estimators.settings import EstimatorSettings
 
@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     if args.cells < 1 or args.steps < 10 or args.reference_steps < 2:
         raise UserError("--cells must be ≥ 1, --steps ≥ 10 and --reference-steps ≥ 2")
     try:
-        profile = load_profile(args.cell or default_profile_path())
+        profile = load_profile(args.cell or DEFAULT_CELL_PROFILE)
     except ProfileError as exc:
         raise UserError(str(exc)) from exc
     if hasattr(os, "sched_setaffinity"):

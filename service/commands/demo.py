@@ -10,6 +10,7 @@ from service.commands.common_args import (add_common_arguments, add_soc0_argumen
                                           positive_float, setup_logging, text_stream, write_json)
 
 MAX_DEMO_CELLS = 256  # the output DBC's cell index is 8 bits; above 96 an input DBC is generated
+DEFAULT_PLOT = Path("socd-demo.png")
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -32,7 +33,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                       help="true SOC at the recording's first sample, 0-1 (default: 1.0 for the bundled "
                            "drive, which starts fully charged; else estimated from the first rest voltage)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the per-cell spread (default 0)")
-    parser.add_argument("--plot", type=Path, default=Path("socd-demo.png"), metavar="FILE", help="PNG of SOC vs truth (default socd-demo.png)")
+    parser.add_argument("--plot", type=Path, default=None, metavar="FILE",
+                        help=f"PNG of SOC vs truth (default {DEFAULT_PLOT} where matplotlib, of the "
+                             "'fit' extra, is installed)")
     add_common_arguments(parser, json_out="the figures")
     parser.set_defaults(func=_demo)
 
@@ -40,6 +43,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 def _demo(args: argparse.Namespace) -> int:
     from service.cell.profile import ProfileError
     from service.demo import run_demo, summary_text, write_plot
+    from service.extras import install_hint, installed
 
     setup_logging(args)
     if not 1 <= args.cells <= MAX_DEMO_CELLS:
@@ -50,6 +54,12 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
     if args.recording is not None and not args.recording.is_file():
         raise UserError(f"{args.recording}: no such recording")
+    plot = args.plot
+    if not installed("matplotlib"):
+        if plot is not None:
+            raise UserError(f"--plot {install_hint('matplotlib')}")
+    elif plot is None:
+        plot = DEFAULT_PLOT
     try:
         result, traces = run_demo(args.cells, args.speed, args.seconds, recording_path=args.recording,
                                   start_soc=args.soc0, seed=args.seed)
@@ -57,8 +67,10 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     out = text_stream(args)
     print(summary_text(result), file=out)
-    if args.plot is not None:
-        print(f"plot: {write_plot(args.plot, traces, result)}", file=out)
+    if plot is not None:
+        print(f"plot: {write_plot(plot, traces, result)}", file=out)
+    else:
+        print(f"plot: not written ({install_hint('matplotlib')})", file=out)
     write_json(args.json, result.to_json())
     return 0 if result.steps > 0 else 1
 

@@ -1,0 +1,1 @@
+"""The shipped DBCs and their generator (:mod:`generate_dbc`); packaged as ``service.assets.dbc``."""
