@@ -453,3 +453,38 @@ def test_a_closed_stdout_pipe_ends_quietly(tmp_path: Path) -> None:
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 141, err.decode()
     assert b"Traceback" not in err and b"BrokenPipeError" not in err, err.decode()
+
+
+def test_fit_stores_the_textbook_2rc_model_beside_the_fractional_one(tmp_path: Path, nmc_recording,
+                                                                     capsys) -> None:
+    """No OCV table: the OCV is fitted jointly with the 2-RC model, the fractional fit is held
+    to it, and ``ecm2rc-ekf`` then runs on the stored 2-RC parameters."""
+    rec = nmc_recording(name="fitdrive", duration_s=2400, seed=4, soc0=0.95)
+    out = tmp_path / "fitted.toml"
+    rc = main(["fit", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "5", "-o", str(out)])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    assert "textbook 2-RC at 25 °C" in captured.err
+    prof = load_profile(out)
+    assert prof.ecm2rc is not None and len(prof.ecm2rc.points) == 1
+    pt = prof.ecm2rc.points[0]
+    assert 1.0 <= pt.tau1_s <= 100.0 and 10.0 <= pt.tau2_s <= 1000.0
+    assert pt.fit_rmse_mv is not None and pt.fit_rmse_mv < 10.0
+    assert np.all(np.diff(prof.ecm2rc.ocv.ocv_v[0]) >= 0.0)
+
+
+def test_fit_refuses_a_recording_no_model_follows_and_writes_nothing(tmp_path: Path, nmc_recording,
+                                                                     capsys) -> None:
+    """Voltage that has nothing to do with the current (0.3 V noise): both fits are poor, the
+    command names the temperature and exits 2; --force writes it anyway."""
+    rec = nmc_recording(name="noise", duration_s=1800, seed=5, soc0=0.95)
+    rng = np.random.default_rng(0)
+    bad = tmp_path / "bad.csv"
+    rows = zip(rec.time_s, rec.current_a, 3.7 + rng.normal(0.0, 0.3, rec.time_s.size), rec.temperature_c)
+    bad.write_text("time_s,current_a,voltage_v,temperature_c\n" + "".join(f"{t},{i},{v},{c}\n" for t, i, v, c in rows))
+    out = tmp_path / "never.toml"
+    err = _fail(["fit", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "-o", str(out)], capsys)
+    assert "25 °C" in err and "Nothing written" in err and "--force" in err
+    assert not out.exists()
+    assert main(["fit", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "-o", str(out)]) == 0
+    assert out.exists()

@@ -34,6 +34,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.optimize import lsq_linear, minimize
 
 from service.cell.fitting import FitSegment
+from service.cell.ocv import EXTRAPOLATION_SPAN, OcvTable
 
 #: time-constant bounds of the two RC branches [s]
 TAU1_BOUNDS_S = (1.0, 100.0)
@@ -146,15 +147,30 @@ def branch_inputs(prep: _Prepared, taus_s: np.ndarray) -> np.ndarray:
 
 
 def _hat_basis(soc: np.ndarray, knots: np.ndarray) -> np.ndarray:
-    """Linear-interpolation weights of each sample on the knots (``[n, K]``); SOC outside
-    the knots is held at the end knot."""
-    s = np.clip(soc, knots[0], knots[-1])
-    j = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, knots.size - 2)
-    u = (s - knots[j]) / (knots[j + 1] - knots[j])
-    basis = np.zeros((s.size, knots.size))
-    rows = np.arange(s.size)
-    basis[rows, j] = 1.0 - u
-    basis[rows, j + 1] += u
+    """Weights of the knot values in the OCV at each sample (``[n, K]``): linear
+    interpolation between knots, and beyond the ends the straight line through the end
+    value with the mean slope over :data:`service.cell.ocv.EXTRAPOLATION_SPAN`, as
+    :class:`service.cell.ocv.OcvTable` reads the stored table."""
+    def interp_rows(x: np.ndarray) -> np.ndarray:
+        x = np.clip(x, knots[0], knots[-1])
+        j = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, knots.size - 2)
+        u = (x - knots[j]) / (knots[j + 1] - knots[j])
+        rows = np.zeros((x.size, knots.size))
+        idx = np.arange(x.size)
+        rows[idx, j] = 1.0 - u
+        rows[idx, j + 1] += u
+        return rows
+
+    basis = interp_rows(soc)
+    lo_end, hi_end = knots[0], knots[-1]
+    for outside, end, inner in ((soc < lo_end, lo_end, lo_end + EXTRAPOLATION_SPAN),
+                                (soc > hi_end, hi_end, hi_end - EXTRAPOLATION_SPAN)):
+        if not outside.any():
+            continue
+        e = (soc[outside] - end) / (end - inner)  # how many spans beyond the end, signed outwards
+        at_end = interp_rows(np.full(e.size, end))
+        at_inner = interp_rows(np.full(e.size, inner))
+        basis[outside] = at_end * (1.0 + e[:, None]) - at_inner * e[:, None]
     return basis
 
 
@@ -277,7 +293,7 @@ def fit_ecm2rc(
     if ocv_v is not None:
         if ocv_soc is None:
             raise ValueError("ocv_v needs ocv_soc")
-        fixed = np.interp(prep.soc, ocv_soc, ocv_v)
+        fixed = OcvTable.from_points(np.asarray(ocv_soc, dtype=float), np.asarray(ocv_v, dtype=float)).ocv(prep.soc, 25.0)
     prior = None if prior_v is None else np.asarray(prior_v, dtype=float)
     problem = _LinearProblem(prep, fixed, knots, prior, smooth_weight, prior_weight)
 
@@ -328,5 +344,5 @@ def simulate_ecm2rc(seg: FitSegment, capacity_ah: float, ocv_soc: np.ndarray, oc
     """Terminal voltage of the 2-RC model over ``seg`` (relaxed start, SOC from ``soc0``)."""
     prep = _prepare([seg], capacity_ah)
     x = branch_inputs(prep, np.array([tau1_s, tau2_s]))
-    ocv = np.interp(prep.soc, ocv_soc, ocv_v)
+    ocv = OcvTable.from_points(ocv_soc, ocv_v).ocv(prep.soc, 25.0)
     return ocv - r0 * prep.current_a - r1 * x[:, 0] - r2 * x[:, 1]
