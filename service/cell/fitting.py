@@ -28,8 +28,8 @@ Procedure:
 Why windows and not a subsampled grid: the short-memory G-L step (Zeng Eq. 2) keeps
 ``L`` *samples* of history, so the model's response depends on the sampling period;
 parameters fitted on a coarser grid do not transfer to the rate the estimator runs at
-(measured: a fit at 4x block averaging scored 6.8 mV on its grid and 23 mV at full
-rate on an HPPC recording).  The fit therefore always runs at the recording's rate.
+(a fit on a block-averaged grid that matches that grid well can miss the same recording
+at full rate).  The fit therefore always runs at the recording's rate.
 """
 
 from __future__ import annotations
@@ -440,8 +440,8 @@ def fit_parameters(
     colder point's (electrolyte conduction, charge transfer and solid diffusion all slow
     down in the cold: Arrhenius with positive activation energies).  Without this, each
     temperature trades R_ohm, R_ct and R_df against one another freely and the
-    temperature interpolation between two good fits can be a poor model (measured: a
-    10 °C fit with R_ohm below the 25 °C one).
+    temperature interpolation between two good fits can be a poor model (a colder fit may
+    come out with R_ohm below a warmer one).
     """
     if not segments:
         raise ValueError("fit_parameters needs at least one segment")

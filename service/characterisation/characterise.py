@@ -120,7 +120,7 @@ def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest
 
     ``track_branch`` (a one-branch OCV table): each segment starts on the hysteresis branch of
     its history (``FitSegment.u_h0_branch``).  Without it every segment starts at ``U_h`` = 0,
-    as fits always did for a mean table: a fit from a full point then reads the table as the
+    as a mean table needs: a fit from a full point then reads the table as the
     branch the cell is on, which is how the bundled A123 profile was fitted."""
     # rest ends come out increasing and after sample 0, so no sort is needed
     starts = [0] + [j for _, j in rest_spans(rec, capacity_ah, min_rest_s) if j > 0] + [len(rec)]

@@ -8,7 +8,7 @@ a time constant of seconds to a minute.  Under a long drive the missing slow
 polarisation is an almost constant offset, and an OCV curve fitted jointly with the
 model (``socd fit`` without an OCV test) takes it into the OCV: the curve then sits low
 by that offset, and an estimator reads the cell's fully relaxed voltage in a later long
-rest as a higher SOC (README, CALCE INR18650-20R).
+rest as a higher SOC (docs/results/cell_options.md, CALCE INR18650-20R).
 
 The measurement is the classic relaxation analysis.  In a rest of at least
 :data:`LONG_REST_S`, from :data:`SETTLE_S` after its start (the fast branches, with time

@@ -43,24 +43,24 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "falls as the current rises; matters in the cold and when the recordings pulse at several currents)")
     p.add_argument("--min-order", type=float, default=None, metavar="A",
                    help="lower bound of the CPE orders m, n (default 0.3); the short G-L memory represents low "
-                   "orders poorly, and 0.5 measured better on the Panasonic cell (README)")
+                   "orders poorly (the bundled Panasonic profile uses 0.5)")
     p.add_argument("--monotone", action="store_true",
                    help="bound each temperature's R_ohm, R_ct, R_df by the neighbouring fitted temperatures "
-                   "(resistance rises in the cold); off by default: it measured worse on the Panasonic cell (README)")
+                   "(resistance rises in the cold); off by default")
     p.add_argument("--soc-resistance", action="store_true",
                    help="measure how R_ohm and the polarisation resistances change with SOC at each temperature "
                    "from the recordings' discharge pulses from rest (HPPC tests: pulses at five or more SOC levels) "
                    "and fit the parameters with that table in the model; off by default: it fits the HPPC tests 3x closer "
-                   "but measured worse for SOC on the Panasonic drive cycles (README)")
+                   "but scores worse for SOC on the Panasonic drive cycles (docs/results/cell_options.md)")
     p.add_argument("--slow-branch", action="store_true",
                    help="add a slow RC branch (time constant of minutes to hours) measured from the voltage recovery "
                    "in rests of 30 min or more at the reference temperature, then fit the rest of the model with it; "
                    "for cells characterised without an OCV test, whose jointly fitted OCV otherwise absorbs the slow "
-                   "polarisation (README: CALCE INR18650-20R)")
+                   "polarisation (docs/results/cell_options.md: CALCE INR18650-20R)")
     p.add_argument("--rest-anchor", action="store_true",
                    help="with no OCV table or test (the OCV fitted jointly with the model): shift the fitted table to "
                    "pass through the relaxed voltages at the ends of the recordings' rests of 600 s or more (the "
-                   "outermost offset holds beyond them); off by default (README: CALCE INR18650-20R)")
+                   "outermost offset holds beyond them); off by default (docs/results/cell_options.md)")
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time per temperature (default 60)")
     p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
     p.add_argument("--force", action="store_true",

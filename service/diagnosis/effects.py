@@ -99,7 +99,7 @@ class Effect:
     # signature it is not named, whatever the voltage gain: ``temperature`` means the ambient
     # moved, and when the measured temperature is a constant nominal ambient plus self-heating
     # an Arrhenius law's gain is the cell's resistance following its own heating, which every
-    # cell does (a clean PyBaMM recording that heats 14 K gains 32 % from it)
+    # cell does, so it is not a moved ambient (docs/results/diagnose.md, the clean twins)
     needs_signature: bool = False
 
     @property
@@ -229,9 +229,8 @@ def _diff_base_variants(x, ctx):
 #: the diffusion effect is solid diffusion *slower than a healthy cell's*: polarisation that builds
 #: up slowly under load and relaxes over many minutes at rest.  A first-order surface lag has
 #: relaxed to 5 % after 3 τ, so a fitted τ below 60 s relaxes within three minutes: it is a
-#: second fast branch the equivalent circuit lacks (PyBaMM Mohtat2020: +37-44 % held-out on
-#: clean recordings with τ 30-49 s, the search's lower bound 30 s), not slow diffusion.  Every
-#: slow-diffusion recording of the stand-in fitted τ >= 82 s, the labelled one 1199 s.
+#: second fast branch the equivalent circuit lacks, which a clean cell can show, not slow
+#: diffusion (docs/results/diagnose.md, "How each effect is named").
 DIFFUSION_MIN_TAU_S = 60.0
 
 
@@ -359,11 +358,10 @@ def _kin_feature(ctx):
 
 #: the kinetics effect is charge transfer *slower than a healthy cell's*.  Every cell's kinetics
 #: are Butler-Volmer to some degree, and on a cell with a large model-form mismatch the BV term
-#: also absorbs that mismatch (PyBaMM Marquis2019: +54-59 % held-out on clean recordings, fitted
-#: i0 0.22 C), so the fitted size must itself be slow.  A healthy Li-ion cell at room temperature
-#: has a charge-transfer resistance of roughly 15-80 mV per 1C (R_ct = RT/(F i0), i.e. an apparent
-#: exchange current of about 0.3-1.7 C); below 0.1 C the linear-regime charge-transfer drop alone is
-#: > 250 mV at 1C, about twice a typical healthy cell's whole DC resistance.  The bound is for room
+#: also absorbs that mismatch, so the fitted size must itself be slow.  A healthy Li-ion cell at
+#: room temperature has a charge-transfer resistance of roughly 15-80 mV per 1C
+#: (R_ct = RT/(F i0), i.e. an apparent exchange current of about 0.3-1.7 C); below 0.1 C the
+#: linear-regime charge-transfer drop alone is > 250 mV at 1C, about twice a typical healthy cell's whole DC resistance.  The bound is for room
 #: temperature and not scaled: in the cold a healthy cell's i0 falls, so there the bound is looser,
 #: and the held-out gain decides as before.
 KINETICS_MAX_I0_C = 0.1

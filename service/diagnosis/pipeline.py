@@ -325,10 +325,9 @@ def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: flo
 
     ``direct``: the signature measured the departure, and the held-out RMSE only must not rise
     by more than ``direct_max_rise_noise`` × the noise or ``direct_max_rise_rel`` × its base
-    value, whichever is larger (a smaller change is no disagreement: a PyBaMM ``Marquis2019``
-    sensor offset measured at z = 66 moved the held-out RMSE from 6.07 to 6.12 mV at 1.45 mV
-    noise; a ``Chen2020`` one measured at z = 122 moved it from 17.25 to 18.52 mV, inside the
-    base model's own misfit, while the real +70.8 mA of the Panasonic 10 °C stops doubles it).
+    value, whichever is larger: a correction that shifts the held-out prediction by less than the
+    base model's own misfit neither confirms nor refutes a departure the signature measured, while a
+    wrong one (a current that really flows) raises the misfit far beyond that margin.
     ``nominated`` / ``fit``: the relative gain bar, the absolute drop of ``min_abs_gain_noise`` ×
     the noise and ΔBIC."""
     reasons = []
@@ -355,23 +354,19 @@ def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: flo
 def rank(outcomes: list[EffectOutcome], tie_mv: float) -> list[EffectOutcome]:
     """Significant effects first, and among them every effect a signature measured directly
     before any fitted one, whatever their held-out RMSEs: a measured departure whose extension the
-    held-out voltage agrees with outranks a voltage pattern (PyBaMM ``Mohtat2020``: a sensor offset
-    measured in rests at z = 118 lost to a surface lag fitting the held-out part 3.4 mV better; the
-    same lag cut clean ``Mohtat2020`` recordings by 37-44 %).  Within each class, those whose
+    held-out voltage agrees with outranks a voltage pattern, which a flexible extension can fit
+    on a clean cell as well.  Within each class, those whose
     held-out RMSE is within ``tie_mv`` (the noise-scale margin of the significance test) of the
     best are tied; a tie goes to an effect a signature nominated (evidence outside the voltage
     fit: the measured temperature, the rests' relaxation), then by ΔBIC on the fit part (the
     information criterion: fit gained per parameter), then by score.
 
-    The nominated step: on a PyBaMM ``Marquis2019`` cell warming from 0 °C (the stand-in of
-    ``validate_pybamm``), the temperature law and Butler–Volmer kinetics fitted the held-out
-    part to 0.28 mV of each other at 1.5 mV noise, and ΔBIC (117 against 79) named kinetics.
+    The nominated step: a warming cell's temperature law and Butler–Volmer kinetics can fit the
+    held-out part equally well, and only the measured temperature says which it is.
 
-    Held-out RMSEs closer than the noise do not tell two effects apart: on recordings
-    simulated with our own model, a subtle current offset (measured in the rests, z = 60)
-    lost to a 3-parameter hysteresis that fitted the held-out part 0.19 mV better at 1.1 mV
-    noise, and a capacity fade lost to a diffusion lag longer than the recording; ΔBIC
-    named both right (``python -m service.diagnosis.validate``).
+    Held-out RMSEs closer than the noise do not tell two effects apart, so the tie is broken by
+    evidence from outside the held-out voltage rather than by that difference
+    (``python -m research.validate`` exercises these cases).
     """
     rest = sorted((o for o in outcomes if not o.significant), key=lambda o: -o.score)
     measured = [o for o in outcomes if o.significant and o.evidence == "direct"]

@@ -63,16 +63,11 @@ N_STATES = 3
 class EkfTuning:
     """Noise constants and guards of the 2-RC EKF.
 
-    Defaults were tuned (one set for all files) on Panasonic NCR18650PF 25 °C drive cycles
-    (US06, LA92, Cycle2, Cycle3, HWFETa, NN) with a 2-RC profile fitted to half of Cycle1:
-    SOC RMSE 0.3-0.5 % from a 0.2 initial error.  The optimum is flat: voltage noise 3-20 mV
-    with RC-state noise 1-2e-4 V/√s all land within 0.1 % of it; a 10 mV voltage noise
-    stands mostly for OCV-table and model error, not for the sensor.
-
-    The RC-state walk was swept again beside the pipeline's branch walk, leave one out, with and
-    without a ±1 % current-sensor offset (README, ``service.evaluation.nested_tuning``): per cell
-    it chooses 5e-4 (Panasonic), 1e-4 (CALCE 20R), 2e-4 / 5e-4 (A123); pooled over every file
-    1e-4 / 2e-4 / 5e-4 are within 0.01 % SOC RMSE, so the default stays.
+    One set of defaults serves every cell; they were tuned on Panasonic NCR18650PF 25 °C drive
+    cycles, where the optimum is flat.  The 10 mV voltage noise stands mostly for OCV-table and
+    model error, not for the sensor.  The RC-state walk ``u_noise_v_per_sqrt_s`` is swept beside
+    the pipeline's branch walk in docs/results/tuning.md (``research.nested_tuning``); pooled over
+    the scored files the default is as good as the per-cell choices.
     """
 
     voltage_noise_v: float = 0.01

@@ -38,8 +38,8 @@ Pipeline, one step of the uniform grid at a time (Hu & Wang Sec. III-B "cookbook
    ``b2 = (a1-1)c`` Eq. 14 stays linear, ``V_s[j]-V_s[j-2] + c I[j-2] = a1 (V_s[j-1] -
    V_s[j-2] + c I[j-2]) + b0 I[j] + b1 I[j-1]``, so RLS fits ``[a1, b0, b1]`` only.
    It is off by default: the fast model's DC gain is an extrapolation from high-passed
-   data and comes out a few % off, and on a simulated 5 s / 500 s cell a +5 % error in
-   ``c`` moved the identified 500 s mode to 900-8000 s.  The paper itself says (15)
+   data and comes out a few % off, and a small error in ``c`` moves the identified slow
+   mode far from its true time constant.  The paper itself says (15)
    "will happen naturally" with well separated dynamics; its residual is reported as
    ``gain_mismatch_ohm``.
 5. **SOC** (Eqs. 19-20, Fig. 7): the slow model's overvoltage (static gain and
@@ -103,10 +103,10 @@ class HuWangSettings:
 
     Defaults were chosen on Panasonic NCR18650PF 25 °C drive cycles (US06, LA92, Cycle2,
     NN; 1 s data), where the cell's own modes are ~4 s and ~60 s once split this way.
-    The low-pass cut-off is the main trade-off: 0.5 mHz identifies a slower mode
-    (~200 s) but the OCV-based SOC lags by ~450 s (SOC RMSE after 600 s: 3-12 %);
-    2 mHz gives 0.9-1.7 %.  A cell whose modes are further apart (e.g. 5 s and 500 s)
-    wants the filters placed around its own time constants (Hu & Wang Fig. 3).
+    The low-pass cut-off is the main trade-off: a lower cut-off identifies a slower mode
+    but makes the OCV-based SOC lag by a comparable time.  A cell whose modes are further
+    apart (e.g. 5 s and 500 s) wants the filters placed around its own time constants
+    (Hu & Wang Fig. 3).
     """
 
     base_period_s: float = 1.0

@@ -1,6 +1,7 @@
 """Tuning of the paper's pipeline (FO-MI-UKF + fast and slow identifiers), validated by pydantic.
 
-Defaults were chosen by measurement with ``socd evaluate`` (see README).
+Defaults are the values ``socd evaluate`` scores best with on the bundled cells
+(docs/results/soc_accuracy.md, docs/results/tuning.md).
 """
 
 from __future__ import annotations
@@ -16,8 +17,9 @@ class EstimatorSettings(BaseModel):
     memory_length: int = Field(16, ge=1, le=512, description="G-L short-memory length L (Zeng Eq. 2)")
     innovation_length: int = Field(
         1, ge=1, le=512,
-        description="multi-innovation window (Zeng Eq. 18); 1 = single innovation, the default because it "
-        "measured better (README); the 'fomiukf' evaluator uses 4 unless this is set above 1",
+        description="multi-innovation window (Zeng Eq. 18); 1 = single innovation, the default: cheaper, and "
+        "the window of 4 gains nothing on the scored cells (docs/results/soc_accuracy.md); the 'fomiukf' "
+        "evaluator uses 4 unless this is set above 1",
     )
     innovation_weighting: Literal["paper", "normalized"] = Field(
         "normalized",
@@ -30,13 +32,13 @@ class EstimatorSettings(BaseModel):
         "window: 'single' = prior + K·e of this sample, the posterior its Table-1 sensitivity "
         "dx+/dθ = dx-/dθ - K·C describes; 'multi' = the multi-innovation posterior, which has taken only "
         "part of this innovation (the rest arrives over the next samples), so the identifier reads the "
-        "untaken part as a parameter error (README). No effect with a single innovation",
+        "untaken part as a parameter error. No effect with a single innovation",
     )
     fast_identifier: bool = Field(True, description="run the fast-rate EKF over [R_ohm, R_ct, C_dl, m, U_df]")
     fast_identifier_input: Literal["level", "difference"] = Field(
         "difference", description="'level': the voltage itself (Zeng Eq. 13); 'difference': sample-to-sample "
-        "voltage change, which separates the fast dynamics from the OCV (and the SOC error); the default "
-        "because it measured better (A123 FUDS 2.0 % -> 0.6 %, Panasonic cold; README)"
+        "voltage change, which separates the fast dynamics from the OCV (and the SOC error), so the identifier "
+        "does not chase a flat OCV plateau with R_ohm and R_ct"
     )
     slow_identifier: bool = Field(True, description="run the slow-rate EKF over [R_df, C_df, n]")
     identify_below_soc_std: float = Field(
@@ -70,7 +72,7 @@ class EstimatorSettings(BaseModel):
     current_bias_state: bool = Field(
         False, description="augment the SOC filter with a current-sensor offset state b (A): SOC integrates "
         "I - b, b walks slowly; the offset is then learned from the voltage instead of drifting SOC. Off by "
-        "default (README: measured with and without a sensor offset)"
+        "default: on real cells it also takes up OCV-table error (docs/results/tuning.md)"
     )
     current_bias_init_std_c: float = Field(
         0.01, gt=0, le=1, description="σ of the offset state at a start, as a fraction of 1C (0.01 = 1 % of "

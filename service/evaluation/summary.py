@@ -1,4 +1,4 @@
-"""Markdown tables from ``socd evaluate --json`` files (the README's results come from here).
+"""Markdown tables from ``socd evaluate --json`` files (the tables in docs/results/).
 
     python -m service.evaluation.summary out/eval_pan25.json [more.json ...]
     python -m service.evaluation.summary out/eval_pan25.json+out/eval_pan25_nokin.json

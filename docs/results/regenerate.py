@@ -1,0 +1,510 @@
+"""Rerun the commands behind ``docs/results/*.md`` and rewrite their tables from the JSON they write.
+
+    python docs/results/regenerate.py --list                 # every table, its file and rough run time
+    python docs/results/regenerate.py --only bench           # rerun one table's commands, rewrite it
+    python docs/results/regenerate.py --only eval_a123 --only bench --jobs 2
+    python docs/results/regenerate.py                        # every table (many hours)
+    python docs/results/regenerate.py --commands-only        # rewrite the command blocks, run nothing
+    python docs/results/regenerate.py --render-only --only bench   # re-render from JSON already in out/
+
+Each results file holds, per table, two marked blocks::
+
+    <!-- BEGIN command:NAME --> ... <!-- END command:NAME -->   the shell commands (from TABLES)
+    <!-- BEGIN table:NAME -->   ... <!-- END table:NAME -->     the table and when it was produced
+
+The command block is always written from :data:`TABLES`, so the commands shown are the ones run.
+Commands run from the repository root under ``bash -euo pipefail`` with ``socd`` and ``python``
+bound to this interpreter; the JSON goes to ``out/`` (relative to the root). Tables are rendered
+by the tools' own table functions (``summary``, ``nested_tuning``, ``validate``...) where one
+exists, so a table here and the tool's printed table cannot differ.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import importlib
+import importlib.util
+import json
+import re
+import subprocess
+import sys
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = Path(__file__).resolve().parent
+OUT = Path("out")
+
+#: where each research tool lived before the ``research`` package existed; used only when
+#: ``research`` is not importable, so the script runs on either side of that move
+_PRE_RESEARCH_HOME = {
+    "summary": "service.evaluation.summary",
+    "nested_tuning": "service.evaluation.nested_tuning",
+    "rest_check": "service.evaluation.rest_check",
+    "validate": "service.diagnosis.validate",
+    "validate_pybamm": "service.diagnosis.validate_pybamm",
+    "clean_twin": "service.diagnosis.clean_twin",
+    "roundtrip": "service.diagnosis.roundtrip",
+}
+
+
+class RegenerateError(Exception):
+    """A missing marker, a failed command or a missing JSON file: one line for the user."""
+
+
+def tool_module_name(name: str) -> str:
+    """``research.<name>``, or the tool's old home while the ``research`` package is absent."""
+    if importlib.util.find_spec("research") is not None or name not in _PRE_RESEARCH_HOME:
+        return f"research.{name}"
+    return _PRE_RESEARCH_HOME[name]
+
+
+def tool(name: str):
+    return importlib.import_module(tool_module_name(name))
+
+
+def _runnable(script: str) -> str:
+    """The shell text as run: ``python -m research.X`` resolved by :func:`tool_module_name`."""
+    return re.sub(r"-m research\.(\w+)", lambda m: f"-m {tool_module_name(m.group(1))}", script)
+
+
+# -- renderers: JSON in out/ -> markdown --------------------------------------------------------
+def _read(out: Path, name: str):
+    path = out / name
+    if not path.is_file():
+        raise RegenerateError(f"{path}: missing (run the table's commands first)")
+    return json.loads(path.read_text())
+
+
+def evaluate_table(*specs: str, only: str | None = None) -> Callable[[Path], str]:
+    """``summary`` tables of ``socd evaluate --json`` files; ``A.json+B.json`` puts B beside A."""
+    def render(out: Path) -> str:
+        summary = tool("summary")
+        keep = set(only.split(",")) if only else None
+        tables = []
+        for spec in specs:
+            parts = [out / p for p in spec.split("+")]
+            for p in parts:
+                if not p.is_file():
+                    raise RegenerateError(f"{p}: missing (run the table's commands first)")
+            tables.append(summary.table("+".join(str(p) for p in parts), keep))
+        return "\n\n".join(tables)
+    return render
+
+
+def bench_table(*names: str) -> Callable[[Path], str]:
+    """One row per ``socd bench --json`` run."""
+    def render(out: Path) -> str:
+        lines = ["| run | cells | L | p | pipeline, cell-steps/s | per-cell loop, cell-steps/s | ratio |",
+                 "|---|---|---|---|---|---|---|"]
+        for n in names:
+            b = _read(out, n)
+            lines.append(f"| `{n}` | {b['cells']} | {b['memory_length']} | {b['innovation_length']} | "
+                         f"{b['cell_steps_per_s']:,.0f} | {b['reference_cell_steps_per_s']:,.0f} | {b['ratio']:.0f}× |")
+        return "\n".join(lines)
+    return render
+
+
+def demo_table(*names: str) -> Callable[[Path], str]:
+    """One row per ``socd demo --json`` run."""
+    def render(out: Path) -> str:
+        lines = ["| run | cells | speed | frames | rejected | frames/s | CPU, % of a core | estimate p50 / p99, ms "
+                 "| Zenoh put p50 / p99, ms | SOC RMSE, % |",
+                 "|---|---|---|---|---|---|---|---|---|---|"]
+        for n in names:
+            d = _read(out, n)
+            lat = d["latency_ms"]
+            lines.append(f"| `{n}` | {d['cells']} | {d['speed']:g} | {d['frames_in']:,} | {d['frames_rejected']} | "
+                         f"{d['frames_per_s']:,.0f} | {d['cpu_pct']:.0f} | {lat.get('estimate_p50')} / "
+                         f"{lat.get('estimate_p99')} | {lat.get('publish_p50')} / {lat.get('publish_p99')} | "
+                         f"{d['soc_rmse_pct']:.2f} |")
+        return "\n".join(lines)
+    return render
+
+
+def nested_table(name: str) -> Callable[[Path], str]:
+    """``nested_tuning``'s own table from its ``--json``."""
+    def render(out: Path) -> str:
+        d = _read(out, name)
+        return tool("nested_tuning").markdown(d["values"], d["conditions"], d["estimators"])
+    return render
+
+
+def rest_check_table(*names: str) -> Callable[[Path], str]:
+    """``rest_check``'s own table per ``--json``, each headed by its profile."""
+    def render(out: Path) -> str:
+        rc = tool("rest_check")
+        parts = []
+        for n in names:
+            d = _read(out, n)
+            parts.append(f"`{n}` (`{d['cell']}`)\n\n" + rc.markdown([rc.RestReading(**r) for r in d["rests"]]))
+        return "\n\n".join(parts)
+    return render
+
+
+def validate_table(name: str, levels: str = "subtle,moderate,clear") -> Callable[[Path], str]:
+    """The own-model grid's table from ``validate --json``."""
+    def render(out: Path) -> str:
+        v = tool("validate")
+        rows = [v.Row(**r) for r in _read(out, name)]
+        named = [r for r in rows if r.effect != "none"]
+        clean = [r for r in rows if r.effect == "none"]
+        return (v.table(rows, levels.split(",")) + f"\n\nnamed right: {sum(r.right for r in named)}/{len(named)}; "
+                f"clean named as an effect: {sum(not r.right for r in clean)}/{len(clean)}")
+    return render
+
+
+def pybamm_table(name: str) -> Callable[[Path], str]:
+    """The PyBaMM stand-in's table from ``validate_pybamm --json`` (rows and not-simulated recordings)."""
+    def render(out: Path) -> str:
+        vp = tool("validate_pybamm")
+        doc = _read(out, name)
+        rows = [vp.Row(**r) for r in doc if "error" not in r]
+        return vp.table(rows, [r for r in doc if "error" in r])
+    return render
+
+
+def clean_twin_table(name: str) -> Callable[[Path], str]:
+    def render(out: Path) -> str:
+        ct = tool("clean_twin")
+        return ct.table([ct.TwinRow.from_json(d) for d in _read(out, name)])
+    return render
+
+
+def roundtrip_table(name: str) -> Callable[[Path], str]:
+    def render(out: Path) -> str:
+        rt = tool("roundtrip")
+        return rt.table([rt.RoundTrip(**d) for d in _read(out, name)])
+    return render
+
+
+def diagnose_table(pattern: str, stems: tuple[str, ...], labels: str | None = None) -> Callable[[Path], str]:
+    """One row per ``socd diagnose --json`` file ``pattern.format(stem)``: verdict, assessment, the top
+    candidate's held-out RMSE before → after and gain, its split and the run time; with ``labels`` (a
+    ``labels.json``) also the labelled truth."""
+    def render(out: Path) -> str:
+        truth = json.loads((ROOT / labels).read_text()) if labels else {}
+        head = ["recording"] + (["truth"] if labels else []) + [
+            "verdict", "assessment", "top effect", "held-out RMSE before → after, mV", "gain", "significant",
+            "split", "run time, s"]
+        lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+        for stem in stems:
+            d = _read(out, pattern.format(stem))
+            top = d["effects"][0] if d["effects"] else None
+            cells = [stem] + ([truth.get(stem, {}).get("effect", "?")] if labels else []) + [
+                f"**{d['verdict']}**", d.get("assessment", {}).get("state", "-")]
+            if top is None:
+                cells += ["-"] * 5
+            else:
+                cells += [top["name"], f"{top['rmse_before_mv']:.2f} → {top['rmse_after_mv']:.2f}",
+                          f"{100 * top['score']:+.1f} %", "yes" if top["significant"] else "no", top["split"]]
+            lines.append("| " + " | ".join(cells + [f"{d['seconds']:.1f}"]) + " |")
+        return "\n".join(lines)
+    return render
+
+
+# -- the tables ----------------------------------------------------------------------------------
+REAL = "D=../shared/data/real; P=$D/panasonic_18650pf; C=$D/calce_inr18650_20r; A=$D/calce_a123\n"
+PAN25 = "$(ls $P/pan18650pf_25C_*.csv | grep -v HPPC)"
+PANCOLD = "$(ls $P/pan18650pf_{10C,0C,m10C,m20C}_*.csv | grep -v HPPC)"
+CALCE = ("$C/calce20r_25C_{DST_50soc,FUDS_80soc,FUDS_50soc,US06_50soc,US06_80soc}.csv \\\n"
+         "    --full-at 10015 --full-at 9999 --full-at 5080 --full-at 10160 --full-at 9984")
+A123 = "$A/calce_a123_20C_{FUDS,US06}.csv --full-at 4478 --full-at 4436"
+PAN_FIT = ("socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv \\\n"
+           "    --capacity-ah 2.77 --min-order 0.5 --max-seconds 150")
+CALCE_FIT = "socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --max-seconds 90"
+LABELLED = ("dst_s101_4e4041", "hppc_s102_131537", "bjdst_s103_55f05a", "randomwalk_s104_e90722",
+            "hppc_s105_437525", "dst_s106_462959", "randomwalk_s107_cac951")
+REAL_DIAG = ("pan18650pf_m20C_trise_Cycle1", "pan18650pf_m20C_trise_Cycle1_soc0", "pan18650pf_10C_trise_Cycle1",
+             "calce_a123_20C_DST")
+
+
+@dataclass(frozen=True)
+class Table:
+    name: str
+    doc: str  # file under docs/results/
+    script: str  # shell text as a user types it, run from the repository root
+    render: Callable[[Path], str] | None  # None: commands only (e.g. the profiles every table reads)
+    minutes: float  # rough run time on one free core
+    tags: tuple[str, ...] = field(default=())
+
+
+TABLES: tuple[Table, ...] = (
+    Table("profiles", "soc_accuracy.md", REAL + f"""\
+{PAN_FIT} --kinetics -o configs/cells/panasonic_18650pf.toml
+{PAN_FIT} -o configs/cells/panasonic_18650pf_nokinetics.toml
+{CALCE_FIT} -o configs/cells/calce_inr18650_20r.toml   # no OCV test: joint OCV fit
+socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
+    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --max-seconds 90 -o configs/cells/calce_a123.toml
+{CALCE_FIT} --slow-branch -o configs/cells/calce_inr18650_20r_slow.toml
+{CALCE_FIT} --rest-anchor -o configs/cells/calce_inr18650_20r_anchored.toml""", None, 20),
+    Table("eval_pan25", "soc_accuracy.md", REAL + f"""\
+socd evaluate --cell configs/cells/panasonic_18650pf.toml {PAN25} --json out/eval_pan25.json
+socd evaluate --cell configs/cells/panasonic_18650pf_nokinetics.toml {PAN25} \\
+    --estimator ecm2rc-ekf --json out/eval_pan25_nokin.json""",
+          evaluate_table("eval_pan25.json+eval_pan25_nokin.json"), 25),
+    Table("eval_calce", "soc_accuracy.md", REAL + f"socd evaluate --cell configs/cells/calce_inr18650_20r.toml {CALCE} \\\n"
+          "    --json out/eval_calce.json", evaluate_table("eval_calce.json"), 8),
+    Table("eval_a123", "soc_accuracy.md", REAL + f"socd evaluate --cell configs/cells/calce_a123.toml {A123} --json out/eval_a123.json",
+          evaluate_table("eval_a123.json"), 3),
+    Table("eval_pancold", "cold.md", REAL + f"""\
+socd evaluate --cell configs/cells/panasonic_18650pf.toml {PANCOLD} \\
+    --estimator fomiukf --estimator foukf --estimator ecm2rc-ekf --estimator coulomb --json out/eval_pancold.json
+socd evaluate --cell configs/cells/panasonic_18650pf_nokinetics.toml {PANCOLD} \\
+    --estimator ecm2rc-ekf --json out/eval_pancold_nokin.json""",
+          evaluate_table("eval_pancold.json+eval_pancold_nokin.json"), 90),
+    Table("eval_pancold_nokin_pipeline", "cold.md", REAL + f"""\
+socd evaluate --cell configs/cells/panasonic_18650pf_nokinetics.toml {PANCOLD} \\
+    --estimator fomiukf --estimator foukf --json out/eval_pancold_nokin_pipeline.json""",
+          evaluate_table("eval_pancold_nokin_pipeline.json"), 60),
+    Table("rest_check_pan", "cold.md", REAL + """\
+python -m research.rest_check --cell configs/cells/panasonic_18650pf.toml \\
+    $(ls $P/pan18650pf_*.csv | grep -v HPPC) --json out/rest_check_pan.json""",
+          rest_check_table("rest_check_pan.json"), 2),
+    Table("eval_calce_slow", "cell_options.md", REAL + f"""\
+socd evaluate --cell configs/cells/calce_inr18650_20r_slow.toml {CALCE} \\
+    --json out/eval_calce_slow.json
+socd evaluate --cell configs/cells/calce_inr18650_20r.toml {CALCE} \\
+    --json out/eval_calce.json""",
+          evaluate_table("eval_calce_slow.json+eval_calce.json", only="fomiukf,foukf,ecm2rc-ekf"), 16),
+    Table("rest_check_calce", "cell_options.md", REAL + """\
+F="--full-at 10015 --full-at 9999 --full-at 5080 --full-at 10160 --full-at 9984"
+for p in calce_inr18650_20r calce_inr18650_20r_slow calce_inr18650_20r_anchored; do
+  python -m research.rest_check --cell configs/cells/$p.toml \\
+      $C/calce20r_25C_{DST_50soc,FUDS_80soc,FUDS_50soc,US06_50soc,US06_80soc}.csv $F --json out/rest_check_$p.json
+done""",
+          rest_check_table("rest_check_calce_inr18650_20r.json", "rest_check_calce_inr18650_20r_slow.json",
+                           "rest_check_calce_inr18650_20r_anchored.json"), 1),
+    Table("eval_calce_anchored", "cell_options.md", REAL + f"""\
+socd evaluate --cell configs/cells/calce_inr18650_20r_anchored.toml {CALCE} \\
+    --json out/eval_calce_anchored.json
+socd evaluate --cell configs/cells/calce_inr18650_20r.toml {CALCE} \\
+    --json out/eval_calce.json""",
+          evaluate_table("eval_calce_anchored.json+eval_calce.json", only="fomiukf,foukf,fom-single-scale,ecm2rc-ekf"),
+          16),
+    Table("eval_calce_warm", "cell_options.md", REAL + f"""\
+socd evaluate --warm-start --cell configs/cells/calce_inr18650_20r_slow.toml {CALCE} \\
+    --json out/eval_calce_slow_warm.json
+socd evaluate --warm-start --cell configs/cells/calce_inr18650_20r.toml {CALCE} \\
+    --json out/eval_calce_warm.json
+socd evaluate --warm-start --cell configs/cells/calce_a123.toml {A123} --json out/eval_a123_warm.json""",
+          evaluate_table("eval_calce_slow_warm.json+eval_calce_warm.json", "eval_a123_warm.json",
+                         only="fomiukf,foukf,fom-single-scale,ecm2rc-ekf"), 20),
+    Table("eval_pan_socr", "cell_options.md", REAL + f"""\
+{PAN_FIT} --kinetics --soc-resistance -o out/pan_socr.toml
+socd evaluate --cell out/pan_socr.toml {PAN25} --json out/eval_pan25_socr.json
+socd evaluate --cell out/pan_socr.toml {PANCOLD} \\
+    --estimator fomiukf --estimator foukf --estimator ecm2rc-ekf --estimator coulomb --json out/eval_pancold_socr.json""",
+          evaluate_table("eval_pan25_socr.json", "eval_pancold_socr.json"), 130),
+    Table("eval_pan25_slow", "cell_options.md", REAL + f"""\
+{PAN_FIT} --kinetics --slow-branch -o out/pan_slow.toml
+socd evaluate --cell out/pan_slow.toml {PAN25} --estimator fomiukf --estimator foukf --json out/eval_pan25_slow.json""",
+          evaluate_table("eval_pan25_slow.json"), 25),
+    Table("eval_a123_charge", "cell_options.md", REAL + f"""\
+socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis --ocv-branch charge \\
+    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --max-seconds 90 -o out/a123_charge.toml
+socd evaluate --cell out/a123_charge.toml {A123} --json out/eval_a123_charge.json
+socd evaluate --warm-start --cell out/a123_charge.toml {A123} --json out/eval_a123_charge_warm.json""",
+          evaluate_table("eval_a123_charge.json", "eval_a123_charge_warm.json"), 8),
+    Table("nested_both", "tuning.md", REAL + f"""\
+mkdir -p out/tune
+for b in 0 0.01 -0.01; do for q in 1e-4 2e-4 5e-4 1e-3 2e-3 5e-3 1e-2; do
+  printf "branch_noise_v_per_sqrt_s = $q\\n[ecm2rc_ekf]\\nu_noise_v_per_sqrt_s = $q\\n" > out/tune/rw_${{q}}_b$b.toml
+  E="--estimator fomiukf --estimator ecm2rc-ekf --settings out/tune/rw_${{q}}_b$b.toml --current-bias-c $b --quiet"
+  socd evaluate --cell configs/cells/panasonic_18650pf.toml {PAN25} $E --json out/tune/rw_pan_${{q}}_b$b.json
+  socd evaluate --cell configs/cells/calce_inr18650_20r.toml {CALCE} $E --json out/tune/rw_calce_${{q}}_b$b.json
+  socd evaluate --cell configs/cells/calce_a123.toml {A123} $E --json out/tune/rw_a123_${{q}}_b$b.json
+done; done
+G=""; for q in 1e-4 2e-4 5e-4 1e-3 2e-3 5e-3 1e-2; do for c in pan calce a123; do for b in 0 0.01 -0.01; do
+  G="$G $q=out/tune/rw_${{c}}_${{q}}_b$b.json"; done; done; done
+python -m research.nested_tuning --estimator fomiukf --estimator ecm2rc-ekf $G --json out/nested_both.json""",
+          nested_table("nested_both.json"), 600),
+    Table("nested2d", "tuning.md", REAL + f"""\
+mkdir -p out/tune   # needs the rw_ files of nested_both
+for b in 0 0.01 -0.01; do for v in cn0.05_q1e-4 cn0.05_q5e-4 cn0.05_q2e-3 cn0.1_q1e-4 cn0.1_q5e-4 cn0.1_q2e-3 cn0.2_q1e-4 cn0.4_q1e-4; do
+  a=${{v#cn}}; a=${{a%_q*}}; q=${{v#*_q}}
+  printf "current_noise_a = $a\\nbranch_noise_v_per_sqrt_s = $q\\n" > out/tune/g2_${{v}}_b$b.toml
+  E="--estimator fomiukf --settings out/tune/g2_${{v}}_b$b.toml --current-bias-c $b --quiet"
+  socd evaluate --cell configs/cells/panasonic_18650pf.toml {PAN25} $E --json out/tune/g2_pan_${{v}}_b$b.json
+  socd evaluate --cell configs/cells/calce_inr18650_20r.toml {CALCE} $E --json out/tune/g2_calce_${{v}}_b$b.json
+  socd evaluate --cell configs/cells/calce_a123.toml {A123} $E --json out/tune/g2_a123_${{v}}_b$b.json
+done; done
+G=""; for c in pan calce a123; do for b in 0 0.01 -0.01; do for q in 1e-4 5e-4 2e-3; do G="$G cn0.02_q$q=out/tune/rw_${{c}}_${{q}}_b$b.json"
+  for a in 0.05 0.1; do G="$G cn${{a}}_q$q=out/tune/g2_${{c}}_cn${{a}}_q${{q}}_b$b.json"; done; done
+  for a in 0.2 0.4; do G="$G cn${{a}}_q1e-4=out/tune/g2_${{c}}_cn${{a}}_q1e-4_b$b.json"; done; done; done
+python -m research.nested_tuning --estimator fomiukf $G --json out/nested2d.json""",
+          nested_table("nested2d.json"), 400, ("needs:nested_both",)),
+    Table("nested_bias", "tuning.md", REAL + f"""\
+mkdir -p out/tune   # needs the rw_ files of nested_both
+for s0 in 0.002 0.005; do for b in 0 0.01 -0.01; do
+  printf "current_bias_state = true\\ncurrent_bias_init_std_c = $s0\\n" > out/tune/bs_$s0.toml
+  E="--estimator fomiukf --settings out/tune/bs_$s0.toml --current-bias-c $b --quiet"
+  socd evaluate --cell configs/cells/panasonic_18650pf.toml {PAN25} $E --json out/tune/bs_pan_${{s0}}_b$b.json
+  socd evaluate --cell configs/cells/calce_inr18650_20r.toml {CALCE} $E --json out/tune/bs_calce_${{s0}}_b$b.json
+  socd evaluate --cell configs/cells/calce_a123.toml {A123} $E --json out/tune/bs_a123_${{s0}}_b$b.json
+done; done
+G=""; for c in pan calce a123; do for b in 0 0.01 -0.01; do G="$G off=out/tune/rw_${{c}}_1e-4_b$b.json"
+  for s0 in 0.002 0.005; do G="$G on_$s0=out/tune/bs_${{c}}_${{s0}}_b$b.json"; done; done; done
+python -m research.nested_tuning --estimator fomiukf $G --json out/nested_bias.json""",
+          nested_table("nested_bias.json"), 100, ("needs:nested_both",)),
+    Table("bench", "bench.md", "for k in 1 2 3; do socd bench --cells 200 --json out/bench200_$k.json; done",
+          bench_table("bench200_1.json", "bench200_2.json", "bench200_3.json"), 3),
+    Table("demo", "bench.md", """\
+P=../shared/data/real/panasonic_18650pf
+socd demo --cells 96 --json out/demo96.json --plot out/demo96.png
+socd demo --cells 200 --json out/demo200.json --plot out/demo200.png
+socd demo --cells 96 --speed 1 --seconds 60 --recording $P/fullrate_10Hz/pan18650pf_25C_US06_10Hz.csv \\
+    --json out/demo96_realtime.json --plot out/demo96_realtime.png""",
+          demo_table("demo96.json", "demo200.json", "demo96_realtime.json"), 5),
+    Table("diag_labelled", "diagnose.md", """\
+S=../shared/data/synthetic
+for f in dst_s101_4e4041 hppc_s102_131537 bjdst_s103_55f05a randomwalk_s104_e90722 hppc_s105_437525 dst_s106_462959 randomwalk_s107_cac951; do
+  socd diagnose $S/$f.csv --ocv $S/${f}_ocv.csv \\
+    --capacity-ah $(python -c "import json;print(json.load(open('$S/$f.meta.json'))['capacity_ah'])") \\
+    --json out/diag_$f.json --report out/report_$f
+done""",
+          diagnose_table("diag_{}.json", LABELLED, labels="../shared/data/synthetic/labels.json"), 10),
+    Table("clean_twin", "diagnose.md", """\
+python -m research.clean_twin --data ../shared/data/synthetic --jobs 2 --workdir out/twin --json out/clean_twin.json""",
+          clean_twin_table("clean_twin.json"), 13, ("needs:pybamm",)),
+    Table("validate", "diagnose.md", "python -m research.validate --seeds 3 --workdir out/validate --json out/validate.json",
+          validate_table("validate.json"), 8),
+    Table("roundtrip", "diagnose.md", "python -m research.roundtrip --workdir out/roundtrip --json out/roundtrip.json",
+          roundtrip_table("roundtrip.json"), 5),
+    Table("pybamm_walk", "diagnose.md", """\
+python -m research.validate_pybamm --hysteresis-start discharge --jobs 2 --workdir out/validate_pybamm \\
+    --json out/validate_pybamm.json""", pybamm_table("validate_pybamm.json"), 22, ("needs:pybamm",)),
+    Table("pybamm_interleaved", "diagnose.md", """\
+python -m research.validate_pybamm --hysteresis-start discharge --split interleaved --jobs 2 \\
+    --workdir out/validate_pybamm_i --json out/validate_pybamm_i.json""",
+          pybamm_table("validate_pybamm_i.json"), 25, ("needs:pybamm",)),
+    Table("pybamm_hppc", "diagnose.md", """\
+python -m research.validate_pybamm --drive hppc --hysteresis-start discharge --jobs 2 \\
+    --workdir out/validate_pybamm_hppc --json out/validate_pybamm_hppc.json""",
+          pybamm_table("validate_pybamm_hppc.json"), 22, ("needs:pybamm",)),
+    Table("pybamm_smooth", "diagnose.md", """\
+python -m research.validate_pybamm --drive smooth --jobs 2 --workdir out/validate_pybamm_smooth \\
+    --json out/validate_pybamm_smooth.json""",
+          pybamm_table("validate_pybamm_smooth.json"), 22, ("needs:pybamm",)),
+    Table("diag_real", "diagnose.md", REAL + """\
+M=configs/cells/panasonic_18650pf.toml
+socd diagnose $P/pan18650pf_m20C_trise_Cycle1.csv --cell $M --json out/diag_pan18650pf_m20C_trise_Cycle1.json
+socd diagnose $P/pan18650pf_m20C_trise_Cycle1.csv --cell $M --soc0 1.0 \\
+    --json out/diag_pan18650pf_m20C_trise_Cycle1_soc0.json
+socd diagnose $P/pan18650pf_10C_trise_Cycle1.csv --cell $M --json out/diag_pan18650pf_10C_trise_Cycle1.json
+socd diagnose $A/calce_a123_20C_DST.csv --cell configs/cells/calce_a123.toml --json out/diag_calce_a123_20C_DST.json""",
+          diagnose_table("diag_{}.json", REAL_DIAG), 3),
+)
+
+
+# -- markdown blocks -----------------------------------------------------------------------------
+def replace_block(text: str, kind: str, name: str, body: str, where: str = "markdown") -> str:
+    """``text`` with the content between ``<!-- BEGIN kind:name -->`` and its END marker replaced
+    by ``body``; :class:`RegenerateError` when the pair is missing or appears twice."""
+    begin, end = f"<!-- BEGIN {kind}:{name} -->", f"<!-- END {kind}:{name} -->"
+    pattern = re.compile(re.escape(begin) + r"\n.*?" + re.escape(end), re.S)
+    found = pattern.findall(text)
+    if len(found) != 1:
+        raise RegenerateError(f"{where}: expected one '{begin}' … '{end}' pair, found {len(found)}")
+    return pattern.sub(lambda _m: f"{begin}\n{body.rstrip()}\n{end}", text)
+
+
+def command_block(table: Table) -> str:
+    return f"```sh\n{table.script}\n```"
+
+
+def table_block(table: Table, rendered: str, when: dt.datetime, commit: str) -> str:
+    stamp = when.strftime("%Y-%m-%d %H:%M UTC")
+    return (f"{rendered}\n\n_Produced {stamp} at commit {commit} by "
+            f"`python docs/results/regenerate.py --only {table.name}`._")
+
+
+def write_blocks(path: Path, blocks: list[tuple[str, str, str]]) -> None:
+    """Replace every ``(kind, name, body)`` in ``path``; nothing is written if any marker is missing."""
+    text = path.read_text()
+    for kind, name, body in blocks:
+        text = replace_block(text, kind, name, body, where=str(path))
+    path.write_text(text)
+
+
+# -- running -------------------------------------------------------------------------------------
+def run_commands(table: Table, log_dir: Path) -> None:
+    """Run ``table``'s script from the repository root; output to ``log_dir/<name>.log``."""
+    prelude = (f'PY={sys.executable!r}\nsocd() {{ "$PY" -m service.cli "$@"; }}\n'
+               'python() { "$PY" "$@"; }\nmkdir -p out\n')
+    log = log_dir / f"{table.name}.log"
+    with log.open("w") as fh:
+        done = subprocess.run(["bash", "-euo", "pipefail", "-c", prelude + _runnable(table.script)],
+                              cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT, check=False)
+    if done.returncode != 0:
+        tail = log.read_text().strip().splitlines()[-1:] or ["(no output)"]
+        raise RegenerateError(f"{table.name}: a command failed with status {done.returncode} "
+                              f"(log {log}): {tail[0]}")
+
+
+def _commit() -> str:
+    got = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=False)
+    return got.stdout.strip() or "unknown"
+
+
+def select(names: list[str] | None) -> list[Table]:
+    if not names:
+        return list(TABLES)
+    known = {t.name: t for t in TABLES}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise RegenerateError(f"--only: unknown table(s) {', '.join(unknown)}; known: {', '.join(known)}")
+    return [known[n] for n in names]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python docs/results/regenerate.py", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--only", action="append", metavar="NAME", help="a table to regenerate (repeatable; see --list)")
+    ap.add_argument("--jobs", type=int, default=1, help="tables whose commands run at once (default 1)")
+    ap.add_argument("--list", action="store_true", help="list the tables and stop")
+    ap.add_argument("--commands-only", action="store_true", help="rewrite the command blocks only; run nothing")
+    ap.add_argument("--render-only", action="store_true", help="render from the JSON already in out/; run nothing")
+    args = ap.parse_args(argv)
+    try:
+        tables = select(args.only)
+        if args.list:
+            for t in tables:
+                print(f"{t.name:28s} {t.doc:18s} ~{t.minutes:g} min {' '.join(t.tags)}")
+            return 0
+        if args.jobs < 1:
+            raise RegenerateError("--jobs must be 1 or more")
+        for doc in sorted({t.doc for t in tables}):  # every marker present before anything runs
+            path = RESULTS / doc
+            if not path.is_file():
+                raise RegenerateError(f"{path}: missing")
+            text = path.read_text()
+            for t in (t for t in tables if t.doc == doc):
+                replace_block(text, "command", t.name, "", where=str(path))
+                if t.render is not None:
+                    replace_block(text, "table", t.name, "", where=str(path))
+        if not (args.commands_only or args.render_only):
+            log_dir = ROOT / OUT / "regenerate_logs"
+            log_dir.mkdir(parents=True, exist_ok=True)
+            with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+                for t, _ in zip(tables, pool.map(lambda t: run_commands(t, log_dir), tables)):
+                    print(f"ran {t.name}", file=sys.stderr)
+        when, commit = dt.datetime.now(dt.timezone.utc), _commit()
+        blocks: dict[str, list[tuple[str, str, str]]] = {}  # every table rendered before any file is written
+        for t in tables:
+            blocks.setdefault(t.doc, []).append(("command", t.name, command_block(t)))
+            if t.render is not None and not args.commands_only:
+                blocks[t.doc].append(("table", t.name, table_block(t, t.render(ROOT / OUT), when, commit)))
+        for doc, doc_blocks in sorted(blocks.items()):
+            write_blocks(RESULTS / doc, doc_blocks)
+            print(f"wrote {RESULTS / doc}", file=sys.stderr)
+    except RegenerateError as exc:
+        print(f"regenerate: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

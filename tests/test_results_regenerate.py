@@ -1,0 +1,118 @@
+"""docs/results/regenerate.py: tables rendered from the JSON real ``socd`` runs write, and written
+between the markers of a results file; every table the script knows has its markers in place."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "docs" / "results" / "regenerate.py"
+A123 = ROOT.parent / "shared" / "data" / "real" / "calce_a123"
+
+
+@pytest.fixture(scope="module")
+def regen():
+    spec = importlib.util.spec_from_file_location("regenerate", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["regenerate"] = module  # dataclasses resolve the module by name
+    spec.loader.exec_module(module)
+    return module
+
+
+def socd(*args: str) -> None:
+    """A real ``socd`` run in its own process (``socd bench`` pins its process to one core)."""
+    done = subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=ROOT, capture_output=True, text=True,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+
+
+@pytest.fixture(scope="module")
+def bench_json(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("out")
+    socd("bench", "--cells", "3", "--steps", "12", "--reference-steps", "2", "--json", str(out / "bench_small.json"))
+    return out / "bench_small.json"
+
+
+def test_bench_table_carries_the_run_s_figures(regen, bench_json):
+    got = json.loads(bench_json.read_text())
+    table = regen.bench_table(bench_json.name)(bench_json.parent)
+    header, rule, row = table.splitlines()
+    assert header.count("|") == rule.count("|") == row.count("|")
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1:4] == [str(got["cells"]), str(got["memory_length"]), str(got["innovation_length"])]
+    assert cells[4] == f"{got['cell_steps_per_s']:,.0f}"
+    assert cells[5] == f"{got['reference_cell_steps_per_s']:,.0f}"
+    assert cells[6] == f"{got['ratio']:.0f}×"
+
+
+@pytest.mark.skipif(not A123.is_dir(), reason="needs ../shared/data/real/calce_a123")
+def test_evaluate_table_is_the_mean_of_the_run_s_rows(regen, tmp_path):
+    socd("evaluate", "--cell", "configs/cells/calce_a123.toml", str(A123 / "calce_a123_20C_FUDS.csv"),
+         str(A123 / "calce_a123_20C_US06.csv"), "--full-at", "4478", "--full-at", "4436",
+         "--estimator", "ecm2rc-ekf", "--estimator", "coulomb", "--quiet", "--json", str(tmp_path / "a.json"))
+    results = json.loads((tmp_path / "a.json").read_text())["results"]
+    table = regen.evaluate_table("a.json")(tmp_path)
+    lines = table.splitlines()
+    assert lines[2] == "| recording | ecm2rc-ekf | coulomb |"
+    ekf = [r["soc_rmse_after_600s_pct"] for r in results if r["estimator"] == "ecm2rc-ekf"]
+    assert len(ekf) == 2
+    rows = {ln.split("|")[1].strip(): ln for ln in lines[4:]}
+    for r in results:
+        if r["estimator"] == "ecm2rc-ekf":
+            assert f"| {r['soc_rmse_after_600s_pct']:.2f} |" in rows[r["recording"]]
+    assert rows["**mean**"].startswith(f"| **mean** | **{sum(ekf) / 2:.2f}** | **20.00** |")
+
+
+def test_render_only_writes_between_the_markers_and_nowhere_else(regen, bench_json, tmp_path, monkeypatch):
+    results = tmp_path / "docs"
+    results.mkdir()
+    doc = results / "bench.md"
+    doc.write_text("# Bench\n\nkept above\n\n<!-- BEGIN command:bench -->\nold\n<!-- END command:bench -->\n\n"
+                   "<!-- BEGIN table:bench -->\nold table\n<!-- END table:bench -->\n\nkept below\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    for k in (1, 2, 3):
+        (out / f"bench200_{k}.json").write_text(bench_json.read_text())
+    monkeypatch.setattr(regen, "RESULTS", results)
+    monkeypatch.setattr(regen, "ROOT", tmp_path)
+    assert regen.main(["--render-only", "--only", "bench"]) == 0
+    text = doc.read_text()
+    assert text.startswith("# Bench\n\nkept above\n\n") and text.endswith("\n\nkept below\n")
+    assert "old" not in text
+    bench = next(t for t in regen.TABLES if t.name == "bench")
+    assert f"```sh\n{bench.script}\n```" in text
+    assert regen.bench_table("bench200_1.json")(out).splitlines()[2].replace("bench200_1", "bench200_2") in text
+    assert "by `python docs/results/regenerate.py --only bench`" in text
+
+
+def test_a_missing_marker_is_one_error_and_nothing_is_written(regen, tmp_path, monkeypatch, capsys):
+    doc = tmp_path / "bench.md"
+    before = "<!-- BEGIN command:bench -->\n<!-- END command:bench -->\n"  # no table markers
+    doc.write_text(before)
+    monkeypatch.setattr(regen, "RESULTS", tmp_path)
+    assert regen.main(["--render-only", "--only", "bench"]) == 2
+    assert "table:bench" in capsys.readouterr().err
+    assert doc.read_text() == before
+    with pytest.raises(regen.RegenerateError):
+        regen.replace_block(before + before, "command", "bench", "x")
+
+
+def test_an_unknown_table_is_refused(regen, capsys):
+    assert regen.main(["--only", "no_such_table"]) == 2
+    assert "unknown table" in capsys.readouterr().err
+
+
+def test_every_table_has_its_markers_in_its_results_file(regen):
+    for t in regen.TABLES:
+        text = (SCRIPT.parent / t.doc).read_text()
+        kinds = ("command", "table") if t.render is not None else ("command",)
+        for kind in kinds:
+            assert text.count(f"<!-- BEGIN {kind}:{t.name} -->") == 1, (t.doc, kind, t.name)
+            assert text.count(f"<!-- END {kind}:{t.name} -->") == 1, (t.doc, kind, t.name)
+        assert f"```sh\n{t.script}\n```" in text, f"{t.doc}: the command block of {t.name} is not the script's"
