@@ -147,6 +147,9 @@ class MappingConfig(_Section):
     temperature_range_c: tuple[float, float] = (-40.0, 90.0)
     current_range_a: tuple[float, float] = (-1000.0, 1000.0)
     stale_after_s: float = Field(2.0, gt=0)
+    max_clock_jump_s: float = Field(
+        10.0, gt=0, description="a frame further than this from its ID's timeline is rejected; "
+        "a run of agreeing ones re-anchors the ID (service.bus.decoder)")
 
     @field_validator("current_sign")
     @classmethod
@@ -274,6 +277,11 @@ class ZenohConfig(_Section):
 class CheckpointConfig(_Section):
     path: Path = Path("socd-state.npz")
     interval_s: float = Field(30.0, gt=0)
+    max_age_s: float = Field(
+        10.0, gt=0, description="a restored state older than this (checkpoint time to first new "
+        "sample) has its SOC sigma widened by aged_c_rate x age")
+    aged_c_rate: float = Field(
+        1.0, gt=0, description="mean C-rate the pack is assumed able to have run at while the daemon was down")
 
 
 class PackConfig(_Section):
@@ -447,9 +455,11 @@ def load_config(path: str | Path | None = None, *, check_files: bool = True) -> 
     """
     path = Path(DEFAULT_CONFIG if path is None else path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a text (UTF-8) TOML file: byte {exc.start}") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -58,7 +58,8 @@ class GuardedNotifier(can.Notifier):
     ``on_receive_error(exc)`` is called on the loop once per failed receive; the reader for
     that bus is then stopped (a failed bus needs a new Bus object, which is the caller's
     job).  ``on_listener_error(exc)`` is called on the loop for an exception raised by a
-    listener; delivery continues with the next message.
+    listener; delivery continues with the next message.  Frames read before :meth:`stop`
+    but dispatched after it are still delivered (python-can's own Notifier drops them).
     """
 
     def __init__(
@@ -134,8 +135,9 @@ class GuardedNotifier(can.Notifier):
             self._dispatch(msg)
 
     def _dispatch(self, msg: can.Message) -> None:
-        if self._stopped:
-            return
+        # Deliver even after stop(): a batch the receive thread (or the fd callback) read
+        # before the stop is still queued on the loop, and the frames in it came off the bus.
+        # The listeners outlive this notifier (see :class:`_Reader`), so nothing is lost.
         try:
             self._on_message_received(msg)
         except Exception as exc:  # noqa: BLE001 - a listener bug must not stop reception
@@ -257,7 +259,11 @@ class CanReceiver:
 
     # -- the public path ----------------------------------------------------------------
     async def recv(self) -> can.Message:
-        """The next data frame; bus errors are counted and reconnected, never raised."""
+        """The next frame the bus delivered; receive errors are counted and reconnected, never raised.
+
+        Error frames are returned too (after a bus-off one has triggered a reconnect), so
+        the consumer can count every frame that arrived exactly once.
+        """
         while True:
             if self._reader is None:
                 await self._connect()
@@ -269,11 +275,11 @@ class CanReceiver:
                 await self._reconnect(repr(item.exc))
                 continue
             if item.is_error_frame:
-                self.health.count("error_frames", flag="bus_error")
+                self.health.raise_flag("bus_error")
                 if item.arbitration_id & CAN_ERR_BUSOFF:
                     self.health.count("bus_off", flag="bus_error")
                     await self._reconnect("bus-off")
-                continue
+                return item
             if not self._healthy:
                 self._healthy = True
                 self._delay = self._initial
