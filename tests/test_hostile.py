@@ -200,23 +200,32 @@ def test_bus_off_ten_times_loses_no_delivered_frame(how: str) -> None:
         await rx.start()
         tx = can.Bus(interface="virtual", channel=channel)
         got: list[can.Message] = []
-        sent = 0
 
         async def consume() -> None:
             while True:
                 got.append(await rx.recv())
 
         task = asyncio.create_task(consume())
-        for burst in range(10):
-            if how == "error_frame":
-                tx.send(can.Message(arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True, data=[0] * 8))
-                sent += 1
-            else:
-                bus.fail_next = 1
-            for k in range(per_burst):  # the frames right after the bus-off
-                tx.send(can.Message(arbitration_id=0x10, data=[burst, k & 0xFF], is_extended_id=False))
-                sent += 1
-            await asyncio.sleep(0.05)
+
+        def sender() -> int:
+            # from another thread, paced, so frames keep arriving while the receiver tears
+            # down and re-attaches (the window where a stopped notifier used to drop them)
+            n = 0
+            for burst in range(10):
+                if how == "error_frame":
+                    tx.send(can.Message(arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True, data=[0] * 8))
+                    n += 1
+                else:
+                    bus.fail_next = 1
+                for k in range(per_burst):  # the frames right after the bus-off
+                    tx.send(can.Message(arbitration_id=0x10, data=[burst, k & 0xFF], is_extended_id=False))
+                    n += 1
+                    if k % 8 == 0:
+                        time.sleep(0.002)
+                time.sleep(0.05)
+            return n
+
+        sent = await asyncio.to_thread(sender)
         end = time.monotonic() + 10
         while len(got) < sent and time.monotonic() < end:
             await asyncio.sleep(0.02)
