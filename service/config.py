@@ -478,18 +478,38 @@ def load_config(path: str | Path | None = None, *, check_files: bool = True) -> 
     return config
 
 
+def _load_config_dbc(config: SocdConfig, field: str, source: str):
+    p = getattr(config.dbc, field)
+    try:
+        return load_dbc(p)
+    except FileNotFoundError:
+        raise ConfigError(f"{source}: dbc.{field}: no such file {p}") from None
+    except Exception as exc:  # cantools raises many kinds for a bad file
+        detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConfigError(f"{source}: dbc.{field}: cannot load DBC {p}: {detail}") from None
+
+
 def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
     """Check the files the config points at and the signal names against the DBCs."""
-    dbs = {}
-    for field in ("input", "output"):
-        p = getattr(config.dbc, field)
-        try:
-            dbs[field] = load_dbc(p)
-        except FileNotFoundError:
-            raise ConfigError(f"{source}: dbc.{field}: no such file {p}") from None
-        except Exception as exc:  # cantools raises many kinds for a bad file
-            raise ConfigError(f"{source}: dbc.{field}: cannot load DBC {p}: {exc}") from None
-    db_in = dbs["input"]
+    check_input_mapping(config, source)
+    db_out = _load_config_dbc(config, "output", source)
+    if config.output.can_enabled:
+        for msg_name, sig_names in OUTPUT_MESSAGES.items():
+            try:
+                msg = db_out.get_message_by_name(msg_name)
+            except KeyError:
+                raise ConfigError(f"{source}: dbc.output: message {msg_name!r} missing") from None
+            have = {s.name for s in msg.signals}
+            for s in sig_names:
+                if s not in have:
+                    raise ConfigError(f"{source}: dbc.output: signal {s!r} missing from {msg_name}")
+    if not config.cell_profile.is_file():
+        raise ConfigError(f"{source}: cell_profile: no such file {config.cell_profile}")
+
+
+def check_input_mapping(config: SocdConfig, source: str = "<config>") -> None:
+    """The input DBC loads and holds every signal the mapping names (what a replay needs)."""
+    db_in = _load_config_dbc(config, "input", source)
     signals = {s.name: m for m in db_in.messages for s in m.signals}
     for path, name in config.mapping.all_signals():
         if path.startswith("mapping.counter_signals."):
@@ -511,19 +531,6 @@ def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
                 f"{source}: {path}: signal {name!r} not in dbc.input ({config.dbc.input.name})"
                 + (f"; did you mean {hint!r}?" if hint else "")
             )
-    db_out = dbs["output"]
-    if config.output.can_enabled:
-        for msg_name, sig_names in OUTPUT_MESSAGES.items():
-            try:
-                msg = db_out.get_message_by_name(msg_name)
-            except KeyError:
-                raise ConfigError(f"{source}: dbc.output: message {msg_name!r} missing") from None
-            have = {s.name for s in msg.signals}
-            for s in sig_names:
-                if s not in have:
-                    raise ConfigError(f"{source}: dbc.output: signal {s!r} missing from {msg_name}")
-    if not config.cell_profile.is_file():
-        raise ConfigError(f"{source}: cell_profile: no such file {config.cell_profile}")
 
 
 def _close(name: str, names) -> str | None:
