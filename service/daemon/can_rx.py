@@ -315,3 +315,7 @@ class CanReceiver:
     def close(self) -> None:
         self._closed = True
         self._teardown()
+        # frames received but never consumed (the service is stopping): counted, not silently gone
+        left = sum(1 for item in list(self._reader_obj.buffer._queue)  # type: ignore[attr-defined]
+                   if not isinstance(item, _ReceiveError))
+        self.health.count("frames_unprocessed_at_stop", left)
