@@ -361,3 +361,81 @@ def test_restart_onto_an_earlier_timeline_restarts_from_ocv(tmp_path: Path, driv
     assert b.steps == b.samples - 1
     # an OCV start's σ, not the checkpoint's
     np.testing.assert_allclose(first_std, config.estimator.soc_init_std)
+
+
+def test_running_daemon_flood_counts_every_frame_once(tmp_path: Path) -> None:
+    """100k frames (error, remote, unknown, short, wild-timestamp, random) through a virtual bus
+    into a running daemon: the health payload's counters account for every one of them."""
+    config = _daemon_config(tmp_path, N)
+    rng = random.Random(7)
+    good = stream(config, 2000, dt=0.1)
+    frames: list[can.Message] = []
+    gi = 0
+    while len(frames) < 100_000:
+        if rng.random() < 0.1 and gi < len(good):
+            frames.append(good[gi])
+            gi += 1
+            continue
+        t = 100.0 + gi * 0.02
+        kind = rng.randrange(5)
+        if kind == 0:
+            frames.append(can.Message(timestamp=t, is_error_frame=True, arbitration_id=0x4, dlc=8))  # not bus-off
+        elif kind == 1:
+            frames.append(can.Message(timestamp=t, is_remote_frame=True, arbitration_id=0x110, dlc=8))
+        elif kind == 2:
+            frames.append(_retimed(good[max(0, gi - 1)], rng.choice([1e6, -1e6, t - 20.0])))
+        else:
+            n = rng.choice([0, 3, 8])
+            frames.append(can.Message(timestamp=t, arbitration_id=rng.choice([0x100, 0x110, 0x120, 0x333]),
+                                      is_extended_id=False, data=bytes(rng.getrandbits(8) for _ in range(n))))
+
+    async def main() -> dict:
+        bus = can.Bus(interface="virtual", channel=config.bus.channel)
+        tx = can.Bus(interface="virtual", channel=config.bus.channel, preserve_timestamps=True)
+        d = Daemon(config, bus, profile=load_profile(DEFAULT_CELL_PROFILE), install_signal_handlers=False)
+        stop = asyncio.Event()
+        task = asyncio.create_task(d.run(stop))
+        await d.wait_started()
+        await asyncio.wait_for(d.receiver.connected.wait(), 10)
+
+        def send() -> None:
+            for f in frames:
+                tx.send(f)
+
+        await asyncio.to_thread(send)
+        end = time.monotonic() + 60
+        while d.decoder.counters["frames_in"] < len(frames) and time.monotonic() < end:
+            await asyncio.sleep(0.05)
+        health = d.health.payload(0.0, d.decoder.counters)
+        stop.set()
+        await asyncio.wait_for(task, 15)
+        tx.shutdown()
+        bus.shutdown()
+        return health.counters
+
+    c = asyncio.run(main())
+    assert c["frames_in"] == len(frames)
+    assert c["frames_in"] == c["frames_decoded"] + c.get("frames_ignored", 0) + c["frames_rejected"]
+    assert c["frames_rejected"] == sum(c.get(r, 0) for r in REJECT_REASONS)
+    assert c["error_frame"] > 10_000 and c["remote_frame"] > 10_000 and c["timestamp_jump"] > 1000
+
+
+def test_clock_jump_is_flagged_on_health_and_the_status_frame(tmp_path: Path) -> None:
+    from service.bus.encoder import OutputEncoder, decode_output
+
+    config = _daemon_config(tmp_path, N)
+    d = Daemon(config, profile=load_profile(DEFAULT_CELL_PROFILE), install_signal_handlers=False)
+    frames = stream(config, 100)
+    jumped = [_retimed(f, f.timestamp - 3600.0) for f in frames[250:]]  # the tester's clock went back an hour
+    for f in frames[:250] + jumped:
+        for s in d.decoder.feed(f):
+            d.on_sample(s)
+    assert d.counters()["clock_reanchor"] == 1 and d.counters()["clock_reanchored_back"] == 1
+    assert d.steps >= 100 - 3
+    flags = d.status_flags()
+    assert flags["clock_reanchored"] and not flags["state_aged"]
+    assert d.publish_round().health.status_flags["clock_reanchored"]
+    db = config.output_db()
+    status = [decode_output(m, db) for m in OutputEncoder(config).encode(d.snapshot())]
+    status = [s for s in status if s.get("message") == "SOCD_Status"]
+    assert status and status[0]["SOCD_FlagClockReanchored"] == 1 and status[0]["SOCD_FlagStateAged"] == 0
