@@ -38,16 +38,16 @@ def read_text(path: str | Path, what: str) -> str:
     """The text of ``path`` (a ``what``: "recording", "OCV table", ...), or :class:`InputFileError`."""
     path = Path(path)
     if not path.exists():
-        raise InputFileError(f"{path}: no such {what} file")
+        raise InputFileError(f"{path}: cannot read {what}: no such file")
     if not path.is_file():
-        raise InputFileError(f"{path}: not a file ({what} expected)")
+        raise InputFileError(f"{path}: cannot read {what}: not a file")
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
     nul = data.find(b"\x00")
     if nul >= 0:
-        raise InputFileError(f"{path}: binary data at byte {nul}, not a text {what}")
+        raise InputFileError(f"{path}: not a text file ({what} expected): NUL byte at {nul}")
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -193,9 +193,9 @@ class _Collect(logging.Handler):
 def read_bytes_check(path: Path, what: str) -> None:
     """The file exists, is a file, and can be opened for reading."""
     if not path.exists():
-        raise InputFileError(f"{path}: no such {what} file")
+        raise InputFileError(f"{path}: cannot read {what}: no such file")
     if not path.is_file():
-        raise InputFileError(f"{path}: not a file ({what} expected)")
+        raise InputFileError(f"{path}: cannot read {what}: not a file")
     try:
         with path.open("rb") as fh:
             fh.read(1)

@@ -211,3 +211,16 @@ def test_a_valid_log_replays(tmp_path: Path, capsys) -> None:
     code, err = run_cli(capsys, ["replay", str(tmp_path / "copy.asc"), "--no-send", "--record",
                                  str(tmp_path / "out.blf"), "--no-progress"])
     assert code == 0, err
+
+
+@pytest.mark.parametrize("which", ["--cell", "--settings"])
+def test_binary_profile_or_settings(tmp_path: Path, capsys, which: str) -> None:
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\x00\x01\xfe" + bytes(range(256)))
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    cell = str(binary) if which == "--cell" else str(DEFAULT_CELL_PROFILE)
+    argv = ["evaluate", str(rec), "--cell", cell, "--quiet"]
+    if which == "--settings":
+        argv += ["--settings", str(binary)]
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, str(binary))
