@@ -439,3 +439,28 @@ def test_clock_jump_is_flagged_on_health_and_the_status_frame(tmp_path: Path) ->
     status = [decode_output(m, db) for m in OutputEncoder(config).encode(d.snapshot())]
     status = [s for s in status if s.get("message") == "SOCD_Status"]
     assert status and status[0]["SOCD_FlagClockReanchored"] == 1 and status[0]["SOCD_FlagStateAged"] == 0
+
+
+
+def test_owned_bus_is_drained_before_it_is_shut_down() -> None:
+    """A bus the receiver owns is shut down for a reconnect; what its queue still holds
+    (frames received before the bus-off) is handed on first, and counted."""
+    channel = f"drain-{time.monotonic_ns()}"
+
+    async def main() -> tuple[list[can.Message], HealthMonitor]:
+        health = HealthMonitor()
+        owned = can.Bus(interface="virtual", channel=channel)
+        rx = CanReceiver(health, open_bus=lambda: owned)
+        tx = can.Bus(interface="virtual", channel=channel)
+        for k in range(50):  # queued in the owned bus; no notifier has read them
+            tx.send(can.Message(arbitration_id=0x10, data=[k], is_extended_id=False))
+        time.sleep(0.05)
+        rx.bus = owned  # as after a connect whose notifier has been stopped
+        rx._teardown()
+        got = [await asyncio.wait_for(rx._reader_obj.get_message(), 1) for _ in range(50)]
+        tx.shutdown()
+        return got, health
+
+    got, health = asyncio.run(main())
+    assert [m.data[0] for m in got] == list(range(50))
+    assert health.counters["frames_drained_at_reconnect"] == 50

@@ -37,6 +37,8 @@ CAN_ERR_BUSOFF = 0x40
 FD_DRAIN_MAX = 256
 #: frames handed to the loop in one call by the receive thread of thread-backed buses
 RX_BATCH_MAX = 256
+#: most frames taken from an owned bus's queue before it is shut down for a reconnect
+DRAIN_MAX = 100_000
 
 
 class ReceiverClosed(Exception):
@@ -243,12 +245,28 @@ class CanReceiver:
             except Exception as exc:  # noqa: BLE001
                 log.debug("notifier stop: %r", exc)
         if bus is not None and self._given_bus is None:
+            self._drain(bus)
             try:
                 bus.shutdown()
             except Exception as exc:  # noqa: BLE001 - a dead bus may fail to close
                 log.debug("bus shutdown: %r", exc)
                 # python-can would retry (and raise again) from BusABC.__del__
                 bus._is_shutdown = True  # type: ignore[attr-defined]
+
+    def _drain(self, bus: can.BusABC) -> None:
+        """Hand on what an owned bus still holds before it is shut down (a bus-off leaves the
+        frames received before it in the driver's queue; shutdown would discard them)."""
+        n = 0
+        for _ in range(DRAIN_MAX):
+            try:
+                msg = bus.recv(0)
+            except Exception:  # noqa: BLE001 - a failed bus may fail again; nothing more to get
+                break
+            if msg is None:
+                break
+            self._reader_obj.on_message_received(msg)
+            n += 1
+        self.health.count("frames_drained_at_reconnect", n)
 
     async def _reconnect(self, why: str) -> None:
         self.health.count("bus_reconnects", flag="bus_error")
