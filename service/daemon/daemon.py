@@ -28,8 +28,8 @@ and a cell that is invalid from the start does not hold the others back.
 A restored state is only as good as its age: the checkpoint's frame time is compared with
 the first new sample.  Past ``checkpoint.max_age_s`` the pack may have moved while the
 daemon was down, so every cell's SOC σ is widened by ``checkpoint.aged_c_rate`` × age (in
-hours of 1 C); if the age cannot be known (the new timeline is before the checkpoint, or
-the checkpoint has no time), the cells restart from OCV.  Either way ``state_aged`` is
+hours of 1 C); if the age cannot be known (the new timeline is more than ``max_age_s``
+before the checkpoint, or the checkpoint has no time), the cells restart from OCV.  Either way ``state_aged`` is
 raised.  A sample marked ``reanchored`` by the decoder (its clock jumped) is not
 integrated: the time since the previous sample is unknown.
 """
@@ -417,8 +417,8 @@ class Daemon:
         """Compare the restored state's time with the first new sample (see the module doc)."""
         ck = self.config.checkpoint
         age = None if self._restored_t_s is None else s.t_s - self._restored_t_s
-        if age is not None and np.isfinite(age) and 0.0 <= age <= ck.max_age_s:
-            return
+        if age is not None and np.isfinite(age) and abs(age) <= ck.max_age_s:
+            return  # recent (a slightly earlier first sample is frame-time jitter, not a new timeline)
         self.health.raise_flag("state_aged")
         self._state_aged = True
         widen = getattr(self.estimator, "widen_soc_std", None)
