@@ -19,6 +19,7 @@ starting with the file's name; commands turn it into their one-line error with e
 
 from __future__ import annotations
 
+import codecs
 import gc
 import logging
 import math
@@ -52,6 +53,38 @@ def read_text(path: str | Path, what: str) -> str:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise InputFileError(f"{path}: not a UTF-8 text {what} (invalid byte at {exc.start})") from None
+
+
+def check_text_file(path: str | Path, what: str, chunk_bytes: int = 1 << 20) -> str:
+    """Like :func:`read_text`, streamed (for logs that may not fit in memory); returns the first line."""
+    path = Path(path)
+    read_bytes_check(path, what)
+    decoder = codecs.getincrementaldecoder("utf-8-sig")()
+    first: str | None = None
+    head = ""
+    offset = 0
+    try:
+        with path.open("rb") as fh:
+            while chunk := fh.read(chunk_bytes):
+                nul = chunk.find(b"\x00")
+                if nul >= 0:
+                    raise InputFileError(f"{path}: not a text file ({what} expected): NUL byte at {offset + nul}")
+                try:
+                    text = decoder.decode(chunk)
+                except UnicodeDecodeError as exc:
+                    raise InputFileError(
+                        f"{path}: not a UTF-8 text {what} (invalid byte at {offset + exc.start})") from None
+                if first is None:
+                    head += text
+                    if "\n" in head:
+                        first = head.split("\n", 1)[0]
+                offset += len(chunk)
+            decoder.decode(b"", final=True)
+    except UnicodeDecodeError:
+        raise InputFileError(f"{path}: not a UTF-8 text {what} (truncated character at the end)") from None
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    return head if first is None else first
 
 
 @dataclass(frozen=True)
@@ -131,9 +164,8 @@ def check_can_log(path: str | Path, suffixes: Sequence[str]) -> int:
     if suffix not in suffixes:
         raise InputFileError(f"{path}: not a cell recording and not a python-can log ({', '.join(suffixes)})")
     if suffix in TEXT_LOG_SUFFIXES:
-        text = read_text(path, f"{suffix[1:]} CAN log")
+        first = check_text_file(path, f"{suffix[1:]} CAN log").strip()
         if suffix == ".csv":
-            first = text.split("\n", 1)[0].strip()
             if first.replace(" ", "") != PYTHON_CAN_CSV_HEADER:
                 raise InputFileError(
                     f"{path}: row 1: header {first[:80]!r} is neither a cell recording's "

@@ -464,3 +464,24 @@ def test_owned_bus_is_drained_before_it_is_shut_down() -> None:
     got, health = asyncio.run(main())
     assert [m.data[0] for m in got] == list(range(50))
     assert health.counters["frames_drained_at_reconnect"] == 50
+
+
+@pytest.mark.parametrize("ahead_s", [0.35, 1.0, 9.9])
+@pytest.mark.parametrize("bad_id", [CURRENT_ID, 0x110])
+def test_a_timestamp_a_little_ahead_is_rolled_back(cfg, ahead_s: float, bad_id: int) -> None:
+    """Within max_clock_jump_s a bad timestamp cannot be told from a real one when it comes;
+    the ID's next good frame (older, but on the bus's timeline) rolls the ID back."""
+    frames = stream(cfg, 200)
+    k = next(i for i, f in enumerate(frames) if f.arbitration_id == bad_id and f.timestamp > 105.0)
+    bad = _retimed(frames[k], frames[k].timestamp + ahead_s)
+    dec = FrameDecoder(cfg)
+    samples = feed(dec, frames[:k] + [bad] + frames[k + 1:])
+    good = {round(f.timestamp, 6) for f in frames}
+    seen = {round(s.t_s, 6) for s in samples if round(s.t_s, 6) in good}
+    assert len(seen) >= 199  # at most the bad frame's own sample
+    assert dec.counters["timestamp_rollback"] == 1 and dec.counters["clock_reanchor"] == 0
+    # the same ID's frames that follow before any other ID's (the rest of a multiplexed
+    # sample) are refused: nothing newer from the bus says the bad one was the outlier yet
+    assert dec.counters["timestamp_backwards"] <= 2 and identity_holds(dec.counters)
+    if bad_id == CURRENT_ID:
+        assert sum(s.reanchored for s in samples) == 1

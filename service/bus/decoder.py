@@ -35,7 +35,10 @@ never replaced by an older or extrapolated value.
 Time: a frame whose timestamp is off its ID's timeline (backwards, or more than
 ``mapping.max_clock_jump_s`` ahead; before an ID's first frame, the last accepted frame of
 any ID is the timeline) is rejected without moving the reference, so one bad timestamp
-costs only its own frame.  A genuine clock jump (or a bus silent for longer than
+costs only its own frame.  When the bad timestamp was accepted because it was only a little
+ahead (within the bound), the ID's next good frame is older than it but not older than the
+last frame accepted from another ID: the ID then rolls back to it (``timestamp_rollback``,
+the next sample carries ``reanchored=True``).  A genuine clock jump (or a bus silent for longer than
 ``max_clock_jump_s``) shows as :data:`REANCHOR_AFTER` off-timeline frames in a row, of any
 IDs, within ``max_clock_jump_s`` of each other: the decoder then re-anchors every ID on the
 new timeline, counts ``clock_reanchor``, and the next sample carries ``reanchored=True``.
@@ -128,6 +131,7 @@ class FrameDecoder:
         #: timestamp of the last accepted frame of any ID (the timeline for a new ID)
         self.timeline_t_s: float | None = None
         self._reanchor_pending = False
+        self._last_key: _MsgInfo | None = None  # the ID of the last accepted frame
         #: off-timeline frames seen in a row (any ID) that agree with each other: a clock jump?
         self._cand_ts: float | None = None
         self._cand_n = 0
@@ -154,7 +158,7 @@ class FrameDecoder:
 
     def stats(self) -> dict[str, int]:
         """Counters as a plain dict with every reason present (for health output)."""
-        out = {k: 0 for k in ("frames_in", *FRAME_ACCEPTS, "samples", "counter_jump", "clock_reanchor",
+        out = {k: 0 for k in ("frames_in", *FRAME_ACCEPTS, "samples", "counter_jump", "clock_reanchor", "timestamp_rollback",
                               *REJECT_REASONS, *VALUE_REJECTS)}
         out.update(self.counters)
         out["rejected"] = self.rejected
@@ -191,6 +195,12 @@ class FrameDecoder:
         if ts - ref > self.max_jump_s:
             return "timestamp_jump"
         return None
+
+    def _ahead_of_bus(self, info: _MsgInfo, ts: float) -> bool:
+        """An ID's frame older than its own last one but not older than the last frame the
+        bus accepted from another ID: that last one of this ID was the outlier."""
+        return (self._last_key is not None and self._last_key is not info
+                and self.timeline_t_s is not None and ts >= self.timeline_t_s)
 
     def _clock_jumped(self, ts: float) -> bool:
         """Note an off-timeline frame; True once :data:`REANCHOR_AFTER` in a row agree."""
@@ -230,6 +240,14 @@ class FrameDecoder:
             return "bad_dlc"
         ts = float(msg.timestamp)
         off = self._off_timeline(info, ts)
+        if off == "timestamp_backwards" and self._ahead_of_bus(info, ts):
+            # this ID's previous frame was stamped ahead of the bus, not this one behind it
+            c["timestamp_rollback"] += 1
+            info.last_ts = -math.inf
+            info.last_data = None
+            info.last_counter = None
+            self._reanchor_pending |= info.has_current
+            off = None
         if off is not None:
             if not self._clock_jumped(ts):
                 return off
@@ -239,14 +257,14 @@ class FrameDecoder:
             return "duplicate"
         if not info.targets and info.counter is None:
             info.last_ts = ts
-            self.timeline_t_s = ts
+            self.timeline_t_s, self._last_key = ts, info
             return "frames_ignored"
         try:
             values = info.message.decode(data, decode_choices=False, scaling=True)
         except Exception:  # noqa: BLE001 - cantools raises several kinds
             return "decode_error"
         info.last_ts = ts
-        self.timeline_t_s = ts
+        self.timeline_t_s, self._last_key = ts, info
         info.last_data = data
         if info.counter is not None:
             cnt = values.get(info.counter)
