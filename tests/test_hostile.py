@@ -335,8 +335,8 @@ def test_restart_after_five_minutes_down_widens_sigma_and_recovers(tmp_path: Pat
     t_end, soc_end, _ = hist[-1]
     assert t_end - restart_at >= 300.0
     err_end = np.abs(soc_end - truth[round(t_end, 3)])
-    # the filter pulls the aged state back towards the truth (how fast is the estimator's
-    # business: see the report of issue 29 — its σ collapses within a few updates)
+    # the filter pulls the aged state back towards the truth (how fast is a matter of the
+    # estimator's tuning, not of the restart)
     assert np.all(err_end < err_first), (err_end, err_first)
 
 
