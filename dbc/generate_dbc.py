@@ -64,6 +64,8 @@ STATUS_FLAGS = (
     ("counter_errors", "rolling-counter jumps seen since the last status frame"),
     ("decode_errors", "frames rejected (DLC/decode/range/NaN) since the last status frame"),
     ("checkpoint_corrupt", "a checkpoint was found unusable at start; SOC initialised from OCV instead"),
+    ("clock_reanchored", "the input frames' clock jumped and the decoder re-anchored on it"),
+    ("state_aged", "the restored state was older than checkpoint.max_age_s; its SOC sigma was widened"),
 )
 
 

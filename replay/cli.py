@@ -97,28 +97,38 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
 
 
 def is_cell_recording(path: Path) -> bool:
-    """A CSV whose header names the recording columns (python-can CSV logs start otherwise)."""
+    """A CSV whose header names the recording columns (python-can CSV logs start otherwise).
+
+    Looks at the first line only and never raises: a file that cannot be read or decoded is
+    "not a recording" here, and the log validation names what is wrong with it.
+    """
     if path.suffix.lower() != ".csv":
         return False
     try:
-        with path.open(newline="") as fh:
-            header = next(csv.reader(fh), [])
+        with path.open("rb") as fh:
+            first = fh.readline(65536).decode("utf-8-sig", errors="replace")
     except OSError:
         return False
+    header = next(csv.reader([first]), [])
     return {"time_s", "current_a", "voltage_v"} <= {h.strip() for h in header}
 
 
 def _config(args):
-    from service.config import ConfigError, load_config
+    from service.config import DEFAULT_CONFIG, ConfigError, check_input_mapping, load_config
 
     try:
-        return load_config(args.config, check_files=False) if args.config else load_config(check_files=False)
+        config = load_config(args.config, check_files=False) if args.config else load_config(check_files=False)
+        # the input DBC and the mapped signals are what a replay encodes with: check them up front
+        check_input_mapping(config, str(args.config or DEFAULT_CONFIG))
     except ConfigError as exc:
         raise UserError(str(exc)) from None
+    return config
 
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args)
+    from service.validation import InputFileError, check_can_log
+
     path = Path(args.input)
     if not path.is_file():
         raise UserError(f"{path}: no such file")
@@ -162,6 +172,10 @@ def run(args: argparse.Namespace) -> int:
         if log_format(path) is None:
             raise UserError(f"{path}: not a cell recording and not a python-can log "
                             f"({', '.join(LOG_SUFFIXES)}, optionally .gz)")
+        try:  # read it to the end once, so a bad log fails here and not halfway through a replay
+            total = check_can_log(path, LOG_SUFFIXES)
+        except InputFileError as exc:
+            raise UserError(str(exc)) from None
         if args.time_offset:
             frames = _offset(read_log(path), args.time_offset)
         else:
@@ -203,11 +217,19 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             stop_event.set()
             return 130
+        except (ValueError, OverflowError, TypeError) as exc:  # a frame the DBC cannot encode, say
+            failed = exc
+        else:
+            failed = None
     finally:
         if bus is not None:
             bus.shutdown()
         if logger is not None:
             logger.stop()
+    if failed is not None:
+        if args.record:
+            Path(args.record).unlink(missing_ok=True)  # nothing written on failure
+        raise UserError(f"{path}: replay stopped: {str(failed).splitlines()[0] if str(failed) else type(failed).__name__}")
     print(f"socd replay: {stats.frames_sent} frames sent, {stats.frames_failed} failed, "
           f"{stats.span_s:.1f} s of recording in {stats.duration_s:.1f} s"
           + (f", faults {stats.faults}" if stats.faults else ""), file=sys.stderr)

@@ -161,6 +161,9 @@ class MappingConfig(_Section):
     temperature_range_c: tuple[float, float] = (-40.0, 90.0)
     current_range_a: tuple[float, float] = (-1000.0, 1000.0)
     stale_after_s: float = Field(2.0, gt=0)
+    max_clock_jump_s: float = Field(
+        10.0, gt=0, description="a frame further than this from its ID's timeline is rejected; "
+        "a run of agreeing ones re-anchors the ID (service.bus.decoder)")
 
     @field_validator("current_sign")
     @classmethod
@@ -314,6 +317,11 @@ def default_checkpoint_path() -> Path:
 class CheckpointConfig(_Section):
     path: Path = Field(default_factory=default_checkpoint_path)
     interval_s: float = Field(30.0, gt=0)
+    max_age_s: float = Field(
+        10.0, gt=0, description="a restored state older than this (checkpoint time to first new "
+        "sample) has its SOC sigma widened by aged_c_rate x age")
+    aged_c_rate: float = Field(
+        1.0, gt=0, description="mean C-rate the pack is assumed able to have run at while the daemon was down")
 
 
 class PackConfig(_Section):
@@ -522,12 +530,14 @@ def load_config(path: str | Path | None = None, *, check_files: bool = True) -> 
     """
     path = find_config(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(
             f"{path}: cannot read config: {exc.strerror or exc} "
             f"(socd ships these examples: {', '.join(example_configs())})"
         ) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a text (UTF-8) TOML file: byte {exc.start}") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -546,18 +556,41 @@ def load_config(path: str | Path | None = None, *, check_files: bool = True) -> 
     return config
 
 
+def _load_config_dbc(config: SocdConfig, field: str, source: str):
+    p = getattr(config.dbc, field)
+    try:
+        return load_dbc(p)
+    except FileNotFoundError:
+        raise ConfigError(f"{source}: dbc.{field}: no such file {p}{_no_packaged(p, dbc_path)}") from None
+    except Exception as exc:  # cantools raises many kinds for a bad file
+        detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConfigError(f"{source}: dbc.{field}: cannot load DBC {p}: {detail}") from None
+
+
 def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
     """Check the files the config points at and the signal names against the DBCs."""
-    dbs = {}
-    for field in ("input", "output"):
-        p = getattr(config.dbc, field)
-        try:
-            dbs[field] = load_dbc(p)
-        except FileNotFoundError:
-            raise ConfigError(f"{source}: dbc.{field}: no such file {p}{_no_packaged(p, dbc_path)}") from None
-        except Exception as exc:  # cantools raises many kinds for a bad file
-            raise ConfigError(f"{source}: dbc.{field}: cannot load DBC {p}: {exc}") from None
-    db_in = dbs["input"]
+    check_input_mapping(config, source)
+    db_out = _load_config_dbc(config, "output", source)
+    if config.output.can_enabled:
+        for msg_name, sig_names in OUTPUT_MESSAGES.items():
+            try:
+                msg = db_out.get_message_by_name(msg_name)
+            except KeyError:
+                raise ConfigError(f"{source}: dbc.output: message {msg_name!r} missing") from None
+            have = {s.name for s in msg.signals}
+            for s in sig_names:
+                if s not in have:
+                    raise ConfigError(f"{source}: dbc.output: signal {s!r} missing from {msg_name}")
+    if not config.cell_profile.is_file():
+        raise ConfigError(
+            f"{source}: cell_profile: no such file {config.cell_profile}"
+            f"{_no_packaged(config.cell_profile, profile_path)}"
+        )
+
+
+def check_input_mapping(config: SocdConfig, source: str = "<config>") -> None:
+    """The input DBC loads and holds every signal the mapping names (what a replay needs)."""
+    db_in = _load_config_dbc(config, "input", source)
     signals = {s.name: m for m in db_in.messages for s in m.signals}
     for path, name in config.mapping.all_signals():
         if path.startswith("mapping.counter_signals."):
@@ -579,22 +612,6 @@ def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
                 f"{source}: {path}: signal {name!r} not in dbc.input ({config.dbc.input.name})"
                 + (f"; did you mean {hint!r}?" if hint else "")
             )
-    db_out = dbs["output"]
-    if config.output.can_enabled:
-        for msg_name, sig_names in OUTPUT_MESSAGES.items():
-            try:
-                msg = db_out.get_message_by_name(msg_name)
-            except KeyError:
-                raise ConfigError(f"{source}: dbc.output: message {msg_name!r} missing") from None
-            have = {s.name for s in msg.signals}
-            for s in sig_names:
-                if s not in have:
-                    raise ConfigError(f"{source}: dbc.output: signal {s!r} missing from {msg_name}")
-    if not config.cell_profile.is_file():
-        raise ConfigError(
-            f"{source}: cell_profile: no such file {config.cell_profile}"
-            f"{_no_packaged(config.cell_profile, profile_path)}"
-        )
 
 
 def _no_packaged(missing: Path, packaged: Callable[[str], Path]) -> str:

@@ -7,12 +7,15 @@ current positive = discharge (DESIGN §3). Every problem names the file and the 
 from __future__ import annotations
 
 import csv
+import io
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from service.cli import UserError
+from service.validation import InputFileError, RecordingBounds, check_increasing, check_values, read_text
 
 REQUIRED_COLUMNS = ("time_s", "current_a", "voltage_v", "temperature_c")
 
@@ -51,19 +54,20 @@ class Recording:
         )
 
 
-def _first_unparsable(path: Path, idx: list[int], cols: list[str]) -> str | None:
-    """'row N: column C: ...' for the first value that is not a number (N = file line)."""
-    with path.open(newline="") as fh:
-        reader = csv.reader(fh)
-        next(reader, None)
-        for line, row in enumerate(reader, start=2):
-            for i, name in zip(idx, cols):
-                cell = row[i] if i < len(row) else ""
-                try:
-                    float(cell)
-                except ValueError:
-                    return f"row {line}: column {name}: {cell!r} is not a number"
-    return None
+def _first_unparsable(path: Path, text: str, idx: list[int], cols: list[str]) -> str:
+    """'row N: C: ...' for the first value that is not a number (N = file line)."""
+    reader = csv.reader(io.StringIO(text))
+    next(reader, None)
+    for line, row in enumerate(reader, start=2):
+        if not row:
+            continue
+        for i, name in zip(idx, cols):
+            cell = row[i] if i < len(row) else ""
+            try:
+                float(cell)
+            except ValueError:
+                return f"row {line}: {name}: {cell!r} is not a number"
+    return "a row could not be read"
 
 
 def save_recording(path: str | Path, columns: np.ndarray, fmt: str = "%.4f") -> Path:
@@ -74,41 +78,41 @@ def save_recording(path: str | Path, columns: np.ndarray, fmt: str = "%.4f") -> 
     return path
 
 
-def load_recording(path: str | Path) -> Recording:
-    """Read and validate a recording; raise :class:`UserError` naming file, row or column."""
+def load_recording(path: str | Path, bounds: RecordingBounds | None = None) -> Recording:
+    """Read and validate a recording; raise :class:`UserError` naming file, row and column.
+
+    Text, header, numbers, finiteness, physical plausibility (``bounds``, default
+    :data:`service.validation.DEFAULT_BOUNDS`) and increasing time are checked by
+    :mod:`service.validation`.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: no such recording file")
     try:
-        with path.open(newline="") as fh:
-            reader = csv.reader(fh)
-            header = [h.strip() for h in next(reader, [])]
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: cannot read: {exc}") from exc
+        return _load(path, bounds)
+    except InputFileError as exc:
+        raise UserError(str(exc)) from None
+
+
+def _load(path: Path, bounds: RecordingBounds | None) -> Recording:
+    text = read_text(path, "recording")
+    header = [h.strip() for h in next(csv.reader(io.StringIO(text)), [])]
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
-        raise UserError(
-            f"{path}: missing column(s) {', '.join(missing)}; header is {','.join(header) or '(empty)'}"
+        raise InputFileError(
+            f"{path}: missing column(s) {', '.join(missing)}; header is {','.join(header)[:120] or '(empty)'}"
         )
     cols = list(REQUIRED_COLUMNS) + (["soc_true"] if "soc_true" in header else [])
     idx = [header.index(c) for c in cols]
     try:
-        data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=idx, ndmin=2, dtype=float)
-    except ValueError as exc:
-        raise UserError(f"{path}: {_first_unparsable(path, idx, cols) or f'unparsable value: {exc}'}") from exc
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # numpy warns on a header-only file; counted below
+            data = np.loadtxt(io.StringIO(text), delimiter=",", skiprows=1, usecols=idx, ndmin=2, dtype=float)
+    except (ValueError, IndexError) as exc:
+        raise InputFileError(f"{path}: {_first_unparsable(path, text, idx, cols)}") from exc
     if data.shape[0] < 2:
-        raise UserError(f"{path}: needs at least 2 data rows, has {data.shape[0]}")
-    bad = ~np.isfinite(data)
-    if bad.any():
-        row, col = np.argwhere(bad)[0]
-        raise UserError(f"{path}: row {row + 2}: column {cols[col]} is not a finite number")
+        raise InputFileError(f"{path}: needs at least 2 data rows, has {data.shape[0]}")
+    check_values(path, {c: data[:, k] for k, c in enumerate(cols)}, bounds)
     t = data[:, 0]
-    step = np.diff(t)
-    if (step <= 0).any():
-        k = int(np.argmax(step <= 0)) + 1
-        raise UserError(
-            f"{path}: row {k + 2}: time_s does not increase ({t[k - 1]:g} then {t[k]:g})"
-        )
+    check_increasing(path, t)
     return Recording(
         path=path,
         time_s=t,

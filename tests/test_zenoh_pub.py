@@ -280,6 +280,8 @@ def test_peer_absent_then_back_estimation_continues(tmp_path: Path) -> None:
         assert steps_absent > 50
         assert d.status_flags()["zenoh_down"]
         assert d.publish_round().health.status_flags["zenoh_down"]
+        c = d.counters()  # nobody subscribed: every put so far reached no one, and says so
+        assert c["zenoh_messages"] > 0 and c["zenoh_unmatched"] >= c["zenoh_messages"] - 2 * n - 2
 
         router = _session("router", listen=[f"tcp/127.0.0.1:{peer}"])
         try:
@@ -292,10 +294,13 @@ def test_peer_absent_then_back_estimation_continues(tmp_path: Path) -> None:
             h = Health.model_validate_json(got.by_key["bms/packZ/health"][-1])
             assert h.counters["zenoh_messages"] > 0
             steps_back = d.steps
+            unmatched_back = d.counters()["zenoh_unmatched"]
 
             router.close()  # the peer goes away again
             await feed(2.5)
             assert d.steps > steps_back + 50 and d.status_flags()["zenoh_down"]
+            # puts during the outage are counted as undelivered, not only as sent
+            assert d.counters()["zenoh_unmatched"] >= unmatched_back + 10 * (2 * n + 2)
         finally:
             if not router.is_closed():
                 router.close()

@@ -5,27 +5,43 @@ mapped signal with its frame timestamp, and emits a :class:`PackSample` each tim
 pack-current frame arrives (the current frame is the sample clock; DESIGN §3: time comes
 from frame timestamps).  The sign/scale flip to "positive = discharge" happens here, once.
 
-Bad input never raises (DESIGN §6).  Every rejection is counted by reason in
-``self.counters``:
+Bad input never raises (DESIGN §6).  Every frame fed is counted exactly once, in
+``frames_in`` and in one outcome, so ``frames_in == frames_decoded + frames_ignored +
+rejected`` always holds:
 
-=====================  ==========================================================  ========
-reason                 meaning                                                     frame
-=====================  ==========================================================  ========
-unknown_id             ID not in the input DBC                                      dropped
-bad_dlc                payload length differs from the DBC message length          dropped
-decode_error           cantools could not decode (e.g. unknown multiplexer value)  dropped
-timestamp_backwards    older than the last accepted frame of the same ID           dropped
-duplicate              same bytes (so same counter) as the previous frame of ID    dropped
-counter_jump           rolling counter is not previous + 1 (mod 2^bits)            used
-out_of_range           a mapped value outside the config's range (per value)       value
-nan                    a mapped value NaN/inf (float signals; per value)            value
-error_frame            CAN error frame                                              dropped
-remote_frame           remote transmission request                                  dropped
-=====================  ==========================================================  ========
+=====================  ==========================================================
+outcome                meaning
+=====================  ==========================================================
+frames_decoded         decoded and used (values may still be rejected one by one)
+frames_ignored         ID in the input DBC, but nothing in it is mapped
+unknown_id             ID not in the input DBC                                    (reject)
+bad_dlc                payload length differs from the DBC message length         (reject)
+decode_error           cantools could not decode (e.g. unknown multiplexer value) (reject)
+timestamp_backwards    up to ``max_clock_jump_s`` older than the ID's last frame  (reject)
+timestamp_jump         further than ``max_clock_jump_s`` from the ID's timeline,  (reject)
+                       or not a finite number
+duplicate              same bytes (so same counter) as the previous frame of ID   (reject)
+error_frame            CAN error frame                                            (reject)
+remote_frame           remote transmission request                                (reject)
+=====================  ==========================================================
 
-plus ``frames_in``, ``frames_decoded``, ``frames_ignored`` (known ID, nothing mapped) and
-``samples``.  A rejected value invalidates that cell/sensor at once (``fresh`` False) until a
-valid value arrives; it is never replaced by an older or extrapolated value.
+Events inside decoded frames are counted on their own and are not frame outcomes:
+``counter_jump`` (rolling counter is not previous + 1; the frame is used),
+``out_of_range`` and ``nan`` (per *value*: that cell/sensor is invalidated, the rest of the
+frame is used), ``clock_reanchor`` (see below) and ``samples``.  A rejected value
+invalidates that cell/sensor at once (``fresh`` False) until a valid value arrives; it is
+never replaced by an older or extrapolated value.
+
+Time: a frame whose timestamp is off its ID's timeline (backwards, or more than
+``mapping.max_clock_jump_s`` ahead; before an ID's first frame, the last accepted frame of
+any ID is the timeline) is rejected without moving the reference, so one bad timestamp
+costs only its own frame.  When the bad timestamp was accepted because it was only a little
+ahead (within the bound), the ID's next good frame is older than it but not older than the
+last frame accepted from another ID: the ID then rolls back to it (``timestamp_rollback``,
+the next sample carries ``reanchored=True``).  A genuine clock jump (or a bus silent for longer than
+``max_clock_jump_s``) shows as :data:`REANCHOR_AFTER` off-timeline frames in a row, of any
+IDs, within ``max_clock_jump_s`` of each other: the decoder then re-anchors every ID on the
+new timeline, counts ``clock_reanchor``, and the next sample carries ``reanchored=True``.
 """
 
 from __future__ import annotations
@@ -40,13 +56,17 @@ import numpy as np
 from service.bus.types import PackSample
 from service.config import SocdConfig
 
-#: reasons that drop a whole frame
-FRAME_REJECTS = ("unknown_id", "bad_dlc", "decode_error", "timestamp_backwards", "duplicate",
-                 "error_frame", "remote_frame")
-#: reasons that drop one value
+#: reasons that reject a whole frame (each frame is counted under at most one)
+FRAME_REJECTS = ("unknown_id", "bad_dlc", "decode_error", "timestamp_backwards", "timestamp_jump",
+                 "duplicate", "error_frame", "remote_frame")
+#: reasons that reject one value of a decoded frame (counted per value)
 VALUE_REJECTS = ("out_of_range", "nan")
-#: every reason counted as a rejection (``counter_jump`` is counted but the frame is used)
-REJECT_REASONS = FRAME_REJECTS + VALUE_REJECTS
+#: frame outcomes that are not rejections
+FRAME_ACCEPTS = ("frames_decoded", "frames_ignored")
+#: every frame outcome counted as a rejection (``rejected`` and ``frames_rejected`` sum these)
+REJECT_REASONS = FRAME_REJECTS
+#: consecutive agreeing off-timeline frames of one ID after which it re-anchors on them
+REANCHOR_AFTER = 5
 
 _CURRENT, _VOLT, _TEMP = 0, 1, 2
 
@@ -74,6 +94,7 @@ class FrameDecoder:
         mp = config.mapping
         self.n_cells = config.pack.n_cells
         self.stale_after_s = float(mp.stale_after_s)
+        self.max_jump_s = float(mp.max_clock_jump_s)
         self.current_factor = float(mp.current_sign) * float(mp.current_scale)
         self.v_lo, self.v_hi = mp.voltage_range_v
         self.t_lo, self.t_hi = mp.temperature_range_c
@@ -107,39 +128,50 @@ class FrameDecoder:
         self.sensor_t = np.full(self.n_sensors, -np.inf)
         self.current_a = math.nan
         self.last_current_t_s: float | None = None
+        #: timestamp of the last accepted frame of any ID (the timeline for a new ID)
+        self.timeline_t_s: float | None = None
+        self._reanchor_pending = False
+        self._last_key: _MsgInfo | None = None  # the ID of the last accepted frame
+        #: off-timeline frames seen in a row (any ID) that agree with each other: a clock jump?
+        self._cand_ts: float | None = None
+        self._cand_n = 0
 
     # -- public ------------------------------------------------------------------------
     def feed(self, msg: can.Message) -> list[PackSample]:
         """Decode one frame; return ``[PackSample]`` if it was a valid current frame, else ``[]``."""
         c = self.counters
         c["frames_in"] += 1
+        samples: list[PackSample] = []
         try:
-            return self._feed(msg)
+            outcome = self._feed(msg, samples)
         except Exception:  # noqa: BLE001 - never raise on bad input (DESIGN §6)
-            c["decode_error"] += 1
-            return []
+            outcome, samples = "decode_error", []
+        c[outcome] += 1
+        if samples:
+            c["samples"] += 1
+        return samples
 
     @property
     def rejected(self) -> int:
-        """Frames and values rejected so far (all reasons in :data:`REJECT_REASONS`)."""
+        """Frames rejected so far (sum over :data:`REJECT_REASONS`)."""
         return sum(self.counters[r] for r in REJECT_REASONS)
 
     def stats(self) -> dict[str, int]:
         """Counters as a plain dict with every reason present (for health output)."""
-        out = {k: 0 for k in ("frames_in", "frames_decoded", "frames_ignored", "samples",
-                              "counter_jump", *REJECT_REASONS)}
+        out = {k: 0 for k in ("frames_in", *FRAME_ACCEPTS, "samples", "counter_jump", "clock_reanchor", "timestamp_rollback",
+                              *REJECT_REASONS, *VALUE_REJECTS)}
         out.update(self.counters)
         out["rejected"] = self.rejected
         return out
 
     def fresh_at(self, t_s: float) -> np.ndarray:
-        """Which cells have valid, recent (``≤ stale_after_s`` old at ``t_s``) voltage and temperature."""
+        """Which cells have valid, recent (``≤ stale_after_s`` from ``t_s``) voltage and temperature."""
         stale = self.stale_after_s
-        v_ok = np.isfinite(self.voltage_v) & (t_s - self.voltage_t <= stale)
-        s_ok = np.isfinite(self.sensor_c) & (t_s - self.sensor_t <= stale)
+        v_ok = np.isfinite(self.voltage_v) & (np.abs(t_s - self.voltage_t) <= stale)
+        s_ok = np.isfinite(self.sensor_c) & (np.abs(t_s - self.sensor_t) <= stale)
         return v_ok & s_ok[self.sensor_of_cell]
 
-    def sample_at(self, t_s: float) -> PackSample:
+    def sample_at(self, t_s: float, reanchored: bool = False) -> PackSample:
         """The latest values as a sample at ``t_s`` (current NaN if none valid yet)."""
         return PackSample(
             t_s=float(t_s),
@@ -147,43 +179,92 @@ class FrameDecoder:
             voltage_v=self.voltage_v.copy(),
             temperature_c=self.sensor_c[self.sensor_of_cell],
             fresh=self.fresh_at(t_s),
+            reanchored=reanchored,
         )
 
     # -- internals ---------------------------------------------------------------------
-    def _feed(self, msg: can.Message) -> list[PackSample]:
+    def _off_timeline(self, info: _MsgInfo, ts: float) -> str | None:
+        """The reject reason if ``ts`` is off this ID's timeline, else None."""
+        if not math.isfinite(ts):
+            return "timestamp_jump"
+        ref = info.last_ts if info.last_ts > -math.inf else self.timeline_t_s
+        if ref is None:
+            return None
+        if ts < ref:
+            return "timestamp_backwards" if ref - ts <= self.max_jump_s else "timestamp_jump"
+        if ts - ref > self.max_jump_s:
+            return "timestamp_jump"
+        return None
+
+    def _ahead_of_bus(self, info: _MsgInfo, ts: float) -> bool:
+        """An ID's frame older than its own last one but not older than the last frame the
+        bus accepted from another ID: that last one of this ID was the outlier."""
+        return (self._last_key is not None and self._last_key is not info
+                and self.timeline_t_s is not None and ts >= self.timeline_t_s)
+
+    def _clock_jumped(self, ts: float) -> bool:
+        """Note an off-timeline frame; True once :data:`REANCHOR_AFTER` in a row agree."""
+        if not math.isfinite(ts):
+            self._cand_ts, self._cand_n = None, 0
+            return False
+        prev = self._cand_ts
+        # frames of one sample may come slightly out of order across IDs: agree = close
+        if prev is not None and abs(ts - prev) <= self.max_jump_s:
+            self._cand_n += 1
+        else:
+            self._cand_n = 1
+        self._cand_ts = ts
+        return self._cand_n >= REANCHOR_AFTER
+
+    def _reanchor(self, info: _MsgInfo) -> None:
+        """Follow the new timeline: every ID's reference is forgotten, this frame sets it."""
+        self.counters["clock_reanchor"] += 1
+        for other in self._by_id.values():
+            other.last_ts = -math.inf
+        info.last_data = None
+        info.last_counter = None
+        self._reanchor_pending = True
+
+    def _feed(self, msg: can.Message, out: list[PackSample]) -> str:
+        """Process one frame, append the sample it completes to ``out``; return its outcome."""
         c = self.counters
         if msg.is_error_frame:
-            c["error_frame"] += 1
-            return []
+            return "error_frame"
         if msg.is_remote_frame:
-            c["remote_frame"] += 1
-            return []
+            return "remote_frame"
         info = self._by_id.get((msg.arbitration_id, bool(msg.is_extended_id)))
         if info is None:
-            c["unknown_id"] += 1
-            return []
+            return "unknown_id"
         data = bytes(msg.data)
         if len(data) != info.length:
-            c["bad_dlc"] += 1
-            return []
+            return "bad_dlc"
         ts = float(msg.timestamp)
-        if not math.isfinite(ts) or ts < info.last_ts:
-            c["timestamp_backwards"] += 1
-            return []
+        off = self._off_timeline(info, ts)
+        if off == "timestamp_backwards" and self._ahead_of_bus(info, ts):
+            # this ID's previous frame was stamped ahead of the bus, not this one behind it
+            c["timestamp_rollback"] += 1
+            info.last_ts = -math.inf
+            info.last_data = None
+            info.last_counter = None
+            self._reanchor_pending |= info.has_current
+            off = None
+        if off is not None:
+            if not self._clock_jumped(ts):
+                return off
+            self._reanchor(info)  # a run of agreeing frames: the clock really moved
+        self._cand_ts, self._cand_n = None, 0
         if info.counter is not None and data == info.last_data:
-            c["duplicate"] += 1
-            return []
+            return "duplicate"
         if not info.targets and info.counter is None:
             info.last_ts = ts
-            c["frames_ignored"] += 1
-            return []
+            self.timeline_t_s, self._last_key = ts, info
+            return "frames_ignored"
         try:
             values = info.message.decode(data, decode_choices=False, scaling=True)
         except Exception:  # noqa: BLE001 - cantools raises several kinds
-            c["decode_error"] += 1
-            return []
-        c["frames_decoded"] += 1
+            return "decode_error"
         info.last_ts = ts
+        self.timeline_t_s, self._last_key = ts, info
         info.last_data = data
         if info.counter is not None:
             cnt = values.get(info.counter)
@@ -206,16 +287,11 @@ class FrameDecoder:
             kind, idx = tgt
             try:
                 v = float(raw)
-            except (TypeError, ValueError):
-                c["decode_error"] += 1
+            except (TypeError, ValueError, OverflowError):
                 v = math.nan
-                ok = False
-            else:
-                if not math.isfinite(v):
-                    c["nan"] += 1
-                    ok = False
-                else:
-                    ok = True
+            ok = math.isfinite(v)
+            if not ok:
+                c["nan"] += 1
             if kind == _VOLT:
                 if ok and not (self.v_lo <= v <= self.v_hi):
                     c["out_of_range"] += 1
@@ -240,7 +316,7 @@ class FrameDecoder:
                     new_current = True
                 else:
                     self.current_a = math.nan
-        if not new_current:
-            return []
-        c["samples"] += 1
-        return [self.sample_at(ts)]
+        if new_current:
+            out.append(self.sample_at(ts, self._reanchor_pending))
+            self._reanchor_pending = False
+        return "frames_decoded"

@@ -29,6 +29,8 @@ STATUS_FLAGS: tuple[str, ...] = (
     "counter_errors",
     "decode_errors",
     "checkpoint_corrupt",
+    "clock_reanchored",
+    "state_aged",
 )
 
 
@@ -39,7 +41,8 @@ class PackSample:
     ``voltage_v`` and ``temperature_c`` are the latest values seen for each cell (NaN where
     never seen or rejected); ``fresh[i]`` is False when cell ``i``'s voltage or temperature is
     missing, older than ``stale_after_s``, non-finite or out of range.  Estimators must not
-    update a cell that is not fresh.
+    update a cell that is not fresh.  ``reanchored`` is True on the first sample after the
+    current frame's clock jumped (the time since the previous sample is unknown).
     """
 
     t_s: float
@@ -47,6 +50,7 @@ class PackSample:
     voltage_v: np.ndarray
     temperature_c: np.ndarray
     fresh: np.ndarray
+    reanchored: bool = False
 
     @property
     def n_cells(self) -> int:

@@ -142,6 +142,10 @@ def make_monotone(ocv_row: np.ndarray, min_step_v: float = 1e-6) -> np.ndarray:
 OCV_COLUMNS = ("ocv_v", "ocv_avg_v", "ocv_discharge_v", "ocv_charge_v")
 
 
+#: plausibility of an OCV table's values: SOC as a fraction or in percent, a cell's OCV in volts
+OCV_BOUNDS: dict[str, tuple[float, float]] = {"soc": (0.0, 100.0), **{c: (0.0, 6.0) for c in OCV_COLUMNS}}
+
+
 def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
     """Read an OCV(SOC) table CSV (``soc`` + one of :data:`OCV_COLUMNS`); blank cells skipped.
 
@@ -149,14 +153,13 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
     naming the file and the problem.
     """
     import csv
+    import io
     from pathlib import Path
 
+    from service.validation import check_values, read_text
+
     path = Path(path)
-    try:
-        with path.open(newline="") as fh:
-            rows = list(csv.reader(fh))
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read OCV table: {exc.strerror or exc}") from exc
+    rows = list(csv.reader(io.StringIO(read_text(path, "OCV table"))))
     if not rows:
         raise ValueError(f"{path}: empty OCV table")
     header = [h.strip() for h in rows[0]]
@@ -170,18 +173,25 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
     for n, row in enumerate(rows[1:], start=2):
         if len(row) <= max(i_soc, i_ocv) or not row[i_soc].strip() or not row[i_ocv].strip():
             continue
-        try:
-            soc.append(float(row[i_soc]))
-            ocv.append(float(row[i_ocv]))
-        except ValueError as exc:
-            raise ValueError(f"{path}: row {n}: {exc}") from exc
+        for name, i, out in (("soc", i_soc, soc), (col, i_ocv, ocv)):
+            try:
+                v = float(row[i])
+            except ValueError:
+                raise ValueError(f"{path}: row {n}: {name}: {row[i].strip()!r} is not a number") from None
+            # finite and plausible (SOC as a fraction or in percent; a cell's OCV in volts)
+            check_values(path, {name: [v]}, OCV_BOUNDS, first_row=n)
+            out.append(v)
     soc_a, ocv_a = np.array(soc), np.array(ocv)
     if soc_a.size < 2:
         raise ValueError(f"{path}: OCV table has fewer than 2 usable rows")
     if soc_a.max() > 1.5:
         soc_a = soc_a / 100.0
     order = np.argsort(soc_a)
-    return soc_a[order], ocv_a[order]
+    soc_a, ocv_a = soc_a[order], ocv_a[order]
+    if (np.diff(soc_a) <= 0).any():
+        k = int(np.argmax(np.diff(soc_a) <= 0))
+        raise ValueError(f"{path}: soc {soc_a[k]:g} appears twice: the table must have one OCV per SOC")
+    return soc_a, ocv_a
 
 
 class CellOcv:

@@ -434,10 +434,12 @@ class ProfileError(Exception):
 
 def load_profile(path: str | Path) -> CellProfile:
     path = Path(path)
+    from service.validation import InputFileError, read_text
+
     try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ProfileError(f"{path}: cannot read cell profile: {exc.strerror or exc}") from exc
+        text = read_text(path, "cell profile")
+    except InputFileError as exc:
+        raise ProfileError(str(exc)) from None
     try:
         raw = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:

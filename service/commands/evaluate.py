@@ -89,9 +89,13 @@ def load_settings(path: str | None) -> tuple[EstimatorSettings, dict]:
 
     from service.estimators.ecm2rc_ekf import EkfTuning
 
+    from service.validation import InputFileError, read_text
+
     try:
-        raw = tomllib.loads(Path(path).read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raw = tomllib.loads(read_text(path, "settings"))
+    except InputFileError as exc:
+        raise UserError(str(exc)) from None
+    except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{path}: cannot read settings: {exc}") from exc
     ekf = raw.pop("ecm2rc_ekf", {})
     known = [f.name for f in fields(EkfTuning)]

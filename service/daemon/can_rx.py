@@ -37,6 +37,8 @@ CAN_ERR_BUSOFF = 0x40
 FD_DRAIN_MAX = 256
 #: frames handed to the loop in one call by the receive thread of thread-backed buses
 RX_BATCH_MAX = 256
+#: most frames taken from an owned bus's queue before it is shut down for a reconnect
+DRAIN_MAX = 100_000
 
 
 class ReceiverClosed(Exception):
@@ -58,7 +60,8 @@ class GuardedNotifier(can.Notifier):
     ``on_receive_error(exc)`` is called on the loop once per failed receive; the reader for
     that bus is then stopped (a failed bus needs a new Bus object, which is the caller's
     job).  ``on_listener_error(exc)`` is called on the loop for an exception raised by a
-    listener; delivery continues with the next message.
+    listener; delivery continues with the next message.  Frames read before :meth:`stop`
+    but dispatched after it are still delivered (python-can's own Notifier drops them).
     """
 
     def __init__(
@@ -134,8 +137,9 @@ class GuardedNotifier(can.Notifier):
             self._dispatch(msg)
 
     def _dispatch(self, msg: can.Message) -> None:
-        if self._stopped:
-            return
+        # Deliver even after stop(): a batch the receive thread (or the fd callback) read
+        # before the stop is still queued on the loop, and the frames in it came off the bus.
+        # The listeners outlive this notifier (see :class:`_Reader`), so nothing is lost.
         try:
             self._on_message_received(msg)
         except Exception as exc:  # noqa: BLE001 - a listener bug must not stop reception
@@ -241,12 +245,28 @@ class CanReceiver:
             except Exception as exc:  # noqa: BLE001
                 log.debug("notifier stop: %r", exc)
         if bus is not None and self._given_bus is None:
+            self._drain(bus)
             try:
                 bus.shutdown()
             except Exception as exc:  # noqa: BLE001 - a dead bus may fail to close
                 log.debug("bus shutdown: %r", exc)
                 # python-can would retry (and raise again) from BusABC.__del__
                 bus._is_shutdown = True  # type: ignore[attr-defined]
+
+    def _drain(self, bus: can.BusABC) -> None:
+        """Hand on what an owned bus still holds before it is shut down (a bus-off leaves the
+        frames received before it in the driver's queue; shutdown would discard them)."""
+        n = 0
+        for _ in range(DRAIN_MAX):
+            try:
+                msg = bus.recv(0)
+            except Exception:  # noqa: BLE001 - a failed bus may fail again; nothing more to get
+                break
+            if msg is None:
+                break
+            self._reader_obj.on_message_received(msg)
+            n += 1
+        self.health.count("frames_drained_at_reconnect", n)
 
     async def _reconnect(self, why: str) -> None:
         self.health.count("bus_reconnects", flag="bus_error")
@@ -257,7 +277,11 @@ class CanReceiver:
 
     # -- the public path ----------------------------------------------------------------
     async def recv(self) -> can.Message:
-        """The next data frame; bus errors are counted and reconnected, never raised."""
+        """The next frame the bus delivered; receive errors are counted and reconnected, never raised.
+
+        Error frames are returned too (after a bus-off one has triggered a reconnect), so
+        the consumer can count every frame that arrived exactly once.
+        """
         while True:
             if self._reader is None:
                 await self._connect()
@@ -269,11 +293,11 @@ class CanReceiver:
                 await self._reconnect(repr(item.exc))
                 continue
             if item.is_error_frame:
-                self.health.count("error_frames", flag="bus_error")
+                self.health.raise_flag("bus_error")
                 if item.arbitration_id & CAN_ERR_BUSOFF:
                     self.health.count("bus_off", flag="bus_error")
                     await self._reconnect("bus-off")
-                continue
+                return item
             if not self._healthy:
                 self._healthy = True
                 self._delay = self._initial
@@ -309,3 +333,7 @@ class CanReceiver:
     def close(self) -> None:
         self._closed = True
         self._teardown()
+        # frames received but never consumed (the service is stopping): counted, not silently gone
+        left = sum(1 for item in list(self._reader_obj.buffer._queue)  # type: ignore[attr-defined]
+                   if not isinstance(item, _ReceiveError))
+        self.health.count("frames_unprocessed_at_stop", left)

@@ -19,9 +19,19 @@ One asyncio loop runs these tasks:
   SIGTERM/SIGINT before a clean shutdown.
 
 On start the checkpoint is restored if it is valid and matches (n_cells, cell profile);
-otherwise the reason is logged, put in the health payload, and the first complete sample
-starts every cell from OCV with σ = ``estimator.soc_init_std`` (flag ``ocv_init``, plus
-``checkpoint_corrupt`` when the file was damaged).
+otherwise the reason is logged, put in the health payload, and each cell starts from OCV
+with σ = ``estimator.soc_init_std`` at the first sample where its own inputs are fresh
+(flag ``ocv_init``, plus ``checkpoint_corrupt`` when the file was damaged).  Start-up is
+clocked by samples, never by wall time, so a replay faster than real time loses nothing,
+and a cell that is invalid from the start does not hold the others back.
+
+A restored state is only as good as its age: the checkpoint's frame time is compared with
+the first new sample.  Past ``checkpoint.max_age_s`` the pack may have moved while the
+daemon was down, so every cell's SOC σ is widened by ``checkpoint.aged_c_rate`` × age (in
+hours of 1 C); if the age cannot be known (the new timeline is more than ``max_age_s``
+before the checkpoint, or the checkpoint has no time), the cells restart from OCV.  Either way ``state_aged`` is
+raised.  A sample marked ``reanchored`` by the decoder (its clock jumped) is not
+integrated: the time since the previous sample is unknown.
 """
 
 from __future__ import annotations
@@ -55,8 +65,6 @@ REST_C_RATE = 0.05
 SLOW_PERIOD_S = 1.0
 #: an OCV start counts as converged once every cell's SOC σ is below this
 OCV_CONVERGED_STD = 0.03
-#: start from OCV with the fresh cells if a complete sample has not come within this
-INIT_WAIT_S = 5.0
 #: the receive loop yields to other tasks at least this often while it has a backlog
 RX_YIELD_S = 0.005
 #: CAN output: frames sent back to back before yielding
@@ -124,11 +132,15 @@ class Daemon:
         self.initialised = False
         self.restored = False
         self._last_t: float | None = None
-        self._first_sample_mono: float | None = None
         self._last_sample: PackSample | None = None
         self._last_sample_mono: float | None = None
         self._last_frame_wall: float | None = None
         self._fresh = np.zeros(self.n, dtype=bool)
+        #: cells started (from OCV or a checkpoint); a cell starts at its first fresh sample
+        self._cell_started = np.zeros(self.n, dtype=bool)
+        #: frame time of the restored checkpoint's last sample (None: no time in it)
+        self._restored_t_s: float | None = None
+        self._state_aged = False
         self._resets_seen = 0
         self._prev_current: float | None = None
         self._ckpt_seq = 0
@@ -239,6 +251,9 @@ class Daemon:
                 res.reason, res.detail = "mismatch", f"{path}: state does not fit this estimator: {exc}"
         if res.ok:
             self.initialised = self.restored = True
+            self._cell_started[:] = True
+            t = res.meta.get("t_s")
+            self._restored_t_s = float(t) if isinstance(t, (int, float)) and np.isfinite(t) else None
             self.health.set_flag("checkpoint_restored", True)
             self.health.count("checkpoint_restored")
             self.health.checkpoint_state = "restored"
@@ -343,12 +358,28 @@ class Daemon:
             self.health.count("sample_no_current")
             return
         if not self.initialised:
-            self._try_initialise(s, fresh, mono)
+            self._try_initialise(s, fresh)
             return
         if self._last_t is None:  # first sample after a restore: nothing to integrate yet
+            self._check_restored_age(s, fresh)
             self._last_t = s.t_s
             self._prev_current = float(s.current_a)
             return
+        if s.reanchored and s.t_s <= self._last_t:
+            # the input clock went back: the interval since the last sample is unknown
+            self.health.count("clock_reanchored_back", flag="clock_reanchored")
+            log.warning("input clock jumped back to %.3f s; continuing from there without integrating", s.t_s)
+            self._last_t = s.t_s
+            self._prev_current = float(s.current_a)
+            return
+        if s.reanchored:  # forward: handled as a gap (below), flagged
+            self.health.count("clock_reanchored_forward", flag="clock_reanchored")
+        late = fresh & ~self._cell_started
+        if late.any():  # cells invalid until now: start them from their first fresh inputs
+            self.estimator.initialise(self._filled(s.voltage_v, fresh), self._filled(s.temperature_c, fresh),
+                                      s.current_a, cells=late)
+            self._cell_started |= late
+            self.health.count("cells_started_late", int(late.sum()))
         dt = s.t_s - self._last_t
         if not np.isfinite(dt) or dt <= 0.0:
             self.health.count("dt_nonpositive")
@@ -396,16 +427,38 @@ class Daemon:
         if frame_wall_s is not None:
             self.health.record_latency("estimate", time.time() - frame_wall_s)
 
-    def _try_initialise(self, s: PackSample, fresh: np.ndarray, mono: float) -> None:
-        if self._first_sample_mono is None:
-            self._first_sample_mono = mono
-        complete = bool(fresh.all())
-        if not complete and (mono - self._first_sample_mono < INIT_WAIT_S or not fresh.any()):
+    def _check_restored_age(self, s: PackSample, fresh: np.ndarray) -> None:
+        """Compare the restored state's time with the first new sample (see the module doc)."""
+        ck = self.config.checkpoint
+        age = None if self._restored_t_s is None else s.t_s - self._restored_t_s
+        if age is not None and np.isfinite(age) and abs(age) <= ck.max_age_s:
+            return  # recent (a slightly earlier first sample is frame-time jitter, not a new timeline)
+        self.health.raise_flag("state_aged")
+        self._state_aged = True
+        widen = getattr(self.estimator, "widen_soc_std", None)
+        if age is not None and np.isfinite(age) and age > 0.0 and widen is not None:
+            extra = ck.aged_c_rate * age / 3600.0  # SOC fraction the pack may have moved
+            widen(extra)
+            self.health.count("checkpoint_aged")
+            log.warning("restored state is %.0f s old: SOC sigma widened by %.2f %%", age, 100 * extra)
+            return
+        self.health.count("checkpoint_age_unknown")
+        log.warning("restored state's age is unknown (checkpoint time %s, first sample %.3f s): "
+                    "restarting fresh cells from OCV", self._restored_t_s, s.t_s)
+        if fresh.any():
+            self.estimator.initialise(self._filled(s.voltage_v, fresh), self._filled(s.temperature_c, fresh),
+                                      s.current_a, cells=fresh)
+        self._cell_started = fresh.copy()
+
+    def _try_initialise(self, s: PackSample, fresh: np.ndarray) -> None:
+        """Start from OCV at the first sample with any fresh cell; the rest start when fresh."""
+        if not fresh.any():
             self.health.count("init_waiting_for_cells")
             return
         v = self._filled(s.voltage_v, fresh)
         t = self._filled(s.temperature_c, fresh)
         self.estimator.initialise(v, t, s.current_a)
+        self._cell_started = fresh.copy()
         self._resets_seen = int(np.sum(self.estimator.reset_count))
         self.initialised = True
         self._last_t = s.t_s
@@ -450,12 +503,16 @@ class Daemon:
         flags["ocv_init"] = (not self.initialised and not self.restored) or bool(
             self.initialised and np.any(ocv_started & (np.asarray(est.soc_std) > OCV_CONVERGED_STD))
         )
+        # an aged restored state stays flagged until the filter has pulled every cell back in
+        flags["state_aged"] = flags.get("state_aged", False) or (
+            self._state_aged and bool(np.any(np.asarray(est.soc_std) > OCV_CONVERGED_STD)))
         clamped = getattr(est, "param_clamped", None)
         flags["param_clamped"] = bool(np.any(clamped)) if clamped is not None else False
         if self.publisher is None:
             flags["zenoh_down"] = False
         for name in ("checkpoint_restored", "filter_reset", "bus_error", "zenoh_down", "publish_drops",
-                     "diverged", "counter_errors", "decode_errors", "checkpoint_corrupt"):
+                     "diverged", "counter_errors", "decode_errors", "checkpoint_corrupt", "clock_reanchored",
+                     "state_aged"):
             flags.setdefault(name, False)
         return flags
 

@@ -21,6 +21,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from service.bus.decoder import REJECT_REASONS
 from service.daemon.payloads import Health
 
 #: seconds an event flag stays raised after the event
@@ -30,17 +31,9 @@ LATENCY_WINDOW = 4096
 #: a frame timestamp further than this from the wall clock is not wall time
 PLAUSIBLE_CLOCK_SKEW_S = 30.0
 
-#: decoder counter reasons that mean "frame rejected" (summed into ``frames_rejected``)
-DECODER_REJECT_REASONS: tuple[str, ...] = (
-    "unknown_id",
-    "bad_dlc",
-    "decode_error",
-    "out_of_range",
-    "nan",
-    "counter_jump",
-    "timestamp_backwards",
-    "duplicate",
-)
+#: decoder frame outcomes that mean "frame rejected" (summed into ``frames_rejected``: every
+#: frame is counted once, so ``frames_in = frames_decoded + frames_ignored + frames_rejected``)
+DECODER_REJECT_REASONS: tuple[str, ...] = REJECT_REASONS
 
 #: decoder reason -> event flag it raises
 _DECODER_FLAGS: dict[str, str] = {
@@ -50,6 +43,8 @@ _DECODER_FLAGS: dict[str, str] = {
     "out_of_range": "decode_errors",
     "nan": "decode_errors",
     "timestamp_backwards": "decode_errors",
+    "timestamp_jump": "decode_errors",
+    "clock_reanchor": "clock_reanchored",
 }
 
 

@@ -9,6 +9,12 @@ it opens it (retrying with exponential backoff while it fails, flag ``zenoh_down
 turns rounds into JSON payloads (:mod:`service.daemon.payloads`) and ``put``s them with
 ``CongestionControl.DROP`` so a slow subscriber cannot back up into us.
 
+Counting (health): ``zenoh_messages`` = every ``put`` made; ``zenoh_unmatched`` = the
+puts among them that no subscriber matched at the time (Zenoh's publisher matching status):
+with the router down or nobody subscribed they reach no one, so they are counted as
+undelivered rather than as sent.  ``zenoh_dropped`` = messages never put (queue overflow,
+a failing session).
+
 The ``<prefix>/<pack>/snapshot`` queryable answers from Zenoh's own thread out of the
 latest round (guarded by a lock), so a late joiner is served even while the loop is busy.
 Zenoh's Python API has no asyncio interface; nothing here touches the event loop.
@@ -346,21 +352,21 @@ class ZenohPublisher:
         with self._latest_lock:
             self._latest = p
         k = self.keys
-        sent = 0
-        for c in p.cells:
-            self._publisher(k.cell_soc(c.cell)).put(c.model_dump_json())
+        puts = [(k.cell_soc(c.cell), c) for c in p.cells] + [(k.cell_params(c.cell), c) for c in p.params]
+        puts += [(k.summary, p.summary), (k.health, p.health)]
+        sent = unmatched = 0
+        for key, payload in puts:
+            pub = self._publisher(key)
+            if not pub.matching_status.matching:
+                unmatched += 1  # put anyway: a subscriber may be declaring right now
+            pub.put(payload.model_dump_json())
             sent += 1
-        for c in p.params:
-            self._publisher(k.cell_params(c.cell)).put(c.model_dump_json())
-            sent += 1
-        self._publisher(k.summary).put(p.summary.model_dump_json())
-        self._publisher(k.health).put(p.health.model_dump_json())
-        sent += 2
         if r.frame_wall_s is not None:
             self.health.record_latency("publish", time.time() - r.frame_wall_s)
         self.rounds_published += 1
         self.messages_published += sent
         self.health.count("zenoh_messages", sent)
+        self.health.count("zenoh_unmatched", unmatched)
 
     # -- queryable (Zenoh thread) --------------------------------------------------------
     def snapshot_json(self) -> str | None:

@@ -186,6 +186,18 @@ class PackEstimator:
             self.fast.reset(cells)
         self.ocv_initialised[cells] = False
 
+    def widen_soc_std(self, extra_std: float | np.ndarray, max_std: float = 0.5) -> None:
+        """Add ``extra_std`` (SOC fraction) in quadrature to every cell's SOC σ, capped at ``max_std``.
+
+        For a state known to be old (a restart after downtime): the pack may have moved by
+        that much since, so the filter must trust its next voltages more than this state.
+        """
+        ukf = self.ukf
+        i = ukf.i_soc
+        extra = np.broadcast_to(np.asarray(extra_std, float), (self.n,))
+        var = np.minimum(ukf.P[:, i, i] + extra**2, max_std**2)
+        ukf.P[:, i, i] = np.maximum(var, ukf.P[:, i, i])
+
     def warm_start(self, history: Recording, cells: np.ndarray | None = None) -> None:
         """Drive ``cells``' polarisation states with the current recorded before the start.
 

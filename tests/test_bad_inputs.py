@@ -1,0 +1,226 @@
+"""Bad files given to the tools: exit 2, one line naming the file, no traceback, nothing written.
+
+Every case runs the real command in-process (``service.cli.main``) on a real file; python-can
+and cantools parse what they are given.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.cli import main
+from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC
+
+GOOD_ROWS = "\n".join(f"{t},{1.0 if t % 20 < 10 else 0.0},{3.7 - 0.001 * t},25.0" for t in range(60))
+HEADER = "time_s,current_a,voltage_v,temperature_c"
+
+
+def run_cli(capsys, argv: list[str]) -> tuple[int, str]:
+    code = main(argv)
+    err = capsys.readouterr().err
+    return code, err
+
+
+def assert_one_line_error(code: int, err: str, names: str) -> None:
+    assert code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err and names in lines[0], err
+
+
+def _recording(tmp: Path, name: str, body: str, header: str = HEADER) -> Path:
+    p = tmp / name
+    p.write_text(header + "\n" + body + "\n")
+    return p
+
+
+def _with(tmp: Path, name: str, row: int, column: int, value: str) -> Path:
+    rows = [r.split(",") for r in GOOD_ROWS.split("\n")]
+    rows[row][column] = value
+    return _recording(tmp, name, "\n".join(",".join(r) for r in rows))
+
+
+BAD_RECORDINGS = {
+    "other_columns.csv": lambda t: _recording(t, "other_columns.csv", "1,2,3\n4,5,6", header="a,b,c"),
+    "semicolons.csv": lambda t: _recording(t, "semicolons.csv", GOOD_ROWS.replace(",", ";"), HEADER.replace(",", ";")),
+    "binary.csv": lambda t: (t / "binary.csv").write_bytes(bytes(range(256)) * 8) and t / "binary.csv",
+    "latin1.csv": lambda t: (t / "latin1.csv").write_bytes(b"time_s,current_a\n\xe9\xff,1\n") and t / "latin1.csv",
+    "header_only.csv": lambda t: _recording(t, "header_only.csv", ""),
+    "huge_temp.csv": lambda t: _with(t, "huge_temp.csv", 5, 3, "-1e308"),
+    "huge_current.csv": lambda t: _with(t, "huge_current.csv", 7, 1, "1e308"),
+    "huge_time.csv": lambda t: _with(t, "huge_time.csv", 59, 0, "1e308"),
+    "nan_voltage.csv": lambda t: _with(t, "nan_voltage.csv", 3, 2, "nan"),
+    "mv_voltage.csv": lambda t: _with(t, "mv_voltage.csv", 3, 2, "3700"),
+    "time_back.csv": lambda t: _with(t, "time_back.csv", 10, 0, "2"),
+}
+
+BAD_LOGS = {
+    "garbage.blf": b"LOGG" + os.urandom(300),
+    "garbage.trc": b";$FILEVERSION=9.9\nnot a trace\n\x01\x02",
+    "garbage.log": b"(abc) can0 zzz#xx\nhello\n",
+    "garbage.mf4": b"MDF     4.10    " + os.urandom(200),
+    "empty.asc": b"",
+    "garbage.asc": b"this is not\nan asc file\n",
+    "binary.asc": bytes(range(256)),
+}
+
+
+def _replay_argv(path: Path, tmp: Path, *extra: str) -> list[str]:
+    return ["replay", str(path), "--no-send", "--record", str(tmp / "out.asc"), "--no-progress", *extra]
+
+
+@pytest.mark.parametrize("name", list(BAD_RECORDINGS))
+def test_replay_refuses_bad_recordings(tmp_path: Path, capsys, name: str) -> None:
+    path = BAD_RECORDINGS[name](tmp_path)
+    code, err = run_cli(capsys, _replay_argv(path, tmp_path))
+    assert_one_line_error(code, err, str(path))
+    assert not (tmp_path / "out.asc").exists()
+
+
+@pytest.mark.parametrize("name", list(BAD_LOGS))
+def test_replay_refuses_bad_logs(tmp_path: Path, capsys, name: str) -> None:
+    path = tmp_path / name
+    path.write_bytes(BAD_LOGS[name])
+    code, err = run_cli(capsys, _replay_argv(path, tmp_path))
+    assert_one_line_error(code, err, str(path))
+    assert not (tmp_path / "out.asc").exists()
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads files whatever their mode")
+def test_replay_refuses_unreadable_file(tmp_path: Path, capsys) -> None:
+    path = _recording(tmp_path, "locked.csv", GOOD_ROWS)
+    path.chmod(0)
+    code, err = run_cli(capsys, _replay_argv(path, tmp_path))
+    assert_one_line_error(code, err, str(path))
+
+
+def test_bom_recording_is_read(tmp_path: Path, capsys) -> None:
+    from service.recording import load_recording
+
+    path = tmp_path / "bom.csv"
+    path.write_bytes(b"\xef\xbb\xbf" + (HEADER + "\n" + GOOD_ROWS + "\n").encode())
+    assert len(load_recording(path)) == 60
+
+
+def test_replay_of_a_good_recording_still_works(tmp_path: Path, capsys) -> None:
+    path = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, _replay_argv(path, tmp_path, "--cells", "8"))
+    assert code == 0, err
+    assert (tmp_path / "out.asc").stat().st_size > 0
+
+
+def _config_file(tmp: Path, dbc: Path, extra: str = "") -> Path:
+    cfg = tmp / "socd.toml"
+    cfg.write_text(f'cell_profile = "{DEFAULT_CELL_PROFILE}"\n[dbc]\ninput = "{dbc}"\noutput = "{DEFAULT_OUTPUT_DBC}"\n'
+                   f"[pack]\nn_cells = 8\n{extra}")
+    return cfg
+
+
+def test_replay_with_a_broken_dbc(tmp_path: Path, capsys) -> None:
+    dbc = tmp_path / "broken.dbc"
+    dbc.write_text(DEFAULT_INPUT_DBC.read_text()[:900] + "\nBO_ 12 broken: 8 X\n SG_ oops : 0|99@9+ (\n")
+    cfg = _config_file(tmp_path, dbc)
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--config", str(cfg)))
+    assert_one_line_error(code, err, "dbc.input")
+    assert not (tmp_path / "out.asc").exists()
+
+
+def test_replay_with_a_mapped_signal_missing_from_the_dbc(tmp_path: Path, capsys) -> None:
+    dbc = tmp_path / "renamed.dbc"
+    dbc.write_text(DEFAULT_INPUT_DBC.read_text().replace("BMS_PackCurrent", "BMS_PackAmps"))
+    cfg = _config_file(tmp_path, dbc)
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--config", str(cfg)))
+    assert_one_line_error(code, err, "BMS_PackCurrent")
+    assert not (tmp_path / "out.asc").exists()
+
+
+@pytest.mark.parametrize("command", ["replay", "run"])
+def test_binary_config_file(tmp_path: Path, capsys, command: str) -> None:
+    cfg = tmp_path / "socd.toml"
+    cfg.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    argv = _replay_argv(rec, tmp_path, "--config", str(cfg)) if command == "replay" else ["run", "--config", str(cfg)]
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, str(cfg))
+
+
+@pytest.mark.parametrize("name", ["huge_temp.csv", "huge_current.csv", "huge_time.csv", "header_only.csv",
+                                  "binary.csv", "nan_voltage.csv"])
+def test_evaluate_and_fit_refuse_bad_recordings(tmp_path: Path, capsys, name: str) -> None:
+    path = BAD_RECORDINGS[name](tmp_path)
+    out = tmp_path / "out.json"
+    code, err = run_cli(capsys, ["evaluate", str(path), "--cell", str(DEFAULT_CELL_PROFILE), "--json", str(out),
+                                 "--quiet"])
+    assert_one_line_error(code, err, str(path))
+    prof = tmp_path / "cell.toml"
+    code, err = run_cli(capsys, ["fit", str(path), "--capacity-ah", "2.9", "-o", str(prof), "--max-seconds", "1"])
+    assert_one_line_error(code, err, str(path))
+    assert not out.exists() and not prof.exists()
+
+
+@pytest.mark.parametrize("table", ["nan", "binary", "duplicate", "volts_in_mv"])
+def test_fit_refuses_bad_ocv_tables(tmp_path: Path, capsys, table: str) -> None:
+    ocv = tmp_path / f"ocv_{table}.csv"
+    soc = np.linspace(0, 1, 11)
+    v = 3.0 + 1.2 * soc
+    if table == "binary":
+        ocv.write_bytes(bytes(range(256)))
+    else:
+        if table == "nan":
+            v[4] = np.nan
+        if table == "volts_in_mv":
+            v = v * 1000
+        if table == "duplicate":
+            soc[5] = soc[4]
+        ocv.write_text("soc,ocv_v\n" + "\n".join(f"{s},{x}" for s, x in zip(soc, v)) + "\n")
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    prof = tmp_path / "cell.toml"
+    code, err = run_cli(capsys, ["fit", str(rec), "--capacity-ah", "2.9", "--ocv", str(ocv), "-o", str(prof),
+                                 "--max-seconds", "1"])
+    assert_one_line_error(code, err, str(ocv))
+    assert not prof.exists()
+
+
+def test_header_only_csv_prints_no_numpy_warning(tmp_path: Path, capsys) -> None:
+    path = BAD_RECORDINGS["header_only.csv"](tmp_path)
+    code, err = run_cli(capsys, ["evaluate", str(path), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet"])
+    assert_one_line_error(code, err, "needs at least 2 data rows")
+    assert "Warning" not in err
+
+
+def test_a_valid_log_replays(tmp_path: Path, capsys) -> None:
+    """The log validation reads a python-can log python-can wrote (and counts its frames)."""
+    import can
+
+    from service.validation import check_can_log
+
+    log = tmp_path / "cap.asc"
+    with can.Logger(str(log)) as w:
+        for k in range(20):
+            w.on_message_received(can.Message(timestamp=1.0 + 0.01 * k, arbitration_id=0x100, data=[k] * 8,
+                                              is_extended_id=False))
+    assert check_can_log(log, (".asc",)) == 20
+    shutil.copy(log, tmp_path / "copy.asc")
+    code, err = run_cli(capsys, ["replay", str(tmp_path / "copy.asc"), "--no-send", "--record",
+                                 str(tmp_path / "out.blf"), "--no-progress"])
+    assert code == 0, err
+
+
+@pytest.mark.parametrize("which", ["--cell", "--settings"])
+def test_binary_profile_or_settings(tmp_path: Path, capsys, which: str) -> None:
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\x00\x01\xfe" + bytes(range(256)))
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    cell = str(binary) if which == "--cell" else str(DEFAULT_CELL_PROFILE)
+    argv = ["evaluate", str(rec), "--cell", cell, "--quiet"]
+    if which == "--settings":
+        argv += ["--settings", str(binary)]
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, str(binary))
