@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{path}: not a cell recording and not a python-can log "
                             f"({', '.join(LOG_SUFFIXES)}, optionally .gz)")
         try:  # read it to the end once, so a bad log fails here and not halfway through a replay
-            total = check_can_log(path, LOG_SUFFIXES)
+            total = check_can_log(path, LOG_SUFFIXES, read_log)
         except InputFileError as exc:
             raise UserError(str(exc)) from None
         if args.time_offset:

@@ -24,8 +24,9 @@ import gc
 import logging
 import math
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -150,20 +151,34 @@ TEXT_LOG_SUFFIXES = (".asc", ".csv", ".log", ".trc")
 MAX_LOG_TIMESTAMP_S = 1e11
 
 
-def check_can_log(path: str | Path, suffixes: Sequence[str]) -> int:
+def check_can_log(path: str | Path, suffixes: Sequence[str],
+                  frames: Callable[[Path], Iterable[Any]] | None = None) -> int:
     """Read a python-can log to the end; return its frame count, or raise :class:`InputFileError`.
 
     Catches what python-can's readers raise on files they cannot parse (``ValueError``,
     ``struct.error``, ``UnicodeDecodeError``, ...), an empty or unparsable text log that
-    reads as zero frames, and non-finite timestamps.
+    reads as zero frames, and non-finite timestamps.  A ``.gz`` log is read through
+    ``frames`` (the caller's reader; default ``can.LogReader``) and its text is not
+    checked before decompression.
     """
     import can
 
     path = Path(path)
-    suffix = path.suffix.lower()
+    names = [s.lower() for s in path.suffixes]
+    gz = bool(names) and names[-1] == ".gz"
+    suffix = (names[-2] if gz and len(names) > 1 else "") if gz else path.suffix.lower()
     if suffix not in suffixes:
-        raise InputFileError(f"{path}: not a cell recording and not a python-can log ({', '.join(suffixes)})")
-    if suffix in TEXT_LOG_SUFFIXES:
+        raise InputFileError(f"{path}: not a cell recording and not a python-can log "
+                             f"({', '.join(suffixes)}, optionally .gz)")
+
+    def _reader(p: Path) -> Iterable[Any]:
+        with can.LogReader(p) as reader:
+            yield from reader
+
+    frames = frames or _reader
+    if gz:
+        read_bytes_check(path, f"{suffix[1:]}.gz CAN log")
+    elif suffix in TEXT_LOG_SUFFIXES:
         first = check_text_file(path, f"{suffix[1:]} CAN log").strip()
         if suffix == ".csv":
             if first.replace(" ", "") != PYTHON_CAN_CSV_HEADER:
@@ -186,13 +201,12 @@ def check_can_log(path: str | Path, suffixes: Sequence[str]) -> int:
     propagate, can_log.propagate = can_log.propagate, False
     try:
         try:
-            with can.LogReader(path) as reader:
-                for msg in reader:
-                    n += 1
-                    ts = float(msg.timestamp)
-                    if not math.isfinite(ts) or abs(ts) > MAX_LOG_TIMESTAMP_S:
-                        error = InputFileError(f"{path}: frame {n}: timestamp {ts!r} is not a plausible time")
-                        break
+            for msg in frames(path):
+                n += 1
+                ts = float(msg.timestamp)
+                if not math.isfinite(ts) or abs(ts) > MAX_LOG_TIMESTAMP_S:
+                    error = InputFileError(f"{path}: frame {n}: timestamp {ts!r} is not a plausible time")
+                    break
         except Exception as exc:  # noqa: BLE001 - python-can's readers raise many kinds on bad files
             where = f"frame {n + 1}" if n else "start"
             detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

@@ -71,7 +71,7 @@ BAD_LOGS = {
 
 
 def _replay_argv(path: Path, tmp: Path, *extra: str) -> list[str]:
-    return ["replay", str(path), "--no-send", "--record", str(tmp / "out.asc"), "--no-progress", *extra]
+    return ["replay", str(path), "--no-send", "--record", str(tmp / "out.asc"), "--quiet", *extra]
 
 
 @pytest.mark.parametrize("name", list(BAD_RECORDINGS))
@@ -209,7 +209,7 @@ def test_a_valid_log_replays(tmp_path: Path, capsys) -> None:
     assert check_can_log(log, (".asc",)) == 20
     shutil.copy(log, tmp_path / "copy.asc")
     code, err = run_cli(capsys, ["replay", str(tmp_path / "copy.asc"), "--no-send", "--record",
-                                 str(tmp_path / "out.blf"), "--no-progress"])
+                                 str(tmp_path / "out.blf"), "--quiet"])
     assert code == 0, err
 
 

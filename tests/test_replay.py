@@ -193,16 +193,16 @@ def test_cli_record_and_truth(tmp_path, profile):
     prof = tmp_path / "cell.toml"
     save_profile(profile, prof)
     out, truth = tmp_path / "out.blf", tmp_path / "truth.csv"
-    rc = socd_main(["replay", str(DATA), "--profile", str(prof), "--cells", "4", "--stop", "30",
+    rc = socd_main(["replay", str(DATA), "--cell", str(prof), "--cells", "4", "--stop", "30",
                     "--spread-soc", "0.02", "--seed", "3", "--record", str(out), "--truth-out", str(truth),
-                    "--drop", "0.1", "--no-progress"])
+                    "--drop", "0.1", "--quiet"])
     assert rc == 0
     n = len(list(read_log(out)))
     assert 0 < n < 30 * 3  # 1 voltage + 1 temperature + 1 current frame per sample, some dropped
     rows = list(csv.reader(truth.open()))
     assert rows[0][:5] == ["time_s", "current_a", "soc_ref", "soc_0", "soc_1"] and len(rows[0]) == 7
     # a log file replays onto a bus named by python-can's flags
-    rc = socd_main(["replay", str(out), "-i", "virtual", "-c", "cli_test", "--fast", "--no-progress"])
+    rc = socd_main(["replay", str(out), "-i", "virtual", "-c", "cli_test", "--fast", "--quiet"])
     assert rc == 0
 
 

@@ -96,7 +96,7 @@ def test_replay_and_daemon_as_processes_over_vcan0(tmp_path: Path) -> None:
         replay = subprocess.run(
             [sys.executable, "-m", "service.cli", "replay", str(RECORDING), "--config", str(cfg),
              "-i", "socketcan", "-c", VCAN_CHANNEL, "--cells", str(N_CELLS), "--speed", "1",
-             "--stop", str(REPLAY_S), "--no-progress"],
+             "--stop", str(REPLAY_S), "--quiet"],
             cwd=REPO, env=env, capture_output=True, text=True, timeout=300,
         )
         assert replay.returncode == 0, replay.stderr
