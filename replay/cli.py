@@ -22,7 +22,7 @@ from replay.faults import FaultSpec, parse_gap, parse_stuck
 from replay.pack import SpreadSpec, pack_frames
 from replay.player import LOG_SUFFIXES, play, read_log
 from service.bus.cli_args import add_bus_arguments, create_bus_from_namespace
-from service.cli import UserError
+from service.errors import UserError
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:

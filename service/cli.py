@@ -13,6 +13,9 @@ import os
 import sys
 
 from service import __version__
+from service.errors import UserError
+
+__all__ = ["SUBCOMMANDS", "UserError", "build_parser", "main"]
 
 #: subcommand name -> module that defines ``add_subparser(subparsers)``
 SUBCOMMANDS: dict[str, str] = {
@@ -25,10 +28,6 @@ SUBCOMMANDS: dict[str, str] = {
     "bench": "service.commands.bench",
     "diagnose": "service.commands.diagnose",
 }
-
-
-class UserError(Exception):
-    """A problem with the user's input: printed as one clear line, exit status 2."""
 
 
 def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: BaseException) -> None:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.cli import UserError
+from service.errors import UserError
 
 REQUIRED_COLUMNS = ("time_s", "current_a", "voltage_v", "temperature_c")
 

@@ -371,7 +371,7 @@ def rank(outcomes: list[EffectOutcome], tie_mv: float) -> list[EffectOutcome]:
     simulated with our own model, a subtle current offset (measured in the rests, z = 60)
     lost to a 3-parameter hysteresis that fitted the held-out part 0.19 mV better at 1.1 mV
     noise, and a capacity fade lost to a diffusion lag longer than the recording; ΔBIC
-    named both right (``python -m service.diagnosis.validate``).
+    named both right (``python -m research.validate``).
     """
     rest = sorted((o for o in outcomes if not o.significant), key=lambda o: -o.score)
     measured = [o for o in outcomes if o.significant and o.evidence == "direct"]

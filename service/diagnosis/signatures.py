@@ -169,7 +169,7 @@ DIRECTION_HIGHPASS_S = 600.0
 #: ... low-passes of the C-rate that stand for any linear polarisation the base model got wrong
 DIRECTION_LOWPASS_S = (10.0, 30.0, 100.0, 300.0, 1000.0)
 #: z of the direction-state coefficient needed to nominate hysteresis.  On 35 recordings of the
-#: PyBaMM stand-in's smooth and step-table drives (service.diagnosis.validate_pybamm) those without
+#: PyBaMM stand-in's smooth and step-table drives (research.validate_pybamm) those without
 #: hysteresis reached z 6.1 through model-form error alone, the hysteresis ones 6.8-12.2; 8 keeps
 #: a margin above the former and gives up the two weakest of the latter
 DIRECTION_MIN_Z = 8.0

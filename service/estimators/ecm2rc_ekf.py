@@ -65,7 +65,7 @@ class EkfTuning:
     stands mostly for OCV-table and model error, not for the sensor.
 
     The RC-state walk was swept again beside the pipeline's branch walk, leave one out, with and
-    without a ±1 % current-sensor offset (README, ``service.evaluation.nested_tuning``): per cell
+    without a ±1 % current-sensor offset (README, ``research.nested_tuning``): per cell
     it chooses 5e-4 (Panasonic), 1e-4 (CALCE 20R), 2e-4 / 5e-4 (A123); pooled over every file
     1e-4 / 2e-4 / 5e-4 are within 0.01 % SOC RMSE, so the default stays.
     """

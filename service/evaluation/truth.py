@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.cli import UserError
+from service.errors import UserError
 from service.recording import Recording
 
 

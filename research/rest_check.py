@@ -16,7 +16,7 @@ sparser): a rest that has not relaxed reads too low
 after a discharge (too high after a charge), by more the colder and emptier the cell.  So compare
 rests of the same length at similar SOC and temperature, and read the sign of the tail.
 
-    python -m service.evaluation.rest_check --cell configs/cells/panasonic_18650pf.toml \\
+    python -m research.rest_check --cell configs/cells/panasonic_18650pf.toml \\
         ../shared/data/real/panasonic_18650pf/pan18650pf_10C_trise_Cycle1.csv
 """
 
@@ -33,7 +33,7 @@ import numpy as np
 from service.cell.fitting import last_current_direction
 from service.cell.profile import CellProfile, ProfileError, load_profile
 from service.characterisation.ocv_sources import REST_CURRENT_C, rest_spans
-from service.cli import UserError
+from service.errors import UserError
 from service.evaluation.truth import per_recording, truth_and_start
 from service.recording import Recording, load_recording
 
@@ -95,7 +95,7 @@ def markdown(readings: list[RestReading]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m service.evaluation.rest_check",
+        prog="python -m research.rest_check",
         description="At the end of every long rest, compare the SOC the profile's OCV table reads from the "
                     "voltage with the truth 'socd evaluate' scores against (soc_true, or coulomb counting from "
                     "--full-at with the profile's capacity). A difference common to every estimator's error "

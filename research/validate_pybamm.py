@@ -5,13 +5,13 @@ contain other cells".  This module simulates other PyBaMM parameter sets (SPMe w
 lumped thermal model, so the cell heats under load) along random drives with one effect
 each, writes them in the recording format with the fresh cell's OCV table and capacity,
 runs the diagnosis exactly as ``socd diagnose --ocv ... --capacity-ah ...`` would, and
-tabulates the verdicts.  Unlike :mod:`service.diagnosis.validate` (recordings from the
+tabulates the verdicts.  Unlike :mod:`research.validate` (recordings from the
 estimator's own model) these carry the model-form mismatch of a real cell.
 
 Needs PyBaMM (``pip install -e .[validation]`` or ``pip install pybamm``; not a dependency of
 the service, not run in CI).
 
-    python -m service.diagnosis.validate_pybamm [--cells Chen2020,Mohtat2020,...] [--seeds N]
+    python -m research.validate_pybamm [--cells Chen2020,Mohtat2020,...] [--seeds N]
         [--level moderate[,clear,...]] [--jobs 2] [--workdir out/validate_pybamm] [--json OUT]
 
 The effects (how each recording departs from its parameter set):
@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.diagnosis.validate import Row as GridRow
+from research.validate import Row as GridRow
 
 CELLS = ("Chen2020", "Mohtat2020", "Marquis2019", "Ai2020")
 EFFECTS = ("none", "hysteresis", "temperature", "capacity", "diffusion", "kinetics", "current_bias")
@@ -230,7 +230,7 @@ def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -
 
 @dataclass
 class Row(GridRow):
-    """A grid row (:class:`service.diagnosis.validate.Row`) with the recording's cell and the
+    """A grid row (:class:`research.validate.Row`) with the recording's cell and the
     top effect's held-out RMSEs."""
 
     stem: str
@@ -360,7 +360,7 @@ def table(rows: list[Row], failed: Sequence[dict] = ()) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m service.diagnosis.validate_pybamm",
+    ap = argparse.ArgumentParser(prog="python -m research.validate_pybamm",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--cells", default=",".join(CELLS), help="PyBaMM parameter sets (default: %(default)s)")
     ap.add_argument("--effects", default=",".join(EFFECTS), help="subset of " + ",".join(EFFECTS))

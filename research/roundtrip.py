@@ -3,7 +3,7 @@
 ``socd diagnose --save-profile`` writes the base model plus the extension it named; the
 issue asks that this profile be used by ``socd evaluate`` and by the service online.
 This module closes that loop on recordings simulated with our own model (as
-:mod:`service.diagnosis.validate`), one effect at a time:
+:mod:`research.validate`), one effect at a time:
 
 1. diagnose a one-hour drive of a cell with the effect, from the OCV table and the
    capacity only (the simulated recording of the validation grid, seed 0);
@@ -15,7 +15,7 @@ This module closes that loop on recordings simulated with our own model (as
    0.95 → about 0.15 SOC, with its true SOC as ``soc_true``; the estimators start 0.20
    wrong as in every evaluation.
 
-    python -m service.diagnosis.roundtrip [--effects diffusion,temperature] [--level clear] [--json OUT]
+    python -m research.roundtrip [--effects diffusion,temperature] [--level clear] [--json OUT]
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.diagnosis.validate import (
+from research.validate import (
     CASES,
     DT,
     LEVELS,
@@ -128,7 +128,7 @@ def table(rows: list[RoundTrip]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     effects_all = [e for e in CASES if e != "none"]
-    ap = argparse.ArgumentParser(prog="python -m service.diagnosis.roundtrip", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m research.roundtrip", description=__doc__.split("\n\n")[0])
     ap.add_argument("--effects", default=",".join(effects_all), help="comma-separated subset of " + ",".join(effects_all))
     ap.add_argument("--level", default="clear", choices=LEVELS, help="size of the simulated effect (default clear)")
     ap.add_argument("--workdir", default="out/roundtrip", help="where recordings, profiles and evaluations go")
