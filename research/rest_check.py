@@ -32,9 +32,9 @@ import numpy as np
 
 from service.cell.fitting import last_current_direction
 from service.cell.profile import CellProfile, ProfileError, load_profile
+from service.cell.truth import per_recording, truth_and_start
 from service.characterisation.ocv_sources import REST_CURRENT_C, rest_spans
 from service.errors import UserError
-from service.evaluation.truth import per_recording, truth_and_start
 from service.recording import Recording, load_recording
 
 #: shortest rest read (s): the Panasonic drive cycles end with 300 s
@@ -60,7 +60,7 @@ class RestReading:
 def read_rests(part: Recording, truth: np.ndarray, profile: CellProfile,
                min_rest_s: float = DEFAULT_MIN_REST_S) -> list[RestReading]:
     """One reading at the end of every rest of at least ``min_rest_s`` in ``part``."""
-    capacity = profile.capacity_ah * profile.extensions.capacity_scale
+    capacity = profile.effective_capacity_ah
     table = profile.ocv_table()
     u_h_max = float(profile.hysteresis.u_h_max_v)
     rest_a = REST_CURRENT_C * capacity
@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
             raise UserError(str(exc)) from exc
         full = per_recording(args.full_at, len(args.recordings), "--full-at")
         recordings = [load_recording(r) for r in args.recordings]
-        capacity = profile.capacity_ah * profile.extensions.capacity_scale
+        capacity = profile.effective_capacity_ah
         readings: list[RestReading] = []
         for rec, fa in zip(recordings, full):
             part, truth = truth_and_start(rec, capacity, fa)

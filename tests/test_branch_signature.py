@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from research import validate as va
-from service.diagnosis.signatures import BRANCH_REST_MIN_S, direction_state, rest_branch_offset
+from service.diagnosis.features import direction_state
+from service.diagnosis.signatures import BRANCH_REST_MIN_S, rest_branch_offset
 
 
 def hppc_current(rest_s: float = 1200.0) -> np.ndarray:

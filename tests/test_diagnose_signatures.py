@@ -273,16 +273,17 @@ def test_current_steps_outside_the_usable_part_or_too_few_are_not_read():
 
 # -- hysteresis on a drive cycle: the direction state in the base residual -------------------------
 def _lowpassed(x: np.ndarray, t: np.ndarray, tau: float) -> np.ndarray:
-    from service.diagnosis.effects import _lowpass
+    from service.diagnosis.features import lowpass
 
-    return _lowpass(x, t, tau)
+    return lowpass(x, t, tau)
 
 
 def test_direction_state_in_the_residual_nominates_hysteresis_beyond_any_linear_polarisation():
     """A residual that holds a 12 mV branch voltage (Eq. 1, rate 100) on top of polarisation the base
     model got wrong (two low-passed currents) and noise: the half-gap is found and nominated; the
     same residual without the branch voltage is not, however large the polarisation error."""
-    from service.diagnosis.signatures import DIRECTION_MIN_Z, direction_offset, direction_state
+    from service.diagnosis.features import direction_state
+    from service.diagnosis.signatures import DIRECTION_MIN_Z, direction_offset
 
     t, i = drive(seed=3, hours=3.0)
     rng = np.random.default_rng(3)

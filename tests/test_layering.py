@@ -1,7 +1,8 @@
 """The package's layering, read from the source (AST) rather than from a running import.
 
 - no import cycle between the parts of ``service`` (its subpackages and its top-level
-  modules), counting every import a module makes, lazy ones inside functions included;
+  modules), nor between its modules, counting every import a module makes, lazy ones inside
+  functions included;
 - ``service.cli`` (argument parsing, exit codes) is imported only by the commands it runs,
   so the daemon's import closure never contains the CLI;
 - the research tools (``research/``) sit on top of the product: nothing in ``service`` or
@@ -125,6 +126,13 @@ def test_no_import_cycle_between_service_parts():
     assert not cycles, "import cycles between service parts:\n" + "\n".join(detail)
 
 
+def test_no_import_cycle_between_service_modules():
+    """Within a part too: two modules that need each other share a helper that belongs below both."""
+    modules = {_module_name(p): p for p in _sources("service")}
+    graph = {name: {m for m in _imports(path) if m in modules and m != name} for name, path in modules.items()}
+    assert not find_cycles(graph), f"import cycles between service modules: {find_cycles(graph)}"
+
+
 def test_only_commands_import_the_cli():
     allowed = {"service.cli", "replay.cli"}
     offenders = []
@@ -155,3 +163,15 @@ def test_research_tools_live_outside_the_product():
     shipped = {p.stem for p in _sources("service")} & research_tools
     assert not shipped, f"research tools inside service/: {sorted(shipped)}"
     assert research_tools <= {p.stem for p in _sources("research")}
+
+
+def test_parameter_names_are_the_profile_and_payload_fields():
+    """One list of the seven parameter names; the profile's parameter point and the Zenoh
+    payload spell the same names as fields, in the same order."""
+    from service.cell.parameters import PARAMETER_NAMES
+    from service.cell.profile import ParameterPoint
+    from service.daemon.payloads import CellParams
+
+    assert [f for f in ParameterPoint.model_fields if f not in ("temp_c", "i0_a")] == list(PARAMETER_NAMES)
+    payload = list(CellParams.model_fields)
+    assert payload[payload.index("cell") + 1:] == list(PARAMETER_NAMES)

@@ -30,6 +30,7 @@ from itertools import pairwise
 
 import numpy as np
 
+from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment, fit_parameters, last_current_direction
 from service.cell.model import simulate
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
@@ -44,6 +45,7 @@ from service.cell.profile import (
     lift_to_kinetic_floor,
 )
 from service.cell.soc_dependence import pulse_resistances, scale_rows
+from service.cell.truth import truth_and_start
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
     REST_MIN_S,
@@ -56,7 +58,6 @@ from service.characterisation.ocv_sources import (
     rest_spans,
 )
 from service.characterisation.relaxation import measure_slow_relaxation
-from service.evaluation.truth import coulomb_soc, truth_and_start
 from service.recording import Recording
 
 TEMP_GROUP_C = 5.0

@@ -7,8 +7,8 @@ from pathlib import Path
 
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
+from service.cell.truth import per_recording
 from service.cli import UserError
-from service.evaluation.truth import per_recording
 from service.recording import load_recording
 
 
