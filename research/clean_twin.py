@@ -21,7 +21,7 @@ also clean recordings of the exact generator on the same drives: their verdicts 
 ``none``.
 
 Uses the labels (truth) only to build the twins and to read the result; the diagnosis of the
-recording never sees them.  Needs PyBaMM (``pip install -e .[validation]``).
+recording never sees them.  Needs PyBaMM (``pip install -e .[research]``).
 
     python -m research.clean_twin [--data ../shared/data/synthetic] [--stems a,b]
         [--jobs 2] [--workdir out/clean_twin] [--json OUT]

@@ -8,7 +8,7 @@ runs the diagnosis exactly as ``socd diagnose --ocv ... --capacity-ah ...`` woul
 tabulates the verdicts.  Unlike :mod:`research.validate` (recordings from the
 estimator's own model) these carry the model-form mismatch of a real cell.
 
-Needs PyBaMM (``pip install -e .[validation]`` or ``pip install pybamm``; not a dependency of
+Needs PyBaMM (``pip install -e .[research]`` or ``pip install pybamm``; not a dependency of
 the service, not run in CI).
 
     python -m research.validate_pybamm [--cells Chen2020,Mohtat2020,...] [--seeds N]
