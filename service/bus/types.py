@@ -56,9 +56,9 @@ class PackSnapshot:
 
     ``params`` holds arrays ``[n_cells]`` for the keys in
     :data:`service.cell.parameters.PARAMETER_NAMES` (Zeng Fig. 1; C's are CPE coefficients,
-    F·s^(α-1); missing keys are sent as 0).  ``status_flags`` uses names from :data:`STATUS_FLAGS` without the
-    ``SOCD_Flag`` prefix; ``counters`` may hold ``frames_rejected`` and ``stale_cells``
-    (the latter defaults to ``stale.sum()``).
+    F·s^(α-1); missing keys are sent as 0).  ``status_flags`` uses names from
+    :data:`STATUS_FLAGS` without the ``SOCD_Flag`` prefix; ``counters`` may hold
+    ``frames_rejected`` and ``stale_cells`` (the latter defaults to ``stale.sum()``).
     """
 
     t_s: float
