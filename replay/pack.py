@@ -20,7 +20,6 @@ recording time (+ ``time_offset_s``); rolling counters advance per frame of each
 from __future__ import annotations
 
 import csv
-import math
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -30,6 +29,7 @@ import can
 import numpy as np
 
 from service.cell.profile import CellProfile
+from service.cell.units import SECONDS_PER_HOUR
 from service.config import SocdConfig
 from service.recording import Recording
 
@@ -89,13 +89,13 @@ class PackRecording:
 def estimate_start_soc(recording: Recording, profile: CellProfile, rest_current_a: float | None = None) -> float:
     """SOC at the first sample from the first (near-)rest voltage, counted back to t0."""
     table = profile.ocv_table()
-    capacity = profile.capacity_ah * profile.extensions.capacity_scale
+    capacity = profile.effective_capacity_ah
     limit = rest_current_a if rest_current_a is not None else 0.02 * capacity
     rest = np.flatnonzero(np.abs(recording.current_a) <= limit)
     k = int(rest[0]) if rest.size else 0
     soc_k = float(table.soc_from_ocv(recording.voltage_v[k], recording.temperature_c[k]))
     dq = recording.current_a * recording.dt_s()  # backward ZOH
-    soc0 = soc_k + float(dq[1:k + 1].sum()) / (3600.0 * capacity)
+    soc0 = soc_k + float(dq[1:k + 1].sum()) / (SECONDS_PER_HOUR * capacity)
     return float(np.clip(soc0, 0.0, 1.0))
 
 
@@ -123,11 +123,11 @@ def expand_pack(
     n_sensors = int(sensor_of_cell.max()) + 1
     d_temp = draw(spread.temperature_c, n_sensors)
 
-    capacity = profile.capacity_ah * profile.extensions.capacity_scale
+    capacity = profile.effective_capacity_ah
     cap_i = capacity * (1.0 + d_cap)
     soc0 = estimate_start_soc(recording, profile) if start_soc is None else float(start_soc)
     i = recording.current_a
-    q_ah = np.cumsum(i * recording.dt_s()) / 3600.0  # backward ZOH, first step 0
+    q_ah = np.cumsum(i * recording.dt_s()) / SECONDS_PER_HOUR  # backward ZOH, first step 0
     soc_ref = soc0 - q_ah / capacity
     # a cell cannot start above full or below empty (DESIGN: SOC in [0, 1])
     soc0_i = np.clip(soc0 + d_soc, 0.0, 1.0)

@@ -14,6 +14,9 @@ import sys
 
 from service import __version__
 from service.extras import missing_extra
+from service.errors import UserError
+
+__all__ = ["SUBCOMMANDS", "UserError", "build_parser", "main"]
 
 #: subcommand name -> module that defines ``add_subparser(subparsers)``
 SUBCOMMANDS: dict[str, str] = {
@@ -28,10 +31,6 @@ SUBCOMMANDS: dict[str, str] = {
     "check": "service.commands.check",
     "schema": "service.commands.schema",
 }
-
-
-class UserError(Exception):
-    """A problem with the user's input: printed as one clear line, exit status 2."""
 
 
 def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: BaseException) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.cli import UserError
+from service.errors import UserError
 from service.validation import InputFileError, RecordingBounds, check_increasing, check_values, read_text
 
 REQUIRED_COLUMNS = ("time_s", "current_a", "voltage_v", "temperature_c")

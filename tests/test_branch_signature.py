@@ -1,14 +1,15 @@
 """The hysteresis signature: the branch offset at the ends of long rests
 (:func:`service.diagnosis.signatures.rest_branch_offset`), on HPPC-like recordings simulated
-with the estimator's own model (:func:`service.diagnosis.validate.simulate_cell`)."""
+with the estimator's own model (:func:`research.validate.simulate_cell`)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from service.diagnosis import validate as va
-from service.diagnosis.signatures import BRANCH_REST_MIN_S, direction_state, rest_branch_offset
+from research import validate as va
+from service.diagnosis.features import direction_state
+from service.diagnosis.signatures import BRANCH_REST_MIN_S, rest_branch_offset
 
 
 def hppc_current(rest_s: float = 1200.0) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The clean twin of a labelled synthetic recording (service.diagnosis.clean_twin).
+"""The clean twin of a labelled synthetic recording (research.clean_twin).
 
 The arithmetic and the label handling run everywhere; the twin itself needs PyBaMM and the
 labelled data (``../shared/data/synthetic``), and is skipped where either is missing.
@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from service.diagnosis.clean_twin import (
+from research.clean_twin import (
     DEFAULT_DATA,
     TwinError,
     excess_removed,
@@ -23,6 +23,8 @@ from service.diagnosis.clean_twin import (
     twin_current,
 )
 from service.recording import load_recording
+
+pytestmark = pytest.mark.research
 
 
 def test_excess_removed_is_the_share_of_the_part_above_the_floor():
@@ -95,7 +97,7 @@ def test_twin_is_the_generators_no_effect_run(stem, label_mv):
 
 
 def test_show_prints_an_earlier_runs_table_with_the_best_cut(tmp_path, capsys):
-    from service.diagnosis.clean_twin import TwinRow
+    from research.clean_twin import TwinRow
 
     row = TwinRow(stem="rec_a", effect="hysteresis", model="SPMe", twin_diff_mv=10.68, label_diff_mv=10.7,
                   twin_faithful=True, twin_verdict="none", twin_state="unexplained", verdict="hysteresis",

@@ -13,15 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cell.model import simulate
-from service.cell.profile import (
-    CellProfile,
-    Extensions,
-    SurfaceDiffusionSpec,
-)
-from service.cli import UserError, main
-from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
-from service.diagnosis.validate import (
+from research.validate import (
     CAP,
     DT,
     TRUE,
@@ -32,10 +24,18 @@ from service.diagnosis.validate import (
     user_profile,
     write_case,
 )
-from service.diagnosis.validate import CASES as VALIDATION_CASES
+from research.validate import CASES as VALIDATION_CASES
+from service.cell.model import simulate
+from service.cell.profile import (
+    CellProfile,
+    Extensions,
+    SurfaceDiffusionSpec,
+)
+from service.cli import UserError, main
+from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
 from service.recording import load_recording
 
-#: effects simulated at the "clear" level of service.diagnosis.validate (own model + one extension)
+#: effects simulated at the "clear" level of research.validate (own model + one extension)
 CASES = [e for e in VALIDATION_CASES if e != "ocv"]
 
 
@@ -64,7 +64,7 @@ def test_diagnose_names_the_simulated_effect(tmp_path, effect):
 
 @pytest.mark.parametrize("effect,level,seed", [("current_bias", "subtle", 1), ("capacity", "subtle", 2)])
 def test_effects_tied_within_noise_go_to_the_measured_or_more_informative_one(tmp_path, effect, level, seed):
-    """Two drives of service.diagnosis.validate where a more flexible candidate (hysteresis,
+    """Two drives of research.validate where a more flexible candidate (hysteresis,
     a diffusion lag longer than the recording) fitted the held-out part better by less than
     the noise; ranking by held-out gain alone named it."""
     rec = load_recording(write_case(tmp_path / "tie.csv", effect, level, seed))
@@ -347,7 +347,7 @@ def test_a_self_heating_cell_is_not_named_temperature(tmp_path):
     The clean twin of the labelled capacity file (PyBaMM, 14 K of self-heating) was named
     temperature at +32 % before this rule."""
     from service.diagnosis.pipeline import SIGNATURE_REQUIRED
-    from service.diagnosis.validate import _arrhenius, simulate_cell
+    from research.validate import _arrhenius, simulate_cell
 
     i = current_profile(11)
     temp = _thermal_trace(np.full(i.size, 25.0), np.abs(i) * 2.0)

@@ -86,7 +86,7 @@ def _two_point(scale: float, tail: str = "rest", sign: float = 1.0, polarisation
     polarisation off by ``polarisation_error`` (a fraction)."""
     from service.cell.model import simulate
     from service.cell.profile import Extensions
-    from service.diagnosis.validate import TRUE, base_profile
+    from research.validate import TRUE, base_profile
 
     stated = base_profile() if ocv is None else base_profile().model_copy(update={"ocv": ocv})
     cap = stated.capacity_ah
@@ -164,7 +164,7 @@ def test_two_point_capacity_needs_an_opening_rest():
     t = np.arange(2000, dtype=float)
     i = np.full(t.size, 5.0)
     v = np.linspace(4.1, 3.4, t.size)
-    from service.diagnosis.validate import base_profile
+    from research.validate import base_profile
 
     table = base_profile().ocv_table()
     sig = two_point_capacity(t, i, v, np.full(t.size, 25.0), v, np.linspace(0.9, 0.3, t.size), table, 2.0, 0,
@@ -224,11 +224,11 @@ def test_a_nominal_or_constant_temperature_recording_is_not_nominated(t_start, t
 # -- kinetics: the curvature of the voltage across current steps ---------------------------------
 @pytest.mark.parametrize(("level", "i0_c"), [("clear", 0.03), ("moderate", 0.06)])
 def test_current_steps_measure_a_slow_exchange_current(level, i0_c):
-    """The estimator's own model with a Butler-Volmer term (service.diagnosis.validate's grid,
+    """The estimator's own model with a Butler-Volmer term (research.validate's grid,
     i0 0.03 / 0.06 C): the step statistic finds i0 within 10 % and nominates kinetics."""
     from service.diagnosis.signatures import step_kinetics
-    from service.diagnosis.validate import CAP as GRID_CAP
-    from service.diagnosis.validate import simulate_case
+    from research.validate import CAP as GRID_CAP
+    from research.validate import simulate_case
 
     for seed in (0, 1):
         c = simulate_case("kinetics", level, seed)
@@ -243,8 +243,8 @@ def test_current_steps_of_a_linear_cell_do_not_nominate_kinetics(effect):
     """Without a Butler-Volmer term the steps are linear in the current (every other effect of
     the grid is linear or slow), whatever else the cell does."""
     from service.diagnosis.signatures import step_kinetics
-    from service.diagnosis.validate import CAP as GRID_CAP
-    from service.diagnosis.validate import simulate_case
+    from research.validate import CAP as GRID_CAP
+    from research.validate import simulate_case
 
     for seed in (0, 1):
         c = simulate_case(effect, "clear", seed)
@@ -255,8 +255,8 @@ def test_current_steps_of_a_linear_cell_do_not_nominate_kinetics(effect):
 
 def test_current_steps_outside_the_usable_part_or_too_few_are_not_read():
     from service.diagnosis.signatures import STEP_MIN_STEPS, step_kinetics
-    from service.diagnosis.validate import CAP as GRID_CAP
-    from service.diagnosis.validate import simulate_case
+    from research.validate import CAP as GRID_CAP
+    from research.validate import simulate_case
 
     c = simulate_case("kinetics", "clear", 0)
     t, i, v, temp = c.T
@@ -273,16 +273,17 @@ def test_current_steps_outside_the_usable_part_or_too_few_are_not_read():
 
 # -- hysteresis on a drive cycle: the direction state in the base residual -------------------------
 def _lowpassed(x: np.ndarray, t: np.ndarray, tau: float) -> np.ndarray:
-    from service.diagnosis.effects import _lowpass
+    from service.diagnosis.features import lowpass
 
-    return _lowpass(x, t, tau)
+    return lowpass(x, t, tau)
 
 
 def test_direction_state_in_the_residual_nominates_hysteresis_beyond_any_linear_polarisation():
     """A residual that holds a 12 mV branch voltage (Eq. 1, rate 100) on top of polarisation the base
     model got wrong (two low-passed currents) and noise: the half-gap is found and nominated; the
     same residual without the branch voltage is not, however large the polarisation error."""
-    from service.diagnosis.signatures import DIRECTION_MIN_Z, direction_offset, direction_state
+    from service.diagnosis.features import direction_state
+    from service.diagnosis.signatures import DIRECTION_MIN_Z, direction_offset
 
     t, i = drive(seed=3, hours=3.0)
     rng = np.random.default_rng(3)

@@ -427,8 +427,9 @@ def test_score_fields() -> None:
     assert short.soc_rmse_after_600s_pct is None and short.v_rmse_mv is None
 
 
+@pytest.mark.research
 def test_summary_puts_another_profiles_scores_beside(tmp_path, capsys):
-    from service.evaluation.summary import main as summary_main
+    from research.summary import main as summary_main
 
     row = {"recording": "r1", "soc_rmse_after_600s_pct": 0.5, "v_rmse_mv": 10.0}
     a = tmp_path / "a.json"

@@ -1,4 +1,4 @@
-"""Leave-one-out choice of a tuning value (service.evaluation.nested_tuning) on real JSON files."""
+"""Leave-one-out choice of a tuning value (research.nested_tuning) on real JSON files."""
 
 from __future__ import annotations
 
@@ -7,7 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from service.evaluation.nested_tuning import GridError, leave_one_out, load_grid, main
+from research.nested_tuning import GridError, leave_one_out, load_grid, main
+
+pytestmark = pytest.mark.research
 
 
 def _results(path: Path, cell: str, scores: dict[str, float], estimator: str = "ecm2rc-ekf",

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.cell.coulomb import coulomb_soc
 from service.cell.hysteresis import hysteresis_decay, hysteresis_step
 from service.cell.model import MtsFom, simulate, soc_step
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
@@ -22,7 +23,6 @@ from service.cell.profile import (
     load_profile,
     save_profile,
 )
-from service.evaluation.truth import coulomb_soc
 
 # make_monotone adds 1e-6 V per grid step so rows are strictly increasing
 MONOTONE_NUDGE_V = 1e-6 * GRID_POINTS

@@ -3,7 +3,7 @@ used by ``socd evaluate`` and by the service).
 
 The solid-diffusion surface lag and the temperature extension's entropic OCV slope are
 the two terms the pipeline reads beyond the base model; each cell here is simulated by
-the model itself (:func:`service.diagnosis.validate.simulate_cell`), so the truth is
+the model itself (:func:`research.validate.simulate_cell`), so the truth is
 exact, and scored with the term and with it dropped.  The last test runs the whole loop
 (diagnose → saved profile → ``socd evaluate`` on a recording diagnose never saw).
 """
@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from research.roundtrip import run_effect, score_drive
+from research.validate import base_profile, simulate_cell
 from service.cell.model import MtsFom, drive
 from service.cell.profile import ArrheniusSpec, CellProfile, Extensions, SurfaceDiffusionSpec
-from service.diagnosis.roundtrip import run_effect, score_drive
-from service.diagnosis.validate import base_profile, simulate_cell
 from service.estimators.pipeline import PackEstimator, foukf
 from service.estimators.settings import EstimatorSettings
 from service.recording import Recording
@@ -101,6 +101,7 @@ def test_surface_deficit_follows_the_model_warm_and_survives_a_checkpoint():
 
 
 @pytest.mark.slow
+@pytest.mark.research
 def test_diagnosed_diffusion_profile_improves_socd_evaluate_on_an_unseen_recording(tmp_path):
     row = run_effect("diffusion", "clear", tmp_path)
     assert row.verdict == "diffusion"

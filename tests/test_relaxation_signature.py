@@ -1,6 +1,6 @@
 """The diffusion signature: relaxation still running at the ends of long rests, over the ohmic
 step (:func:`service.diagnosis.signatures.rest_relaxation`), on HPPC-like recordings simulated
-with the estimator's own model (:func:`service.diagnosis.validate.simulate_cell`; the drive is
+with the estimator's own model (:func:`research.validate.simulate_cell`; the drive is
 the one of ``tests/test_branch_signature.py``)."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from research import validate as va
 from service.cli import main
-from service.diagnosis import validate as va
 from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_REST_MIN_S, rest_relaxation
 from tests.test_branch_signature import hppc_current
 

@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 from conftest import make_nmc_profile, write_recording_csv
 
+from research.rest_check import main, read_rests
 from service.cell.model import simulate
 from service.cell.profile import save_profile
-from service.evaluation.rest_check import main, read_rests
-from service.evaluation.truth import truth_and_start
+from service.cell.truth import truth_and_start
 from service.recording import load_recording
+
+pytestmark = pytest.mark.research
 
 
 def _two_rests(tmp_path: Path, soc0: float = 1.0) -> Path:

@@ -1,10 +1,14 @@
-"""README tables from ``socd evaluate --json`` files (``python -m service.evaluation.summary``)."""
+"""README tables from ``socd evaluate --json`` files (``python -m research.summary``)."""
 
 from __future__ import annotations
 
 import json
 
-from service.evaluation.summary import main, table
+import pytest
+
+from research.summary import main, table
+
+pytestmark = pytest.mark.research
 
 
 def _write(path, cell, rows):

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.diagnosis.validate_pybamm import Row, drive, table
+from research.validate_pybamm import Row, drive, table
+
+pytestmark = pytest.mark.research
 
 
 @pytest.mark.parametrize("kind", ["dst", "walk"])
@@ -53,7 +55,7 @@ def test_table_counts_right_wrong_and_false_positives():
 
 
 def test_signature_table_counts_each_signature_and_lists_failed_simulations():
-    from service.diagnosis.validate_pybamm import signature_table
+    from research.validate_pybamm import signature_table
 
     def row(effect, hyst, diff, kin=False, n_rests=5):
         return {"stem": f"A_{effect}", "cell": "A", "effect": effect, "nominated": hyst, "n_rests": n_rests,
@@ -78,7 +80,7 @@ def test_run_one_returns_a_failed_row_instead_of_ending_the_run(monkeypatch, tmp
     RuntimeError and a stand-in module for ``SolverError``."""
     import types
 
-    import service.diagnosis.validate_pybamm as vp
+    import research.validate_pybamm as vp
 
     def failing(cell, effect, level, seed, kind):
         raise RuntimeError(f"{cell} {effect}: solver drew 1.000 Ah, the drive 3.000 Ah")

@@ -11,9 +11,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: keys of ``PackSnapshot.params`` (Zeng Fig. 1; C's are CPE coefficients, F·s^(α-1))
-PARAM_KEYS: tuple[str, ...] = ("r_ohm", "r_ct", "c_dl", "m", "r_df", "c_df", "n")
-
 #: status flags the output DBC carries, in bit order (``SOCD_Flag<CamelCase>``)
 STATUS_FLAGS: tuple[str, ...] = (
     "stale_cells",
@@ -61,10 +58,11 @@ class PackSample:
 class PackSnapshot:
     """The estimator's latest answer for the whole pack (SI units, SOC in [0, 1]).
 
-    ``params`` holds arrays ``[n_cells]`` for the keys in :data:`PARAM_KEYS` (missing keys
-    are sent as 0).  ``status_flags`` uses names from :data:`STATUS_FLAGS` without the
-    ``SOCD_Flag`` prefix; ``counters`` may hold ``frames_rejected`` and ``stale_cells``
-    (the latter defaults to ``stale.sum()``).
+    ``params`` holds arrays ``[n_cells]`` for the keys in
+    :data:`service.cell.parameters.PARAMETER_NAMES` (Zeng Fig. 1; C's are CPE coefficients,
+    F·s^(α-1); missing keys are sent as 0).  ``status_flags`` uses names from
+    :data:`STATUS_FLAGS` without the ``SOCD_Flag`` prefix; ``counters`` may hold
+    ``frames_rejected`` and ``stale_cells`` (the latter defaults to ``stale.sum()``).
     """
 
     t_s: float

@@ -53,6 +53,7 @@ from service.cell.profile import (
     kinetic_floor_ohm,
     lift_to_kinetic_floor,
 )
+from service.cell.units import SECONDS_PER_HOUR
 
 #: bounds of the search coordinates (see module docstring)
 BOUNDS: dict[str, tuple[float, float]] = {
@@ -183,7 +184,7 @@ def excited_window(seg: FitSegment, max_points: int, capacity_ah: float) -> FitS
     var = (csq[starts + max_points] - csq[starts]) / max_points - ((csum[starts + max_points] - csum[starts]) / max_points) ** 2
     a = int(starts[int(np.argmax(var))])
     dt = np.diff(seg.time_s, prepend=seg.time_s[0])
-    soc_a = seg.soc0 - float(np.sum(seg.current_a[1:a + 1] * dt[1:a + 1])) / (3600.0 * capacity_ah)
+    soc_a = seg.soc0 - float(np.sum(seg.current_a[1:a + 1] * dt[1:a + 1])) / (SECONDS_PER_HOUR * capacity_ah)
     sl = slice(a, a + max_points)
     # a segment that tracks its hysteresis branch (u_h0_branch != 0) hands it on to a later window
     branch = seg.u_h0_branch
@@ -484,7 +485,7 @@ def fit_parameters(
     guess = np.clip(guess, lo + 1e-9, hi - 1e-9)
 
     # 1. global search on full-rate windows
-    cap = profile.capacity_ah * profile.extensions.capacity_scale
+    cap = profile.effective_capacity_ah
     coarse = [excited_window(s, max(200, int(global_points * len(s) / total)), cap) for s in segments]
     obj_g = _Objective(profile, coarse, memory_length, fit_hysteresis, temp_c, fit_kinetics, max_tau_df_s)
     g_deadline = t_start + 0.6 * max_seconds

@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.cell.units import SECONDS_PER_HOUR
+
 
 def hysteresis_decay(
     current_a: np.ndarray, dt_s: np.ndarray | float, rate: np.ndarray, capacity_ah: np.ndarray
 ) -> np.ndarray:
     """``A_h`` of Zeng Eq. 1 with the step and unit factors restored."""
-    return np.exp(-np.abs(rate * current_a * dt_s) / (3600.0 * capacity_ah))
+    return np.exp(-np.abs(rate * current_a * dt_s) / (SECONDS_PER_HOUR * capacity_ah))
 
 
 def hysteresis_step(

@@ -24,13 +24,14 @@ from service.cell.hysteresis import hysteresis_step
 from service.cell.ocv import OcvTable
 from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN, CellParameters, CellProfile
 from service.cell.soc_dependence import scaled_resistances
+from service.cell.units import SECONDS_PER_HOUR
 
 DEFAULT_MEMORY_LENGTH = 16
 
 
 def soc_step(soc: np.ndarray, current_a: np.ndarray, dt_s, capacity_ah: np.ndarray) -> np.ndarray:
     """Coulomb counting step (Zeng Eq. 4, with h and 3600 s/h; discharge positive)."""
-    return soc - current_a * dt_s / (3600.0 * capacity_ah)
+    return soc - current_a * dt_s / (SECONDS_PER_HOUR * capacity_ah)
 
 
 def surface_deficit_step(x: np.ndarray, current_a: np.ndarray, dt_s, tau_s, gain, capacity_ah) -> np.ndarray:

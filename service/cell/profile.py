@@ -277,6 +277,12 @@ class CellProfile(_Strict):
         return float(min(np.min(g_ohm), 1.0))
 
     # -- derived objects ----------------------------------------------------------------
+    @property
+    def effective_capacity_ah(self) -> float:
+        """The capacity charge is counted with: ``capacity_ah`` times the ``capacity_scale``
+        extension (a capacity fade named by ``socd diagnose``)."""
+        return self.capacity_ah * self.extensions.capacity_scale
+
     def ocv_table(self) -> OcvTable:
         """The model's OCV(SOC, T): the mean of the branches (``hysteresis.table_branch``),
         plus the ``ocv_correction`` extension."""
@@ -348,7 +354,7 @@ class CellProfile(_Strict):
             alpha=alpha,
             u_h_max=self.hysteresis.u_h_max_v * ones,
             hyst_rate=self.hysteresis.rate * ones,
-            capacity_ah=self.capacity_ah * self.extensions.capacity_scale * ones,
+            capacity_ah=self.effective_capacity_ah * ones,
             current_bias_a=self.extensions.current_bias_a * ones,
             kinetics_i0_a=i0,
         )

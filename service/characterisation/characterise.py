@@ -46,6 +46,7 @@ from service.cell.profile import (
     lift_to_kinetic_floor,
 )
 from service.cell.soc_dependence import pulse_resistances, scale_rows
+from service.cell.truth import truth_and_start
 from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
@@ -57,7 +58,6 @@ from service.characterisation.ocv_sources import (
     rest_spans,
 )
 from service.characterisation.relaxation import measure_slow_relaxation
-from service.evaluation.truth import truth_and_start
 from service.recording import Recording
 
 TEMP_GROUP_C = 5.0

@@ -7,8 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.cell.coulomb import coulomb_soc
 from service.cell.ocv import GRID_POINTS, make_monotone
-from service.evaluation.truth import coulomb_soc
+from service.cell.units import SECONDS_PER_HOUR
 from service.recording import Recording
 
 REST_CURRENT_C = 0.01  # |I| below this fraction of 1C counts as rest
@@ -34,7 +35,7 @@ def ocv_from_test(rec: Recording, grid: np.ndarray | None = None) -> tuple[np.nd
         mask = sign * rec.current_a > 0.2 * np.max(np.abs(rec.current_a))
         if mask.sum() < 20:
             continue
-        q = np.cumsum(np.where(mask, sign * rec.current_a * dt, 0.0))[mask] / 3600.0
+        q = np.cumsum(np.where(mask, sign * rec.current_a * dt, 0.0))[mask] / SECONDS_PER_HOUR
         v = rec.voltage_v[mask]
         soc = 1.0 - q / q[-1] if sign > 0 else q / q[-1]
         order = np.argsort(soc)

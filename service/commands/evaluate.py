@@ -5,21 +5,20 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import time
-from dataclasses import fields, replace
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import numpy as np
 
 from service.cell.profile import ProfileError, load_profile
+from service.cell.truth import per_recording
 from service.cli import UserError
 from service.commands.common_args import (add_cell_argument, add_common_arguments, finite_float, full_at,
                                           progress_enabled, setup_logging, text_stream, write_json)
 from service.commands.progress import open_progress
 from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
 from service.estimators.settings import EstimatorSettings
-from service.evaluation.metrics import score
-from service.evaluation.truth import per_recording, truth_and_start, wrong_start
+from service.evaluation.run import EstimatorScore, evaluate_recordings
 from service.recording import load_recording
 
 DEFAULT_ESTIMATORS = list(ESTIMATORS)
@@ -129,53 +128,33 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     full = per_recording(args.full_at, len(args.recordings), "--full-at")
     recordings = [load_recording(p) for p in args.recordings]  # validate all before the long work
-    results = []
-    capacity = profile.capacity_ah * profile.extensions.capacity_scale
+    results: list[EstimatorScore] = []
     total = sum(len(r) for r in recordings) * len(estimators)
     bar = open_progress(progress_enabled(args), "evaluate", total, unit="samples")
-    for rec, fa in zip(recordings, full):
-        part, truth = truth_and_start(rec, capacity, fa)
-        soc0 = wrong_start(float(truth[0]), args.init_soc_error)
-        # the samples up to the start: the start sample's own interval is spent here, and
-        # the scored part's first step has dt = 0 (Recording.dt_s), so nothing is counted twice
-        history = rec.slice(0, len(rec) - len(part) + 1) if args.warm_start and len(part) < len(rec) else None
-        if args.current_bias_c:
-            bias_a = args.current_bias_c * capacity
-            part_seen = replace(part, current_a=part.current_a + bias_a)
-            history = None if history is None else replace(history, current_a=history.current_a + bias_a)
-        else:
-            part_seen = part
-        traces = {}
-        for est in estimators:
-            bar.update(description=f"{rec.name[:28]}: {est.name}")
-            t0 = time.perf_counter()
-            trace = est.run(part_seen, profile, soc0, history=history)
-            us = 1e6 * (time.perf_counter() - t0) / len(part)
-            traces[est.name] = trace
-            bar.advance(len(rec))
-            s = score(part.time_s, trace.soc, truth, trace.v_pred, part.voltage_v)
-            results.append({
-                "recording": rec.name,
-                "estimator": est.name,
-                "soc_rmse_pct": s.soc_rmse_pct,
-                "soc_mae_pct": s.soc_mae_pct,
-                "soc_max_pct": s.soc_max_pct,
-                "soc_rmse_after_600s_pct": s.soc_rmse_after_600s_pct,
-                "convergence_s": s.convergence_s,
-                "v_rmse_mv": s.v_rmse_mv,
-                "us_per_step": us,
-            })
+    pending = [0]
+
+    def progress(recording: str, estimator: str, samples: int) -> None:
+        bar.advance(pending[0])  # the run before this one has finished
+        pending[0] = samples
+        bar.update(description=f"{recording[:28]}: {estimator}")
+
+    runs = evaluate_recordings(recordings, profile, estimators, full_at=full, init_soc_error=args.init_soc_error,
+                               warm_start=args.warm_start, current_bias_c=args.current_bias_c, progress=progress)
+    for ev in runs:
+        results += ev.scores
+        name, part = ev.recording.name, ev.part
         if args.traces:
-            write_traces(Path(args.traces) / f"{rec.name}_traces.csv", part.time_s, truth, part.voltage_v, traces)
+            write_traces(Path(args.traces) / f"{name}_traces.csv", part.time_s, ev.truth, part.voltage_v, ev.traces)
         if args.plots:
             from service.evaluation.plots import plot_recording
 
-            plot_recording(Path(args.plots), rec.name, part.time_s, truth, part.voltage_v, traces)
+            plot_recording(Path(args.plots), name, part.time_s, ev.truth, part.voltage_v, ev.traces)
+    bar.advance(pending[0])
     bar.close()
     print_table(results, text_stream(args))
-    write_json(args.json, {"results": results, "cell": str(args.cell), "init_soc_error": args.init_soc_error,
-                           "warm_start": bool(args.warm_start), "current_bias_c": args.current_bias_c,
-                           "settings": args.settings})
+    write_json(args.json, {"results": [asdict(r) for r in results], "cell": str(args.cell),
+                           "init_soc_error": args.init_soc_error, "warm_start": bool(args.warm_start),
+                           "current_bias_c": args.current_bias_c, "settings": args.settings})
     return 0
 
 
@@ -202,12 +181,12 @@ def _fmt(v: float | None, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
 
-def print_table(results: list[dict], out=None) -> None:
+def print_table(results: list[EstimatorScore], out=None) -> None:
     out = out or sys.stdout
     head = f"{'recording':34s} {'estimator':17s} {'RMSE%':>6s} {'MAE%':>6s} {'max%':>6s} {'RMSE>600s%':>10s} {'conv s':>7s} {'V mV':>6s} {'us/step':>8s}"
     print(head, file=out)
     print("-" * len(head), file=out)
     for r in results:
-        print(f"{r['recording'][:34]:34s} {r['estimator']:17s} {r['soc_rmse_pct']:6.2f} {r['soc_mae_pct']:6.2f} "
-              f"{r['soc_max_pct']:6.2f} {_fmt(r['soc_rmse_after_600s_pct'], '10.2f')} {_fmt(r['convergence_s'], '7.0f')} "
-              f"{_fmt(r['v_rmse_mv'], '6.1f')} {r['us_per_step']:8.1f}", file=out)
+        print(f"{r.recording[:34]:34s} {r.estimator:17s} {r.soc_rmse_pct:6.2f} {r.soc_mae_pct:6.2f} "
+              f"{r.soc_max_pct:6.2f} {_fmt(r.soc_rmse_after_600s_pct, '10.2f')} {_fmt(r.convergence_s, '7.0f')} "
+              f"{_fmt(r.v_rmse_mv, '6.1f')} {r.us_per_step:8.1f}", file=out)

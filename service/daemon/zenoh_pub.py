@@ -40,12 +40,12 @@ from typing import Any
 
 import numpy as np
 
+from service.cell.parameters import PARAMETER_NAMES
 from service.daemon.health import HealthMonitor
 from service.daemon.payloads import CellParams, CellSoc, Health, Keys, Snapshot, Summary, keys
 
 log = logging.getLogger(__name__)
 
-PARAM_FIELDS = ("r_ohm", "r_ct", "c_dl", "m", "r_df", "c_df", "n")
 #: how often the publisher checks that a configured ``connect`` peer is actually connected
 PEER_CHECK_S = 1.0
 
@@ -150,7 +150,7 @@ def build_payloads(pack: str, r: PublishRound) -> RoundPayloads:
         ))
         params.append(CellParams(
             pack=pack, t_s=r.t_s, cell=i,
-            **{k: (_num(r.params[k][i], 1.0, 9) if k in r.params else None) for k in PARAM_FIELDS},
+            **{k: (_num(r.params[k][i], 1.0, 9) if k in r.params else None) for k in PARAMETER_NAMES},
         ))
     soc = np.asarray(r.soc, float)
     good = np.isfinite(soc) & r.initialised

@@ -29,6 +29,8 @@ from service.cell.profile import (
     kinetic_floor_ohm,
     lift_to_kinetic_floor,
 )
+from service.cell.units import SECONDS_PER_HOUR
+from service.diagnosis.features import direction_state, lowpass
 from service.diagnosis.simulation import Mods
 
 
@@ -60,18 +62,6 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
     b = b - b.mean()
     den = math.sqrt(float(a @ a) * float(b @ b))
     return 0.0 if den == 0 else float(a @ b) / den
-
-
-def _lowpass(x: np.ndarray, t: np.ndarray, tau_s: float) -> np.ndarray:
-    """First-order low-pass of ``x`` with time constant ``tau_s`` on a non-uniform grid."""
-    y = np.empty_like(x)
-    acc = 0.0
-    dt = np.diff(t, prepend=t[0])
-    a = np.exp(-dt / tau_s)
-    for k in range(x.size):
-        acc = a[k] * acc + (1.0 - a[k]) * x[k]
-        y[k] = acc
-    return y
 
 
 @dataclass(frozen=True)
@@ -130,8 +120,6 @@ def _hyst_profile(ph, profile, ctx):
 
 
 def _hyst_feature(ctx):
-    from service.diagnosis.signatures import direction_state
-
     return "hysteresis state (Eq. 1, U_H = 1)", direction_state(ctx.time_s, ctx.current_a, ctx.capacity_ah, 30.0)
 
 
@@ -215,7 +203,7 @@ def _diff_feature(ctx):
     tau = max(3 * ctx.base_tau_df_s, 300.0)
     crate = ctx.current_a / max(ctx.capacity_ah, 1e-6)
     return (f"-dOCV/dSOC x C-rate low-passed at {tau:.0f} s, V",
-            -ctx.ocv_slope * _lowpass(crate, ctx.time_s, tau))
+            -ctx.ocv_slope * lowpass(crate, ctx.time_s, tau))
 
 
 def _diff_base_variants(x, ctx):
@@ -281,7 +269,7 @@ def _cap_phys(th, ctx):
 
 def _cap_feature(ctx):
     dt = np.diff(ctx.time_s, prepend=ctx.time_s[0])
-    ah = np.cumsum(ctx.current_a * dt) / 3600.0
+    ah = np.cumsum(ctx.current_a * dt) / SECONDS_PER_HOUR
     return "dOCV/dSOC x discharged Ah, V Ah", ctx.ocv_slope * ah
 
 
@@ -318,7 +306,7 @@ def _bias_phys(th, ctx):
 
 
 def _bias_feature(ctx):
-    return "dOCV/dSOC x elapsed hours, V h", ctx.ocv_slope * (ctx.time_s - ctx.time_s[0]) / 3600.0
+    return "dOCV/dSOC x elapsed hours, V h", ctx.ocv_slope * (ctx.time_s - ctx.time_s[0]) / SECONDS_PER_HOUR
 
 
 CURRENT_BIAS = Effect(

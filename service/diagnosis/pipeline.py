@@ -496,7 +496,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
     unknown = [e for e in opt.effects if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
-    cap = profile.capacity_ah * profile.extensions.capacity_scale
+    cap = profile.effective_capacity_ah
     # the OCV table of the recording's profile; the base and every candidate share it (they
     # change parameters or extensions that it does not read)
     ocv = profile.ocv_table()

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.cell.units import SECONDS_PER_HOUR
 from service.diagnosis.effects import EFFECTS, Context
 
 
@@ -92,7 +93,7 @@ def _plots(dg, out: Path) -> list[str]:
     import matplotlib.pyplot as plt
 
     rec = dg.recording
-    t_h = (rec.time_s - rec.time_s[0]) / 3600.0
+    t_h = (rec.time_s - rec.time_s[0]) / SECONDS_PER_HOUR
     r_base = (rec.voltage_v - dg.v_base) * 1000
     top = dg.effects[0] if dg.effects else None
     shown = next((e for e in dg.effects if e.name == dg.verdict), top)
@@ -106,10 +107,10 @@ def _plots(dg, out: Path) -> list[str]:
                 label=f"with {shown.name}")
     for w in dg.located_full["windows"]:
         if w["flagged"]:
-            ax.axvspan((w["t_start_s"] - rec.time_s[0]) / 3600, (w["t_end_s"] - rec.time_s[0]) / 3600,
+            ax.axvspan((w["t_start_s"] - rec.time_s[0]) / SECONDS_PER_HOUR, (w["t_end_s"] - rec.time_s[0]) / SECONDS_PER_HOUR,
                        color="orange", alpha=0.25, lw=0)
-    ax.axvline((dg.protocol["t_split_s"] - rec.time_s[0]) / 3600, color="k", ls="--", lw=1)
-    ax.text((dg.protocol["t_split_s"] - rec.time_s[0]) / 3600, ax.get_ylim()[1], " held out ->", va="top")
+    ax.axvline((dg.protocol["t_split_s"] - rec.time_s[0]) / SECONDS_PER_HOUR, color="k", ls="--", lw=1)
+    ax.text((dg.protocol["t_split_s"] - rec.time_s[0]) / SECONDS_PER_HOUR, ax.get_ylim()[1], " held out ->", va="top")
     ax.set_xlabel("time, h")
     ax.set_ylabel("measured - simulated, mV")
     ax.set_title("Residual over time (shaded: windows where it concentrates)")

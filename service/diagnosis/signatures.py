@@ -110,8 +110,10 @@ from scipy.ndimage import uniform_filter1d
 from scipy.optimize import least_squares
 
 from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN
+from service.cell.units import SECONDS_PER_HOUR
 from service.characterisation.relaxation import rc_voltage
-from service.diagnosis.effects import KINETICS_MAX_I0_C, _lowpass
+from service.diagnosis.effects import KINETICS_MAX_I0_C
+from service.diagnosis.features import direction_state, lowpass
 
 #: RMS misfit of the constant-ambient thermal model above which the ambient is taken to move
 AMBIENT_DRIFT_K = 0.5
@@ -303,7 +305,7 @@ def _rest_samples(current_a: np.ndarray, runs: list[tuple[int, int]]) -> list[np
 def rest_current_offset(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> dict:
     """Current-sensor offset measured in rests (true current 0): mean, SE, z, drift."""
     runs = rest_runs(time_s, current_a, capacity_ah)
-    duration_h = float(time_s[-1] - time_s[0]) / 3600.0
+    duration_h = float(time_s[-1] - time_s[0]) / SECONDS_PER_HOUR
     out = {"nominated": False, "direct": True, "statistic": 0.0, "offset_a": 0.0, "se_a": None, "n_rest_samples": 0,
            "n_rests": len(runs), "drift_soc": 0.0, "what": "z-score of the mean measured current in rests "
            "(true current 0), autocorrelation-corrected", "threshold": BIAS_MIN_Z,
@@ -399,7 +401,7 @@ def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     s1 = _soc_interval(table, float(voltage_v[i_end]), eta_end, float(temperature_c[i_end]), ohmic)
     # charge drawn in "SOC of the stated capacity", as the model counts it
     drawn = float(soc_model[i_start] - soc_model[i_end])
-    hours = float(time_s[i_end] - time_s[i_start]) / 3600.0
+    hours = float(time_s[i_end] - time_s[i_start]) / SECONDS_PER_HOUR
     drawn_lo = drawn_hi = drawn
     if bias and bias.get("se_a"):
         b = float(bias["offset_a"]) if bias.get("nominated") else 0.0
@@ -425,22 +427,6 @@ def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     out.update(statistic=round(ratio, 4), capacity_scale=ratio, capacity_scale_range=[round(lo, 4), round(hi, 4)],
                nominated=bool(span >= CAPACITY_MIN_SPAN and (hi <= 1.0 - CAPACITY_MIN_ERROR
                                                             or lo >= 1.0 + CAPACITY_MIN_ERROR)))
-    return out
-
-
-def direction_state(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float, rate: float) -> np.ndarray:
-    """The Eq.-1 hysteresis state with ``U_H = 1`` (+1 after charge, −1 after discharge) from 0,
-    the branch of a cell whose history is unknown (:func:`service.cell.hysteresis.hysteresis_step`)."""
-    from service.cell.hysteresis import hysteresis_decay
-
-    dt = np.diff(time_s, prepend=time_s[0])
-    decay = hysteresis_decay(current_a, dt, rate, capacity_ah)
-    target = -np.sign(current_a)
-    out = np.empty(time_s.size)
-    h = 0.0
-    for k in range(time_s.size):
-        h = decay[k] * h + (1.0 - decay[k]) * target[k]
-        out[k] = h
     return out
 
 
@@ -529,7 +515,7 @@ def rest_branch_offset(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     out["rest_tails"] = tails
     idx, v = np.array(ends), np.array(v_end)
     drawn = np.concatenate([[0.0], np.cumsum(0.5 * (current_a[1:] + current_a[:-1]) * np.diff(time_s))])
-    q = drawn[idx] / (3600.0 * capacity_ah)
+    q = drawn[idx] / (SECONDS_PER_HOUR * capacity_ah)
     best = None
     for rate in BRANCH_RATES:
         h = direction_state(time_s, current_a, capacity_ah, rate)[idx]
@@ -672,7 +658,7 @@ def direction_offset(time_s: np.ndarray, current_a: np.ndarray, residual_v: np.n
         return (x - uniform_filter1d(x, width, mode="nearest"))[mask]
 
     crate = current_a / capacity_ah
-    linear = [highpass(c) for c in [crate] + [_lowpass(crate, time_s, tau) for tau in DIRECTION_LOWPASS_S]]
+    linear = [highpass(c) for c in [crate] + [lowpass(crate, time_s, tau) for tau in DIRECTION_LOWPASS_S]]
     y = highpass(residual_v)
     best = None
     for rate in BRANCH_RATES:

@@ -11,9 +11,9 @@ error in ``soc0`` or in the current sensor stays in the estimate for good.
 
 from __future__ import annotations
 
+from service.cell.coulomb import coulomb_soc
 from service.cell.profile import CellProfile
 from service.estimators.base import EstimateTrace
-from service.evaluation.truth import coulomb_soc
 from service.recording import Recording
 
 
@@ -25,6 +25,6 @@ class CoulombCounter:
     def run(self, recording: Recording, profile: CellProfile, soc0: float,
             history: Recording | None = None) -> EstimateTrace:
         """``history`` is ignored: coulomb counting has no state but SOC."""
-        capacity = profile.capacity_ah * profile.extensions.capacity_scale
+        capacity = profile.effective_capacity_ah
         soc = coulomb_soc(recording.time_s, recording.current_a, capacity, soc0)
         return EstimateTrace(soc=soc, v_pred=None, soc_std=None, params={})

@@ -52,6 +52,7 @@ import numpy as np
 from service.cell.model import kinetic_overpotential
 from service.cell.ocv import OcvTable
 from service.cell.profile import CellProfile
+from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.adaptive_noise import AdaptiveNoise
 from service.estimators.base import EstimateTrace
 from service.recording import Recording
@@ -214,7 +215,7 @@ class Ecm2RcEkfBank:
         par = self._params
 
         # -- predict ---------------------------------------------------------------------
-        g_soc = -dt / (3600.0 * par["capacity"])
+        g_soc = -dt / (SECONDS_PER_HOUR * par["capacity"])
         x = self.x
         x[:, 0] += g_soc * i
         x[:, 1:] = a * x[:, 1:] + b * i[:, None]

@@ -33,6 +33,7 @@ from service.cell.hysteresis import hysteresis_decay
 from service.cell.model import kinetic_overpotential
 from service.cell.ocv import CellOcv, OcvTable
 from service.cell.profile import CellParameters
+from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.adaptive_noise import AdaptiveNoise
 from service.estimators.settings import EstimatorSettings
 from service.estimators.sigma_points import merwe_weights, robust_cholesky, sigma_points
@@ -118,7 +119,7 @@ class FoMiUkf:
         drive = g / den * i[:, None] - memory
         a_h = hysteresis_decay(i, dt_s, params.hyst_rate, params.capacity_ah)
         h_target = (1.0 - a_h) * (-np.sign(i)) * params.u_h_max
-        d_soc = -i * dt_s / (3600.0 * params.capacity_ah)
+        d_soc = -i * dt_s / (SECONDS_PER_HOUR * params.capacity_ah)
 
         # Zeng Eq. 5 is linear in the state for a known current, so the unscented
         # transform of Table 3 steps 3-5 is exact and equals F P Fᵀ with a diagonal F
@@ -136,7 +137,7 @@ class FoMiUkf:
             P_pred = self.P * (f[:, :, None] * f[:, None, :])
         else:
             # F = diag(f) + c e_soc e_bᵀ, c = dt / 3600 Q: SOC integrates I - b
-            c = dt_s / (3600.0 * params.capacity_ah)
+            c = dt_s / (SECONDS_PER_HOUR * params.capacity_ah)
             x_pred[:, self.i_bias] = self.x[:, self.i_bias]
             x_pred[:, self.i_soc] += c * self.x[:, self.i_bias]
             fp = f[:, :, None] * self.P
@@ -146,7 +147,7 @@ class FoMiUkf:
         # process noise: SOC from the current sensor, small for the branches and U_h
         q = np.zeros((self.n, self.nx))
         q[:, :b] = (self.settings.branch_noise_v_per_sqrt_s * np.sqrt(max(dt_s, 1e-3))) ** 2
-        q[:, self.i_soc] = (self.settings.current_noise_a * dt_s / (3600.0 * params.capacity_ah)) ** 2
+        q[:, self.i_soc] = (self.settings.current_noise_a * dt_s / (SECONDS_PER_HOUR * params.capacity_ah)) ** 2
         q[:, self.i_uh] = (1e-4 * (1.0 - a_h) + 1e-6) ** 2 + ((1.0 - a_h) * params.u_h_max) ** 2 * 0.01
         # fractional memory covariance (Table 3 step 5): Σ_{j≥2} (w_j/d)^2 P_{k-j}
         q[:, :b] += (mem_w * mem_w * self.var_hist[..., 1:]).sum(axis=-1)

@@ -85,6 +85,7 @@ from scipy import signal
 
 from service.cell.ocv import OcvTable
 from service.cell.profile import CellProfile
+from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.base import EstimateTrace
 from service.estimators.ecm2rc_ekf import ecm_parameters
 from service.estimators.rls import Rls
@@ -251,7 +252,7 @@ class HuWangIdentifier:
         self.lp_v = StreamingFilter.butter(s.lp_order, s.lp_cutoff_hz, "lowpass", fs)
         self.grid = GridResampler(s.base_period_s)
         self.ts_slow = s.base_period_s * s.downsample
-        self.capacity = profile.capacity_ah * profile.extensions.capacity_scale
+        self.capacity = profile.effective_capacity_ah
         self._started = False
         self._grid_count = 0
         self._fast_prev: tuple[np.ndarray, np.ndarray] | None = None  # (v_hp, i_hp) at k-1
@@ -289,7 +290,7 @@ class HuWangIdentifier:
         lam = _pole(tau_s, tss)
         c = -(r0 + r1)
         slope = self.ocv.slope(self.ocv.soc_from_ocv(v0, temp_c), temp_c)
-        a_int = -slope * tss / (3600.0 * self.capacity)
+        a_int = -slope * tss / (SECONDS_PER_HOUR * self.capacity)
         b_rc = -r2 * (1 - lam)
         b0 = c + a_int + b_rc
         b1 = -c * (1 + lam) - a_int * lam - b_rc
@@ -350,7 +351,7 @@ class HuWangIdentifier:
             "c": c_clipped,
             "a_int": a_int,
             "r2": r2,
-            "docv_dsoc": -a_int * 3600.0 * self.capacity / tss,
+            "docv_dsoc": -a_int * SECONDS_PER_HOUR * self.capacity / tss,
             "gain_mismatch": fast["dc_gain"] - c,
         }
 
@@ -409,13 +410,13 @@ class HuWangIdentifier:
         self.soc_ocv = self.ocv.soc_from_ocv(self.ocv_est, temp_c)
         if s.lag_compensation:
             self._q_unfiltered += (i - i_lp) * ts
-            self.soc_ocv = self.soc_ocv - self._q_unfiltered / (3600.0 * self.capacity)
+            self.soc_ocv = self.soc_ocv - self._q_unfiltered / (SECONDS_PER_HOUR * self.capacity)
         if s.fuse_tau_s is None:
             self.soc = self.soc_ocv
         else:
             # compare like with like: the OCV-based SOC lags by the low-pass filter unless
             # lag-compensated, so it is compared with the equally filtered coulomb count
-            self._soc_cc = self._soc_cc - i * ts / (3600.0 * self.capacity)
+            self._soc_cc = self._soc_cc - i * ts / (SECONDS_PER_HOUR * self.capacity)
             cc_lp = self.lp_cc.step(self._soc_cc)
             ref = self._soc_cc if s.lag_compensation else cc_lp
             k = min(ts / s.fuse_tau_s, 1.0)

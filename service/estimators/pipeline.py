@@ -22,8 +22,10 @@ import numpy as np
 from service.cell.fractional import gl_weights
 from service.cell.model import MtsFom, drive, entropic_shift_v, surface_deficit_step
 from service.cell.ocv import CellOcv
+from service.cell.parameters import PARAMETER_NAMES
 from service.cell.profile import CellParameters, CellProfile
 from service.cell.soc_dependence import scaled_resistances
+from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.base import EstimateTrace
 from service.estimators.fomiukf import FoMiUkf
 from service.estimators.parameter_ekf import PARAMETERS, ParameterEkf, apply_corrections
@@ -33,8 +35,6 @@ from service.recording import Recording
 
 Identification = Literal["multi", "single", "none"]
 FAST_NAMES = ["r_ohm", "r_ct", "c_dl", "m", "u_df"]
-SINGLE_NAMES = ["r_ohm", "r_ct", "c_dl", "m", "r_df", "c_df", "n"]
-PARAM_NAMES = ("r_ohm", "r_ct", "c_dl", "m", "r_df", "c_df", "n")
 TEMP_REFRESH_C = 0.5
 STATE_VERSION = 1
 
@@ -76,7 +76,7 @@ class PackEstimator:
         if identification == "multi" and s.fast_identifier:
             self.fast = ParameterEkf(FAST_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v)
         elif identification == "single" and s.fast_identifier:
-            self.fast = ParameterEkf(SINGLE_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v)
+            self.fast = ParameterEkf(list(PARAMETER_NAMES), self.n, nx, s.param_process_rel, s.voltage_noise_v)
         if self.fast is not None:
             self.fast.measurement = s.fast_identifier_input
         if identification == "multi" and s.slow_identifier:
@@ -178,7 +178,7 @@ class PackEstimator:
         cells = np.ones(self.n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
         soc_arr = np.broadcast_to(np.asarray(soc, float), (self.n,))
         std = self.settings.soc_init_std if soc_std is None else soc_std
-        capacity = self.profile.capacity_ah * self.profile.extensions.capacity_scale
+        capacity = self.profile.effective_capacity_ah
         bias_std = self.settings.current_bias_init_std_c * capacity
         self.ukf.reset(cells, soc_arr[cells], std, float(self.profile.hysteresis.u_h_max_v), bias_std)
         self.surface_deficit[cells] = 0.0
@@ -215,7 +215,7 @@ class PackEstimator:
             return
         params = self.profile.parameters_at(np.full(self.n, history.temperature_c[0]))
         # SOC matters only to resistance scales over SOC: count back from the start SOC
-        charge_ah = float(np.sum(history.current_a * history.dt_s())) / 3600.0
+        charge_ah = float(np.sum(history.current_a * history.dt_s())) / SECONDS_PER_HOUR
         model = MtsFom(self.profile, params, self.ukf.soc + charge_ah / params.capacity_ah, self.settings.memory_length)
         drive(model, history.time_s, history.current_a, history.temperature_c)
         b = self.n_branches
@@ -408,7 +408,7 @@ class PipelineEstimator:
         soc = np.empty(T)
         std = np.empty(T)
         vp = np.empty(T)
-        params = {k: np.empty(T) for k in PARAM_NAMES}
+        params = {k: np.empty(T) for k in PARAMETER_NAMES}
         bias = np.empty(T) if self.settings.current_bias_state else None
         dt = recording.dt_s()
         one = np.ones(1, dtype=bool)

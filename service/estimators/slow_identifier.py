@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.cell.fractional import cpe_step, gl_weights, push_history
+from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.parameter_ekf import ORDER_LIMITS, RELATIVE_LIMITS
 
 NAMES = ("r_df", "c_df", "n")
@@ -81,7 +82,7 @@ class SlowIdentifier:
             self.meas[:keep] = self.meas[first:self.length]
             self.start -= first
             self.length = keep
-        self.moved += np.abs(current_a) * dt_s / (3600.0 * capacity_ah)
+        self.moved += np.abs(current_a) * dt_s / (SECONDS_PER_HOUR * capacity_ah)
         k = self.length
         self.dt[k] = dt_s
         self.i[k] = current_a

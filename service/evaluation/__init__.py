@@ -1,1 +1,2 @@
-"""Offline evaluation: truth SOC, metrics and the scoring protocol of DESIGN §7."""
+"""Offline evaluation (DESIGN §7): the scoring loop of ``socd evaluate`` (:mod:`.run`), its
+metrics and plots.  The truth SOC it scores against is :mod:`service.cell.truth`."""

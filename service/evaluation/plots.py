@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.base import EstimateTrace
 
 
@@ -17,7 +18,7 @@ def plot_recording(path: Path, name: str, time_s: np.ndarray, truth: np.ndarray,
     import matplotlib.pyplot as plt
 
     path.mkdir(parents=True, exist_ok=True)
-    t_h = (time_s - time_s[0]) / 3600.0
+    t_h = (time_s - time_s[0]) / SECONDS_PER_HOUR
     out: list[Path] = []
     fig, axes = plt.subplots(3, 1, figsize=(11, 10), sharex=True)
     axes[0].plot(t_h, 100 * truth, "k", lw=2, label="truth")

@@ -5,13 +5,13 @@ contain other cells".  This module simulates other PyBaMM parameter sets (SPMe w
 lumped thermal model, so the cell heats under load) along random drives with one effect
 each, writes them in the recording format with the fresh cell's OCV table and capacity,
 runs the diagnosis exactly as ``socd diagnose --ocv ... --capacity-ah ...`` would, and
-tabulates the verdicts.  Unlike :mod:`service.diagnosis.validate` (recordings from the
+tabulates the verdicts.  Unlike :mod:`research.validate` (recordings from the
 estimator's own model) these carry the model-form mismatch of a real cell.
 
-Needs PyBaMM (``pip install -e .[validation]`` or ``pip install pybamm``; not a dependency of
+Needs PyBaMM (``pip install -e .[research]`` or ``pip install pybamm``; not a dependency of
 the service, not run in CI).
 
-    python -m service.diagnosis.validate_pybamm [--cells Chen2020,Mohtat2020,...] [--seeds N]
+    python -m research.validate_pybamm [--cells Chen2020,Mohtat2020,...] [--seeds N]
         [--level moderate[,clear,...]] [--jobs 2] [--workdir out/validate_pybamm] [--json OUT]
 
 The effects (how each recording departs from its parameter set):
@@ -52,7 +52,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.diagnosis.validate import Row as GridRow
+from research.validate import Row as GridRow
+from service.cell.units import SECONDS_PER_HOUR
 
 CELLS = ("Chen2020", "Mohtat2020", "Marquis2019", "Ai2020")
 EFFECTS = ("none", "hysteresis", "temperature", "capacity", "diffusion", "kinetics", "current_bias")
@@ -85,7 +86,7 @@ def ocv_table(cell: str) -> tuple[np.ndarray, np.ndarray, float]:
         pv = pybamm.ParameterValues(cell)
         pv["Current function [A]"] = sign * pv["Nominal cell capacity [A.h]"] / 50.0
         sim = pybamm.Simulation(pybamm.lithium_ion.SPM(), parameter_values=pv)
-        sol = sim.solve(np.linspace(0.0, 72 * 3600.0, 3000), initial_soc=soc0)
+        sol = sim.solve(np.linspace(0.0, 72 * SECONDS_PER_HOUR, 3000), initial_soc=soc0)
         branches[sign] = (sol["Discharge capacity [A.h]"].entries, sol["Voltage [V]"].entries)
     (q_d, v_d), (q_c, v_c) = branches[1.0], branches[-1.0]
     cap_d, cap_c = float(q_d[-1]), float(-q_c[-1])
@@ -95,7 +96,7 @@ def ocv_table(cell: str) -> tuple[np.ndarray, np.ndarray, float]:
     return soc, 0.5 * (v_dis + v_chg), 0.5 * (cap_d + cap_c)
 
 
-def drive(kind: str, seed: int, capacity_ah: float, max_s: int = 4 * 3600) -> np.ndarray:
+def drive(kind: str, seed: int, capacity_ah: float, max_s: int = int(4 * SECONDS_PER_HOUR)) -> np.ndarray:
     """1 Hz current (A, + = discharge): a 60 s rest, the profile until 75 % of the capacity is
     drawn, a 600 s rest.  ``kind`` "dst": a DST-like 20-step table; "walk": a random walk of
     constant-current segments with frequent rests; "smooth": a smooth random current like the
@@ -106,11 +107,11 @@ def drive(kind: str, seed: int, capacity_ah: float, max_s: int = 4 * 3600) -> np
     rng = np.random.default_rng(seed)
     i: list[float] = [0.0] * 60
     drawn = 0.0
-    target = 0.75 * capacity_ah * 3600.0
+    target = 0.75 * capacity_ah * SECONDS_PER_HOUR
     if kind == "hppc":
         pulse = 1.5 + rng.random()
         while drawn < target:
-            n = int(0.1 * 3600)
+            n = int(0.1 * SECONDS_PER_HOUR)
             i += [capacity_ah] * n + [0.0] * int(rng.integers(720, 1200))
             i += [pulse * capacity_ah] * 10 + [0.0] * 40 + [-0.75 * pulse * capacity_ah] * 10 + [0.0] * 40
             drawn += capacity_ah * n + 0.25 * pulse * capacity_ah * 10
@@ -131,7 +132,7 @@ def drive(kind: str, seed: int, capacity_ah: float, max_s: int = 4 * 3600) -> np
                 i += [0.0] * int(rng.integers(240, 480))
             x += (0.35 - x) / tau + sd * math.sqrt(2.0 / tau) * rng.normal()
             c = float(np.clip(x, -1.6, 2.7))
-            near_full = near_full and drawn < 0.1 * capacity_ah * 3600.0
+            near_full = near_full and drawn < 0.1 * capacity_ah * SECONDS_PER_HOUR
             if near_full:
                 c = abs(c)  # no regen near full (folded, not clipped: a clip at 0 would make rests)
             i.append(c * capacity_ah)
@@ -209,7 +210,7 @@ def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -
         info["half_gap_v"] = half = (0.006, 0.011, 0.018)[k]
         h, state = HYSTERESIS_START, np.empty(n)
         for j in range(n):  # Zeng Eq. 1 with U_H = 1, rate 120 per unit SOC
-            h += (math.copysign(1.0, -i_true[j]) - h) * (1.0 - math.exp(-120.0 * abs(i_true[j]) / (3600.0 * cap)))
+            h += (math.copysign(1.0, -i_true[j]) - h) * (1.0 - math.exp(-120.0 * abs(i_true[j]) / (SECONDS_PER_HOUR * cap)))
             state[j] = h
         voltage += half * state
     bias = 0.0
@@ -221,7 +222,7 @@ def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -
     temperature = temperature + rng.normal(0.0, T_NOISE, n)
     info["cut_off"] = bool(n < current.size)
     charge = float(sol["Discharge capacity [A.h]"].entries[-1])
-    programmed = float(np.sum(i_true[:-1]) / 3600.0)
+    programmed = float(np.sum(i_true[:-1]) / SECONDS_PER_HOUR)
     if abs(charge - programmed) > 0.01 * cap:  # the recording must hold the current the cell saw
         raise RuntimeError(f"{cell} {effect}: solver drew {charge:.3f} Ah, the drive {programmed:.3f} Ah")
     data = np.column_stack([time_s, np.round(i_meas, 4), np.round(voltage, 4), np.round(temperature, 2)])
@@ -230,7 +231,7 @@ def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -
 
 @dataclass
 class Row(GridRow):
-    """A grid row (:class:`service.diagnosis.validate.Row`) with the recording's cell and the
+    """A grid row (:class:`research.validate.Row`) with the recording's cell and the
     top effect's held-out RMSEs."""
 
     stem: str
@@ -360,7 +361,7 @@ def table(rows: list[Row], failed: Sequence[dict] = ()) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m service.diagnosis.validate_pybamm",
+    ap = argparse.ArgumentParser(prog="python -m research.validate_pybamm",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--cells", default=",".join(CELLS), help="PyBaMM parameter sets (default: %(default)s)")
     ap.add_argument("--effects", default=",".join(EFFECTS), help="subset of " + ",".join(EFFECTS))

@@ -1,18 +1,14 @@
-"""Truth SOC for scoring (DESIGN §7): ``soc_true`` if recorded, else coulomb counting
-from a known full-charge point with the characterised capacity."""
+"""Truth SOC of a recording: ``soc_true`` if recorded, else coulomb counting from a known
+full-charge point with the characterised capacity.  ``socd evaluate`` scores against it
+(DESIGN §7); ``socd fit`` characterises the cell along it."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from service.cli import UserError
+from service.cell.coulomb import coulomb_soc
+from service.errors import UserError
 from service.recording import Recording
-
-
-def coulomb_soc(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float, soc0: float) -> np.ndarray:
-    """Backward zero-order hold: row k's current flowed over (t_{k-1}, t_k]."""
-    dq = np.concatenate([[0.0], current_a[1:] * np.diff(time_s)]) / 3600.0
-    return soc0 - np.cumsum(dq) / capacity_ah
 
 
 def per_recording(values: list[str] | None, n: int, flag: str) -> list[str | None]:
@@ -61,8 +57,3 @@ def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | N
     if part.soc_true is not None:
         return part, part.soc_true
     return part, coulomb_soc(part.time_s, part.current_a, capacity_ah, 1.0)
-
-
-def wrong_start(truth0: float, error: float) -> float:
-    """Initial SOC off by ``error``: added, or subtracted where truth starts above 0.8."""
-    return truth0 - error if truth0 > 0.8 else truth0 + error

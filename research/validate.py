@@ -12,7 +12,7 @@ is no model-form mismatch here (the PyBaMM files have 9-18 x noise of it); it me
 the detection limit of each effect above the noise and the false-positive rate on clean
 recordings, not the accuracy on real cells.
 
-    python -m service.diagnosis.validate [--seeds N] [--levels subtle,moderate,clear] [--json OUT]
+    python -m research.validate [--seeds N] [--levels subtle,moderate,clear] [--json OUT]
 """
 
 from __future__ import annotations
@@ -214,7 +214,7 @@ def table(rows: list[Row], levels: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m service.diagnosis.validate", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m research.validate", description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=2, help="drives/noise draws per effect and level (default 2)")
     ap.add_argument("--levels", default=",".join(LEVELS), help="comma-separated subset of subtle,moderate,clear")
     ap.add_argument("--effects", default=",".join(CASES), help="comma-separated subset of " + ",".join(CASES))

@@ -3,19 +3,19 @@
 ``socd diagnose --save-profile`` writes the base model plus the extension it named; the
 issue asks that this profile be used by ``socd evaluate`` and by the service online.
 This module closes that loop on recordings simulated with our own model (as
-:mod:`service.diagnosis.validate`), one effect at a time:
+:mod:`research.validate`), one effect at a time:
 
 1. diagnose a one-hour drive of a cell with the effect, from the OCV table and the
    capacity only (the simulated recording of the validation grid, seed 0);
 2. keep the base profile diagnose fitted, and the profile extended by the candidate of
    the simulated effect (whether or not it was significant: the verdict is reported
    beside it);
-3. score ``socd evaluate`` (the real command, in-process) with both profiles on a
-   *second* recording of the same cell that diagnose never saw: a deeper discharge,
-   0.95 → about 0.15 SOC, with its true SOC as ``soc_true``; the estimators start 0.20
-   wrong as in every evaluation.
+3. score both profiles with the loop of ``socd evaluate``
+   (:func:`service.evaluation.run.evaluate_recordings`, in-process) on a *second* recording
+   of the same cell that diagnose never saw: a deeper discharge, 0.95 → about 0.15 SOC,
+   with its true SOC as ``soc_true``; the estimators start 0.20 wrong as in every evaluation.
 
-    python -m service.diagnosis.roundtrip [--effects diffusion,temperature] [--level clear] [--json OUT]
+    python -m research.roundtrip [--effects diffusion,temperature] [--level clear] [--json OUT]
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.diagnosis.validate import (
+from research.validate import (
     CASES,
     DT,
     LEVELS,
@@ -37,6 +37,8 @@ from service.diagnosis.validate import (
     user_profile,
     write_case,
 )
+from service.cell.units import SECONDS_PER_HOUR
+from service.evaluation.run import EstimatorScore, evaluate_recordings
 
 #: the estimators scored (the service's default pipeline and the paper's)
 ESTIMATORS = ("foukf", "fomiukf")
@@ -48,7 +50,7 @@ def score_drive(seed: int) -> np.ndarray:
     """True current of the scoring recording at ``validate.DT``: steps of 0.5-2C discharge,
     0.5C charge and rests until ``SCORE_DISCHARGE_AH`` is out, then a 10 min rest."""
     out = random_steps(np.random.default_rng(100 + seed), (2.0, 1.5, 1.0, 1.0, 0.5, 0.0, -0.5),
-                       lambda o: np.sum(o) * DT / 3600.0 >= SCORE_DISCHARGE_AH)
+                       lambda o: np.sum(o) * DT / SECONDS_PER_HOUR >= SCORE_DISCHARGE_AH)
     return np.array(out + [0.0] * int(600 / DT), dtype=float)
 
 
@@ -66,16 +68,17 @@ class RoundTrip:
     v_rmse_extended_mv: dict[str, float]
 
 
-def _evaluate(cell: Path, recording: Path, out_json: Path) -> dict[str, dict]:
-    from service.cli import main as socd
+def _evaluate(cell: Path, recording: Path) -> dict[str, EstimatorScore]:
+    """Score :data:`ESTIMATORS` with the profile ``cell`` as ``socd evaluate`` does by default
+    (the recording's start, SOC 0.20 wrong, default settings): its loop, called in-process."""
+    from service.cell.profile import load_profile
+    from service.estimators.registry import create
+    from service.estimators.settings import EstimatorSettings
+    from service.recording import load_recording
 
-    args = ["evaluate", "--cell", str(cell), "--json", str(out_json), "--quiet"]
-    for name in ESTIMATORS:
-        args += ["--estimator", name]
-    code = socd(args + [str(recording)])
-    if code:
-        raise RuntimeError(f"socd evaluate exited {code} on {recording} with {cell}")
-    return {r["estimator"]: r for r in json.loads(out_json.read_text())["results"]}
+    estimators = [create(name, EstimatorSettings()) for name in ESTIMATORS]
+    (run,) = evaluate_recordings([load_recording(recording)], load_profile(cell), estimators)
+    return {r.estimator: r for r in run.scores}
 
 
 def run_effect(effect: str, level: str, workdir: Path, progress=None) -> RoundTrip:
@@ -99,15 +102,15 @@ def run_effect(effect: str, level: str, workdir: Path, progress=None) -> RoundTr
     np.savetxt(score_csv, np.column_stack([columns, soc]), delimiter=",", comments="", fmt="%.6f",
                header="time_s,current_a,voltage_v,temperature_c,soc_true")
     say(f"{effect}: verdict {dg.verdict}; scoring both profiles on {score_csv.name} ...")
-    base = _evaluate(base_path, score_csv, workdir / f"{effect}_{level}_eval_base.json")
-    ext = _evaluate(ext_path, score_csv, workdir / f"{effect}_{level}_eval_extended.json")
+    base = _evaluate(base_path, score_csv)
+    ext = _evaluate(ext_path, score_csv)
     return RoundTrip(
         effect=effect, level=level, verdict=dg.verdict,
         candidate_score=float(candidate.score), candidate_significant=bool(candidate.significant),
-        soc_rmse_base_pct={k: base[k]["soc_rmse_after_600s_pct"] for k in ESTIMATORS},
-        soc_rmse_extended_pct={k: ext[k]["soc_rmse_after_600s_pct"] for k in ESTIMATORS},
-        v_rmse_base_mv={k: base[k]["v_rmse_mv"] for k in ESTIMATORS},
-        v_rmse_extended_mv={k: ext[k]["v_rmse_mv"] for k in ESTIMATORS},
+        soc_rmse_base_pct={k: base[k].soc_rmse_after_600s_pct for k in ESTIMATORS},
+        soc_rmse_extended_pct={k: ext[k].soc_rmse_after_600s_pct for k in ESTIMATORS},
+        v_rmse_base_mv={k: base[k].v_rmse_mv for k in ESTIMATORS},
+        v_rmse_extended_mv={k: ext[k].v_rmse_mv for k in ESTIMATORS},
     )
 
 
@@ -128,10 +131,10 @@ def table(rows: list[RoundTrip]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     effects_all = [e for e in CASES if e != "none"]
-    ap = argparse.ArgumentParser(prog="python -m service.diagnosis.roundtrip", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m research.roundtrip", description=__doc__.split("\n\n")[0])
     ap.add_argument("--effects", default=",".join(effects_all), help="comma-separated subset of " + ",".join(effects_all))
     ap.add_argument("--level", default="clear", choices=LEVELS, help="size of the simulated effect (default clear)")
-    ap.add_argument("--workdir", default="out/roundtrip", help="where recordings, profiles and evaluations go")
+    ap.add_argument("--workdir", default="out/roundtrip", help="where the recordings and profiles go")
     ap.add_argument("--json", help="write the rows as JSON")
     args = ap.parse_args(argv)
     effects = [e.strip() for e in args.effects.split(",") if e.strip()]

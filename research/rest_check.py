@@ -16,7 +16,7 @@ sparser): a rest that has not relaxed reads too low
 after a discharge (too high after a charge), by more the colder and emptier the cell.  So compare
 rests of the same length at similar SOC and temperature, and read the sign of the tail.
 
-    python -m service.evaluation.rest_check --cell configs/cells/panasonic_18650pf.toml \\
+    python -m research.rest_check --cell configs/cells/panasonic_18650pf.toml \\
         ../shared/data/real/panasonic_18650pf/pan18650pf_10C_trise_Cycle1.csv
 """
 
@@ -32,9 +32,9 @@ import numpy as np
 
 from service.cell.fitting import last_current_direction
 from service.cell.profile import CellProfile, ProfileError, load_profile
+from service.cell.truth import per_recording, truth_and_start
 from service.characterisation.ocv_sources import REST_CURRENT_C, rest_spans
-from service.cli import UserError
-from service.evaluation.truth import per_recording, truth_and_start
+from service.errors import UserError
 from service.recording import Recording, load_recording
 
 #: shortest rest read (s): the Panasonic drive cycles end with 300 s
@@ -60,7 +60,7 @@ class RestReading:
 def read_rests(part: Recording, truth: np.ndarray, profile: CellProfile,
                min_rest_s: float = DEFAULT_MIN_REST_S) -> list[RestReading]:
     """One reading at the end of every rest of at least ``min_rest_s`` in ``part``."""
-    capacity = profile.capacity_ah * profile.extensions.capacity_scale
+    capacity = profile.effective_capacity_ah
     table = profile.ocv_table()
     u_h_max = float(profile.hysteresis.u_h_max_v)
     rest_a = REST_CURRENT_C * capacity
@@ -95,7 +95,7 @@ def markdown(readings: list[RestReading]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m service.evaluation.rest_check",
+        prog="python -m research.rest_check",
         description="At the end of every long rest, compare the SOC the profile's OCV table reads from the "
                     "voltage with the truth 'socd evaluate' scores against (soc_true, or coulomb counting from "
                     "--full-at with the profile's capacity). A difference common to every estimator's error "
@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
             raise UserError(str(exc)) from exc
         full = per_recording(args.full_at, len(args.recordings), "--full-at")
         recordings = [load_recording(r) for r in args.recordings]
-        capacity = profile.capacity_ah * profile.extensions.capacity_scale
+        capacity = profile.effective_capacity_ah
         readings: list[RestReading] = []
         for rec, fa in zip(recordings, full):
             part, truth = truth_and_start(rec, capacity, fa)

@@ -21,9 +21,9 @@ also clean recordings of the exact generator on the same drives: their verdicts 
 ``none``.
 
 Uses the labels (truth) only to build the twins and to read the result; the diagnosis of the
-recording never sees them.  Needs PyBaMM (``pip install -e .[validation]``).
+recording never sees them.  Needs PyBaMM (``pip install -e .[research]``).
 
-    python -m service.diagnosis.clean_twin [--data ../shared/data/synthetic] [--stems a,b]
+    python -m research.clean_twin [--data ../shared/data/synthetic] [--stems a,b]
         [--jobs 2] [--workdir out/clean_twin] [--json OUT]
 """
 
@@ -133,7 +133,7 @@ def twin_current(current_a: np.ndarray, label: dict) -> np.ndarray:
 
 def simulate_twin(time_s: np.ndarray, current_a: np.ndarray, label: dict) -> tuple[np.ndarray, np.ndarray]:
     """``(voltage_v, temperature_c)`` of the clean twin along ``current_a`` (the true current)."""
-    from service.diagnosis.validate_pybamm import _pybamm
+    from research.validate_pybamm import _pybamm
 
     pybamm = _pybamm()
     sets = {name.lower(): name for name in pybamm.parameter_sets}
@@ -221,7 +221,7 @@ def table(rows: list[TwinRow]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m service.diagnosis.clean_twin", description=__doc__.split("\n\n")[0],
+    ap = argparse.ArgumentParser(prog="python -m research.clean_twin", description=__doc__.split("\n\n")[0],
                                  epilog="Each row: the twin's check against the label, the twin's own verdict "
                                         "(must be none), and the floor beside the recording's before/after.")
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder with labels.json and the recordings "

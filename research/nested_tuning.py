@@ -7,7 +7,7 @@ the JSON), then reports the recording's score at that value.  So no file is scor
 value chosen on it (DESIGN §7: never fit on the file being scored), and two estimators swept
 over the same grid are tuned with the same care.
 
-    python -m service.evaluation.nested_tuning --estimator ecm2rc-ekf \\
+    python -m research.nested_tuning --estimator ecm2rc-ekf \\
         1e-4=out/a_1e-4.json 1e-4=out/b_1e-4.json 1e-3=out/a_1e-3.json 1e-3=out/b_1e-3.json
 """
 
@@ -124,7 +124,7 @@ def markdown(values: list[str], conditions: list[str], tuned: dict[str, list[dic
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m service.evaluation.nested_tuning",
+        prog="python -m research.nested_tuning",
         description="Leave-one-out choice of a tuning value: each recording is scored with the value that "
                     "did best on the other recordings of its cell (never on itself).",
     )

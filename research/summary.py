@@ -1,8 +1,8 @@
 """Markdown tables from ``socd evaluate --json`` files (the tables in docs/results/).
 
-    python -m service.evaluation.summary out/eval_pan25.json [more.json ...]
-    python -m service.evaluation.summary out/eval_pan25.json+out/eval_pan25_nokin.json
-    python -m service.evaluation.summary --only fomiukf,ecm2rc-ekf out/eval_calce_slow.json+out/eval_calce.json
+    python -m research.summary out/eval_pan25.json [more.json ...]
+    python -m research.summary out/eval_pan25.json+out/eval_pan25_nokin.json
+    python -m research.summary --only fomiukf,ecm2rc-ekf out/eval_calce_slow.json+out/eval_calce.json
 
 One row per recording, one column per estimator: SOC RMSE after 600 s in percent (the
 figure of DESIGN §7), then a row of means, then voltage RMSE means.  ``A.json+B.json``
