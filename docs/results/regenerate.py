@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import importlib
-import importlib.util
 import json
 import re
 import subprocess
@@ -38,37 +37,12 @@ ROOT = Path(__file__).resolve().parents[2]
 RESULTS = Path(__file__).resolve().parent
 OUT = Path("out")
 
-#: where each research tool lived before the ``research`` package existed; used only when
-#: ``research`` is not importable, so the script runs on either side of that move
-_PRE_RESEARCH_HOME = {
-    "summary": "service.evaluation.summary",
-    "nested_tuning": "service.evaluation.nested_tuning",
-    "rest_check": "service.evaluation.rest_check",
-    "validate": "service.diagnosis.validate",
-    "validate_pybamm": "service.diagnosis.validate_pybamm",
-    "clean_twin": "service.diagnosis.clean_twin",
-    "roundtrip": "service.diagnosis.roundtrip",
-}
-
-
 class RegenerateError(Exception):
     """A missing marker, a failed command or a missing JSON file: one line for the user."""
 
 
-def tool_module_name(name: str) -> str:
-    """``research.<name>``, or the tool's old home while the ``research`` package is absent."""
-    if importlib.util.find_spec("research") is not None or name not in _PRE_RESEARCH_HOME:
-        return f"research.{name}"
-    return _PRE_RESEARCH_HOME[name]
-
-
 def tool(name: str):
-    return importlib.import_module(tool_module_name(name))
-
-
-def _runnable(script: str) -> str:
-    """The shell text as run: ``python -m research.X`` resolved by :func:`tool_module_name`."""
-    return re.sub(r"-m research\.(\w+)", lambda m: f"-m {tool_module_name(m.group(1))}", script)
+    return importlib.import_module(f"research.{name}")
 
 
 # -- renderers: JSON in out/ -> markdown --------------------------------------------------------
@@ -437,7 +411,7 @@ def run_commands(table: Table, log_dir: Path) -> None:
                'python() { "$PY" "$@"; }\nmkdir -p out\n')
     log = log_dir / f"{table.name}.log"
     with log.open("w") as fh:
-        done = subprocess.run(["bash", "-euo", "pipefail", "-c", prelude + _runnable(table.script)],
+        done = subprocess.run(["bash", "-euo", "pipefail", "-c", prelude + table.script],
                               cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT, check=False)
     if done.returncode != 0:
         tail = log.read_text().strip().splitlines()[-1:] or ["(no output)"]

@@ -143,7 +143,7 @@ def bus_gap(text: str) -> tuple[float, float]:
 
 
 def full_at(text: str) -> str:
-    """``auto`` or a time in s (>= 0); kept as text for :func:`service.evaluation.truth.per_recording`."""
+    """``auto`` or a time in s (>= 0); kept as text for :func:`service.cell.truth.per_recording`."""
     if text.strip().lower() == "auto":
         return "auto"
     try:
