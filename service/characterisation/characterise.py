@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import sys
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import pairwise
 
@@ -108,10 +109,21 @@ class TemperatureFit:
 class FitReport:
     lines: list[str] = field(default_factory=list)
     temperatures: list[TemperatureFit] = field(default_factory=list)
+    #: where each line goes as it is said (default: stderr, prefixed ``[fit]``)
+    echo: Callable[[str], None] | None = None
+    #: told ``(stage, done, total)`` as each fitting stage starts (a progress bar)
+    progress: Callable[[str, int, int], None] | None = None
 
     def say(self, msg: str) -> None:
         self.lines.append(msg)
-        print(f"[fit] {msg}", file=sys.stderr, flush=True)
+        if self.echo is not None:
+            self.echo(f"[fit] {msg}")
+        else:
+            print(f"[fit] {msg}", file=sys.stderr, flush=True)
+
+    def stage(self, what: str, done: int, total: int) -> None:
+        if self.progress is not None:
+            self.progress(what, done, total)
 
 
 def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest_s: float = SEGMENT_REST_S,
@@ -198,6 +210,7 @@ def characterise(
     slow_branch: bool = False,
     ocv_branch: str = "mean",
     rest_anchor: bool = False,
+    report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
     table or test is (:class:`HysteresisSpec` ``table_branch``; needs ``fit_hysteresis``
@@ -206,7 +219,7 @@ def characterise(
     (one or more) before the parameters are fitted on it."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
-    rep = FitReport()
+    rep = report if report is not None else FitReport()
     ocv_tests = [r for r in recordings if is_ocv_test(r, capacity_ah)]
     if rest_anchor and (ocv_table is not None or ocv_tests):
         raise ValueError("--rest-anchor anchors a jointly fitted OCV table; with an OCV table or test given, "
@@ -271,7 +284,9 @@ def characterise(
     # (with no OCV table or test) the monotone joint OCV the fractional fit starts from
     ecm: dict[float, Ecm2RcFit] = {}
     cap = capacity_ah
-    for t in sorted(temps, key=lambda t: abs(t - ref_t)):
+    n_stages = 2 * len(temps)
+    for k, t in enumerate(sorted(temps, key=lambda t: abs(t - ref_t))):
+        rep.stage(f"2-RC fit at {t:g} °C", k, n_stages)
         segs = segments_of(t)
         if not segs:
             raise FitQualityError(f"no stretch of the recordings at {t:g} °C starts from a known state above SOC "
@@ -311,7 +326,8 @@ def characterise(
         prof = prof.model_copy(update={"extensions": prof.extensions.model_copy(update={"soc_resistance": spec})})
     points: dict[float, ParameterPoint] = {}
     hyst: HysteresisSpec | None = None
-    for t in sorted(temps, key=lambda t: abs(t - ref_t)):
+    for k, t in enumerate(sorted(temps, key=lambda t: abs(t - ref_t))):
+        rep.stage(f"fractional fit at {t:g} °C", len(temps) + k, n_stages)
         segs = segments_of(t)
         rep.say(f"fitting parameters at {t:g} °C on {len(segs)} segment(s), {sum(len(s) for s in segs)} samples "
                 f"(≤ {max_seconds:g} s)...")
@@ -356,6 +372,7 @@ def characterise(
         "notes": {"fitted_from": ", ".join(r.name for r in recordings), "memory_length": str(memory_length)}
         | ({"slow_branch": slow_note} if slow_note else {}),
     })
+    rep.stage("done", n_stages, n_stages)
     return CellProfile.model_validate(profile.model_dump()), rep
 
 

@@ -10,7 +10,8 @@ from service.cell.profile import save_profile
 from service.cell.truth import per_recording
 from service.cli import UserError
 from service.commands.common_args import (add_common_arguments, full_at, positive_float, positive_int,
-                                          setup_logging)
+                                          progress_enabled, setup_logging)
+from service.commands.progress import open_progress
 from service.recording import load_recording
 
 
@@ -69,12 +70,12 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", help="profile to write (.toml or .json)")
-    add_common_arguments(p)
+    add_common_arguments(p, progress=True)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.characterisation.characterise import characterise, check_fit_quality
+    from service.characterisation.characterise import FitReport, characterise, check_fit_quality
 
     setup_logging(args)
     if not args.capacity_ah > 0:
@@ -88,16 +89,22 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UserError(str(exc)) from exc
     out = Path(args.output)
+    bar = open_progress(progress_enabled(args), "fit", None, unit="stages")
+    report = FitReport(echo=bar.log if bar.enabled else None,
+                       progress=lambda what, done, total: bar.update(completed=done, total=total, description=what))
     try:
         profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
                                        fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
                                        min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
                                        slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
-                                       memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed)
+                                       memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
+                                       report=report)
         if not args.force:
             check_fit_quality(report)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
+    finally:
+        bar.close()
     save_profile(profile, out)
     print(f"wrote {out}: {len(profile.parameters)} temperature(s) "
           f"{', '.join(f'{p.temp_c:g} °C' for p in profile.parameters)}, capacity {profile.capacity_ah:g} Ah")
