@@ -55,14 +55,16 @@ def test_evaluate_writes_json_table_and_plots(tmp_path: Path, nmc_recording, nmc
     assert "[evaluate]" not in captured.err  # --quiet
     doc = json.loads(out.read_text())
     assert doc["init_soc_error"] == pytest.approx(0.2)
-    assert [r["estimator"] for r in doc["results"]] == ["fomiukf", "coulomb"]
+    assert [r["estimator"] for r in doc["results"]] == ["fomiukf", "coulomb", "ecm2rc-ekf"]  # the bar is added
     for r in doc["results"]:
         assert set(r) == RESULT_KEYS
         assert r["recording"] == "drive"
         for key in ("soc_rmse_pct", "soc_mae_pct", "soc_max_pct", "soc_rmse_after_600s_pct", "us_per_step"):
             assert isinstance(r[key], float) and np.isfinite(r[key]) and r[key] >= 0, key
         assert r["soc_mae_pct"] <= r["soc_rmse_pct"] + 1e-9 <= r["soc_max_pct"] + 2e-9  # equal up to rounding for a constant error
-    fo, cc = doc["results"]
+    fo, cc, bar = doc["results"]
+    # the textbook EKF is the bar, on the profile's own parameters (this profile has no 2-RC section)
+    assert bar["soc_rmse_after_600s_pct"] < 3.0
     # started 20 % wrong (truth 0.9 > 0.8: subtracted): coulomb counting keeps that error
     assert cc["soc_max_pct"] == pytest.approx(20.0, abs=1e-6)
     assert cc["soc_rmse_pct"] == pytest.approx(20.0, abs=1e-6)
@@ -74,6 +76,7 @@ def test_evaluate_writes_json_table_and_plots(tmp_path: Path, nmc_recording, nmc
     assert fo["v_rmse_mv"] is not None and fo["v_rmse_mv"] > 0
     # the table on stdout
     assert "drive" in captured.out and "fomiukf" in captured.out and "coulomb" in captured.out
+    assert "ecm2rc-ekf" in captured.out
     # PNGs
     pngs = sorted(plots.glob("*.png"))
     assert plots / "drive_soc.png" in pngs
@@ -83,7 +86,7 @@ def test_evaluate_writes_json_table_and_plots(tmp_path: Path, nmc_recording, nmc
     # the traces the figures come from: the RMSE after 600 s recomputed from the CSV
     tr = np.genfromtxt(tmp_path / "traces" / "drive_traces.csv", delimiter=",", names=True)
     assert tr.dtype.names == ("time_s", "soc_true", "voltage_v", "soc_fomiukf", "v_pred_fomiukf", "soc_coulomb",
-                              "v_pred_coulomb")
+                              "v_pred_coulomb", "soc_ecm2rcekf", "v_pred_ecm2rcekf")
     assert np.all(np.isnan(tr["v_pred_coulomb"])) and np.all(np.isfinite(tr["v_pred_fomiukf"]))
     late = tr["time_s"] - tr["time_s"][0] >= 600.0
     rmse = 100 * np.sqrt(np.mean((tr["soc_fomiukf"][late] - tr["soc_true"][late]) ** 2))
@@ -95,7 +98,7 @@ def test_evaluate_without_truth_column_uses_coulomb_truth(tmp_path: Path, nmc_re
     rec = nmc_recording(name="notruth", duration_s=300, seed=4, soc0=1.0, with_truth=False)
     out = tmp_path / "r.json"
     rc = main(["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "coulomb",
-               "--init-soc-error", "0.1", "--json", str(out), "--quiet"])
+               "--no-bar", "--init-soc-error", "0.1", "--json", str(out), "--quiet"])
     assert rc == 0, capsys.readouterr().err
     (r,) = json.loads(out.read_text())["results"]
     # truth: coulomb counting from 1.0 at the start; the estimate is the same count from 0.9
@@ -107,7 +110,7 @@ def test_evaluate_full_at_starts_scoring_there(tmp_path: Path, nmc_recording, nm
     rec = nmc_recording(name="late", duration_s=300, seed=4, soc0=1.0, with_truth=False)
     out = tmp_path / "r.json"
     rc = main(["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "coulomb",
-               "--full-at", "100", "--init-soc-error", "0.0", "--json", str(out), "--quiet"])
+               "--no-bar", "--full-at", "100", "--init-soc-error", "0.0", "--json", str(out), "--quiet"])
     assert rc == 0, capsys.readouterr().err
     (r,) = json.loads(out.read_text())["results"]
     assert r["soc_max_pct"] == pytest.approx(0.0, abs=1e-9)

@@ -22,6 +22,8 @@ from service.evaluation.run import EstimatorScore, evaluate_recordings
 from service.recording import load_recording
 
 DEFAULT_ESTIMATORS = list(ESTIMATORS)
+#: the textbook filter every table shows beside the estimators asked for (DESIGN §7)
+BAR_ESTIMATOR = "ecm2rc-ekf"
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -37,7 +39,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("recordings", nargs="+", metavar="RECORDING", help="CSV: time_s,current_a,voltage_v,temperature_c[,soc_true]")
     add_cell_argument(p, required=True)
     p.add_argument("--estimator", action="append", metavar="NAME",
-                   help=f"estimator to run (repeatable; default all: {', '.join(DEFAULT_ESTIMATORS)})")
+                   help=f"estimator to run (repeatable; default all: {', '.join(DEFAULT_ESTIMATORS)}); "
+                        f"'{BAR_ESTIMATOR}' is always added as the bar to beat unless --no-bar")
+    p.add_argument("--no-bar", action="store_true",
+                   help=f"do not add the textbook 2-RC EKF ('{BAR_ESTIMATOR}', on the profile's own 2-RC "
+                        "characterisation) to the estimators asked for")
     p.add_argument("--full-at", action="append", type=full_at, metavar="S",
                    help="time [s] of the full-charge point, or 'auto' to detect the end of the CC-CV charge; "
                         "give once for all recordings or once per recording (default: the file's start)")
@@ -120,7 +126,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--current-bias-c must be a finite fraction of 1C within ±0.5, got {args.current_bias_c}")
     if not 0.0 <= args.init_soc_error < 1.0:
         raise UserError(f"--init-soc-error must be in [0, 1), got {args.init_soc_error}")
-    names = args.estimator or DEFAULT_ESTIMATORS
+    names = list(dict.fromkeys(args.estimator or DEFAULT_ESTIMATORS))
+    if not args.no_bar and BAR_ESTIMATOR not in names:
+        names.append(BAR_ESTIMATOR)
     settings, ekf_tuning = load_settings(args.settings)
     try:
         estimators = [create(n, settings, ekf_tuning if n == "ecm2rc-ekf" else None) for n in names]
