@@ -34,6 +34,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+# the research tools (research/) live in the checkout, not in the installed package
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 RESULTS = Path(__file__).resolve().parent
 OUT = Path("out")
 
@@ -66,6 +69,29 @@ def evaluate_table(*specs: str, only: str | None = None) -> Callable[[Path], str
                     raise RegenerateError(f"{p}: missing (run the table's commands first)")
             tables.append(summary.table("+".join(str(p) for p in parts), keep))
         return "\n\n".join(tables)
+    return render
+
+
+def group_table(name: str, groups: tuple[tuple[str, str], ...]) -> Callable[[Path], str]:
+    """Mean and worst SOC RMSE after 600 s per estimator for each group of recordings (a regular
+    expression on the recording's name), from one ``socd evaluate --json``."""
+    def render(out: Path) -> str:
+        rows = _read(out, name)["results"]
+        estimators = list(dict.fromkeys(r["estimator"] for r in rows))
+        head = "| recordings | files | " + " | ".join(f"`{e}` mean / worst" for e in estimators) + " |"
+        lines = [head, "|" + "---|" * (2 + len(estimators))]
+        for label, pattern in groups:
+            chosen = [r for r in rows if re.search(pattern, r["recording"])]
+            if not chosen:
+                continue
+            cells = []
+            for e in estimators:
+                vals = [r["soc_rmse_after_600s_pct"] for r in chosen
+                        if r["estimator"] == e and r["soc_rmse_after_600s_pct"] is not None]
+                cells.append(f"{sum(vals) / len(vals):.2f} / {max(vals):.2f}" if vals else "-")
+            files = len({r["recording"] for r in chosen})
+            lines.append(f"| {label} | {files} | " + " | ".join(cells) + " |")
+        return "\n".join(lines)
     return render
 
 
@@ -324,6 +350,22 @@ G=""; for c in pan calce a123; do for b in 0 0.01 -0.01; do G="$G off=out/tune/r
   for s0 in 0.002 0.005; do G="$G on_$s0=out/tune/bs_${{c}}_${{s0}}_b$b.json"; done; done; done
 python -m research.nested_tuning --estimator fomiukf $G --json out/nested_bias.json""",
           nested_table("nested_bias.json"), 100, ("needs:nested_both",)),
+    Table("char_calce", "characterisation.md", REAL + f"""\
+socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 -q -o out/s25/calce.toml
+socd evaluate --cell out/s25/calce.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_def.json""",
+          evaluate_table("s25/calce_def.json"), 8),
+    Table("char_a123", "characterisation.md", REAL + f"""\
+socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
+    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv -q -o out/s25/a123.toml
+socd evaluate --cell out/s25/a123.toml {A123} --estimator fomiukf -q --json out/s25/a123_eval.json""",
+          evaluate_table("s25/a123_eval.json"), 6),
+    Table("char_pan_hppc", "characterisation.md", REAL + """\
+socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 -q -o out/s25/pan_hppc.toml
+socd evaluate --cell out/s25/pan_hppc.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC) \\
+    --estimator fomiukf -q --json out/s25/pan_hppc_eval.json""",
+          group_table("s25/pan_hppc_eval.json", (
+              ("25 °C", r"_25C_"), ("10 °C (not `trise`)", r"_10C_(?!trise)"), ("10 °C `trise` (truth caveat)", r"_10C_trise"),
+              ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"), ("−20 °C", r"_m20C_"))), 60),
     Table("bench", "bench.md", "for k in 1 2 3; do socd bench --cells 200 --json out/bench200_$k.json; done",
           bench_table("bench200_1.json", "bench200_2.json", "bench200_3.json"), 3),
     Table("demo", "bench.md", """\
