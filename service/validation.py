@@ -126,7 +126,7 @@ def check_values(path: str | Path, columns: Mapping[str, np.ndarray],
             bad = bad | out
         if bad.any():
             k = int(np.argmax(bad))
-            why = (f"{v[k]!r} is not a finite number" if not math.isfinite(v[k])
+            why = (f"{float(v[k])!r} is not a finite number" if not math.isfinite(v[k])
                    else f"{v[k]:g} is outside the plausible range [{lim[0]:g}, {lim[1]:g}]")  # type: ignore[index]
             if worst is None or k < worst[0]:
                 worst = (k, name, why)

@@ -492,3 +492,13 @@ def test_fit_refuses_a_recording_no_model_follows_and_writes_nothing(tmp_path: P
     assert not out.exists()
     assert main(["fit", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "-o", str(out)]) == 0
     assert out.exists()
+
+
+def test_fit_refuses_a_capacity_the_recording_contradicts(tmp_path: Path, nmc_recording, capsys) -> None:
+    """With a capacity a tenth of the cell's, the counted SOC runs far outside [0, 1]: a fit would bend
+    the OCV to match, so the command names the recording and writes nothing."""
+    rec = nmc_recording(name="capacity", duration_s=1800, seed=4, soc0=0.95)
+    out = tmp_path / "never.toml"
+    err = _fail(["fit", str(rec.path), "--capacity-ah", "0.2", "--max-seconds", "3", "-o", str(out)], capsys)
+    assert str(rec.path) in err and "--capacity-ah 0.2" in err
+    assert not out.exists()

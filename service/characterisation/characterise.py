@@ -31,6 +31,7 @@ from itertools import pairwise
 
 import numpy as np
 
+from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment, fit_parameters, last_current_direction
 from service.cell.model import simulate
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
@@ -78,6 +79,9 @@ POOR_FIT_MV = 50.0
 #: the fractional fit may be worse than the textbook 2-RC fit of the same data by this much
 #: (relative, and absolute mV) before the temperature is refused
 ECM_TOLERANCE = (0.05, 0.5)
+#: how far outside [0, 1] the SOC counted through a characterisation recording may go (a
+#: capacity a few percent off, a full point a little early) before the fit is refused
+COUNTED_SOC_MARGIN = 0.1
 
 
 class FitQualityError(ValueError):
@@ -241,6 +245,7 @@ def characterise(
     whole: dict[float, list[Recording]] = defaultdict(list)  # the same recordings before the cut
     for rec, fa in dynamic:
         part, soc = truth_and_start(rec, capacity_ah, fa)
+        check_counted_soc(part, capacity_ah, float(soc[0]))
         key = float(TEMP_GROUP_C * np.round(np.median(part.temperature_c) / TEMP_GROUP_C))
         groups[key].append((part, soc))
         whole[key].append(rec)
@@ -374,6 +379,19 @@ def characterise(
     })
     rep.stage("done", n_stages, n_stages)
     return CellProfile.model_validate(profile.model_dump()), rep
+
+
+def check_counted_soc(part: Recording, capacity_ah: float, soc0: float) -> None:
+    """The models count charge with ``capacity_ah`` from ``soc0``: a count that leaves [0, 1] by
+    more than :data:`COUNTED_SOC_MARGIN` means the capacity or the full-charge point is wrong,
+    and a fit on it would bend the OCV to match (refused, naming the recording)."""
+    counted = coulomb_soc(part.time_s, part.current_a, capacity_ah, soc0)
+    lo, hi = float(np.min(counted)), float(np.max(counted))
+    if lo < -COUNTED_SOC_MARGIN or hi > 1.0 + COUNTED_SOC_MARGIN:
+        where = f"{lo:.2f}" if lo < -COUNTED_SOC_MARGIN else f"{hi:.2f}"
+        raise FitQualityError(
+            f"{part.path}: SOC counted with --capacity-ah {capacity_ah:g} from {soc0:.2f} at the start reaches "
+            f"{where}: the capacity is wrong for this cell or the full-charge point (--full-at) is; nothing written")
 
 
 def ecm_start_point(fit: Ecm2RcFit, temp_c: float) -> ParameterPoint:
