@@ -75,20 +75,23 @@ def finite_float(text: str) -> float:
     return _float(text)
 
 
-def probability(text: str) -> float:
-    """A probability in [0, 1]."""
-    x = _float(text)
-    if not 0.0 <= x <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be a probability in [0, 1], got {text}")
-    return x
+def float_in(lo: float, hi: float, what: str) -> Callable[[str], float]:
+    """A finite number in [lo, hi], called ``what`` in the error."""
+
+    def parse(text: str) -> float:
+        x = _float(text)
+        if not lo <= x <= hi:
+            raise argparse.ArgumentTypeError(f"must be {what} in [{lo:g}, {hi:g}], got {text}")
+        return x
+
+    parse.__name__ = what
+    return parse
 
 
-def soc_fraction(text: str) -> float:
-    """A state of charge as a fraction in [0, 1] (not percent)."""
-    x = _float(text)
-    if not 0.0 <= x <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be a SOC fraction in [0, 1], got {text}")
-    return x
+#: a probability in [0, 1]
+probability = float_in(0.0, 1.0, "a probability")
+#: a state of charge as a fraction in [0, 1] (not percent)
+soc_fraction = float_in(0.0, 1.0, "a SOC fraction")
 
 
 def positive_int(text: str) -> int:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from service.cli import UserError
 from service.commands.common_args import (add_cell_argument, add_common_arguments, add_soc0_argument, json_to_stdout,
-                                          positive_float, probability, progress_enabled, setup_logging, write_json)
+                                          float_in, positive_float, progress_enabled, setup_logging, write_json)
 from service.commands.progress import open_progress
 
 
@@ -70,11 +70,7 @@ def _ambient(text: str) -> float | None:
     return x
 
 
-def _fit_fraction(text: str) -> float:
-    x = probability(text)
-    if not 0.2 <= x <= 0.9:
-        raise argparse.ArgumentTypeError(f"must be in [0.2, 0.9], got {text}")
-    return x
+_fit_fraction = float_in(0.2, 0.9, "a fraction of the recording")
 
 
 def _note(args: argparse.Namespace, message: str) -> None:

@@ -12,32 +12,26 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from service.cell.profile import CellProfile
 from service.cell.truth import truth_and_start
 from service.estimators.base import Estimator, EstimateTrace
-from service.evaluation.metrics import score
+from service.evaluation.metrics import Scores, score
 from service.recording import Recording
 
 #: called before each estimator runs: (recording name, estimator name, samples scored)
 Progress = Callable[[str, str, int], None]
 
 
-@dataclass(frozen=True)
-class EstimatorScore:
+@dataclass
+class EstimatorScore(Scores):
     """One estimator's scores on one recording (the rows of ``socd evaluate``'s table and JSON)."""
 
     recording: str
     estimator: str
-    soc_rmse_pct: float
-    soc_mae_pct: float
-    soc_max_pct: float
-    soc_rmse_after_600s_pct: float | None
-    convergence_s: float | None
-    v_rmse_mv: float | None
     us_per_step: float
 
 
@@ -100,15 +94,5 @@ def evaluate_recordings(
             us = 1e6 * (time.perf_counter() - t0) / len(part)
             traces[est.name] = trace
             s = score(part.time_s, trace.soc, truth, trace.v_pred, part.voltage_v)
-            scores.append(EstimatorScore(
-                recording=rec.name,
-                estimator=est.name,
-                soc_rmse_pct=s.soc_rmse_pct,
-                soc_mae_pct=s.soc_mae_pct,
-                soc_max_pct=s.soc_max_pct,
-                soc_rmse_after_600s_pct=s.soc_rmse_after_600s_pct,
-                convergence_s=s.convergence_s,
-                v_rmse_mv=s.v_rmse_mv,
-                us_per_step=us,
-            ))
+            scores.append(EstimatorScore(recording=rec.name, estimator=est.name, us_per_step=us, **asdict(s)))
         yield RecordingEvaluation(recording=rec, part=part, truth=truth, traces=traces, scores=scores)
