@@ -103,15 +103,18 @@ def test_ekf_runs_on_the_textbook_spec_not_the_fractional_parameters():
     assert np.sqrt(np.mean((plain.soc[1000:] - truth[1000:]) ** 2)) > 0.05
 
 
-@pytest.mark.parametrize(("rmse", "ecm", "bad"), [
-    (12.0, 11.0, False),                     # within the tolerance of the 2-RC fit
-    (12.0, 12.0 / (1 + ECM_TOLERANCE[0]) - 1.0, True),   # clearly worse than the 2-RC fit
-    (POOR_FIT_MV + 1.0, POOR_FIT_MV + 5.0, True),       # poor in itself
-    (float("nan"), 10.0, True),
+@pytest.mark.parametrize(("rmse", "ecm", "overpotential", "bad"), [
+    (12.0, 11.0, 100.0, False),                     # within the tolerance of the 2-RC fit
+    (12.0, 12.0 / (1 + ECM_TOLERANCE[0]) - 1.0, 100.0, True),   # clearly worse than the 2-RC fit
+    (POOR_FIT_MV + 1.0, POOR_FIT_MV + 5.0, 60.0, True),       # poor in itself
+    # a hard drive in the cold: 90 mV left of a volt of overpotential is a model of it
+    (90.0, 93.0, 1000.0, False),
+    (600.0, 650.0, 1000.0, True),                   # more than half of it left
+    (float("nan"), 10.0, 100.0, True),
 ])
-def test_fit_quality_rule(rmse, ecm, bad):
+def test_fit_quality_rule(rmse, ecm, overpotential, bad):
     rep = FitReport(temperatures=[TemperatureFit(temp_c=25.0, rmse_mv=rmse, ecm_rmse_mv=ecm, at_bounds=[],
-                                                 source="fractional fit")])
+                                                 source="fractional fit", overpotential_rms_mv=overpotential)])
     if bad:
         with pytest.raises(FitQualityError, match="25 °C"):
             check_fit_quality(rep)

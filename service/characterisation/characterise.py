@@ -74,8 +74,11 @@ MIN_FIT_SOC = 0.1
 SOC_RESISTANCE_POINTS = 21
 #: the fractional diffusion branch's time constant is capped at the textbook slow branch's bound
 MAX_TAU_DF_S = TAU2_BOUNDS_S[1]
-#: a temperature whose fit RMSE [mV] is above this is refused (Zeng's bound on the voltage error)
+#: a temperature's fit is poor, and refused, when its RMSE [mV] is above both this (Zeng's bound on
+#: the voltage error) and POOR_FIT_SHARE of the RMS overpotential it has to explain (a hard drive in
+#: the cold moves the voltage by a volt; a fit that leaves a tenth of that is still a model of it)
 POOR_FIT_MV = 50.0
+POOR_FIT_SHARE = 0.5
 #: the fractional fit may be worse than the textbook 2-RC fit of the same data by this much
 #: (relative, and absolute mV) before the temperature is refused
 ECM_TOLERANCE = (0.05, 0.5)
@@ -98,10 +101,14 @@ class TemperatureFit:
     ecm_rmse_mv: float
     at_bounds: list[str]
     source: str  # "fractional fit" or "2-RC start" (the fractional fit did no better than its start)
+    #: RMS of the measured voltage minus the OCV at the counted SOC: what the dynamics must explain
+    overpotential_rms_mv: float = 0.0
 
     def problem(self) -> str | None:
-        if not np.isfinite(self.rmse_mv) or self.rmse_mv > POOR_FIT_MV:
-            return f"fit RMSE {self.rmse_mv:.1f} mV is above {POOR_FIT_MV:g} mV"
+        bound = max(POOR_FIT_MV, POOR_FIT_SHARE * self.overpotential_rms_mv)
+        if not np.isfinite(self.rmse_mv) or self.rmse_mv > bound:
+            return (f"fit RMSE {self.rmse_mv:.1f} mV is above {bound:.0f} mV (the larger of {POOR_FIT_MV:g} mV and "
+                    f"{POOR_FIT_SHARE:g} x the {self.overpotential_rms_mv:.0f} mV RMS overpotential)")
         rel, abs_mv = ECM_TOLERANCE
         if self.rmse_mv > self.ecm_rmse_mv * (1.0 + rel) + abs_mv:
             return (f"fit RMSE {self.rmse_mv:.1f} mV is worse than the textbook 2-RC fit of the same data "
@@ -246,7 +253,7 @@ def characterise(
     for rec, fa in dynamic:
         part, soc = truth_and_start(rec, capacity_ah, fa)
         check_counted_soc(part, capacity_ah, float(soc[0]))
-        key = float(TEMP_GROUP_C * np.round(np.median(part.temperature_c) / TEMP_GROUP_C))
+        key = float(TEMP_GROUP_C * np.round(np.median(part.temperature_c) / TEMP_GROUP_C)) + 0.0  # no -0 °C
         groups[key].append((part, soc))
         whole[key].append(rec)
     temps = sorted(groups)
@@ -361,7 +368,8 @@ def characterise(
         if res.hysteresis is not None:
             hyst = res.hysteresis
         outcome = TemperatureFit(temp_c=t, rmse_mv=rmse, ecm_rmse_mv=ecm[t].rmse_mv,
-                                 at_bounds=res.at_bounds if source == "fractional fit" else [], source=source)
+                                 at_bounds=res.at_bounds if source == "fractional fit" else [], source=source,
+                                 overpotential_rms_mv=overpotential_rms_mv(prof, segs))
         rep.temperatures.append(outcome)
         rep.say(f"  {t:g} °C: R_ohm {pt.r_ohm * 1e3:.1f} mΩ, R_ct {pt.r_ct * 1e3:.1f} mΩ, m {pt.m:.2f}, "
                 f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}"
@@ -417,6 +425,20 @@ def segments_rmse_mv(template: CellProfile, point: ParameterPoint, hysteresis: H
         err = v[:, 0] - s.voltage_v
         sq += float(np.sum(np.where(np.isfinite(err), err, 10.0) ** 2))
         n += err.size
+    return 1000.0 * float(np.sqrt(sq / max(n, 1)))
+
+
+def overpotential_rms_mv(profile: CellProfile, segments: list[FitSegment]) -> float:
+    """RMS [mV] of the measured voltage minus the profile's OCV at the SOC counted through each
+    segment: the part of the voltage the model's dynamics have to explain."""
+    table = profile.ocv_table()
+    cap = profile.effective_capacity_ah
+    sq, n = 0.0, 0
+    for s in segments:
+        soc = coulomb_soc(s.time_s, s.current_a, cap, s.soc0)
+        eta = s.voltage_v - table.ocv(soc, s.temperature_c)
+        sq += float(np.sum(eta**2))
+        n += eta.size
     return 1000.0 * float(np.sqrt(sq / max(n, 1)))
 
 
