@@ -25,7 +25,7 @@ import logging
 import math
 import os
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Literal
 
@@ -589,29 +589,47 @@ def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
 
 
 def check_input_mapping(config: SocdConfig, source: str = "<config>") -> None:
-    """The input DBC loads and holds every signal the mapping names (what a replay needs)."""
+    """The input DBC loads and holds every signal the mapping names (what a replay needs);
+    :class:`ConfigError` on the first problem of :func:`mapping_problems`."""
     db_in = _load_config_dbc(config, "input", source)
-    signals = {s.name: m for m in db_in.messages for s in m.signals}
-    for path, name in config.mapping.all_signals():
-        if path.startswith("mapping.counter_signals."):
-            msg_name = path.split(".", 2)[2]
+    for where, why in mapping_problems(config, db_in):
+        raise ConfigError(f"{source}: {where}: {why}")
+
+
+def mapping_problems(config: SocdConfig, db_in: Any) -> Iterator[tuple[str, str]]:
+    """``(field, problem)`` for every mapped signal ``db_in`` (the input DBC) does not carry as
+    the mapping needs it: missing (with a close name), a counter outside its message, a
+    multiplexer switch mapped as a measurement, a multiplexed signal on switch values the
+    switch cannot take."""
+    by_name = {s.name: (m, s) for m in db_in.messages for s in m.signals}
+    for where, name in config.mapping.all_signals():
+        if where.startswith("mapping.counter_signals."):
+            msg_name = where.split(".", 2)[2]
             try:
                 msg = db_in.get_message_by_name(msg_name)
             except KeyError:
-                raise ConfigError(
-                    f"{source}: {path}: message {msg_name!r} not in dbc.input ({config.dbc.input.name})"
-                ) from None
+                yield where, f"message {msg_name!r} not in dbc.input ({config.dbc.input.name})"
+                continue
             if name not in {s.name for s in msg.signals}:
-                raise ConfigError(
-                    f"{source}: {path}: signal {name!r} not in message {msg_name!r} of dbc.input"
-                )
+                yield where, f"signal {name!r} not in message {msg_name!r} of dbc.input"
             continue
-        if name not in signals:
-            hint = _close(name, signals)
-            raise ConfigError(
-                f"{source}: {path}: signal {name!r} not in dbc.input ({config.dbc.input.name})"
-                + (f"; did you mean {hint!r}?" if hint else "")
-            )
+        if name not in by_name:
+            hint = _close(name, by_name)
+            yield where, (f"signal {name!r} not in dbc.input ({config.dbc.input.name})"
+                          + (f"; did you mean {hint!r}?" if hint else ""))
+            continue
+        msg, sig = by_name[name]
+        if sig.is_multiplexer:
+            yield where, f"signal {name!r} is the multiplexer switch of {msg.name}, not a measurement"
+            continue
+        if sig.multiplexer_ids:
+            switch = msg.get_signal_by_name(sig.multiplexer_signal)
+            hi = min(2 ** switch.length - 1, int(switch.maximum) if switch.maximum is not None else 2 ** 63)
+            lo = max(0, int(switch.minimum) if switch.minimum is not None else 0)
+            bad = [v for v in sig.multiplexer_ids if not lo <= v <= hi]
+            if bad:
+                yield where, (f"signal {name!r} is multiplexed on {switch.name} value(s) {bad}, outside "
+                              f"the switch's range {lo}..{hi}")
 
 
 def _no_packaged(missing: Path, packaged: Callable[[str], Path]) -> str:

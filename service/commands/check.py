@@ -86,37 +86,10 @@ def _check_dbcs(config: Any, res: CheckResult) -> dict[str, Any]:
 
 
 def _check_mapping(config: Any, db: Any, res: CheckResult) -> None:
-    from service.config import _close
+    from service.config import mapping_problems
 
-    by_name = {s.name: (m, s) for m in db.messages for s in m.signals}
-    for where, name in config.mapping.all_signals():
-        if where.startswith("mapping.counter_signals."):
-            msg_name = where.split(".", 2)[2]
-            try:
-                msg = db.get_message_by_name(msg_name)
-            except KeyError:
-                res.problem(where, f"message {msg_name!r} not in dbc.input ({config.dbc.input.name})")
-                continue
-            if name not in {s.name for s in msg.signals}:
-                res.problem(where, f"signal {name!r} not in message {msg_name!r} of dbc.input")
-            continue
-        if name not in by_name:
-            hint = _close(name, by_name)
-            res.problem(where, f"signal {name!r} not in dbc.input ({config.dbc.input.name})"
-                        + (f"; did you mean {hint!r}?" if hint else ""))
-            continue
-        msg, sig = by_name[name]
-        if sig.is_multiplexer:
-            res.problem(where, f"signal {name!r} is the multiplexer switch of {msg.name}, not a measurement")
-            continue
-        if sig.multiplexer_ids:
-            switch = msg.get_signal_by_name(sig.multiplexer_signal)
-            hi = min(2 ** switch.length - 1, int(switch.maximum) if switch.maximum is not None else 2 ** 63)
-            lo = max(0, int(switch.minimum) if switch.minimum is not None else 0)
-            bad = [v for v in sig.multiplexer_ids if not lo <= v <= hi]
-            if bad:
-                res.problem(where, f"signal {name!r} is multiplexed on {switch.name} value(s) {bad}, outside "
-                            f"the switch's range {lo}..{hi}")
+    for where, why in mapping_problems(config, db):
+        res.problem(where, why)
 
 
 def _check_output(db: Any, res: CheckResult) -> None:
