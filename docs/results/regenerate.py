@@ -216,6 +216,10 @@ A123 = "$A/calce_a123_20C_{FUDS,US06}.csv --full-at 4478 --full-at 4436"
 PAN_FIT = ("socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv \\\n"
            "    --capacity-ah 2.77 --min-order 0.5 --max-seconds 150")
 CALCE_FIT = "socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --max-seconds 90"
+#: the Panasonic recordings by temperature; the 10 °C `trise` files in their own row (DESIGN §7)
+PAN_GROUPS = (("25 °C", r"_25C_"), ("10 °C (not `trise`)", r"_10C_(?!trise)"),
+              ("10 °C `trise` (truth caveat)", r"_10C_trise"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"),
+              ("−20 °C", r"_m20C_"))
 LABELLED = ("dst_s101_4e4041", "hppc_s102_131537", "bjdst_s103_55f05a", "randomwalk_s104_e90722",
             "hppc_s105_437525", "dst_s106_462959", "randomwalk_s107_cac951")
 REAL_DIAG = ("pan18650pf_m20C_trise_Cycle1", "pan18650pf_m20C_trise_Cycle1_soc0", "pan18650pf_10C_trise_Cycle1",
@@ -363,9 +367,13 @@ socd evaluate --cell out/s25/a123.toml {A123} --estimator fomiukf -q --json out/
 socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 -q -o out/s25/pan_hppc.toml
 socd evaluate --cell out/s25/pan_hppc.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC) \\
     --estimator fomiukf -q --json out/s25/pan_hppc_eval.json""",
-          group_table("s25/pan_hppc_eval.json", (
-              ("25 °C", r"_25C_"), ("10 °C (not `trise`)", r"_10C_(?!trise)"), ("10 °C `trise` (truth caveat)", r"_10C_trise"),
-              ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"), ("−20 °C", r"_m20C_"))), 60),
+          group_table("s25/pan_hppc_eval.json", PAN_GROUPS), 60),
+    Table("char_pan_us06", "characterisation.md", REAL + """\
+socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q \\
+    -o out/s25/pan_us06.toml
+socd evaluate --cell out/s25/pan_us06.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
+    --estimator fomiukf -q --json out/s25/pan_us06_eval.json""",
+          group_table("s25/pan_us06_eval.json", PAN_GROUPS), 60),
     Table("bench", "bench.md", "for k in 1 2 3; do socd bench --cells 200 --json out/bench200_$k.json; done",
           bench_table("bench200_1.json", "bench200_2.json", "bench200_3.json"), 3),
     Table("demo", "bench.md", """\
