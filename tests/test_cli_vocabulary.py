@@ -131,3 +131,18 @@ def test_forced_progress_draws_a_bar_with_eta(tmp_path: Path) -> None:
             bar.advance(1)
     text = log.read_text()
     assert "work" in text and "4/4" in text and "ETA" in text
+
+
+def test_cell_names_a_bundled_profile_when_no_such_file(tmp_path, monkeypatch) -> None:
+    """An installed socd can use its own profiles by name; a real file of that name wins."""
+    from service.assets import profile_path
+    from service.commands.common_args import cell_file
+
+    monkeypatch.chdir(tmp_path)
+    assert cell_file("panasonic_18650pf") == str(profile_path("panasonic_18650pf.toml"))
+    assert cell_file("calce_a123.toml") == str(profile_path("calce_a123.toml"))
+    assert cell_file("no_such_cell") == "no_such_cell"  # load_profile then names the missing file
+    assert cell_file("sub/panasonic_18650pf") == "sub/panasonic_18650pf"  # a path is never replaced
+    own = tmp_path / "panasonic_18650pf.toml"
+    own.write_text("x")
+    assert cell_file("panasonic_18650pf.toml") == "panasonic_18650pf.toml"

@@ -183,13 +183,26 @@ def _alias(parser: Any, old: str, new: str, dest: str, type: Callable | None = N
 # ---------------------------------------------------------------------------------------
 # the shared flags
 # ---------------------------------------------------------------------------------------
+def cell_file(text: str) -> str:
+    """A cell profile path; a name that is no file but is a bundled profile (``panasonic_18650pf``
+    or ``panasonic_18650pf.toml``) is that profile, so an installed socd can use its own."""
+    if Path(text).exists():
+        return text
+    from service.assets import profile_path
+
+    name = text if text.endswith((".toml", ".json")) else f"{text}.toml"
+    bundled = profile_path(Path(name).name)
+    return str(bundled) if "/" not in text and bundled.is_file() else text
+
+
 def add_cell_argument(parser: Any, *, required: bool = False, help: str | None = None,
                       old_profile_alias: bool = False) -> None:
     """``--cell CELL_FILE`` (``--profile`` kept as a hidden alias where it was used)."""
-    parser.add_argument("--cell", metavar="CELL_FILE", required=required, default=None,
-                        help=help or "cell profile (TOML/JSON) from 'socd fit'")
+    parser.add_argument("--cell", metavar="CELL_FILE", type=cell_file, required=required, default=None,
+                        help=(help or "cell profile (TOML/JSON) from 'socd fit'")
+                        + "; or the name of a bundled one, e.g. panasonic_18650pf")
     if old_profile_alias:
-        _alias(parser, "--profile", "--cell", "cell", metavar="CELL_FILE")
+        _alias(parser, "--profile", "--cell", "cell", type=cell_file, metavar="CELL_FILE")
 
 
 def add_soc0_argument(parser: Any, *, help: str | None = None, old_start_soc_alias: bool = False) -> None:
