@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment
 from service.cell.profile import CellProfile, Ecm2RcPoint, Ecm2RcSpec, OcvSpec, ParameterPoint
 from service.characterisation.characterise import ECM_TOLERANCE, POOR_FIT_MV, FitQualityError, FitReport, \
@@ -93,7 +94,7 @@ def test_ekf_runs_on_the_textbook_spec_not_the_fractional_parameters():
     assert par["r0"][0] == pytest.approx(TRUE["r0"])
     assert par["tau"][0, 1] == pytest.approx(TRUE["tau2_s"])
     seg = segment(4000, noise_v=0.002)
-    truth = seg.soc0 - np.cumsum(seg.current_a * np.diff(seg.time_s, prepend=0.0)) / (3600 * CAPACITY_AH)
+    truth = coulomb_soc(seg.time_s, seg.current_a, CAPACITY_AH, seg.soc0)
     rec = Recording(path=Path("sim.csv"), time_s=seg.time_s, current_a=seg.current_a, voltage_v=seg.voltage_v,
                     temperature_c=seg.temperature_c)
     trace = Ecm2RcEkf().run(rec, prof, soc0=seg.soc0 - 0.2)

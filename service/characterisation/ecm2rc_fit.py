@@ -33,6 +33,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 from scipy.optimize import lsq_linear, minimize
 
+from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment
 from service.cell.ocv import EXTRAPOLATION_SPAN, OcvTable
 
@@ -99,13 +100,6 @@ class _Prepared:
     starts: np.ndarray
 
 
-def coulomb_soc(seg: FitSegment, capacity_ah: float) -> np.ndarray:
-    """SOC of every sample of ``seg`` from its ``soc0`` by the EKF's own step (the current
-    held over the interval before each sample)."""
-    dt = np.diff(seg.time_s, prepend=seg.time_s[0])
-    return seg.soc0 - np.cumsum(seg.current_a * dt) / (3600.0 * capacity_ah)
-
-
 def _thin(segments: list[FitSegment], budget: int) -> list[FitSegment]:
     total = sum(len(s) for s in segments)
     if total <= budget:
@@ -124,7 +118,7 @@ def _prepare(segments: list[FitSegment], capacity_ah: float) -> _Prepared:
         volt.append(s.voltage_v)
         d = np.diff(s.time_s, prepend=s.time_s[0])
         dt.append(d)
-        soc.append(coulomb_soc(s, capacity_ah))
+        soc.append(coulomb_soc(s.time_s, s.current_a, capacity_ah, s.soc0))
     return _Prepared(np.concatenate(cur), np.concatenate(volt), np.concatenate(dt), np.concatenate(soc),
                      np.asarray(starts))
 
