@@ -1,24 +1,26 @@
 """Characterise a cell from recordings whose SOC is known: the engine of ``socd fit``.
 
-1. OCV(SOC) at the reference temperature: an OCV table (``--ocv``), else a slow OCV
-   test among the recordings, else a joint fit to the dynamic recordings (the OCV is
-   refined from the SOC-binned residual of the fitted model, alternating with the
-   parameter fit, and kept monotone).
-2. OCV at other temperatures: the reference curve shifted to the relaxed voltages at
-   the end of long rests (HPPC tests) at that temperature.
+1. The textbook 2-RC model per temperature group (:mod:`service.characterisation.ecm2rc_fit`):
+   the bar the fractional model must clear, stored in the profile for ``ecm2rc-ekf``.
+2. OCV(SOC): an OCV table (``--ocv``), else a slow OCV test among the recordings, both
+   shifted at other temperatures to the relaxed voltages at the end of long rests (HPPC
+   tests); else, at each temperature, the monotone OCV fitted jointly with the 2-RC model
+   in step 1 (a linear problem for each pair of time constants, so it cannot diverge).
 3. MTS-FOM parameters per temperature group with :func:`service.cell.fitting.fit_parameters`
-   (scipy differential evolution, then least squares).  Long tests are cut into
-   segments that start at the end of a rest (relaxed branches, SOC known by coulomb
-   counting) so pulses are fitted at full time resolution.
+   (scipy differential evolution, then least squares), started from the 2-RC model's
+   point and kept only where they fit better than it.  Long tests are cut into segments
+   that start at the end of a rest (relaxed branches, SOC known by coulomb counting) so
+   pulses are fitted at full time resolution.  A temperature whose fit is poor or worse
+   than the 2-RC fit is reported (:func:`check_fit_quality`), and ``socd fit`` refuses it.
 4. Optional (``--soc-resistance``): the resistances' dependence on SOC at each temperature,
    measured directly from the HPPC discharge pulses (:mod:`service.cell.soc_dependence`)
    before step 3, so the parameters are fitted with it in the model.
 5. Optional (``--slow-branch``): a slow RC branch measured from the voltage recovery in
    long rests at the reference temperature (:mod:`service.characterisation.relaxation`),
-   added before steps 1 (joint fit) and 3, so neither the jointly fitted OCV nor the
-   CPE branches have to imitate it.  Fitted segments start with it relaxed, as they do
-   the CPE branches.  The branch has no temperature dependence: it is used as measured
-   at every temperature.
+   added before step 3, so the CPE branches do not have to imitate it (the 2-RC fit of
+   step 1, and a joint OCV from it, are fitted without it).  Fitted segments start with
+   it relaxed, as they do the CPE branches.  The branch has no temperature dependence: it
+   is used as measured at every temperature.
 """
 
 from __future__ import annotations
