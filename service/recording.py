@@ -56,17 +56,20 @@ class Recording:
 
 def _first_unparsable(path: Path, text: str, idx: list[int], cols: list[str]) -> str:
     """'row N: C: ...' for the first value that is not a number (N = file line)."""
-    reader = csv.reader(io.StringIO(text))
-    next(reader, None)
-    for line, row in enumerate(reader, start=2):
-        if not row:
-            continue
-        for i, name in zip(idx, cols):
-            cell = row[i] if i < len(row) else ""
-            try:
-                float(cell)
-            except ValueError:
-                return f"row {line}: {name}: {cell!r} is not a number"
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        next(reader, None)
+        for line, row in enumerate(reader, start=2):
+            if not row:
+                continue
+            for i, name in zip(idx, cols):
+                cell = row[i] if i < len(row) else ""
+                try:
+                    float(cell)
+                except ValueError:
+                    return f"row {line}: {name}: {cell!r} is not a number"
+    except csv.Error as exc:
+        return f"row {reader.line_num}: not CSV: {exc}"
     return "a row could not be read"
 
 
@@ -94,7 +97,10 @@ def load_recording(path: str | Path, bounds: RecordingBounds | None = None) -> R
 
 def _load(path: Path, bounds: RecordingBounds | None) -> Recording:
     text = read_text(path, "recording")
-    header = [h.strip() for h in next(csv.reader(io.StringIO(text)), [])]
+    try:
+        header = [h.strip() for h in next(csv.reader(io.StringIO(text, newline="")), [])]
+    except csv.Error as exc:
+        raise InputFileError(f"{path}: row 1: not a CSV header: {exc}") from None
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
         raise InputFileError(

@@ -326,9 +326,10 @@ def fit_ecm2rc(
         out_soc, out_v = np.asarray(ocv_soc, dtype=float), np.asarray(ocv_v, dtype=float)
     else:
         out_soc, out_v = knots, knot_v
+    # the bounded solver can return -1e-18 for a resistance on its zero bound
+    r0, r1, r2 = (max(float(c), 0.0) for c in coef[:3])
     return Ecm2RcFit(
-        ocv_soc=out_soc, ocv_v=out_v, r0=float(coef[0]), r1=float(coef[1]), tau1_s=t1,
-        r2=float(coef[2]), tau2_s=t2, rmse_mv=1000.0 * float(np.sqrt(np.mean(resid**2))),
+        ocv_soc=out_soc, ocv_v=out_v, r0=r0, r1=r1, tau1_s=t1, r2=r2, tau2_s=t2, rmse_mv=1000.0 * float(np.sqrt(np.mean(resid**2))),
         n_samples=int(resid.size),
     )
 
