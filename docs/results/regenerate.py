@@ -331,7 +331,7 @@ mkdir -p out/tune   # needs the rw_ files of nested_both
 for b in 0 0.01 -0.01; do for v in cn0.05_q1e-4 cn0.05_q5e-4 cn0.05_q2e-3 cn0.1_q1e-4 cn0.1_q5e-4 cn0.1_q2e-3 cn0.2_q1e-4 cn0.4_q1e-4; do
   a=${{v#cn}}; a=${{a%_q*}}; q=${{v#*_q}}
   printf "current_noise_a = $a\\nbranch_noise_v_per_sqrt_s = $q\\n" > out/tune/g2_${{v}}_b$b.toml
-  E="--estimator fomiukf --settings out/tune/g2_${{v}}_b$b.toml --current-bias-c $b --quiet"
+  E="--estimator fomiukf --no-bar --settings out/tune/g2_${{v}}_b$b.toml --current-bias-c $b --quiet"
   socd evaluate --cell configs/cells/panasonic_18650pf.toml {PAN25} $E --json out/tune/g2_pan_${{v}}_b$b.json
   socd evaluate --cell configs/cells/calce_inr18650_20r.toml {CALCE} $E --json out/tune/g2_calce_${{v}}_b$b.json
   socd evaluate --cell configs/cells/calce_a123.toml {A123} $E --json out/tune/g2_a123_${{v}}_b$b.json
@@ -345,7 +345,7 @@ python -m research.nested_tuning --estimator fomiukf $G --json out/nested2d.json
 mkdir -p out/tune   # needs the rw_ files of nested_both
 for s0 in 0.002 0.005; do for b in 0 0.01 -0.01; do
   printf "current_bias_state = true\\ncurrent_bias_init_std_c = $s0\\n" > out/tune/bs_$s0.toml
-  E="--estimator fomiukf --settings out/tune/bs_$s0.toml --current-bias-c $b --quiet"
+  E="--estimator fomiukf --no-bar --settings out/tune/bs_$s0.toml --current-bias-c $b --quiet"
   socd evaluate --cell configs/cells/panasonic_18650pf.toml {PAN25} $E --json out/tune/bs_pan_${{s0}}_b$b.json
   socd evaluate --cell configs/cells/calce_inr18650_20r.toml {CALCE} $E --json out/tune/bs_calce_${{s0}}_b$b.json
   socd evaluate --cell configs/cells/calce_a123.toml {A123} $E --json out/tune/bs_a123_${{s0}}_b$b.json
