@@ -297,28 +297,30 @@ def characterise(
     # the textbook 2-RC model on the same segments: the bar the fractional fit must clear, and
     # (with no OCV table or test) the monotone joint OCV the fractional fit starts from
     ecm: dict[float, Ecm2RcFit] = {}
-    cap = capacity_ah
+    order = sorted(temps, key=lambda t: abs(t - ref_t))  # reference first, then outwards
+    segs_at = {t: segments_of(t) for t in order}
     n_stages = 2 * len(temps)
-    for k, t in enumerate(sorted(temps, key=lambda t: abs(t - ref_t))):
+    for k, t in enumerate(order):
         rep.stage(f"2-RC fit at {t:g} °C", k, n_stages)
-        segs = segments_of(t)
+        segs = segs_at[t]
         if not segs:
             raise FitQualityError(f"no stretch of the recordings at {t:g} °C starts from a known state above SOC "
                                   f"{MIN_FIT_SOC:g} with current on it: nothing to fit there")
         if base is not None:
-            ecm[t] = fit_ecm2rc(segs, cap, ocv_soc=grid, ocv_v=ocv_rows[t])
+            ecm[t] = fit_ecm2rc(segs, capacity_ah, ocv_soc=grid, ocv_v=ocv_rows[t])
         else:
             prior = None if t == ref_t else ecm[ref_t].ocv_v
-            ecm[t] = fit_ecm2rc(segs, cap, prior_v=prior)
+            ecm[t] = fit_ecm2rc(segs, capacity_ah, prior_v=prior)
         f = ecm[t]
         rep.say(f"textbook 2-RC at {t:g} °C: R0 {f.r0 * 1e3:.1f} mΩ, R1 {f.r1 * 1e3:.1f} mΩ / τ1 {f.tau1_s:.1f} s, "
                 f"R2 {f.r2 * 1e3:.1f} mΩ / τ2 {f.tau2_s:.0f} s; fit RMSE {f.rmse_mv:.1f} mV"
                 + (" (OCV fitted jointly)" if base is None else ""))
+    # the 2-RC model's own OCV: the given one, or its joint fit (before any --rest-anchor shift)
+    ecm_rows = {t: ocv_rows[t] if base is not None else make_monotone(ecm[t].ocv_on(grid)) for t in temps}
     if base is None:
         rep.say("OCV: no table or OCV test given: the monotone OCV fitted jointly with the textbook 2-RC model "
                 "at each temperature")
-        for t in temps:
-            ocv_rows[t] = make_monotone(ecm[t].ocv_on(grid))
+        ocv_rows.update(ecm_rows)
         if rest_anchor:
             anchors = points_by_t[ref_t]
             if not anchors:
@@ -329,7 +331,7 @@ def characterise(
             ocv_rows[ref_t] = ocv_row_from_rests(grid, ocv_rows[ref_t], anchors, min_points=1)
     ecm_spec = Ecm2RcSpec(
         ocv=OcvSpec(soc=grid.tolist(), temps_c=temps,
-                    ocv_v=[(make_monotone(ecm[t].ocv_on(grid)) if base is None else ocv_rows[t]).tolist() for t in temps]),
+                    ocv_v=[ecm_rows[t].tolist() for t in temps]),
         points=[Ecm2RcPoint(temp_c=t, r0=max(ecm[t].r0, 1e-6), r1=ecm[t].r1, tau1_s=ecm[t].tau1_s, r2=ecm[t].r2,
                             tau2_s=ecm[t].tau2_s, fit_rmse_mv=round(ecm[t].rmse_mv, 3)) for t in temps],
     )
@@ -340,9 +342,9 @@ def characterise(
         prof = prof.model_copy(update={"extensions": prof.extensions.model_copy(update={"soc_resistance": spec})})
     points: dict[float, ParameterPoint] = {}
     hyst: HysteresisSpec | None = None
-    for k, t in enumerate(sorted(temps, key=lambda t: abs(t - ref_t))):
+    for k, t in enumerate(order):
         rep.stage(f"fractional fit at {t:g} °C", len(temps) + k, n_stages)
-        segs = segments_of(t)
+        segs = segs_at[t]
         rep.say(f"fitting parameters at {t:g} °C on {len(segs)} segment(s), {sum(len(s) for s in segs)} samples "
                 f"(≤ {max_seconds:g} s)...")
         warmer = colder = None
