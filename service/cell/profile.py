@@ -179,6 +179,15 @@ class Extensions(_Strict):
     soc_resistance: SocResistanceSpec | None = None
 
 
+def sorted_by_temperature(points: list, what: str) -> list:
+    """``points`` (anything with ``temp_c``) sorted by temperature; a repeated temperature is an
+    error naming ``what``."""
+    temps = [p.temp_c for p in points]
+    if len(set(temps)) != len(temps):
+        raise ValueError(f"duplicate temperatures in {what}: {temps}")
+    return sorted(points, key=lambda p: p.temp_c)
+
+
 class Ecm2RcPoint(_Strict):
     """Textbook 2-RC parameters at one temperature (``V = OCV - R0 I - U1 - U2``)."""
 
@@ -202,10 +211,7 @@ class Ecm2RcSpec(_Strict):
     @field_validator("points")
     @classmethod
     def _sorted(cls, v: list[Ecm2RcPoint]) -> list[Ecm2RcPoint]:
-        temps = [p.temp_c for p in v]
-        if len(set(temps)) != len(temps):
-            raise ValueError(f"duplicate temperatures in ecm2rc points: {temps}")
-        return sorted(v, key=lambda p: p.temp_c)
+        return sorted_by_temperature(v, "ecm2rc points")
 
     def ocv_table(self) -> OcvTable:
         return OcvTable.from_points(np.array(self.ocv.soc), np.array(self.ocv.ocv_v), np.array(self.ocv.temps_c))
@@ -241,14 +247,12 @@ class CellProfile(_Strict):
     @field_validator("parameters")
     @classmethod
     def _sorted(cls, v: list[ParameterPoint]) -> list[ParameterPoint]:
-        temps = [p.temp_c for p in v]
-        if len(set(temps)) != len(temps):
-            raise ValueError(f"duplicate temperatures in parameters: {temps}")
+        ordered = sorted_by_temperature(v, "parameters")
         with_i0 = [p.i0_a is not None for p in v]
         if any(with_i0) and not all(with_i0):
             raise ValueError("i0_a must be given at every temperature or at none "
                              f"(given at {[p.temp_c for p in v if p.i0_a is not None]})")
-        return sorted(v, key=lambda p: p.temp_c)
+        return ordered
 
     @model_validator(mode="after")
     def _kinetic_floor(self) -> CellProfile:
