@@ -125,7 +125,12 @@ def expand_pack(
 
     capacity = profile.effective_capacity_ah
     cap_i = capacity * (1.0 + d_cap)
-    soc0 = estimate_start_soc(recording, profile) if start_soc is None else float(start_soc)
+    if start_soc is not None:
+        soc0 = float(start_soc)
+    elif recording.soc_true is not None and np.isfinite(recording.soc_true[0]):
+        soc0 = float(np.clip(recording.soc_true[0], 0.0, 1.0))  # a recorded truth beats an OCV reading
+    else:
+        soc0 = estimate_start_soc(recording, profile)
     i = recording.current_a
     q_ah = np.cumsum(i * recording.dt_s()) / SECONDS_PER_HOUR  # backward ZOH, first step 0
     soc_ref = soc0 - q_ah / capacity

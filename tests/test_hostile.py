@@ -264,7 +264,9 @@ def drive8():
     rec = load_recording(RECORDING)
     config = build_config({"cell_profile": str(DEFAULT_CELL_PROFILE), "pack": {"n_cells": 8},
                            "dbc": {"input": str(DEFAULT_INPUT_DBC), "output": str(DEFAULT_OUTPUT_DBC)}})
-    frames, pack = pack_frames(rec, config, profile, 8, SpreadSpec(soc=0.02, capacity=0.02), seed=11)
+    # the recording starts at full charge (the data README; socd evaluate scores it from 1.0), so the
+    # pack's truth starts there, not at the OCV table's reading of the first voltage
+    frames, pack = pack_frames(rec, config, profile, 8, SpreadSpec(soc=0.02, capacity=0.02), seed=11, start_soc=1.0)
     return frames, pack, profile
 
 
@@ -332,12 +334,14 @@ def test_restart_after_five_minutes_down_widens_sigma_and_recovers(tmp_path: Pat
     assert np.all(err_first <= 2.0 * std_first), (err_first, std_first)  # σ covers the error
     assert np.all(std_first >= config.checkpoint.aged_c_rate * 300.0 / 3600.0)
     assert b.status_flags()["state_aged"] and b.counters()["checkpoint_aged"] == 1
-    t_end, soc_end, _ = hist[-1]
-    assert t_end - restart_at >= 300.0
-    err_end = np.abs(soc_end - truth[round(t_end, 3)])
-    # the filter pulls the aged state back towards the truth (how fast is a matter of the
-    # estimator's tuning, not of the restart)
-    assert np.all(err_end < err_first), (err_end, err_first)
+    # five minutes of driving later every cell is back under 1 %, and
+    # from then on the reported σ is not off by more than 3σ
+    late = [(t, soc, std) for t, soc, std in hist if t - restart_at >= 300.0]
+    assert late, "the drive ended before five minutes"
+    for t, soc, std in late:
+        err = np.abs(soc - truth[round(t, 3)])
+        assert np.all(err < 0.01), (t - restart_at, err)
+        assert np.all(err <= 3.0 * std), (t - restart_at, err, std)
 
 
 @needs_recording

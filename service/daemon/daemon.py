@@ -28,7 +28,7 @@ and a cell that is invalid from the start does not hold the others back.
 A restored state is only as good as its age: the checkpoint's frame time is compared with
 the first new sample.  Past ``checkpoint.max_age_s`` the pack may have moved while the
 daemon was down, so every cell's SOC σ is widened by ``checkpoint.aged_c_rate`` × age (in
-hours of 1 C); if the age cannot be known (the new timeline is more than ``max_age_s``
+hours of 1 C) and its polarisation branches' σ to what that current would hold; if the age cannot be known (the new timeline is more than ``max_age_s``
 before the checkpoint, or the checkpoint has no time), the cells restart from OCV.  Either way ``state_aged`` is
 raised.  A sample marked ``reanchored`` by the decoder (its clock jumped) is not
 integrated: the time since the previous sample is unknown.
@@ -435,10 +435,9 @@ class Daemon:
             return  # recent (a slightly earlier first sample is frame-time jitter, not a new timeline)
         self.health.raise_flag("state_aged")
         self._state_aged = True
-        widen = getattr(self.estimator, "widen_soc_std", None)
+        widen = getattr(self.estimator, "widen_for_downtime", None)
         if age is not None and np.isfinite(age) and age > 0.0 and widen is not None:
-            extra = ck.aged_c_rate * age / 3600.0  # SOC fraction the pack may have moved
-            widen(extra)
+            extra = widen(age, ck.aged_c_rate)  # SOC fraction the pack may have moved
             self.health.count("checkpoint_aged")
             log.warning("restored state is %.0f s old: SOC sigma widened by %.2f %%", age, 100 * extra)
             return

@@ -198,6 +198,23 @@ class PackEstimator:
         var = np.minimum(ukf.P[:, i, i] + extra**2, max_std**2)
         ukf.P[:, i, i] = np.maximum(var, ukf.P[:, i, i])
 
+    def widen_for_downtime(self, age_s: float, c_rate: float, max_soc_std: float = 0.5) -> float:
+        """Widen a restored state that is ``age_s`` old; returns the SOC σ added (fraction).
+
+        While the service was down the pack may have carried up to ``c_rate`` × 1 C, so the
+        SOC may have moved by ``c_rate`` × ``age_s`` / 3600 (added in quadrature, see
+        :meth:`widen_soc_std`), and every polarisation branch (Zeng Eq. 3) may hold anything
+        up to the voltage it settles to at that current, R_k × I: each branch's σ is raised
+        to at least that.  Without the branch widening the filter explains the stale branch
+        voltages with SOC, and its SOC σ collapses while the error stays."""
+        moved = float(c_rate) * max(float(age_s), 0.0) / SECONDS_PER_HOUR
+        self.widen_soc_std(moved, max_soc_std)
+        current = float(c_rate) * self.profile.effective_capacity_ah
+        P = self.ukf.P
+        for k in range(self.n_branches):
+            P[:, k, k] = np.maximum(P[:, k, k], (self.params.r[:, k] * current) ** 2)
+        return moved
+
     def warm_start(self, history: Recording, cells: np.ndarray | None = None) -> None:
         """Drive ``cells``' polarisation states with the current recorded before the start.
 
