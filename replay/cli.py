@@ -91,7 +91,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     g.add_argument("--record", metavar="OUT", help="write the frames to a python-can log "
                    "(" + ", ".join(LOG_SUFFIXES) + "); with no bus flags only the log is written")
     g.add_argument("--no-send", action="store_true", help="do not open a bus")
-    add_common_arguments(p, progress=True, old_no_progress_alias=True)
+    add_common_arguments(p, progress=True, old_no_progress_alias=True, bounds=True)
     p.set_defaults(func=run)
     return p
 

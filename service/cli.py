@@ -14,6 +14,7 @@ import sys
 
 from service import __version__
 from service.extras import missing_extra
+from service.commands.common_args import apply_bounds
 from service.errors import UserError
 
 __all__ = ["SUBCOMMANDS", "UserError", "build_parser", "main"]
@@ -73,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        apply_bounds(args)
         return int(args.func(args) or 0)
     except UserError as exc:
         print(f"socd {args.command}: error: {exc}", file=sys.stderr)

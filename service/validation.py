@@ -25,7 +25,7 @@ import logging
 import math
 import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 from pathlib import Path
 
@@ -108,6 +108,18 @@ class RecordingBounds:
 
 
 DEFAULT_BOUNDS = RecordingBounds()
+
+
+def use_bounds(overrides: Mapping[str, tuple[float, float]]) -> RecordingBounds:
+    """Replace some fields of the bounds every loader checks against by default (the
+    commands' ``--bounds FIELD=LO:HI``); returns the bounds now in use."""
+    global DEFAULT_BOUNDS
+    unknown = sorted(set(overrides) - set(RecordingBounds.__dataclass_fields__))
+    if unknown:
+        raise ValueError(f"unknown bound field(s) {', '.join(unknown)}; known: "
+                         + ", ".join(RecordingBounds.__dataclass_fields__))
+    DEFAULT_BOUNDS = replace(DEFAULT_BOUNDS, **{k: (float(lo), float(hi)) for k, (lo, hi) in overrides.items()})
+    return DEFAULT_BOUNDS
 
 
 def check_values(path: str | Path, columns: Mapping[str, np.ndarray],

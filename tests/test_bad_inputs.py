@@ -165,6 +165,27 @@ def test_evaluate_and_fit_refuse_bad_recordings(tmp_path: Path, capsys, name: st
     assert not out.exists() and not prof.exists()
 
 
+def test_bounds_flag_narrows_the_plausible_range(tmp_path: Path, capsys, monkeypatch) -> None:
+    """``--bounds`` replaces a column's range for every loader of the command: a recording inside
+    the default range but outside the user's is refused with its row and field."""
+    import service.validation as validation
+
+    monkeypatch.setattr(validation, "DEFAULT_BOUNDS", validation.DEFAULT_BOUNDS)  # restored after the test
+    path = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    out = tmp_path / "out.json"
+    code, err = run_cli(capsys, ["evaluate", str(path), "--cell", str(DEFAULT_CELL_PROFILE), "--json", str(out),
+                                 "--quiet", "--bounds", "voltage_v=3.65:4.3"])
+    assert_one_line_error(code, err, str(path))
+    assert "voltage_v" in err and "row" in err and not out.exists()
+
+
+@pytest.mark.parametrize("spec", ["voltage=0:5", "voltage_v=5:0", "voltage_v=0", "voltage_v=a:b", "voltage_v=0:inf"])
+def test_bad_bounds_flag_is_an_argument_error(tmp_path: Path, capsys, spec: str) -> None:
+    path = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["evaluate", str(path), "--cell", str(DEFAULT_CELL_PROFILE), "--bounds", spec])
+    assert code == 2 and "argument --bounds" in err and "Traceback" not in err, err
+
+
 @pytest.mark.parametrize("table", ["nan", "binary", "duplicate", "volts_in_mv"])
 def test_fit_refuses_bad_ocv_tables(tmp_path: Path, capsys, table: str) -> None:
     ocv = tmp_path / f"ocv_{table}.csv"

@@ -11,6 +11,7 @@ flag                meaning
 ``--log-level``     ``debug|info|warning|error``
 ``--json OUT``      results as JSON to a file, or ``-`` for stdout (human text then goes to
                     stderr so stdout stays valid JSON)
+``--bounds``        ``FIELD=LO:HI``, a recording column's plausibility range (commands reading recordings)
 ==================  =====================================================================
 
 Older spellings still parse as hidden, deprecated aliases that say so on stderr:
@@ -145,6 +146,23 @@ def bus_gap(text: str) -> tuple[float, float]:
             f"expected T0:DURATION (T0 >= 0 s, DURATION > 0 s), got {text!r}") from None
 
 
+def value_bound(text: str) -> tuple[str, tuple[float, float]]:
+    """``FIELD=LO:HI`` -> (field, (lo, hi)): a recording column's plausibility range."""
+    from service.validation import RecordingBounds
+
+    field, sep, rng = text.partition("=")
+    lo_s, sep2, hi_s = rng.partition(":")
+    known = tuple(RecordingBounds.__dataclass_fields__)
+    if not sep or not sep2:
+        raise argparse.ArgumentTypeError(f"expected FIELD=LO:HI (e.g. voltage_v=0:5), got '{text}'")
+    if field not in known:
+        raise argparse.ArgumentTypeError(f"unknown field '{field}'; one of {', '.join(known)}")
+    lo, hi = finite_float(lo_s), finite_float(hi_s)
+    if not lo < hi:
+        raise argparse.ArgumentTypeError(f"{field}: LO must be below HI, got {lo:g}:{hi:g}")
+    return field, (lo, hi)
+
+
 def full_at(text: str) -> str:
     """``auto`` or a time in s (>= 0); kept as text for :func:`service.cell.truth.per_recording`."""
     if text.strip().lower() == "auto":
@@ -232,10 +250,33 @@ def add_json_argument(parser: Any, what: str = "the results") -> None:
                         help=f"write {what} as JSON to OUT ('-' = stdout; the text summary then goes to stderr)")
 
 
+def add_bounds_argument(parser: Any) -> None:
+    """``--bounds FIELD=LO:HI`` on every command that reads recordings."""
+    from service.validation import DEFAULT_BOUNDS, RecordingBounds
+
+    now = ", ".join(f"{f} {DEFAULT_BOUNDS.of(f)[0]:g}:{DEFAULT_BOUNDS.of(f)[1]:g}"
+                    for f in RecordingBounds.__dataclass_fields__)
+    parser.add_argument("--bounds", action="append", type=value_bound, default=None, metavar="FIELD=LO:HI",
+                        help=f"plausibility range of a recording column; a value outside is refused "
+                             f"with its file, row and field (repeat per field; defaults: {now})")
+
+
+def apply_bounds(args: argparse.Namespace) -> None:
+    """Make ``--bounds`` the range every recording loader of this process checks."""
+    if getattr(args, "bounds", None):
+        from service.validation import use_bounds
+
+        use_bounds(dict(args.bounds))
+
+
 def add_common_arguments(parser: argparse.ArgumentParser, *, progress: bool = False, json_out: str | None = None,
-                         log_level: str = "warning", old_no_progress_alias: bool = False) -> None:
-    """``--log-level`` on every command; ``--quiet/--progress`` and ``--json`` where they apply."""
+                         log_level: str = "warning", old_no_progress_alias: bool = False,
+                         bounds: bool = False) -> None:
+    """``--log-level`` on every command; ``--quiet/--progress``, ``--json`` and ``--bounds``
+    (commands that read recordings) where they apply."""
     add_log_level_argument(parser, log_level)
+    if bounds:
+        add_bounds_argument(parser)
     if progress:
         add_progress_arguments(parser, old_no_progress_alias=old_no_progress_alias)
     if json_out is not None:

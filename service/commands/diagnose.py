@@ -53,7 +53,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "away from it and whose temperature then moves by 2 K or more has its temperature effect "
                    "nominated; 'none' judges the temperature only by how well a constant ambient explains it")
     p.add_argument("--seed", type=int, default=0)
-    add_common_arguments(p, progress=True, json_out="the result")
+    add_common_arguments(p, progress=True, json_out="the result", bounds=True)
     p.set_defaults(func=run)
 
 

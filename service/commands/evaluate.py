@@ -65,7 +65,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--traces", metavar="DIR",
                    help="write <recording>_traces.csv per recording: time, truth, measured voltage and each "
                         "estimator's SOC and predicted voltage over the scored part (to look into a figure)")
-    add_common_arguments(p, progress=True, json_out="the results")
+    add_common_arguments(p, progress=True, json_out="the results", bounds=True)
     p.set_defaults(func=run)
 
 

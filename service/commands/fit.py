@@ -70,7 +70,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", help="profile to write (.toml or .json)")
-    add_common_arguments(p, progress=True)
+    add_common_arguments(p, progress=True, bounds=True)
     p.set_defaults(func=run)
 
 
