@@ -93,6 +93,34 @@ def leave_one_out(values: list[str], conditions: list[str], grid: dict) -> list[
     return rows
 
 
+def cell_means(values: list[str], conditions: list[str], grid: dict) -> dict[str, dict[str, dict[str, float]]]:
+    """{cell: {value: {condition: mean score over the cell's recordings}}}."""
+    out: dict = {}
+    for cell, recs in grid.items():
+        out[cell] = {v: {c: sum(by_value[v][c] for by_value in recs.values()) / len(recs) for c in conditions}
+                     for v in values}
+    return out
+
+
+def leave_one_cell_out(values: list[str], conditions: list[str], grid: dict) -> list[dict]:
+    """One row per cell: the value that does best on the *other* cells (each cell weighted
+    equally, pooled over every condition) and the held-out cell's scores at it.  This is how
+    a default is chosen for cells nobody has seen (DESIGN §7 and the generalisation rule)."""
+    means = cell_means(values, conditions, grid)
+    pooled = {cell: {v: sum(by_c.values()) / len(conditions) for v, by_c in by_value.items()}
+              for cell, by_value in means.items()}
+    rows = []
+    for cell in means:
+        others = [pooled[c] for c in means if c != cell]
+        row = {"cell": cell, "recording": f"{cell} (all)", "mean_by_value": pooled[cell], "chosen": None, "scores": None}
+        if others:
+            score = {v: sum(o[v] for o in others) / len(others) for v in values}
+            chosen = min(values, key=lambda v: (score[v], values.index(v)))
+            row.update(chosen=chosen, scores=dict(means[cell][chosen]))
+        rows.append(row)
+    return rows
+
+
 def markdown(values: list[str], conditions: list[str], tuned: dict[str, list[dict]]) -> str:
     """One table: per estimator the value chosen for each recording and its scores at it; with a
     single estimator also every recording's mean score at each value of the grid."""
@@ -134,13 +162,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="estimator whose rows are tuned, e.g. fomiukf (repeat to tune several side by side, "
                         "each on its own)")
     p.add_argument("--metric", default=METRIC, help=f"score to minimise (default {METRIC})")
+    p.add_argument("--by", choices=("recording", "cell"), default="recording",
+                   help="leave one recording out within its cell (default), or one whole cell out: the value "
+                        "chosen on the other cells is scored on the held-out cell (how defaults are chosen)")
     p.add_argument("--json", metavar="OUT", help="write the rows as JSON")
     args = p.parse_args(argv)
     tuned: dict[str, list[dict]] = {}
     try:
         for est in args.estimator:
             values, conditions, grid = load_grid(args.pairs, est, args.metric)
-            tuned[est] = leave_one_out(values, conditions, grid)
+            choose = leave_one_cell_out if args.by == "cell" else leave_one_out
+            tuned[est] = choose(values, conditions, grid)
     except GridError as exc:
         print(f"nested_tuning: error: {exc}", file=sys.stderr)
         return 2

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from research.nested_tuning import GridError, leave_one_out, load_grid, main
+from research.nested_tuning import GridError, leave_one_cell_out, leave_one_out, load_grid, main
 
 pytestmark = pytest.mark.research
 
@@ -89,3 +89,20 @@ def test_two_estimators_side_by_side_each_tuned_on_its_own(tmp_path: Path, capsy
     assert "| a | hi | **0.10** | hi | **0.40** |" in out
     assert "| b | hi | **0.20** | lo | **0.30** |" in out
     assert "mean at" not in out
+
+
+def test_leave_one_cell_out_scores_each_cell_with_the_value_the_others_chose(tmp_path: Path) -> None:
+    """Cells weigh the same however many recordings they have; a cell never votes for itself."""
+    pairs = []
+    for v, scores in (("lo", {"A": {"a1": 0.2, "a2": 0.2, "a3": 0.2}, "B": {"b": 0.3}, "C": {"c": 0.9}}),
+                      ("hi", {"A": {"a1": 0.3, "a2": 0.3, "a3": 0.3}, "B": {"b": 0.6}, "C": {"c": 0.1}})):
+        for cell, s in scores.items():
+            pairs.append(f"{v}={_results(tmp_path / f'{v}{cell}.json', cell, s)}")
+    values, conds, grid = load_grid(pairs, "ecm2rc-ekf")
+    rows = {r["cell"]: r for r in leave_one_cell_out(values, conds, grid)}
+    # A held out: B (lo 0.3, hi 0.6) and C (0.9, 0.1) -> lo 0.6, hi 0.35 -> hi, scored 0.3
+    assert rows["A"]["chosen"] == "hi" and rows["A"]["scores"]["bias +0C"] == pytest.approx(0.3)
+    # C held out: A (0.2, 0.3), B (0.3, 0.6) -> lo; C scores 0.9 although hi gives 0.1 on it
+    assert rows["C"]["chosen"] == "lo" and rows["C"]["scores"]["bias +0C"] == pytest.approx(0.9)
+    assert rows["B"]["chosen"] == "hi" and rows["B"]["scores"]["bias +0C"] == pytest.approx(0.6)
+    assert main(["--by", "cell", "--estimator", "ecm2rc-ekf", *pairs]) == 0
