@@ -42,7 +42,10 @@ def _condition(doc: dict) -> str:
 
 
 def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[list[str], list[str], dict]:
-    """``VALUE=JSON`` pairs -> (values, conditions, {cell: {recording: {value: {condition: score}}}}).
+    """``VALUE=JSON[@CELL]`` pairs -> (values, conditions, {cell: {recording: {value: {condition: score}}}}).
+
+    The cell is the profile named in the JSON unless ``@CELL`` names it (two profiles of one
+    cell, e.g. characterised from different data, then count as one cell).
 
     A condition is what a file was run under (``socd evaluate --current-bias-c``); the same
     recording under several conditions is scored by its mean over them."""
@@ -51,8 +54,9 @@ def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[l
     grid: dict = defaultdict(lambda: defaultdict(lambda: defaultdict(dict)))
     for pair in pairs:
         value, sep, path = pair.partition("=")
+        path, _, cell_name = path.partition("@")
         if not sep or not value or not path:
-            raise GridError(f"'{pair}': expected VALUE=RESULTS.json")
+            raise GridError(f"'{pair}': expected VALUE=RESULTS.json[@CELL]")
         doc = _read(path)
         rows = [r for r in doc.get("results", []) if r.get("estimator") == estimator]
         if not rows:
@@ -60,7 +64,7 @@ def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[l
         cond = _condition(doc)
         values += [value] if value not in values else []
         conditions += [cond] if cond not in conditions else []
-        cell = str(doc.get("cell", path))
+        cell = cell_name or str(doc.get("cell", path))
         for r in rows:
             score = r.get(metric)
             if score is None:
@@ -156,8 +160,9 @@ def main(argv: list[str] | None = None) -> int:
         description="Leave-one-out choice of a tuning value: each recording is scored with the value that "
                     "did best on the other recordings of its cell (never on itself).",
     )
-    p.add_argument("pairs", nargs="+", metavar="VALUE=RESULTS.json",
-                   help="a 'socd evaluate --json' file run with the setting at VALUE (repeat per file)")
+    p.add_argument("pairs", nargs="+", metavar="VALUE=RESULTS.json[@CELL]",
+                   help="a 'socd evaluate --json' file run with the setting at VALUE (repeat per file); @CELL "
+                        "names its cell when it is not the profile in the file")
     p.add_argument("--estimator", action="append", required=True,
                    help="estimator whose rows are tuned, e.g. fomiukf (repeat to tune several side by side, "
                         "each on its own)")

@@ -106,3 +106,12 @@ def test_leave_one_cell_out_scores_each_cell_with_the_value_the_others_chose(tmp
     assert rows["C"]["chosen"] == "lo" and rows["C"]["scores"]["bias +0C"] == pytest.approx(0.9)
     assert rows["B"]["chosen"] == "hi" and rows["B"]["scores"]["bias +0C"] == pytest.approx(0.6)
     assert main(["--by", "cell", "--estimator", "ecm2rc-ekf", *pairs]) == 0
+
+
+def test_at_cell_joins_two_profiles_of_one_cell(tmp_path: Path) -> None:
+    a = _results(tmp_path / "a.json", "profile_hppc.toml", {"r1": 0.5})
+    b = _results(tmp_path / "b.json", "profile_us06.toml", {"r2": 0.7})
+    values, conds, grid = load_grid([f"v={a}@pan", f"v={b}@pan"], "ecm2rc-ekf")
+    assert list(grid) == ["pan"] and set(grid["pan"]) == {"r1", "r2"}
+    with pytest.raises(GridError):
+        load_grid(["v="], "ecm2rc-ekf")
