@@ -14,8 +14,8 @@ import sys
 
 from service import __version__
 from service.extras import missing_extra
-from service.commands.common_args import apply_bounds
 from service.errors import UserError
+from service.validation import use_bounds
 
 __all__ = ["SUBCOMMANDS", "UserError", "build_parser", "main"]
 
@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        apply_bounds(args)
+        if getattr(args, "bounds", None):  # --bounds: the ranges every recording loader checks
+            use_bounds(dict(args.bounds))
         return int(args.func(args) or 0)
     except UserError as exc:
         print(f"socd {args.command}: error: {exc}", file=sys.stderr)

@@ -261,14 +261,6 @@ def add_bounds_argument(parser: Any) -> None:
                              f"with its file, row and field (repeat per field; defaults: {now})")
 
 
-def apply_bounds(args: argparse.Namespace) -> None:
-    """Make ``--bounds`` the range every recording loader of this process checks."""
-    if getattr(args, "bounds", None):
-        from service.validation import use_bounds
-
-        use_bounds(dict(args.bounds))
-
-
 def add_common_arguments(parser: argparse.ArgumentParser, *, progress: bool = False, json_out: str | None = None,
                          log_level: str = "warning", old_no_progress_alias: bool = False,
                          bounds: bool = False) -> None:
