@@ -274,3 +274,28 @@ def test_daemon_rate_limit_holds_per_key_and_the_last_estimate_arrives(tmp_path:
     assert result["fed"] > 3 * bound  # the feed really was faster than the limit
     assert 2 <= result["summaries"] <= bound and 2 <= result["cell0"] <= bound
     assert result["rate_limited"] > 0
+
+
+def test_fast_cell_json_is_the_model_s_json() -> None:
+    """The publisher's one-pass JSON for the SOC keys equals the CellSoc model's, field for field
+    (NaN and inf as null, stale flags, resets, before and after the first estimate)."""
+    import json
+
+    from service.daemon.zenoh_pub import cell_soc_json, cell_soc_payload
+
+    n = 9
+    soc = np.linspace(0.1, 0.9, n)
+    soc[2], soc[3] = np.nan, np.inf
+    volts = np.full(n, 3.712345678)
+    volts[5] = np.nan
+    for initialised in (True, False):
+        for v_pred in (np.full(n, 3.70001), None):
+            r = PublishRound(t_s=1732443600.123456, soc=soc, soc_std=np.full(n, 0.0123456), voltage_v=volts,
+                             stale=np.arange(n) % 3 == 0, params={}, health=None, status_flags={},
+                             v_pred=v_pred, resets=np.arange(n), initialised=initialised, full=False)
+            idx = np.array([0, 2, 3, 5, 8])
+            fast = cell_soc_json('pack "q"', r, idx)
+            for i, body in zip(idx, fast):
+                model = cell_soc_payload('pack "q"', r, int(i))
+                assert json.loads(body) == json.loads(model.model_dump_json())
+                assert CellSoc.model_validate_json(body) == model
