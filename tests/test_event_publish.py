@@ -80,6 +80,8 @@ def test_key_rate_limit_holds_per_key_and_keeps_the_newest() -> None:
     lim.sent("a", 0.1)
     assert lim.due(0.5) == [] and lim.next_due() is None
     assert lim.offer("a", 4, now=0.2)  # a full interval later: goes at once
+    lim.sent("a", 0.2)
+    assert not lim.offer("a", 5, now=0.21, hold=False) and "a" not in lim.pending  # a repeat is skipped
     free = KeyRateLimit(0.0)
     assert all(free.offer("k", i, now=0.0) for i in range(5))
 

@@ -15,7 +15,8 @@ health; the daemon sends one every ``output.zenoh_period_s``) and an *estimate* 
 one after every estimator step, so a dashboard sees a change within milliseconds).  Every
 key is rate-limited on its own: a key put less than ``min_interval_s`` ago is held back,
 its newest value put as soon as its interval has passed (counted ``zenoh_rate_limited``
-when a newer value replaced a held one).  The ``publish`` latency is from a frame's wall
+when a newer value replaced a held one); a full round's SOC and summary keys, repeats of
+what the estimate rounds put, are skipped instead of held.  The ``publish`` latency is from a frame's wall
 time to the ``put`` of the summary of the estimate round that carried it (all its cells
 are put before the summary).
 
@@ -278,12 +279,15 @@ class KeyRateLimit:
         self.pending: dict[str, Any] = {}
         self.superseded = 0
 
-    def offer(self, key: str, item: Any, now: float) -> bool:
-        """True: put ``key`` now (and call :meth:`sent`); False: held as pending."""
+    def offer(self, key: str, item: Any, now: float, hold: bool = True) -> bool:
+        """True: put ``key`` now (and call :meth:`sent`); False: held as pending (with ``hold``),
+        or skipped (without: a repeat of a value already put or pending)."""
         last = self.last_put.get(key)
         if last is None or now - last >= self.min_interval_s:
             self.pending.pop(key, None)
             return True
+        if not hold:
+            return False
         if key in self.pending:
             self.superseded += 1
         self.pending[key] = item
@@ -504,7 +508,11 @@ class ZenohPublisher:
             items.append((k.health, "health", -1))
         now = time.monotonic()
         superseded = self._limit.superseded
-        self._put_all([(key, (r, kind, i)) for key, kind, i in items if self._limit.offer(key, (r, kind, i), now)])
+        # A full round's SOC and summary repeat what the estimate rounds already put (the
+        # estimator has not moved since): held back by the limit, they are skipped, not queued.
+        repeat = r.full
+        self._put_all([(key, (r, kind, i)) for key, kind, i in items
+                       if self._limit.offer(key, (r, kind, i), now, hold=not (repeat and kind in ("soc", "summary")))])
         self.health.count("zenoh_rate_limited", self._limit.superseded - superseded)
         self.rounds_published += 1
 
