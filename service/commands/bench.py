@@ -35,7 +35,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         "report frame-to-Zenoh-put and frame-to-subscriber p50/p99")
     p.add_argument("--rate-hz", type=positive_float, default=10.0, help="--latency: samples per second (default 10)")
     p.add_argument("--seconds", type=positive_float, default=60.0,
-                   help="--latency: seconds measured, after a 5 s warm-up (default 60)")
+                   help="--latency: seconds measured, after the warm-up (default 60)")
+    p.add_argument("--warmup", type=positive_float, default=5.0, metavar="S",
+                   help="--latency: seconds run before measuring (default 5)")
     add_cell_argument(p, help="cell profile (default: the bundled Panasonic 18650PF)")
     add_common_arguments(p, json_out="the results")
     p.set_defaults(func=run)
@@ -126,7 +128,7 @@ def _latency(args: argparse.Namespace) -> int:
 
     if args.cells > 256:
         raise UserError(f"--latency: --cells must be ≤ 256 (the output frames' cell index), not {args.cells}")
-    result = run_latency(args.cells, args.rate_hz, args.seconds, profile_path=args.cell)
+    result = run_latency(args.cells, args.rate_hz, args.seconds, args.warmup, profile_path=args.cell)
     print(result_text(result), file=text_stream(args))
     write_json(args.json, result.to_json())
     return 0

@@ -350,6 +350,8 @@ class ZenohPublisher:
         self._latest_full: PublishRound | None = None
         self._latest_lock = threading.Lock()
         self._limit = KeyRateLimit(min_interval_s)
+        self._soc_keys: list[str] = []
+        self._params_keys: list[str] = []
         self._backoff_initial = backoff_initial_s
         self._backoff_max = backoff_max_s
         self._state = _SessionState()
@@ -500,9 +502,10 @@ class ZenohPublisher:
             if r.full:
                 self._latest_full = r
         k = self.keys
-        items: list[tuple[str, str, int]] = [(k.cell_soc(int(i)), "soc", int(i)) for i in r.cell_indices()]
+        soc_keys, params_keys = self._cell_keys(r.n_cells)
+        items: list[tuple[str, str, int]] = [(soc_keys[i], "soc", i) for i in r.cell_indices().tolist()]
         if r.full:
-            items += [(k.cell_params(i), "params", i) for i in range(r.n_cells)]
+            items += [(params_keys[i], "params", i) for i in range(r.n_cells)]
         items.append((k.summary, "summary", -1))
         if r.full and r.health is not None:
             items.append((k.health, "health", -1))
@@ -515,6 +518,13 @@ class ZenohPublisher:
                        if self._limit.offer(key, (r, kind, i), now, hold=not (repeat and kind in ("soc", "summary")))])
         self.health.count("zenoh_rate_limited", self._limit.superseded - superseded)
         self.rounds_published += 1
+
+    def _cell_keys(self, n: int) -> tuple[list[str], list[str]]:
+        """The per-cell key expressions (made once: a round uses hundreds of them)."""
+        if len(self._soc_keys) < n:
+            self._soc_keys = [self.keys.cell_soc(i) for i in range(n)]
+            self._params_keys = [self.keys.cell_params(i) for i in range(n)]
+        return self._soc_keys, self._params_keys
 
     def _flush_due(self) -> None:
         """Put the held-back keys whose interval has passed (their newest values)."""
