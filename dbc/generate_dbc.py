@@ -24,6 +24,9 @@ counters, multiplexed cell data):
 * ``SOCD_PackSummary`` 0x18FF52E5: min/mean/max SOC (0.01 %/bit), cell index of min/max.
 * ``SOCD_Status`` 0x18FF53E5: a 32-bit status word made of named flag bits
   (``SOCD_Flag*``), frames rejected (saturating), stale cells, rolling counter.
+* ``SOCD_PackUsable`` 0x18FF54E5: usable SOC (0.01 %/bit, limited by the weakest cell in
+  each direction), remaining energy (1 Wh/bit), a valid bit, imbalance (1 mAh/bit), the
+  weakest cell's index, rolling counter (:mod:`service.estimators.pack_view`).
 
 The user-DBC example (``configs/user_dbc_example/acme_bms.dbc``) is written by
 ``--user-example``: different IDs, names, byte order and layout, to prove a user's own
@@ -169,6 +172,7 @@ SOC_FRAME_ID = 0x18FF50E5
 PARAMS_FRAME_ID = 0x18FF51E5
 SUMMARY_FRAME_ID = 0x18FF52E5
 STATUS_FRAME_ID = 0x18FF53E5
+PACK_USABLE_FRAME_ID = 0x18FF54E5
 
 
 def output_database(max_cells: int = MAX_OUTPUT_CELLS) -> Database:
@@ -234,7 +238,28 @@ def output_database(max_cells: int = MAX_OUTPUT_CELLS) -> Database:
         is_extended_frame=True, signals=status_signals,
         comment="Estimator health: bits 0-31 are the status word (named flags, rest reserved).",
     )
-    return Database(messages=[soc, params, summary, status],
+    usable = Message(
+        frame_id=PACK_USABLE_FRAME_ID, name="SOCD_PackUsable", length=8, cycle_time=1000,
+        senders=["SOCD"], is_extended_frame=True,
+        comment="Pack SOC as a BMS limits it: usable SOC, remaining energy, imbalance, weakest cell.",
+        signals=[
+            _sig("SOCD_UsableSoc", 0, 16, scale=0.01, minimum=0, maximum=100, unit="%",
+                 comment="Usable SOC = D / (D + H), D = min_i SOC_i*C_i (charge the weakest cell can give), "
+                         "H = min_i (1 - SOC_i)*C_i (charge the fullest cell can take)."),
+            _sig("SOCD_RemainingEnergy", 16, 19, unit="Wh",
+                 comment="Energy stored above each cell's empty point, sum_i C_i * integral of OCV_i over "
+                         "[0, SOC_i] (saturates)."),
+            _sig("SOCD_PackUsableValid", 35, 1,
+                 comment="1 = the figures come from cell estimates; 0 = no estimate yet, or usable SOC "
+                         "undefined (no cell can charge and none can discharge)."),
+            _sig("SOCD_ImbalanceAh", 36, 16, scale=0.001, unit="Ah",
+                 comment="max_i SOC_i*C_i - min_i SOC_i*C_i (saturates)."),
+            _sig("SOCD_WeakestCell", 52, 8,
+                 comment="0-based index of the cell with the least charge (it limits discharge)."),
+            _sig("SOCD_PackUsableCounter", 60, 4, comment="Rolling counter, +1 per frame, modulo 16."),
+        ],
+    )
+    return Database(messages=[soc, params, summary, status, usable],
                     nodes=[Node("SOCD", comment="SOC estimator")])
 
 

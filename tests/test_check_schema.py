@@ -107,9 +107,16 @@ def test_schema_files_validate_their_examples(tmp_path: Path, capsys) -> None:
         assert schema == model.model_json_schema()
         assert set(example) <= set(schema["properties"]) and set(schema.get("required", [])) <= set(example)
         assert model.model_validate(example).model_dump(mode="json") == example
-        assert example["schema_version"] == payloads.SCHEMA_VERSION
+        assert example["schema_version"] == model.model_fields["schema_version"].default
+    # a payload's version moves with its own shape: the summary (and the snapshot holding one) gained the pack view
+    versions = {name: json.loads((out / f"{name}.example.json").read_text())["schema_version"] for name in models}
+    assert versions == {"cell_soc": 1, "cell_params": 1, "summary": 2, "health": 1, "snapshot": 2}
     snap = payloads.Snapshot.model_validate_json((out / "snapshot.example.json").read_text())
     assert len(snap.cells) == snap.summary.n_cells == 2 and snap.summary.cell_min == 1
+    summary = json.loads((out / "summary.example.json").read_text())
+    for field in ("usable_soc_pct", "usable_discharge_ah", "usable_charge_ah", "remaining_energy_wh",
+                  "usable_energy_wh", "imbalance_ah", "weakest_cell", "fullest_cell"):
+        assert summary[field] is not None and field in payloads.Summary.model_json_schema()["properties"]
     # without -o: one JSON document on stdout with the same content
     capsys.readouterr()
     assert main(["schema"]) == 0

@@ -45,7 +45,7 @@ def by_message(frames):
 
 def test_frames_and_roundtrip(enc):
     frames = enc.encode(snapshot())
-    assert len(frames) == 2 * N + 2
+    assert len(frames) == 2 * N + 3
     assert all(f.is_extended_id and f.arbitration_id > 0x7FF and len(f.data) <= 8 for f in frames)
     assert all(f.timestamp == 100.0 for f in frames)
     d = by_message(frames)
@@ -116,7 +116,7 @@ def test_never_raises_on_garbage(enc):
     st = by_message(frames)["SOCD_Status"][0]
     assert st["SOCD_FramesRejected"] == 65535 and st["SOCD_StaleCells"] == 0
     empty = enc.encode(snapshot(n=0))
-    assert [decode_output(f)["message"] for f in empty] == ["SOCD_PackSummary", "SOCD_Status"]
+    assert [decode_output(f)["message"] for f in empty] == ["SOCD_PackSummary", "SOCD_Status", "SOCD_PackUsable"]
 
 
 def test_decode_output_ignores_other_frames():
@@ -127,4 +127,4 @@ def test_decode_output_ignores_other_frames():
 
 def test_more_cells_than_output_index_are_cut(enc):
     frames = enc.encode(snapshot(n=300, stale=np.zeros(300, bool)))
-    assert len(frames) == 2 * 256 + 2
+    assert len(frames) == 2 * 256 + 3

@@ -51,6 +51,20 @@ def test_bench_table_carries_the_run_s_figures(regen, bench_json):
     assert cells[6] == f"{got['ratio']:.0f}×"
 
 
+def test_latency_table_carries_the_run_s_figures(regen, tmp_path):
+    """A short real ``socd bench --latency`` (the service, a virtual bus, Zenoh on 127.0.0.1):
+    every estimate reached the subscriber, and the table shows the run's percentiles."""
+    socd("bench", "--latency", "--cells", "8", "--seconds", "2", "--warmup", "1", "--json", str(tmp_path / "lat.json"))
+    got = json.loads((tmp_path / "lat.json").read_text())
+    assert got["cells"] == 8 and got["samples_measured"] > 0 and got["frames_rejected"] == 0
+    assert got["delivered_summary_ms"]["n"] > 0 and got["delivered_last_cell_ms"]["n"] > 0
+    table = regen.latency_table("lat.json")(tmp_path)
+    header, rule, row = table.splitlines()
+    assert header.count("|") == rule.count("|") == row.count("|")
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1] == "8" and cells[5] == f"{got['put_ms']['p50']:.1f} / {got['put_ms']['p99']:.1f}"
+
+
 @pytest.mark.skipif(not A123.is_dir(), reason="needs ../shared/data/real/calce_a123")
 def test_evaluate_table_is_the_mean_of_the_run_s_rows(regen, tmp_path):
     socd("evaluate", "--cell", "configs/cells/calce_a123.toml", str(A123 / "calce_a123_20C_FUDS.csv"),

@@ -16,7 +16,9 @@ from rich.console import Console
 from service.commands.watch import PackView, watch
 from service.daemon.health import HealthMonitor
 from service.daemon.payloads import CellSoc, Health, Summary
+from service.cell.ocv import OcvTable
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
+from service.estimators.pack_view import OcvEnergy, pack_view
 
 N = 96
 STALE, DIVERGED = 5, 7
@@ -33,7 +35,10 @@ def _view() -> PackView:
     v.summary = Summary(pack="p", t_s=10.0, n_cells=N, soc_mean_pct=round(float(soc.mean()), 2),
                         soc_min_pct=float(soc[lo]), soc_max_pct=float(soc[hi]), cell_min=lo, cell_max=hi,
                         soc_std_max_pct=1.25, current_a=12.5, n_stale=1,
-                        status_flags={"stale_cells": True, "diverged": True, "zenoh_down": False})
+                        status_flags={"stale_cells": True, "diverged": True, "zenoh_down": False},
+                        usable_soc_pct=61.5, usable_discharge_ah=1.725, usable_charge_ah=1.08,
+                        remaining_energy_wh=812.4, usable_energy_wh=655.0, imbalance_ah=0.6, weakest_cell=lo,
+                        fullest_cell=hi)
     v.health = Health(pack="p", t_s=10.0, uptime_s=60.0, status_flags={}, checkpoint="restored",
                       counters={"frames_in": 1234, "frames_rejected": 2, "filter_resets": 1},
                       latency_ms={"estimate_p50": 0.4, "estimate_p99": 1.2, "publish_p50": 2.0, "publish_p99": 4.5})
@@ -66,6 +71,8 @@ def test_header_and_every_cell_on_one_120_column_screen() -> None:
     assert f"min {s.soc_min_pct:.2f} % (cell {s.cell_min})" in text and f"mean {s.soc_mean_pct:.2f} %" in text
     assert f"max {s.soc_max_pct:.2f} % (cell {s.cell_max})" in text
     assert "stale 1" in text and "diverged 1" in text and "diverged, stale_cells" in text
+    assert (f"usable    SOC 61.50 %  discharge 1.725 Ah / charge 1.080 Ah  energy 812 Wh (usable 655)  "
+            f"imbalance 0.600 Ah  weakest {s.weakest_cell}") in text
     assert "frames in 1234" in text and "estimate p50/p99 0.4 ms/1.2 ms" in text
     assert max(len(line) for line in lines) <= 120
     assert len(lines) <= 45  # 96 cells in three groups of 32 rows plus the header
@@ -120,7 +127,8 @@ def test_once_against_a_real_publisher(tmp_path) -> None:
     soc = np.linspace(0.5, 0.61, n)[::-1].copy()
     r = PublishRound(t_s=5.0, soc=soc, soc_std=np.full(n, 0.01), voltage_v=np.full(n, 3.7),
                      stale=np.zeros(n, bool), params={}, health=health.payload(5.0), status_flags={},
-                     current_a=1.0)
+                     current_a=1.0, pack=pack_view(soc, 2.5, OcvEnergy(OcvTable.from_points(
+                         np.array([0.0, 1.0]), np.array([3.0, 4.2])))))
     pub.start()
     try:
         pub.submit(r)
@@ -134,6 +142,8 @@ def test_once_against_a_real_publisher(tmp_path) -> None:
     text = out.getvalue()
     assert "socd watch bms/w" in text and f"{n} cells" in text
     assert _cells_in_order(text) == list(range(n))[::-1]  # lowest SOC first: the last cell
+    # the pack line: equal capacities, so the weakest cell is the lowest SOC, the last one
+    assert f"weakest {n - 1}" in text and f"imbalance {0.11 * 2.5:.3f} Ah" in text
     assert plot.stat().st_size > 1000
 
 

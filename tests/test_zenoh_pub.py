@@ -1,6 +1,6 @@
 """Zenoh publication against real sessions on loopback (tcp/127.0.0.1, multicast scouting off).
 
-- every key carries a payload that validates against its pydantic model, schema_version 1;
+- every key carries a payload that validates against its pydantic model and its schema_version;
 - a late joiner gets every cell's latest state from the ``snapshot`` queryable;
 - the peer absent, then back: estimation never pauses, ``zenoh_down`` is raised then
   cleared, publishing resumes; a session that fails to open is retried with backoff;
@@ -24,7 +24,8 @@ import zenoh
 
 from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config
 from service.daemon.health import HealthMonitor
-from service.daemon.payloads import SCHEMA_VERSION, CellParams, CellSoc, Health, Snapshot, Summary
+from service.daemon.payloads import (SCHEMA_VERSION, SUMMARY_SCHEMA_VERSION, CellParams, CellSoc, Health, Snapshot,
+                                     Summary)
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher, zenoh_config
 
 
@@ -128,7 +129,7 @@ def test_messages_have_valid_schema(publisher) -> None:
             p = CellParams.model_validate_json(got.by_key[f"bms/packT/cell/{i}/params"][-1])
             assert p.r_ohm == pytest.approx(0.02) and p.c_df is None
         s = Summary.model_validate_json(got.by_key["bms/packT/summary"][-1])
-        assert s.n_cells == n and s.n_stale == 1 and s.cell_max == n - 1
+        assert s.schema_version == SUMMARY_SCHEMA_VERSION and s.n_cells == n and s.n_stale == 1 and s.cell_max == n - 1
         h = Health.model_validate_json(got.by_key["bms/packT/health"][-1])
         assert h.schema_version == SCHEMA_VERSION and "zenoh_down" in h.status_flags
         # the wildcard a dashboard uses sees every cell's SOC too
@@ -161,7 +162,7 @@ def test_late_joiner_gets_snapshot(publisher) -> None:
             if snap is None:
                 time.sleep(0.1)  # the session may not have finished connecting
         assert snap is not None, "no snapshot reply"
-        assert snap.schema_version == SCHEMA_VERSION and len(snap.cells) == n and len(snap.params) == n
+        assert snap.schema_version == SUMMARY_SCHEMA_VERSION and len(snap.cells) == n and len(snap.params) == n
         expected = 100 * (np.linspace(0.2, 0.9, n) - 0.002)  # the last round, k = 2
         np.testing.assert_allclose([c.soc_pct for c in snap.cells], expected, atol=1e-3)
         assert snap.summary.n_cells == n and snap.t_s == 2.0

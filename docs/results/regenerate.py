@@ -108,6 +108,23 @@ def bench_table(*names: str) -> Callable[[Path], str]:
     return render
 
 
+def latency_table(*names: str) -> Callable[[Path], str]:
+    """One row per ``socd bench --latency --json`` run."""
+    def render(out: Path) -> str:
+        def pair(p: dict) -> str:
+            return "–" if not p.get("n") else f"{p['p50']:.1f} / {p['p99']:.1f}"
+        lines = ["| run | cells | rate, Hz | s | estimate p50 / p99, ms | Zenoh put p50 / p99, ms "
+                 "| delivered summary p50 / p99, ms | delivered last cell p50 / p99, ms | CPU, % of a core |",
+                 "|---|---|---|---|---|---|---|---|---|"]
+        for n in names:
+            d = _read(out, n)
+            lines.append(f"| `{n}` | {d['cells']} | {d['rate_hz']:g} | {d['seconds']:g} | {pair(d['estimate_ms'])} | "
+                         f"{pair(d['put_ms'])} | {pair(d['delivered_summary_ms'])} | "
+                         f"{pair(d['delivered_last_cell_ms'])} | {d['cpu_pct']:.0f} |")
+        return "\n".join(lines)
+    return render
+
+
 def demo_table(*names: str) -> Callable[[Path], str]:
     """One row per ``socd demo --json`` run."""
     def render(out: Path) -> str:
@@ -376,6 +393,8 @@ socd evaluate --cell out/s25/pan_us06.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m
           group_table("s25/pan_us06_eval.json", PAN_GROUPS), 60),
     Table("bench", "bench.md", "for k in 1 2 3; do socd bench --cells 200 --json out/bench200_$k.json; done",
           bench_table("bench200_1.json", "bench200_2.json", "bench200_3.json"), 3),
+    Table("latency", "bench.md", "socd bench --latency --cells 200 --rate-hz 10 --seconds 60 --json out/latency200.json",
+          latency_table("latency200.json"), 2),
     Table("demo", "bench.md", """\
 P=../shared/data/real/panasonic_18650pf
 socd demo --cells 96 --json out/demo96.json --plot out/demo96.png

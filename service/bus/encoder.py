@@ -1,7 +1,9 @@
 """:class:`PackSnapshot` in, output CAN frames out (``dbc/socd_output.dbc``, cantools).
 
 Per snapshot: one ``SOCD_CellSoc`` and one ``SOCD_CellParams`` frame per cell, one
-``SOCD_PackSummary`` and one ``SOCD_Status``.  Values are converted to wire units (SOC in %,
+``SOCD_PackSummary``, one ``SOCD_Status`` and one ``SOCD_PackUsable`` (the snapshot's pack
+view; its valid bit 0 when there is none; left out with an output DBC that has no such
+message).  Values are converted to wire units (SOC in %,
 resistances in mΩ) and clamped into each signal's range; NaN goes out as the signal's
 minimum with the cell's stale bit set.  ``encode`` never raises on bad values.
 
@@ -18,6 +20,7 @@ import numpy as np
 
 from service.bus.types import STATUS_FLAGS, PackSnapshot
 from service.config import DEFAULT_OUTPUT_DBC, SocdConfig, load_dbc
+from service.estimators.pack_view import PackView
 
 _WIRE_SCALE = {"r_ohm": 1e3, "r_ct": 1e3, "r_df": 1e3, "m": 1.0, "n": 1.0}  # SI -> wire units
 _PARAM_SIGNALS = {"r_ohm": "SOCD_ROhm", "r_ct": "SOCD_RCt", "r_df": "SOCD_RDf", "m": "SOCD_M", "n": "SOCD_N"}
@@ -96,6 +99,10 @@ class OutputEncoder:
         self.params = _Out(db.get_message_by_name("SOCD_CellParams"), "SOCD_ParCounter")
         self.summary = _Out(db.get_message_by_name("SOCD_PackSummary"))
         self.status = _Out(db.get_message_by_name("SOCD_Status"), "SOCD_StatusCounter")
+        try:
+            self.usable: _Out | None = _Out(db.get_message_by_name("SOCD_PackUsable"), "SOCD_PackUsableCounter")
+        except KeyError:  # a user's output DBC from before the message existed
+            self.usable = None
         self.max_cells = int(self.soc.ranges["SOCD_SocCellIndex"][1]) + 1
         self.errors = 0  # snapshots (or cells) that could not be encoded at all
 
@@ -147,6 +154,11 @@ class OutputEncoder:
             out.append(self._status(snapshot, stale, t))
         except Exception:  # noqa: BLE001
             self.errors += 1
+        if self.usable is not None:
+            try:
+                out.append(self._usable(self.usable, snapshot.pack, t))
+            except Exception:  # noqa: BLE001
+                self.errors += 1
         return out
 
     def _summary(self, soc: np.ndarray, stale: np.ndarray, t: float) -> can.Message:
@@ -164,6 +176,18 @@ class OutputEncoder:
             "SOCD_SocMax": soc[i_max] * 100.0,
             "SOCD_SocMinCell": i_min,
             "SOCD_SocMaxCell": i_max,
+        }, t)
+
+    @staticmethod
+    def _usable(msg: _Out, view: PackView | None, t: float) -> can.Message:
+        if view is None or not view.ok:
+            return msg.frame({"SOCD_PackUsableValid": 0}, t)
+        return msg.frame({
+            "SOCD_UsableSoc": view.usable_soc * 100.0,
+            "SOCD_RemainingEnergy": round(view.remaining_energy_wh),
+            "SOCD_PackUsableValid": 1 if np.isfinite(view.usable_soc) else 0,
+            "SOCD_ImbalanceAh": view.imbalance_ah,
+            "SOCD_WeakestCell": view.weakest_cell,
         }, t)
 
     def _status(self, snapshot: PackSnapshot, stale: np.ndarray, t: float) -> can.Message:

@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.estimators.pack_view import PackView
+
 #: status flags the output DBC carries, in bit order (``SOCD_Flag<CamelCase>``)
 STATUS_FLAGS: tuple[str, ...] = (
     "stale_cells",
@@ -63,6 +65,7 @@ class PackSnapshot:
     F·s^(α-1); missing keys are sent as 0).  ``status_flags`` uses names from
     :data:`STATUS_FLAGS` without the ``SOCD_Flag`` prefix; ``counters`` may hold
     ``frames_rejected`` and ``stale_cells`` (the latter defaults to ``stale.sum()``).
+    ``pack`` is the pack view (usable SOC, energy, imbalance) or None before any estimate.
     """
 
     t_s: float
@@ -73,6 +76,7 @@ class PackSnapshot:
     stale: np.ndarray | None = None
     status_flags: dict[str, bool] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
+    pack: PackView | None = None
 
     def __post_init__(self) -> None:
         if self.stale is None:

@@ -1,4 +1,6 @@
-"""``socd bench``: throughput of the full pipeline, vectorised across a pack vs a per-cell loop."""
+"""``socd bench``: throughput of the full pipeline, vectorised across a pack vs a per-cell loop;
+``socd bench --latency``: frame-to-Zenoh latency of the running service
+(:mod:`service.commands.bench_latency`)."""
 
 from __future__ import annotations
 
@@ -9,8 +11,8 @@ import time
 import numpy as np
 
 from service.cli import UserError
-from service.commands.common_args import (add_cell_argument, add_common_arguments, int_range, positive_int,
-                                          setup_logging, text_stream, write_json)
+from service.commands.common_args import (add_cell_argument, add_common_arguments, int_range, positive_float,
+                                          positive_int, setup_logging, text_stream, write_json)
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -28,6 +30,14 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int_range(10, 10**7), default=400, help="time steps for the pack run (default 400)")
     p.add_argument("--reference-steps", type=int_range(2, 10**7), default=40,
                    help="time steps for the per-cell loop (default 40)")
+    p.add_argument("--latency", action="store_true",
+                   help="instead: run the service (virtual CAN bus in, Zenoh on tcp/127.0.0.1 out) in real time and "
+                        "report frame-to-Zenoh-put and frame-to-subscriber p50/p99")
+    p.add_argument("--rate-hz", type=positive_float, default=10.0, help="--latency: samples per second (default 10)")
+    p.add_argument("--seconds", type=positive_float, default=60.0,
+                   help="--latency: seconds measured, after the warm-up (default 60)")
+    p.add_argument("--warmup", type=positive_float, default=5.0, metavar="S",
+                   help="--latency: seconds run before measuring (default 5)")
     add_cell_argument(p, help="cell profile (default: the bundled Panasonic 18650PF)")
     add_common_arguments(p, json_out="the results")
     p.set_defaults(func=run)
@@ -63,6 +73,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    if args.latency:
+        return _latency(args)
     from service.estimators.pipeline import PAPER_INNOVATION_LENGTH
 
     # the paper's full pipeline: multi-innovation window on (heavier than the service default)
@@ -108,4 +120,15 @@ def run(args: argparse.Namespace) -> int:
     print(f"  per-cell loop (ref.): {result['reference_cell_steps_per_s']:12,.0f} cell-steps/s", file=out)
     print(f"  ratio               : {result['ratio']:12.1f} x", file=out)
     write_json(args.json, result)
+    return 0
+
+
+def _latency(args: argparse.Namespace) -> int:
+    from service.commands.bench_latency import result_text, run_latency
+
+    if args.cells > 256:
+        raise UserError(f"--latency: --cells must be ≤ 256 (the output frames' cell index), not {args.cells}")
+    result = run_latency(args.cells, args.rate_hz, args.seconds, args.warmup, profile_path=args.cell)
+    print(result_text(result), file=text_stream(args))
+    write_json(args.json, result.to_json())
     return 0

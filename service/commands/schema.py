@@ -53,9 +53,12 @@ def payload_docs() -> list[PayloadDoc]:
     import numpy as np
 
     from service.bus.types import STATUS_FLAGS
+    from service.cell.profile import load_profile
+    from service.config import DEFAULT_CELL_PROFILE
     from service.daemon.health import HealthMonitor
     from service.daemon.payloads import CellParams, CellSoc, Health, Snapshot, Summary, keys
     from service.daemon.zenoh_pub import PublishRound, build_payloads
+    from service.estimators.pack_view import OcvEnergy, pack_view
 
     now = [0.0]
     health = HealthMonitor(pack=EXAMPLE_PACK, clock=lambda: now[0])
@@ -69,9 +72,13 @@ def payload_docs() -> list[PayloadDoc]:
     # every flag of the status word, as the daemon publishes them; this one restored its checkpoint
     flags = {name: name == "checkpoint_restored" for name in STATUS_FLAGS}
     t_s = 1732443600.25
+    soc = np.array([0.8123, 0.8087])
+    profile = load_profile(DEFAULT_CELL_PROFILE)  # the pack view of two bundled cells, one faded by 3 %
+    capacity = profile.effective_capacity_ah * np.array([1.0, 0.97])
+    view = pack_view(soc, capacity, OcvEnergy(profile.ocv_table()), np.array([24.5, 25.0]))
     r = PublishRound(
         t_s=t_s,
-        soc=np.array([0.8123, 0.8087]),
+        soc=soc,
         soc_std=np.array([0.0042, 0.0045]),
         voltage_v=np.array([3.9812, 3.9776]),
         stale=np.array([False, False]),
@@ -83,6 +90,7 @@ def payload_docs() -> list[PayloadDoc]:
         current_a=5.42,
         v_pred=np.array([3.9809, 3.9781]),
         resets=np.array([0, 0]),
+        pack=view,
     )
     p = build_payloads(EXAMPLE_PACK, r)
     snapshot = Snapshot(pack=EXAMPLE_PACK, t_s=t_s, cells=p.cells, params=p.params, summary=p.summary,

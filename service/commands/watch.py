@@ -1,7 +1,8 @@
 """``socd watch``: a live terminal table of a pack's cells from Zenoh (and optionally a PNG).
 
 The view (rich.live + rich.table) is a summary header (pack SOC min/mean/max with their
-cells, current, health flags and counters, latency) above a grid of cells that puts as many
+cells, the pack line — usable SOC, remaining energy, imbalance, weakest cell —, current,
+health flags and counters, latency) above a grid of cells that puts as many
 ``cell SOC σ V`` groups side by side as the terminal is wide, so a 96-cell pack fits one
 screen.  Stale cells are yellow, cells whose filter was re-initialised (diverged) red;
 ``--sort soc|cell|sigma|voltage`` orders the grid (read down each column, then across).
@@ -37,7 +38,7 @@ SORT_KEYS = ("cell", "soc", "sigma", "voltage")
 GROUP_WIDTH = 32
 COMPACT_GROUP_WIDTH = 16
 #: lines the header, the grid's column titles and its caption take
-HEADER_LINES = 12
+HEADER_LINES = 13
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -151,6 +152,7 @@ class PackView:
             t.add_row("SOC", Text(
                 f"min {_pct(s.soc_min_pct)} (cell {_opt(s.cell_min)})  mean {_pct(s.soc_mean_pct)}  "
                 f"max {_pct(s.soc_max_pct)} (cell {_opt(s.cell_max)})  σ max {_pct(s.soc_std_max_pct)}"))
+            t.add_row("usable", Text(pack_line(s)))
             t.add_row("pack", Text(
                 f"{s.n_cells} cells   I {'-' if s.current_a is None else f'{s.current_a:.2f} A'}   "
                 f"t {s.t_s:.1f} s"))
@@ -212,6 +214,21 @@ class PackView:
         if not cells:
             t.add_row(Text("(no cells yet)", style="dim"), *[""] * (per_cell * groups - 1))
         return t
+
+
+def pack_line(s: Any) -> str:
+    """The summary's pack view on one line (``-`` where the daemon sent none)."""
+    if s.usable_soc_pct is None and s.remaining_energy_wh is None:
+        return "-"
+    energy = "-" if s.remaining_energy_wh is None else f"{s.remaining_energy_wh:,.0f} Wh"
+    usable_e = "-" if s.usable_energy_wh is None else f"{s.usable_energy_wh:,.0f}"
+    return (f"SOC {_pct(s.usable_soc_pct)}  discharge {_ah(s.usable_discharge_ah)} / charge "
+            f"{_ah(s.usable_charge_ah)}  energy {energy} (usable {usable_e})  imbalance "
+            f"{_ah(s.imbalance_ah)}  weakest {_opt(s.weakest_cell)}")
+
+
+def _ah(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3f} Ah"
 
 
 def _pct(x: float | None) -> str:

@@ -12,8 +12,14 @@ One asyncio loop runs these tasks:
   ``ocv_init``; a gap with the pack at rest at both ends is integrated (and counted).
 - **CAN output** every ``output.can_period_s``: :class:`service.bus.encoder.OutputEncoder`
   frames sent with ``timeout=0`` in small paced chunks; failures are counted, never awaited.
-- **Zenoh output** every ``output.zenoh_period_s``: a copied round handed to
-  :class:`~service.daemon.zenoh_pub.ZenohPublisher` (bounded queue, own thread).
+- **Zenoh output**: after every sample that changed the estimate, an *estimate* round (the
+  SOC of the cells it moved, the summary with the pack view) handed to
+  :class:`~service.daemon.zenoh_pub.ZenohPublisher` (bounded queue, own thread, each key
+  rate-limited to ``output.min_publish_interval_s``), so a change reaches a dashboard within
+  milliseconds; and every ``output.zenoh_period_s`` a *full* round (parameters, health, and
+  every key again, which also carries cells that went stale because samples stopped).
+  Building a round is a copy of a few arrays on the loop; JSON and ``put`` happen on the
+  publisher's thread, so a slow or absent Zenoh never blocks estimation.
 - **slow identifier** every :data:`SLOW_PERIOD_S`.
 - **checkpoint** every ``checkpoint.interval_s`` (file I/O in an executor) and once more on
   SIGTERM/SIGINT before a clean shutdown.
@@ -54,6 +60,7 @@ from service.daemon.can_rx import CanReceiver, ReceiverClosed
 from service.daemon.checkpoint import load_checkpoint, profile_hash, save_checkpoint
 from service.daemon.health import HealthMonitor, wall_time_of
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
+from service.estimators.pack_view import OcvEnergy, PackView, pack_view
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +124,8 @@ class Daemon:
         self.publisher: ZenohPublisher | None = None
         if config.output.zenoh_enabled:
             self.publisher = ZenohPublisher(config.zenoh, config.output.queue_size, self.health,
-                                            session_factory=zenoh_session_factory)
+                                            session_factory=zenoh_session_factory,
+                                            min_interval_s=config.output.min_publish_interval_s)
         self._install_signals = install_signal_handlers
         self.metrics = None
         metrics_cfg = getattr(config, "metrics", None)
@@ -128,8 +136,14 @@ class Daemon:
                                          host=metrics_cfg.host, port=metrics_cfg.port)
             self.metrics.attach(self.health)
 
+        #: per-cell capacity for the pack view (Ah); an online capacity estimate may replace it
+        self.capacity_ah = np.full(self.n, float(self.profile.effective_capacity_ah))
+        self._ocv_energy = OcvEnergy(self.profile.ocv_table())
         # estimation state
         self.initialised = False
+        #: bumped whenever the estimate changed (a step, a start from OCV): it is then published
+        self._est_seq = 0
+        self._stale_published = np.ones(self.n, dtype=bool)
         self.restored = False
         self._last_t: float | None = None
         self._last_sample: PackSample | None = None
@@ -345,7 +359,14 @@ class Daemon:
                 last_yield = time.perf_counter()
 
     def on_sample(self, s: PackSample, frame_wall_s: float | None = None) -> None:
-        """Advance the estimator by one decoded sample (the receive task calls this)."""
+        """Advance the estimator by one decoded sample (the receive task calls this) and hand
+        the new estimate to the Zenoh publisher when it changed."""
+        seq = self._est_seq
+        self._estimate(s, frame_wall_s)
+        if self._est_seq != seq and self.publisher is not None:
+            self.publisher.submit(self.estimate_round(np.asarray(s.fresh, dtype=bool)))
+
+    def _estimate(self, s: PackSample, frame_wall_s: float | None) -> None:
         self.samples += 1
         mono = time.monotonic()
         fresh = np.asarray(s.fresh, dtype=bool)
@@ -379,6 +400,7 @@ class Daemon:
             self.estimator.initialise(self._filled(s.voltage_v, fresh), self._filled(s.temperature_c, fresh),
                                       s.current_a, cells=late)
             self._cell_started |= late
+            self._est_seq += 1
             self.health.count("cells_started_late", int(late.sum()))
         dt = s.t_s - self._last_t
         if not np.isfinite(dt) or dt <= 0.0:
@@ -393,6 +415,7 @@ class Daemon:
             if fresh.any():
                 self.estimator.initialise(self._filled(s.voltage_v, fresh), self._filled(s.temperature_c, fresh),
                                           s.current_a, cells=fresh)
+                self._est_seq += 1
             return
         if dt > MAX_STEP_S:
             self.health.count("dt_gap_at_rest")
@@ -400,6 +423,7 @@ class Daemon:
         self.estimator.step(dt, s.current_a, s.voltage_v, s.temperature_c, fresh)
         self.step_time_s += time.perf_counter() - t0
         self.steps += 1
+        self._est_seq += 1
         self._after_step(s, fresh, frame_wall_s)
         for fn in self.step_listeners:
             fn(s)
@@ -460,6 +484,7 @@ class Daemon:
         self._cell_started = fresh.copy()
         self._resets_seen = int(np.sum(self.estimator.reset_count))
         self.initialised = True
+        self._est_seq += 1
         self._last_t = s.t_s
         self._prev_current = float(s.current_a)
         self.health.count("ocv_init")
@@ -515,6 +540,15 @@ class Daemon:
             flags.setdefault(name, False)
         return flags
 
+    def pack_view(self) -> PackView | None:
+        """The pack view (:mod:`service.estimators.pack_view`) over the started cells, with
+        :attr:`capacity_ah` and each cell's last temperature; None before the first estimate."""
+        if not self.initialised:
+            return None
+        s = self._last_sample
+        temp = 25.0 if s is None else self._filled(s.temperature_c, np.isfinite(s.temperature_c))
+        return pack_view(self.estimator.soc, self.capacity_ah, self._ocv_energy, temp, valid=self._cell_started)
+
     def snapshot(self) -> PackSnapshot:
         stale = self.stale_mask()
         flags = self.status_flags(stale)
@@ -531,6 +565,7 @@ class Daemon:
             stale=stale,
             status_flags=flags,
             counters={"frames_rejected": counters.get("frames_rejected", 0), "stale_cells": int(stale.sum())},
+            pack=self.pack_view(),
         )
 
     async def _can_output(self) -> None:
@@ -565,6 +600,35 @@ class Daemon:
             resets=np.array(est.reset_count, dtype=int),
             frame_wall_s=self._last_frame_wall if self.initialised else None,
             initialised=self.initialised,
+            pack=snap.pack,
+        )
+
+    def estimate_round(self, fresh: np.ndarray) -> PublishRound:
+        """The round published right after an estimate: the SOC keys of the cells it moved
+        (fresh ones, and any whose stale state changed since the last such round) and the
+        summary; no parameters or health (those go out with the full round)."""
+        est = self.estimator
+        s = self._last_sample
+        stale = ~np.asarray(fresh, dtype=bool)
+        cells = ~stale | (stale != self._stale_published)
+        self._stale_published = stale
+        return PublishRound(
+            t_s=float(self._last_t if self._last_t is not None else (s.t_s if s is not None else 0.0)),
+            soc=np.array(est.soc, dtype=float),
+            soc_std=np.array(est.soc_std, dtype=float),
+            voltage_v=np.array(s.voltage_v, dtype=float) if s is not None else np.full(self.n, np.nan),
+            stale=stale,
+            params={},
+            health=None,
+            status_flags=self.status_flags(stale),
+            current_a=None if s is None else float(s.current_a),
+            v_pred=np.array(est.v_pred, dtype=float),
+            resets=np.array(est.reset_count, dtype=int),
+            frame_wall_s=self._last_frame_wall,
+            initialised=self.initialised,
+            pack=self.pack_view(),
+            full=False,
+            cells=cells,
         )
 
     async def _zenoh_output(self) -> None:

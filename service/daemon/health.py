@@ -111,7 +111,18 @@ class HealthMonitor:
                 self.raise_flag(flag)
             self._decoder_seen[reason] = now
 
+    def reset_latency(self) -> None:
+        """Forget the latency samples so far (a benchmark's warm-up)."""
+        with self._lock:
+            for d in self._latency.values():
+                d.clear()
+
     # -- reading --------------------------------------------------------------------------
+    def latency_values(self, kind: str) -> list[float]:
+        """The latency samples of ``kind`` kept so far (ms, oldest first)."""
+        with self._lock:
+            return list(self._latency[kind])
+
     def latency_ms(self) -> dict[str, float | None]:
         out: dict[str, float | None] = {}
         with self._lock:

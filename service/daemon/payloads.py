@@ -1,20 +1,26 @@
 """JSON payloads on the Zenoh key expressions (DESIGN §5), one pydantic model per key.
 
 Every payload carries ``schema_version``; a consumer should reject a major version it does
-not know.  SOC is in percent on the wire (DESIGN §3), everything else in SI units named in
-the field.  ``t_s`` is the frame timestamp of the newest sample the estimate includes.
+not know.  A payload's version moves when its own shape changes (:data:`SCHEMA_VERSION` for
+those unchanged since the first release; ``Summary`` and the ``Snapshot`` that holds one are
+at :data:`SUMMARY_SCHEMA_VERSION` since they gained the pack view).  SOC is in percent on
+the wire (DESIGN §3), everything else in SI units named in the field.  ``t_s`` is the frame
+timestamp of the newest sample the estimate includes.
 
 Key expressions (``<prefix>/<pack>/...``, see :func:`keys`):
 
-=========================  ===================  =====================================
+=========================  ===================  ===============================================
 key                        model                when
-=========================  ===================  =====================================
-``cell/<i>/soc``           :class:`CellSoc`     every ``output.zenoh_period_s``
+=========================  ===================  ===============================================
+``cell/<i>/soc``           :class:`CellSoc`     when estimated, and every ``output.zenoh_period_s``
 ``cell/<i>/params``        :class:`CellParams`  every ``output.zenoh_period_s``
-``summary``                :class:`Summary`     every ``output.zenoh_period_s``
+``summary``                :class:`Summary`     when estimated, and every ``output.zenoh_period_s``
 ``health``                 :class:`Health`      every ``output.zenoh_period_s``
 ``snapshot`` (queryable)   :class:`Snapshot`    on request: latest state of every cell
-=========================  ===================  =====================================
+=========================  ===================  ===============================================
+
+No key is put more often than once per ``output.min_publish_interval_s`` (the newest value
+of a key held back goes out when its interval has passed).
 """
 
 from __future__ import annotations
@@ -24,6 +30,8 @@ from dataclasses import dataclass
 from pydantic import BaseModel, ConfigDict, Field
 
 SCHEMA_VERSION = 1
+#: version of :class:`Summary` and :class:`Snapshot`: 2 added the pack view (usable SOC, energy, imbalance)
+SUMMARY_SCHEMA_VERSION = 2
 
 
 class _Payload(BaseModel):
@@ -58,6 +66,10 @@ class CellParams(_Payload):
 
 
 class Summary(_Payload):
+    """Pack SOC over the cells with an estimate, and the pack view of
+    :mod:`service.estimators.pack_view` (usable SOC limited by the weakest cell each way)."""
+
+    schema_version: int = SUMMARY_SCHEMA_VERSION
     n_cells: int
     soc_mean_pct: float | None
     soc_min_pct: float | None
@@ -68,6 +80,17 @@ class Summary(_Payload):
     current_a: float | None = Field(description="pack current, A, positive = discharge")
     n_stale: int
     status_flags: dict[str, bool]
+    usable_soc_pct: float | None = Field(
+        None, description="D / (D + H), %: D = min_i SOC_i·C_i, H = min_i (1 − SOC_i)·C_i; null when undefined")
+    usable_discharge_ah: float | None = Field(None, description="D: charge the weakest cell can still give, Ah")
+    usable_charge_ah: float | None = Field(None, description="H: charge the fullest cell can still take, Ah")
+    remaining_energy_wh: float | None = Field(
+        None, description="Σ_i C_i ∫_0^SOC_i OCV_i(s) ds over the profile's OCV model, Wh (open-circuit)")
+    usable_energy_wh: float | None = Field(
+        None, description="the part of remaining_energy_wh delivered before the weakest cell is empty, Wh")
+    imbalance_ah: float | None = Field(None, description="max_i SOC_i·C_i − min_i SOC_i·C_i, Ah")
+    weakest_cell: int | None = Field(None, description="index of the cell holding the least charge (limits discharge)")
+    fullest_cell: int | None = Field(None, description="index of the cell with the least room (limits charge)")
 
 
 class Health(_Payload):
@@ -83,6 +106,7 @@ class Health(_Payload):
 class Snapshot(_Payload):
     """Answer of the ``snapshot`` queryable: everything a dashboard needs to join late."""
 
+    schema_version: int = SUMMARY_SCHEMA_VERSION
     cells: list[CellSoc]
     params: list[CellParams]
     summary: Summary

@@ -9,6 +9,17 @@ it opens it (retrying with exponential backoff while it fails, flag ``zenoh_down
 turns rounds into JSON payloads (:mod:`service.daemon.payloads`) and ``put``s them with
 ``CongestionControl.DROP`` so a slow subscriber cannot back up into us.
 
+Two kinds of round: a *full* round (every key: each cell's SOC and parameters, summary,
+health; the daemon sends one every ``output.zenoh_period_s``) and an *estimate* round
+(``full=False``: the SOC keys of the cells in ``r.cells`` and the summary; the daemon sends
+one after every estimator step, so a dashboard sees a change within milliseconds).  Every
+key is rate-limited on its own: a key put less than ``min_interval_s`` ago is held back,
+its newest value put as soon as its interval has passed (counted ``zenoh_rate_limited``
+when a newer value replaced a held one); a full round's SOC and summary keys, repeats of
+what the estimate rounds put, are skipped instead of held.  The ``publish`` latency is from a frame's wall
+time to the ``put`` of the summary of the estimate round that carried it (all its cells
+are put before the summary).
+
 Counting (health): ``zenoh_messages`` = every ``put`` made; ``zenoh_unmatched`` = the
 puts among them that no subscriber matched at the time (Zenoh's publisher matching status):
 with the router down or nobody subscribed they reach no one, so they are counted as
@@ -16,7 +27,7 @@ undelivered rather than as sent.  ``zenoh_dropped`` = messages never put (queue 
 a failing session).
 
 The ``<prefix>/<pack>/snapshot`` queryable answers from Zenoh's own thread out of the
-latest round (guarded by a lock), so a late joiner is served even while the loop is busy.
+latest rounds (guarded by a lock), so a late joiner is served even while the loop is busy.
 Zenoh's Python API has no asyncio interface; nothing here touches the event loop.
 
 Session config: ``mode``, ``listen`` (always set explicitly: Zenoh's unset default
@@ -31,6 +42,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -43,6 +55,7 @@ import numpy as np
 from service.cell.parameters import PARAMETER_NAMES
 from service.daemon.health import HealthMonitor
 from service.daemon.payloads import CellParams, CellSoc, Health, Keys, Snapshot, Summary, keys
+from service.estimators.pack_view import PackView
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +110,11 @@ def config_from_section(z: Any):
 
 @dataclass
 class PublishRound:
-    """One publication's worth of estimator output (arrays are the publisher's to keep)."""
+    """One publication's worth of estimator output (arrays are the publisher's to keep).
+
+    ``full``: every key; otherwise an estimate round: the SOC keys of ``cells`` (a bool mask;
+    None = every cell) and the summary, and ``params``/``health`` may be left empty.
+    """
 
     t_s: float
     soc: np.ndarray
@@ -105,7 +122,7 @@ class PublishRound:
     voltage_v: np.ndarray
     stale: np.ndarray
     params: dict[str, np.ndarray]
-    health: Health
+    health: Health | None
     status_flags: dict[str, bool]
     current_a: float | None = None
     v_pred: np.ndarray | None = None
@@ -113,10 +130,24 @@ class PublishRound:
     #: wall time of the newest frame in this round, for the frame→publication latency
     frame_wall_s: float | None = None
     initialised: bool = True
+    pack: PackView | None = None
+    full: bool = True
+    cells: np.ndarray | None = None
 
     @property
     def n_cells(self) -> int:
         return int(np.size(self.soc))
+
+    def cell_indices(self) -> np.ndarray:
+        """Cells whose SOC key this round carries."""
+        if self.full or self.cells is None:
+            return np.arange(self.n_cells)
+        return np.flatnonzero(np.asarray(self.cells, dtype=bool))
+
+    @property
+    def n_messages(self) -> int:
+        """Puts this round makes when nothing is held back."""
+        return 2 * self.n_cells + 2 if self.full else int(self.cell_indices().size) + 1
 
 
 def _num(x: float, scale: float = 1.0, nd: int = 6) -> float | None:
@@ -129,51 +160,152 @@ class RoundPayloads:
     cells: list[CellSoc]
     params: list[CellParams]
     summary: Summary
-    health: Health
+    health: Health | None
+
+
+def cell_soc_payload(pack: str, r: PublishRound, i: int) -> CellSoc:
+    ok = r.initialised
+    return CellSoc(
+        pack=pack, t_s=r.t_s, cell=i,
+        soc_pct=_num(r.soc[i], 100.0, 4) if ok else None,
+        soc_std_pct=_num(r.soc_std[i], 100.0, 4) if ok else None,
+        voltage_v=_num(r.voltage_v[i], 1.0, 4),
+        v_pred_v=_num(r.v_pred[i], 1.0, 4) if (ok and r.v_pred is not None) else None,
+        stale=bool(r.stale[i]),
+        resets=int(r.resets[i]) if r.resets is not None else 0,
+    )
+
+
+def _rounded(x: np.ndarray | None, idx: np.ndarray, scale: float, nd: int, ok: bool = True) -> list[float | None]:
+    """``_num`` over ``x[idx]`` (None where non-finite, or everywhere when not ``ok``)."""
+    if x is None or not ok:
+        return [None] * int(idx.size)
+    vals = (np.asarray(x, dtype=float)[idx] * scale).tolist()
+    return [round(v, nd) if math.isfinite(v) else None for v in vals]
+
+
+def _js(v: float | None) -> str:
+    return "null" if v is None else repr(v)
+
+
+def cell_soc_json(pack: str, r: PublishRound, idx: np.ndarray) -> list[str]:
+    """``cell_soc_payload(pack, r, i).model_dump_json()`` for every ``i`` in ``idx``, built in one
+    pass over the arrays (the publisher's hot path: a 200-cell round in a fraction of the
+    model's time).  The JSON is the model's, field for field; ``tests/test_event_publish.py``
+    holds the two equal."""
+    idx = np.asarray(idx, dtype=int)
+    ok = bool(r.initialised)
+    soc = _rounded(r.soc, idx, 100.0, 4, ok)
+    std = _rounded(r.soc_std, idx, 100.0, 4, ok)
+    volt = _rounded(r.voltage_v, idx, 1.0, 4)
+    vpred = _rounded(r.v_pred, idx, 1.0, 4, ok)
+    stale = np.asarray(r.stale, dtype=bool)[idx].tolist()
+    resets = (np.asarray(r.resets, dtype=int)[idx] if r.resets is not None else np.zeros(idx.size, int)).tolist()
+    head = f'{{"schema_version":{CellSoc.model_fields["schema_version"].default},"pack":{json.dumps(pack)},' \
+           f'"t_s":{_js(float(r.t_s))},"cell":'
+    return [
+        f'{head}{i},"soc_pct":{_js(a)},"soc_std_pct":{_js(b)},"voltage_v":{_js(v)},"v_pred_v":{_js(vp)},'
+        f'"stale":{"true" if st else "false"},"resets":{rs}}}'
+        for i, a, b, v, vp, st, rs in zip(idx.tolist(), soc, std, volt, vpred, stale, resets)
+    ]
+
+
+def cell_params_payload(pack: str, r: PublishRound, i: int) -> CellParams:
+    return CellParams(
+        pack=pack, t_s=r.t_s, cell=i,
+        **{k: (_num(r.params[k][i], 1.0, 9) if k in r.params else None) for k in PARAMETER_NAMES},
+    )
+
+
+def _pack_fields(v: PackView | None) -> dict[str, Any]:
+    """The summary's pack-view fields (all None without a view)."""
+    if v is None or not v.ok:
+        return {}
+    return dict(
+        usable_soc_pct=_num(v.usable_soc, 100.0, 4),
+        usable_discharge_ah=_num(v.usable_discharge_ah, 1.0, 6),
+        usable_charge_ah=_num(v.usable_charge_ah, 1.0, 6),
+        remaining_energy_wh=_num(v.remaining_energy_wh, 1.0, 3),
+        usable_energy_wh=_num(v.usable_energy_wh, 1.0, 3),
+        imbalance_ah=_num(v.imbalance_ah, 1.0, 6),
+        weakest_cell=v.weakest_cell,
+        fullest_cell=v.fullest_cell,
+    )
+
+
+def summary_payload(pack: str, r: PublishRound) -> Summary:
+    n = r.n_cells
+    soc = np.asarray(r.soc, float)
+    good = np.isfinite(soc) & r.initialised
+    current = None if r.current_a is None else _num(r.current_a, 1.0, 4)
+    n_stale = int(np.count_nonzero(r.stale))
+    if not good.any():
+        return Summary(
+            pack=pack, t_s=r.t_s, n_cells=n, soc_mean_pct=None, soc_min_pct=None, soc_max_pct=None,
+            cell_min=None, cell_max=None, soc_std_max_pct=None, current_a=current,
+            n_stale=n_stale, status_flags=r.status_flags,
+        )
+    idx = np.flatnonzero(good)
+    lo, hi = idx[np.argmin(soc[idx])], idx[np.argmax(soc[idx])]
+    return Summary(
+        pack=pack, t_s=r.t_s, n_cells=n,
+        soc_mean_pct=_num(soc[idx].mean(), 100.0, 4),
+        soc_min_pct=_num(soc[lo], 100.0, 4), soc_max_pct=_num(soc[hi], 100.0, 4),
+        cell_min=int(lo), cell_max=int(hi),
+        soc_std_max_pct=_num(np.nanmax(r.soc_std[idx]), 100.0, 4),
+        current_a=current, n_stale=n_stale, status_flags=r.status_flags,
+        **_pack_fields(r.pack),
+    )
 
 
 def build_payloads(pack: str, r: PublishRound) -> RoundPayloads:
-    """The pydantic payloads of one round (runs on the publisher thread)."""
+    """Every payload of one round, for every cell (the snapshot, ``socd schema``)."""
     n = r.n_cells
-    resets = r.resets if r.resets is not None else np.zeros(n, dtype=int)
-    cells, params = [], []
-    for i in range(n):
-        ok = r.initialised
-        cells.append(CellSoc(
-            pack=pack, t_s=r.t_s, cell=i,
-            soc_pct=_num(r.soc[i], 100.0, 4) if ok else None,
-            soc_std_pct=_num(r.soc_std[i], 100.0, 4) if ok else None,
-            voltage_v=_num(r.voltage_v[i], 1.0, 4),
-            v_pred_v=_num(r.v_pred[i], 1.0, 4) if (ok and r.v_pred is not None) else None,
-            stale=bool(r.stale[i]),
-            resets=int(resets[i]),
-        ))
-        params.append(CellParams(
-            pack=pack, t_s=r.t_s, cell=i,
-            **{k: (_num(r.params[k][i], 1.0, 9) if k in r.params else None) for k in PARAMETER_NAMES},
-        ))
-    soc = np.asarray(r.soc, float)
-    good = np.isfinite(soc) & r.initialised
-    if good.any():
-        idx = np.flatnonzero(good)
-        lo, hi = idx[np.argmin(soc[idx])], idx[np.argmax(soc[idx])]
-        summary = Summary(
-            pack=pack, t_s=r.t_s, n_cells=n,
-            soc_mean_pct=_num(soc[idx].mean(), 100.0, 4),
-            soc_min_pct=_num(soc[lo], 100.0, 4), soc_max_pct=_num(soc[hi], 100.0, 4),
-            cell_min=int(lo), cell_max=int(hi),
-            soc_std_max_pct=_num(np.nanmax(r.soc_std[idx]), 100.0, 4),
-            current_a=None if r.current_a is None else _num(r.current_a, 1.0, 4),
-            n_stale=int(np.count_nonzero(r.stale)), status_flags=r.status_flags,
-        )
-    else:
-        summary = Summary(
-            pack=pack, t_s=r.t_s, n_cells=n, soc_mean_pct=None, soc_min_pct=None, soc_max_pct=None,
-            cell_min=None, cell_max=None, soc_std_max_pct=None,
-            current_a=None if r.current_a is None else _num(r.current_a, 1.0, 4),
-            n_stale=int(np.count_nonzero(r.stale)), status_flags=r.status_flags,
-        )
-    return RoundPayloads(cells, params, summary, r.health)
+    cells = [cell_soc_payload(pack, r, i) for i in range(n)]
+    params = [cell_params_payload(pack, r, i) for i in range(n)]
+    return RoundPayloads(cells, params, summary_payload(pack, r), r.health)
+
+
+class KeyRateLimit:
+    """At most one put per key per ``min_interval_s``; what is held back waits, newest wins.
+
+    :meth:`offer` says whether a key may go now; if not, the value is kept as pending and
+    :meth:`due` hands it back once its interval has passed.  Times are ``time.monotonic``.
+    """
+
+    def __init__(self, min_interval_s: float) -> None:
+        self.min_interval_s = max(0.0, float(min_interval_s))
+        self.last_put: dict[str, float] = {}
+        self.pending: dict[str, Any] = {}
+        self.superseded = 0
+
+    def offer(self, key: str, item: Any, now: float, hold: bool = True) -> bool:
+        """True: put ``key`` now (and call :meth:`sent`); False: held as pending (with ``hold``),
+        or skipped (without: a repeat of a value already put or pending)."""
+        last = self.last_put.get(key)
+        if last is None or now - last >= self.min_interval_s:
+            self.pending.pop(key, None)
+            return True
+        if not hold:
+            return False
+        if key in self.pending:
+            self.superseded += 1
+        self.pending[key] = item
+        return False
+
+    def sent(self, key: str, now: float) -> None:
+        self.last_put[key] = now
+
+    def next_due(self) -> float | None:
+        """Earliest time a pending key may go (None: nothing pending)."""
+        if not self.pending:
+            return None
+        return min(self.last_put[k] for k in self.pending) + self.min_interval_s
+
+    def due(self, now: float) -> list[tuple[str, Any]]:
+        """Pending keys whose interval has passed, removed from pending."""
+        ready = [k for k in self.pending if now - self.last_put[k] >= self.min_interval_s]
+        return [(k, self.pending.pop(k)) for k in ready]
 
 
 @dataclass
@@ -189,6 +321,7 @@ class ZenohPublisher:
     ``session_factory`` (default: ``zenoh.open(config)``) is injectable so tests can make
     opening fail.  ``expect_peers``: treat "no peer or router connected" as down (set when
     the config has ``connect`` endpoints: then somebody is supposed to be there).
+    ``min_interval_s``: the per-key rate limit (:class:`KeyRateLimit`; 0 = none).
     """
 
     def __init__(
@@ -200,6 +333,7 @@ class ZenohPublisher:
         session_factory: Callable[[], Any] | None = None,
         backoff_initial_s: float = 0.2,
         backoff_max_s: float = 5.0,
+        min_interval_s: float = 0.0,
     ) -> None:
         self.keys: Keys = keys(zenoh_section.key_prefix, zenoh_section.pack_id)
         self.pack = zenoh_section.pack_id
@@ -211,8 +345,13 @@ class ZenohPublisher:
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._latest: RoundPayloads | None = None
+        #: newest round of any kind (cells, summary) and newest full one (params, health)
+        self._latest: PublishRound | None = None
+        self._latest_full: PublishRound | None = None
         self._latest_lock = threading.Lock()
+        self._limit = KeyRateLimit(min_interval_s)
+        self._soc_keys: list[str] = []
+        self._params_keys: list[str] = []
         self._backoff_initial = backoff_initial_s
         self._backoff_max = backoff_max_s
         self._state = _SessionState()
@@ -237,7 +376,7 @@ class ZenohPublisher:
             if len(self._queue) >= self._maxlen:
                 old = self._queue.popleft()
                 self.health.count("zenoh_dropped_rounds", flag="publish_drops")
-                self.health.count("zenoh_dropped", 2 * old.n_cells + 2)
+                self.health.count("zenoh_dropped", old.n_messages)
             self._queue.append(r)
             self._cond.notify()
 
@@ -311,7 +450,7 @@ class ZenohPublisher:
                 self._set_down(False)
             with self._cond:
                 if not self._queue and not self._stop.is_set():
-                    self._cond.wait(PEER_CHECK_S)
+                    self._cond.wait(self._wait_s())
                 r = self._queue.popleft() if self._queue else None
             now = time.monotonic()
             if self._expect_peers and now - last_peer_check >= PEER_CHECK_S:
@@ -321,14 +460,23 @@ class ZenohPublisher:
                 except Exception:  # noqa: BLE001 - a broken session
                     self._fail("session info failed")
                     continue
-            if r is None:
-                continue
             try:
-                self._publish(r)
+                if r is not None:
+                    self._publish(r)
+                self._flush_due()
             except Exception as exc:  # noqa: BLE001
-                self.health.count("zenoh_dropped", 2 * r.n_cells + 2, flag="publish_drops")
+                lost = (r.n_messages if r is not None else 0) + len(self._limit.pending)
+                self._limit.pending.clear()
+                self.health.count("zenoh_dropped", lost, flag="publish_drops")
                 self._fail(f"put failed: {exc}")
         self._close_session()
+
+    def _wait_s(self) -> float:
+        """How long the thread may sleep: until the next held-back key is due, at most PEER_CHECK_S."""
+        due = self._limit.next_due()
+        if due is None:
+            return PEER_CHECK_S
+        return min(PEER_CHECK_S, max(0.0, due - time.monotonic()))
 
     def _fail(self, why: str) -> None:
         self.health.count("zenoh_session_failures", flag="zenoh_down")
@@ -348,34 +496,84 @@ class ZenohPublisher:
         return pub
 
     def _publish(self, r: PublishRound) -> None:
-        p = build_payloads(self.pack, r)
+        """Put the round's keys that the rate limit lets go now; hold back the rest."""
         with self._latest_lock:
-            self._latest = p
+            self._latest = r
+            if r.full:
+                self._latest_full = r
         k = self.keys
-        puts = [(k.cell_soc(c.cell), c) for c in p.cells] + [(k.cell_params(c.cell), c) for c in p.params]
-        puts += [(k.summary, p.summary), (k.health, p.health)]
+        soc_keys, params_keys = self._cell_keys(r.n_cells)
+        items: list[tuple[str, str, int]] = [(soc_keys[i], "soc", i) for i in r.cell_indices().tolist()]
+        if r.full:
+            items += [(params_keys[i], "params", i) for i in range(r.n_cells)]
+        items.append((k.summary, "summary", -1))
+        if r.full and r.health is not None:
+            items.append((k.health, "health", -1))
+        now = time.monotonic()
+        superseded = self._limit.superseded
+        # A full round's SOC and summary repeat what the estimate rounds already put (the
+        # estimator has not moved since): held back by the limit, they are skipped, not queued.
+        repeat = r.full
+        self._put_all([(key, (r, kind, i)) for key, kind, i in items
+                       if self._limit.offer(key, (r, kind, i), now, hold=not (repeat and kind in ("soc", "summary")))])
+        self.health.count("zenoh_rate_limited", self._limit.superseded - superseded)
+        self.rounds_published += 1
+
+    def _cell_keys(self, n: int) -> tuple[list[str], list[str]]:
+        """The per-cell key expressions (made once: a round uses hundreds of them)."""
+        if len(self._soc_keys) < n:
+            self._soc_keys = [self.keys.cell_soc(i) for i in range(n)]
+            self._params_keys = [self.keys.cell_params(i) for i in range(n)]
+        return self._soc_keys, self._params_keys
+
+    def _flush_due(self) -> None:
+        """Put the held-back keys whose interval has passed (their newest values)."""
+        if self._limit.pending:
+            self._put_all(self._limit.due(time.monotonic()))
+
+    def _put_all(self, items: list[tuple[str, tuple[PublishRound, str, int]]]) -> None:
         sent = unmatched = 0
-        for key, payload in puts:
+        soc_json: dict[tuple[int, int], str] = {}  # (round id, cell) -> JSON, built per round in one pass
+        by_round: dict[int, tuple[PublishRound, list[int]]] = {}
+        for _, (r, kind, i) in items:
+            if kind == "soc":
+                by_round.setdefault(id(r), (r, []))[1].append(i)
+        for rid, (r, cells) in by_round.items():
+            soc_json.update(zip(((rid, c) for c in cells), cell_soc_json(self.pack, r, np.array(cells, dtype=int))))
+        for key, (r, kind, i) in items:
+            if kind == "soc":
+                body = soc_json[(id(r), i)]
+            elif kind == "params":
+                body = cell_params_payload(self.pack, r, i).model_dump_json()
+            elif kind == "summary":
+                body = summary_payload(self.pack, r).model_dump_json()
+            else:
+                body = r.health.model_dump_json()
             pub = self._publisher(key)
             if not pub.matching_status.matching:
                 unmatched += 1  # put anyway: a subscriber may be declaring right now
-            pub.put(payload.model_dump_json())
+            pub.put(body)
+            self._limit.sent(key, time.monotonic())
             sent += 1
-        if r.frame_wall_s is not None:
-            self.health.record_latency("publish", time.time() - r.frame_wall_s)
-        self.rounds_published += 1
+            if kind == "summary" and not r.full and r.frame_wall_s is not None:
+                self.health.record_latency("publish", time.time() - r.frame_wall_s)
         self.messages_published += sent
         self.health.count("zenoh_messages", sent)
         self.health.count("zenoh_unmatched", unmatched)
 
     # -- queryable (Zenoh thread) --------------------------------------------------------
     def snapshot_json(self) -> str | None:
+        """The latest state: cells and summary from the newest round, parameters and health from
+        the newest full round (None before the first full round)."""
         with self._latest_lock:
-            p = self._latest
-        if p is None:
+            r, full = self._latest, self._latest_full
+        if r is None or full is None or full.health is None:
             return None
-        snap = Snapshot(pack=self.pack, t_s=p.summary.t_s, cells=p.cells, params=p.params,
-                        summary=p.summary, health=p.health)
+        n = r.n_cells
+        cells = [cell_soc_payload(self.pack, r, i) for i in range(n)]
+        params = [cell_params_payload(self.pack, full, i) for i in range(min(n, full.n_cells))]
+        snap = Snapshot(pack=self.pack, t_s=r.t_s, cells=cells, params=params,
+                        summary=summary_payload(self.pack, r), health=full.health)
         return snap.model_dump_json()
 
     def _on_query(self, query: Any) -> None:
