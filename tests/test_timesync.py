@@ -9,7 +9,6 @@ Panasonic 18650PF US06 drive.  The same run over a real vcan0 is in ``test_vcan_
 
 from __future__ import annotations
 
-import asyncio
 import math
 import time
 from pathlib import Path
@@ -17,15 +16,21 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from daemon_support import run_daemon
 
 from replay.pack import FrameBuilder, SpreadSpec, pack_frames
-from replay.player import play
 from service.bus.decoder import FRAME_ACCEPTS, REANCHOR_AFTER, REJECT_REASONS, FrameDecoder
 from service.bus.timesync import TimeSignal, TimeSignalError
 from service.cell.profile import load_profile
-from service.config import (DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, ConfigError,
-                            build_config, check_input_mapping, load_config)
-from service.daemon.daemon import Daemon
+from service.config import (
+    DEFAULT_CELL_PROFILE,
+    DEFAULT_INPUT_DBC,
+    DEFAULT_OUTPUT_DBC,
+    ConfigError,
+    build_config,
+    check_input_mapping,
+    load_config,
+)
 from service.recording import load_recording
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,7 +79,7 @@ def kernel_stamped(frames: list[can.Message], speed: float = SPEED, wall0: float
 def with_sync_time(db, msg: can.Message, t_s: float) -> can.Message:
     """A copy of a time-sync frame carrying ``t_s`` instead (raw, so out-of-period values fit too)."""
     m = db.get_message_by_frame_id(SYNC_ID)
-    raw = int(round(t_s * 1000)) & 0xFFFFFFFF
+    raw = round(t_s * 1000) & 0xFFFFFFFF
     return can.Message(timestamp=msg.timestamp, arbitration_id=SYNC_ID, is_extended_id=False,
                        data=m.encode({"BMS_SampleTime": raw}, scaling=False))
 
@@ -133,17 +138,15 @@ def test_config_names_the_time_signal_and_check_validates_it(tmp_path: Path) -> 
                                           r"did you mean 'BMS_SampleTime'"):
         check_input_mapping(config(time_signal="BMS_SampleTme"))
     with pytest.raises(ConfigError, match=r"mapping\.time_signal: .*multiplexed"):
-        check_input_mapping(config(time_signal="BMS_Temp24_C", **{"pack": {"n_cells": 8}}))
+        check_input_mapping(config(8, time_signal="BMS_Temp24_C"))  # sensor 24 covers none of 8 cells
     with pytest.raises(ConfigError, match=r"mapping\.time_signal: signal 'BMS_PackCurrent' is already mapped"):
         config(time_signal="BMS_PackCurrent")
     # and as `socd check` reports it
     from service.commands.check import check_config
 
     cfg = tmp_path / "c.toml"
-    cfg.write_text(f'[dbc]\ninput = "{DEFAULT_INPUT_DBC}"\noutput = "{DEFAULT_OUTPUT_DBC}"\n'
-                   f'cell_profile = "{DEFAULT_CELL_PROFILE}"\n'.replace('cell_profile', '[pack]\nn_cells = 96\n'
-                                                                          '[mapping]\ntime_signal = "BMS_Sampletime"\n'
-                                                                          '#', 1))
+    cfg.write_text(f'cell_profile = "{DEFAULT_CELL_PROFILE}"\n[dbc]\ninput = "{DEFAULT_INPUT_DBC}"\n'
+                   f'output = "{DEFAULT_OUTPUT_DBC}"\n[mapping]\ntime_signal = "BMS_Sampletime"\n')
     res = check_config(str(cfg))
     assert not res.ok and any("mapping.time_signal" in p and "BMS_SampleTime" in p for p in res.problems), res.problems
     good = load_config(ROOT / "configs" / "vcan0.toml")
@@ -259,32 +262,6 @@ def daemon_config(tmp_path: Path, time_signal: str | None, tag: str):
         "estimator": {"slow_identifier": False},
         "checkpoint": {"path": str(tmp_path / f"{tag}.ckpt")},
     })
-
-
-def run_daemon(config, frames: list[can.Message]) -> Daemon:
-    """A running daemon on a virtual bus; ``frames`` sent unpaced with their stamps kept
-    (the stamps are what the receiving bus would have given them)."""
-
-    async def main() -> Daemon:
-        bus = can.Bus(interface="virtual", channel=config.bus.channel)
-        tx = can.Bus(interface="virtual", channel=config.bus.channel, preserve_timestamps=True)
-        d = Daemon(config, bus, profile=load_profile(DEFAULT_CELL_PROFILE), install_signal_handlers=False)
-        stop = asyncio.Event()
-        task = asyncio.create_task(d.run(stop))
-        await d.wait_started()
-        await asyncio.wait_for(d.receiver.connected.wait(), 10)
-        stats = await asyncio.to_thread(play, tx, frames, 0.0)
-        assert stats.frames_sent == len(frames)
-        end = time.monotonic() + 120
-        while d.decoder.counters["frames_in"] < len(frames) and time.monotonic() < end:
-            await asyncio.sleep(0.02)
-        stop.set()
-        await asyncio.wait_for(task, 30)
-        tx.shutdown()
-        bus.shutdown()
-        return d
-
-    return asyncio.run(main())
 
 
 @pytest.fixture(scope="module")

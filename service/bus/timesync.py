@@ -50,7 +50,7 @@ class TimeSignal:
         return str(self.signal.name)
 
     @classmethod
-    def find(cls, db: Any, name: str) -> "TimeSignal":
+    def find(cls, db: Any, name: str) -> TimeSignal:
         """The signal ``name`` of the cantools database ``db``; :class:`TimeSignalError` if it
         is missing or multiplexed (a time must be in every frame of its message)."""
         for m in db.messages:
