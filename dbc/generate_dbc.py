@@ -14,6 +14,14 @@ counters, multiplexed cell data):
   plus ``BMS_CellVoltCounter`` (4 bit, incremented on every frame of this ID).
 * ``BMS_CellTemps`` 0x120, 1000 ms: mux ``BMS_CellTempMux``; block ``k`` carries sensors
   ``4k+1 .. 4k+4`` as ``BMS_Temp01_C`` .. (12 bit signed, 0.1 °C/bit), plus a counter.
+* ``BMS_TimeSync`` 0x0F0, once per sample, before the sample's other frames:
+  ``BMS_SampleTime``, the sender's sample time as an unsigned 32-bit count of milliseconds.
+  A kernel bus stamps frames on arrival, so a replay faster than real time needs the time on
+  the bus itself (``mapping.time_signal``, :mod:`service.bus.timesync`).  1 ms resolves any
+  BMS sample period; 32 bits wrap after 2^32 ms = 49.7 days, longer than any drive, and the
+  receiver unwraps the count (it takes the time nearest the previous one), so a replay that
+  loops for longer keeps a continuous clock.  0x0F0 wins arbitration over the sample's
+  other frames on a real bus, as it is sent before them.
 
 ``socd_output.dbc`` (extended IDs, sender SOCD, classic 8-byte frames):
 
@@ -49,6 +57,9 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
 CELLS_PER_VOLT_FRAME = 4
+#: the time-sync message: a free standard ID below the sample's other frames (wins arbitration)
+TIME_SYNC_FRAME_ID = 0x0F0
+TIME_SYNC_RESOLUTION_S = 0.001
 SENSORS_PER_TEMP_FRAME = 4
 MAX_OUTPUT_CELLS = 256  # 8-bit cell index mux in the output frames
 
@@ -160,7 +171,22 @@ def bms_database(n_cells: int = 96, n_temps: int = 24) -> Database:
     temps = Message(frame_id=0x120, name="BMS_CellTemps", length=8, cycle_time=1000,
                     senders=["BMS"], signals=tsignals,
                     comment="Multiplexed cell temperatures, 4 sensors a frame.")
-    return Database(messages=[pack, volts, temps],
+    sync = Message(
+        frame_id=TIME_SYNC_FRAME_ID,
+        name="BMS_TimeSync",
+        length=4,
+        cycle_time=10,
+        senders=["BMS"],
+        comment="The sender's sample time, sent once per sample before the sample's other frames, so a "
+                "receiver clocks samples by it instead of by arrival (a replay faster than real time onto "
+                "a kernel bus). Unsigned 32-bit count of ms: wraps after 2^32 ms (49.7 days); receivers "
+                "unwrap it to the time nearest the previous one.",
+        signals=[
+            _sig("BMS_SampleTime", 0, 32, scale=TIME_SYNC_RESOLUTION_S, unit="s", receivers=rx,
+                 comment="Sample time, 1 ms/bit, modulo 2^32 ms (49.7 days)."),
+        ],
+    )
+    return Database(messages=[pack, volts, temps, sync],
                     nodes=[Node("BMS", comment="Battery management system"),
                            Node("SOCD", comment="SOC estimator")])
 

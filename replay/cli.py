@@ -240,8 +240,7 @@ def _one_sample(config, n_cells):
     from replay.pack import FrameBuilder, narrow_config
 
     cfg = config if not n_cells or n_cells == config.pack.n_cells else narrow_config(config, n_cells)
-    b = FrameBuilder(cfg)
-    return b.templates + b.current_templates
+    return FrameBuilder(cfg).sample_templates
 
 
 def _offset(frames, offset):

@@ -12,9 +12,12 @@ start SOC read off the first rest voltage through the profile's OCV table (or gi
 truth SOC is kept in :class:`PackRecording` so a run can be scored.
 
 Frames are generated through the config's *mapping* and the input DBC, so any DBC the
-decoder can read, the replay can write: per sample, every voltage/temperature frame
-(each multiplexer value), then the pack-current frame, all stamped with the sample's
-recording time (+ ``time_offset_s``); rolling counters advance per frame of each ID.
+decoder can read, the replay can write: per sample, the time-sync frame when the mapping
+names a ``time_signal`` (carrying the sample's time, :mod:`service.bus.timesync`), every
+voltage/temperature frame (each multiplexer value), then the pack-current frame, all stamped
+with the sample's recording time (+ ``time_offset_s``); rolling counters advance per frame of
+each ID.  The time-sync frame is what keeps the recording's time on a kernel bus, which
+restamps frames on arrival.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from pathlib import Path
 import can
 import numpy as np
 
+from service.bus.timesync import TimeSignal
 from service.cell.profile import CellProfile
 from service.cell.units import SECONDS_PER_HOUR
 from service.config import SocdConfig
@@ -172,6 +176,7 @@ class _Template:
     temps: list[tuple[str, int]]  # (signal, sensor)
     current: str | None
     counter: str | None
+    time: str | None
     fixed: dict[str, float]
     pack_voltage: list[str]
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
@@ -187,13 +192,17 @@ class FrameBuilder:
         volt_of = {s: i for i, s in enumerate(mp.cell_voltage_signals)}
         temp_of = {t.signal: k for k, t in enumerate(mp.temperature_signals)}
         self.current_divisor = float(mp.current_sign) * float(mp.current_scale)
+        self.time_signal = TimeSignal.find(self.db, mp.time_signal) if mp.time_signal is not None else None
+        time_name = self.time_signal.name if self.time_signal is not None else None
+        #: frames carrying the time (first in a sample), the other mapped frames, the current frame(s) (last)
+        self.time_templates: list[_Template] = []
         self.templates: list[_Template] = []
         self.current_templates: list[_Template] = []
         self._counts: dict[int, int] = {}
         self._mods: dict[int, int] = {}
         for m in self.db.messages:
             names = [s.name for s in m.signals]
-            mapped = [n for n in names if n in volt_of or n in temp_of or n == mp.current_signal]
+            mapped = [n for n in names if n in volt_of or n in temp_of or n in (mp.current_signal, time_name)]
             if not mapped:
                 continue
             counter = mp.counter_signals.get(m.name)
@@ -213,7 +222,7 @@ class FrameBuilder:
             keys = sorted(groups) if groups else [None]
             for v in keys:
                 sigs = plain + groups.get(v, [])
-                if not any(n in volt_of or n in temp_of or n == mp.current_signal for n in sigs):
+                if not any(n in volt_of or n in temp_of or n in (mp.current_signal, time_name) for n in sigs):
                     continue
                 t = _Template(
                     message=m, mux_signal=mux.name if (mux is not None and v is not None) else None, mux_value=v,
@@ -221,10 +230,11 @@ class FrameBuilder:
                     temps=[(n, temp_of[n]) for n in sigs if n in temp_of],
                     current=mp.current_signal if mp.current_signal in sigs else None,
                     counter=counter if counter in sigs else None,
+                    time=time_name if time_name in sigs else None,
                     fixed={}, pack_voltage=[],
                 )
                 for n in sigs:
-                    if n in volt_of or n in temp_of or n == mp.current_signal or n == counter:
+                    if n in volt_of or n in temp_of or n in (mp.current_signal, counter, time_name):
                         continue
                     if _PACK_VOLTAGE_NAME.search(n):
                         t.pack_voltage.append(n)
@@ -235,7 +245,7 @@ class FrameBuilder:
                 for sig in m.signals:
                     if sig.minimum is not None and sig.maximum is not None and sig.maximum > sig.minimum:
                         t.ranges[sig.name] = (float(sig.minimum), float(sig.maximum))
-                (self.current_templates if t.current else self.templates).append(t)
+                (self.current_templates if t.current else self.time_templates if t.time else self.templates).append(t)
 
     def _frame(self, t: _Template, values: dict[str, float], ts: float) -> can.Message:
         m = t.message
@@ -256,13 +266,21 @@ class FrameBuilder:
         return can.Message(timestamp=ts, arbitration_id=m.frame_id, is_extended_id=bool(m.is_extended_frame),
                            data=data, is_fd=len(data) > 8)
 
+    @property
+    def sample_templates(self) -> list[_Template]:
+        """The frames of one sample, in the order they are sent."""
+        return self.time_templates + self.templates + self.current_templates
+
     def frames_for_sample(self, ts: float, current_a: float, voltage_v: np.ndarray,
                           sensor_c: np.ndarray) -> list[can.Message]:
-        """Voltage/temperature frames (every multiplexer value), then the current frame(s)."""
+        """The time-sync frame (when mapped), voltage/temperature frames (every multiplexer
+        value), then the current frame(s)."""
         out = []
         pack_v = float(np.nansum(voltage_v))
-        for t in self.templates + self.current_templates:
+        for t in self.sample_templates:
             values: dict[str, float] = {}
+            if t.time is not None and self.time_signal is not None:
+                values[t.time] = self.time_signal.wire_value(ts)
             for n, i in t.volts:
                 values[n] = float(voltage_v[i])
             for n, k in t.temps:

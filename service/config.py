@@ -164,6 +164,12 @@ class MappingConfig(_Section):
     max_clock_jump_s: float = Field(
         10.0, gt=0, description="a frame further than this from its ID's timeline is rejected; "
         "a run of agreeing ones re-anchors the ID (service.bus.decoder)")
+    time_signal: str | None = Field(
+        None, min_length=1, description="a signal carrying the sender's sample time in seconds "
+        "(BMS_SampleTime in the shipped DBC), sent once per sample before the sample's other frames: "
+        "samples are then clocked by it instead of by frame arrival, so a replay faster than real "
+        "time onto a kernel bus keeps the recording's time steps (service.bus.timesync). "
+        "None: frame timestamps")
 
     @field_validator("current_sign")
     @classmethod
@@ -260,6 +266,8 @@ class MappingConfig(_Section):
         out += [(f"mapping.cell_voltage_signals[{i}]", s) for i, s in enumerate(self.cell_voltage_signals)]
         out += [(f"mapping.temperature_signals[{k}].signal", t.signal) for k, t in enumerate(self.temperature_signals)]
         out += [(f"mapping.counter_signals.{m}", s) for m, s in self.counter_signals.items()]
+        if self.time_signal is not None:
+            out.append(("mapping.time_signal", self.time_signal))
         return out
 
 
@@ -603,7 +611,7 @@ def mapping_problems(config: SocdConfig, db_in: Any) -> Iterator[tuple[str, str]
     """``(field, problem)`` for every mapped signal ``db_in`` (the input DBC) does not carry as
     the mapping needs it: missing (with a close name), a counter outside its message, a
     multiplexer switch mapped as a measurement, a multiplexed signal on switch values the
-    switch cannot take."""
+    switch cannot take, a multiplexed time signal."""
     by_name = {s.name: (m, s) for m in db_in.messages for s in m.signals}
     for where, name in config.mapping.all_signals():
         if where.startswith("mapping.counter_signals."):
@@ -624,6 +632,9 @@ def mapping_problems(config: SocdConfig, db_in: Any) -> Iterator[tuple[str, str]
         msg, sig = by_name[name]
         if sig.is_multiplexer:
             yield where, f"signal {name!r} is the multiplexer switch of {msg.name}, not a measurement"
+            continue
+        if where == "mapping.time_signal" and sig.multiplexer_ids:
+            yield where, f"signal {name!r} is multiplexed in {msg.name}; a time must be in every frame of its message"
             continue
         if sig.multiplexer_ids:
             switch = msg.get_signal_by_name(sig.multiplexer_signal)

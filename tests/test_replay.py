@@ -198,7 +198,8 @@ def test_cli_record_and_truth(tmp_path, profile):
                     "--drop", "0.1", "--quiet"])
     assert rc == 0
     n = len(list(read_log(out)))
-    assert 0 < n < 30 * 3  # 1 voltage + 1 temperature + 1 current frame per sample, some dropped
+    # the default config: 1 time-sync + 1 voltage + 1 temperature + 1 current frame per sample, some dropped
+    assert 0 < n < 30 * 4
     rows = list(csv.reader(truth.open()))
     assert rows[0][:5] == ["time_s", "current_a", "soc_ref", "soc_0", "soc_1"] and len(rows[0]) == 7
     # a log file replays onto a bus named by python-can's flags

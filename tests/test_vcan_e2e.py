@@ -1,8 +1,10 @@
 """``socd replay`` and ``socd run`` as two separate processes over a real SocketCAN vcan0.
 
 Skips where the kernel has no CAN (the CI host); CI runs it inside the VM of
-``.ci/vcan_vm.sh``.  Replay is real time: a kernel bus stamps frames on arrival,
-so a faster replay would compress the time steps the daemon integrates.
+``.ci/vcan_vm.sh``.  A kernel bus stamps frames on arrival: the first test replays in
+real time with the frames' own stamps; the second replays at 20x with the sample time in
+``BMS_TimeSync`` (``mapping.time_signal``) and compares the daemon's SOC with an in-process
+replay's.
 """
 
 from __future__ import annotations
@@ -16,8 +18,9 @@ from pathlib import Path
 
 import can
 import cantools
+import numpy as np
 import pytest
-
+from daemon_support import run_daemon
 from vcan_support import VCAN_CHANNEL, requires_vcan
 
 pytestmark = [pytest.mark.vcan, requires_vcan]
@@ -130,3 +133,114 @@ def test_replay_and_daemon_as_processes_over_vcan0(tmp_path: Path) -> None:
             listener.shutdown()
     assert rc == 0, f"daemon exit status {rc} after SIGTERM"
     assert (tmp_path / "state.ckpt").is_file(), "no checkpoint written on SIGTERM"
+
+
+SYNC_SPEED = 20
+SYNC_REPLAY_S = 300
+
+
+def _sync_config(tmp_path: Path, time_signal: str | None, interface: str, channel: str, tag: str) -> Path:
+    """The config of the 20x comparison.  The slow identifier is off: it runs on wall-clock
+    ticks, so its updates land on other samples at 20x than in an unpaced in-process run
+    (two identical in-process runs already differ by up to ~0.1 % SOC through it)."""
+    cfg = tmp_path / f"{tag}.toml"
+    cfg.write_text(
+        f"""
+cell_profile = "{REPO / 'configs/cells/panasonic_18650pf.toml'}"
+[bus]
+interface = "{interface}"
+channel = "{channel}"
+[dbc]
+input = "{REPO / 'dbc/bms_pack.dbc'}"
+output = "{REPO / 'dbc/socd_output.dbc'}"
+[pack]
+n_cells = {N_CELLS}
+[mapping]
+current_signal = "BMS_PackCurrent"
+current_sign = -1.0
+cell_voltage_pattern = "BMS_Cell{{number:03d}}_V"
+temperature_pattern = "BMS_Temp{{number:02d}}_C"
+cells_per_sensor = 4
+{f'time_signal = "{time_signal}"' if time_signal else ""}
+[estimator]
+slow_identifier = false
+[output]
+can_enabled = false
+zenoh_enabled = false
+[checkpoint]
+path = "{tmp_path / f'{tag}.ckpt'}"
+interval_s = 1.0
+"""
+    )
+    return cfg
+
+
+def _checkpoint_t_s(path: Path) -> float | None:
+    from service.daemon.checkpoint import decode_checkpoint
+
+    try:
+        res = decode_checkpoint(path.read_bytes(), str(path))
+    except OSError:
+        return None
+    t = res.meta.get("t_s") if res.ok else None
+    return float(t) if isinstance(t, (int, float)) else None
+
+
+def test_replay_at_20x_with_time_sync_gives_the_in_process_soc(tmp_path: Path) -> None:
+    from replay.pack import pack_frames
+    from service.cell.profile import load_profile
+    from service.config import load_config
+    from service.daemon.daemon import Daemon
+    from service.recording import load_recording
+
+    cfg = _sync_config(tmp_path, "BMS_SampleTime", "socketcan", VCAN_CHANNEL, "vcan")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "run", "--config", str(cfg), "--log-level", "info"],
+        cwd=REPO, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+    )
+    ckpt = tmp_path / "vcan.ckpt"
+    last_t = float(SYNC_REPLAY_S - 1)  # the recording is sampled at 1 s; --stop keeps t < 300
+    try:
+        _wait_for_line(daemon, "clock BMS_SampleTime", timeout_s=240)  # logged once the bus is open
+        replay = subprocess.run(
+            [sys.executable, "-m", "service.cli", "replay", str(RECORDING), "--config", str(cfg),
+             "-i", "socketcan", "-c", VCAN_CHANNEL, "--cells", str(N_CELLS), "--soc0", "1.0",
+             "--speed", str(SYNC_SPEED), "--stop", str(SYNC_REPLAY_S), "--quiet"],
+            cwd=REPO, env=env, capture_output=True, text=True, timeout=600, check=False,
+        )
+        assert replay.returncode == 0, replay.stderr
+        # ready when a periodic checkpoint holds the last sample (readiness, not a sleep)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and _checkpoint_t_s(ckpt) != last_t:
+            assert daemon.poll() is None, "the daemon exited"
+            time.sleep(0.2)
+        assert _checkpoint_t_s(ckpt) == last_t, f"checkpoint at t={_checkpoint_t_s(ckpt)}, not {last_t}"
+    finally:
+        daemon.send_signal(signal.SIGTERM)
+        try:
+            rc = daemon.wait(timeout=60)
+        finally:
+            if daemon.poll() is None:
+                daemon.kill()
+    assert rc == 0, f"daemon exit status {rc} after SIGTERM"
+    assert _checkpoint_t_s(ckpt) == last_t
+    vcan_config = load_config(cfg)
+    bus = can.Bus(interface="virtual", channel=f"ckpt-{time.monotonic_ns()}")
+    try:  # the daemon's final state, as a restart would restore it
+        restored = Daemon(vcan_config, bus, install_signal_handlers=False)
+        assert restored.restore() == "restored"
+        soc_vcan = np.array(restored.estimator.soc)
+    finally:
+        bus.shutdown()
+
+    # the in-process replay of the same frames: python-can's virtual bus keeps the sender's stamps
+    ref_cfg = load_config(_sync_config(tmp_path, None, "virtual", f"ref-{time.monotonic_ns()}", "ref"))
+    rec = load_recording(RECORDING).slice(0, SYNC_REPLAY_S)
+    frames, pack = pack_frames(rec, ref_cfg, load_profile(ref_cfg.cell_profile), N_CELLS, start_soc=1.0)
+    ref = run_daemon(ref_cfg, frames)
+    assert ref.steps == len(pack) - 1
+    diff_pct = 100 * float(np.max(np.abs(soc_vcan - ref.estimator.soc)))
+    print(f"\nSOC, {SYNC_SPEED}x replay over {VCAN_CHANNEL} with time sync vs in-process: max |diff| {diff_pct:.2e} %")
+    assert float(np.min(pack.truth_soc[0] - pack.truth_soc[-1])) > 0.02, "the drive moved the SOC too little"
+    assert diff_pct < 0.1

@@ -20,6 +20,7 @@ decode_error           cantools could not decode (e.g. unknown multiplexer value
 timestamp_backwards    up to ``max_clock_jump_s`` older than the ID's last frame  (reject)
 timestamp_jump         further than ``max_clock_jump_s`` from the ID's timeline,  (reject)
                        or not a finite number
+no_time_sync           time sync on, and no time-sync frame accepted yet          (reject)
 duplicate              same bytes (so same counter) as the previous frame of ID   (reject)
 error_frame            CAN error frame                                            (reject)
 remote_frame           remote transmission request                                (reject)
@@ -28,7 +29,8 @@ remote_frame           remote transmission request                              
 Events inside decoded frames are counted on their own and are not frame outcomes:
 ``counter_jump`` (rolling counter is not previous + 1; the frame is used),
 ``out_of_range`` and ``nan`` (per *value*: that cell/sensor is invalidated, the rest of the
-frame is used), ``clock_reanchor`` (see below) and ``samples``.  A rejected value
+frame is used), ``clock_reanchor``, ``timestamp_rollback``, ``time_sync_missing`` (see below)
+and ``samples``.  A rejected value
 invalidates that cell/sensor at once (``fresh`` False) until a valid value arrives; it is
 never replaced by an older or extrapolated value.
 
@@ -42,6 +44,19 @@ the next sample carries ``reanchored=True``).  A genuine clock jump (or a bus si
 ``max_clock_jump_s``) shows as :data:`REANCHOR_AFTER` off-timeline frames in a row, of any
 IDs, within ``max_clock_jump_s`` of each other: the decoder then re-anchors every ID on the
 new timeline, counts ``clock_reanchor``, and the next sample carries ``reanchored=True``.
+
+Time sync: when ``mapping.time_signal`` names a signal (:mod:`service.bus.timesync`), the
+sender's sample time on the bus replaces arrival time, so a replay faster than real time onto
+a kernel bus, which stamps frames on arrival, keeps the recording's time steps.  The frame
+carrying the time is then the only clock: its decoded (unwrapped) value goes through the
+timeline checks above in place of its timestamp (rejected as ``timestamp_jump`` /
+``timestamp_backwards``, ``timestamp_rollback`` when the next one is older than it but not
+older than the one before it, ``clock_reanchor`` after :data:`REANCHOR_AFTER` agreeing ones in
+a row; the same bytes again are a ``duplicate``), and every other frame takes the latest
+accepted time, whatever its timestamp.  A frame before the first accepted time has no time and
+is rejected as ``no_time_sync``.  A pack-current frame with no new accepted time since the
+previous sample (its time frame was lost or rejected) completes no sample and counts
+``time_sync_missing`` (an event, its frame is ``frames_decoded``): the sample's time is unknown.
 """
 
 from __future__ import annotations
@@ -53,12 +68,13 @@ from dataclasses import dataclass, field
 import can
 import numpy as np
 
+from service.bus.timesync import TimeSignal
 from service.bus.types import PackSample
 from service.config import SocdConfig
 
 #: reasons that reject a whole frame (each frame is counted under at most one)
 FRAME_REJECTS = ("unknown_id", "bad_dlc", "decode_error", "timestamp_backwards", "timestamp_jump",
-                 "duplicate", "error_frame", "remote_frame")
+                 "duplicate", "error_frame", "remote_frame", "no_time_sync")
 #: reasons that reject one value of a decoded frame (counted per value)
 VALUE_REJECTS = ("out_of_range", "nan")
 #: frame outcomes that are not rejections
@@ -121,6 +137,19 @@ class FrameDecoder:
                 info.counter_mod = 1 << sig.length
             self._by_id[(m.frame_id, bool(m.is_extended_frame))] = info
 
+        #: the signal carrying the sample time, and its message (None: frame timestamps)
+        self.time_signal: TimeSignal | None = None
+        self._sync_info: _MsgInfo | None = None
+        if mp.time_signal is not None:
+            self.time_signal = TimeSignal.find(self.db, mp.time_signal)
+            m = self.time_signal.message
+            self._sync_info = self._by_id[(m.frame_id, bool(m.is_extended_frame))]
+        #: the latest accepted time-sync value, the one accepted before it, and whether a
+        #: sample has been completed since the latest
+        self.sync_t_s: float | None = None
+        self._sync_prev_t_s: float | None = None
+        self._sync_fresh = False
+
         self.counters: Counter[str] = Counter()
         self.voltage_v = np.full(self.n_cells, np.nan)
         self.voltage_t = np.full(self.n_cells, -np.inf)
@@ -159,7 +188,7 @@ class FrameDecoder:
     def stats(self) -> dict[str, int]:
         """Counters as a plain dict with every reason present (for health output)."""
         out = {k: 0 for k in ("frames_in", *FRAME_ACCEPTS, "samples", "counter_jump", "clock_reanchor", "timestamp_rollback",
-                              *REJECT_REASONS, *VALUE_REJECTS)}
+                              "time_sync_missing", *REJECT_REASONS, *VALUE_REJECTS)}
         out.update(self.counters)
         out["rejected"] = self.rejected
         return out
@@ -198,7 +227,11 @@ class FrameDecoder:
 
     def _ahead_of_bus(self, info: _MsgInfo, ts: float) -> bool:
         """An ID's frame older than its own last one but not older than the last frame the
-        bus accepted from another ID: that last one of this ID was the outlier."""
+        bus accepted from another ID: that last one of this ID was the outlier.  With time
+        sync the time frame is the only clock: the outlier is its last value when this one is
+        not older than the value accepted before that."""
+        if info is self._sync_info:
+            return self._sync_prev_t_s is not None and ts >= self._sync_prev_t_s
         return (self._last_key is not None and self._last_key is not info
                 and self.timeline_t_s is not None and ts >= self.timeline_t_s)
 
@@ -223,7 +256,43 @@ class FrameDecoder:
             other.last_ts = -math.inf
         info.last_data = None
         info.last_counter = None
+        self.sync_t_s = self._sync_prev_t_s = None  # the old timeline says nothing about the new one
         self._reanchor_pending = True
+
+    def _accept_sync(self, ts: float) -> None:
+        """``ts`` is the latest time; the one before it stays after a rollback (``ts`` older)."""
+        if self.sync_t_s is not None and ts > self.sync_t_s:
+            self._sync_prev_t_s = self.sync_t_s
+        self.sync_t_s = ts
+        self._sync_fresh = True
+
+    def _on_timeline(self, info: _MsgInfo, ts: float) -> str | None:
+        """None if a frame of ``info`` at ``ts`` is accepted (after a rollback or a
+        re-anchor if need be), else the reason it is rejected."""
+        off = self._off_timeline(info, ts)
+        if off == "timestamp_backwards" and self._ahead_of_bus(info, ts):
+            # this ID's previous frame was stamped ahead of the bus, not this one behind it
+            self.counters["timestamp_rollback"] += 1
+            info.last_ts = -math.inf
+            info.last_data = None
+            info.last_counter = None
+            self._reanchor_pending |= info.has_current or info is self._sync_info
+            off = None
+        if off is not None:
+            if not self._clock_jumped(ts):
+                return off
+            self._reanchor(info)  # a run of agreeing frames: the clock really moved
+        self._cand_ts, self._cand_n = None, 0
+        return None
+
+    def _sync_time(self, values: dict) -> float:
+        """The time a decoded time-sync frame carries, unwrapped near the latest one (NaN if unreadable)."""
+        assert self.time_signal is not None
+        try:
+            v = float(values[self.time_signal.name])
+        except (KeyError, TypeError, ValueError, OverflowError):
+            return math.nan
+        return self.time_signal.unwrap(v, self.sync_t_s)
 
     def _feed(self, msg: can.Message, out: list[PackSample]) -> str:
         """Process one frame, append the sample it completes to ``out``; return its outcome."""
@@ -238,34 +307,46 @@ class FrameDecoder:
         data = bytes(msg.data)
         if len(data) != info.length:
             return "bad_dlc"
-        ts = float(msg.timestamp)
-        off = self._off_timeline(info, ts)
-        if off == "timestamp_backwards" and self._ahead_of_bus(info, ts):
-            # this ID's previous frame was stamped ahead of the bus, not this one behind it
-            c["timestamp_rollback"] += 1
-            info.last_ts = -math.inf
-            info.last_data = None
-            info.last_counter = None
-            self._reanchor_pending |= info.has_current
-            off = None
-        if off is not None:
-            if not self._clock_jumped(ts):
+        values: dict | None = None
+        is_sync = info is self._sync_info
+        if self._sync_info is None or is_sync:
+            if is_sync:  # the time is in the payload: decode first
+                try:
+                    values = info.message.decode(data, decode_choices=False, scaling=True)
+                except Exception:  # noqa: BLE001 - cantools raises several kinds
+                    return "decode_error"
+                ts = self._sync_time(values)
+            else:
+                ts = float(msg.timestamp)
+            off = self._on_timeline(info, ts)
+            if off is not None:
                 return off
-            self._reanchor(info)  # a run of agreeing frames: the clock really moved
-        self._cand_ts, self._cand_n = None, 0
-        if info.counter is not None and data == info.last_data:
-            return "duplicate"
-        if not info.targets and info.counter is None:
+            # the time itself is the sync frame's counter: the same bytes again are a repeat
+            if (info.counter is not None or is_sync) and data == info.last_data:
+                return "duplicate"
+        else:  # time sync: every other frame belongs to the latest accepted time
+            if self.sync_t_s is None:
+                return "no_time_sync"
+            ts = self.sync_t_s
+            if info.counter is not None and data == info.last_data:
+                return "duplicate"
+        on_clock = self._sync_info is None or is_sync  # the frames that set the timeline
+        if not info.targets and info.counter is None and not is_sync:
             info.last_ts = ts
-            self.timeline_t_s, self._last_key = ts, info
+            if on_clock:
+                self.timeline_t_s, self._last_key = ts, info
             return "frames_ignored"
-        try:
-            values = info.message.decode(data, decode_choices=False, scaling=True)
-        except Exception:  # noqa: BLE001 - cantools raises several kinds
-            return "decode_error"
+        if values is None:
+            try:
+                values = info.message.decode(data, decode_choices=False, scaling=True)
+            except Exception:  # noqa: BLE001 - cantools raises several kinds
+                return "decode_error"
         info.last_ts = ts
-        self.timeline_t_s, self._last_key = ts, info
+        if on_clock:
+            self.timeline_t_s, self._last_key = ts, info
         info.last_data = data
+        if is_sync:
+            self._accept_sync(ts)
         if info.counter is not None:
             cnt = values.get(info.counter)
             if cnt is not None:
@@ -317,6 +398,11 @@ class FrameDecoder:
                 else:
                     self.current_a = math.nan
         if new_current:
+            if self._sync_info is not None:
+                if not self._sync_fresh:  # this sample's time frame was lost or rejected
+                    c["time_sync_missing"] += 1
+                    return "frames_decoded"
+                self._sync_fresh = False
             out.append(self.sample_at(ts, self._reanchor_pending))
             self._reanchor_pending = False
         return "frames_decoded"

@@ -149,6 +149,8 @@ def _summary(config: Any, dbs: dict[str, Any], profile: Any) -> list[str]:
         f"pack          {n} cells, {len(m.temperature_signals)} temperature sensor(s), current "
         f"{m.current_signal} (sign {m.current_sign:+g})",
         f"input DBC     {config.dbc.input} ({len(db_in.messages)} messages; mapped: {', '.join(used)})",
+        "clock         " + (f"sample time from {m.time_signal} (time sync), not frame arrival"
+                            if m.time_signal else "frame timestamps"),
         f"output DBC    {config.dbc.output} "
         + ("(CAN output on)" if config.output.can_enabled else "(CAN output off)"),
         f"cell profile  {config.cell_profile} ({profile.name}, {profile.capacity_ah:g} Ah)",

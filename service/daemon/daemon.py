@@ -4,7 +4,9 @@ One asyncio loop runs these tasks:
 
 - **receive** (:class:`~service.daemon.can_rx.CanReceiver`): every frame goes through
   :class:`service.bus.decoder.FrameDecoder`; each :class:`PackSample` it completes steps the
-  estimator with ``dt`` from the sample timestamps.  Cells that are not ``fresh`` are
+  estimator with ``dt`` from the sample timestamps: the frames' own, or with
+  ``mapping.time_signal`` the sender's sample time from the time-sync frame (a replay faster
+  than real time onto a kernel bus, which stamps frames on arrival).  Cells that are not ``fresh`` are
   passed as inactive (no voltage update) and published as stale, never extrapolated as if
   measured.  A non-positive ``dt`` is skipped and counted; a gap longer than
   :data:`MAX_STEP_S` under load cannot be integrated honestly (the current during it is
@@ -195,8 +197,9 @@ class Daemon:
         stop_task = asyncio.create_task(stop.wait(), name="socd-stop")
         self._started.set()
         log.info(
-            "socd running: %d cells, bus %s:%s, zenoh %s, checkpoint %s (%s)",
+            "socd running: %d cells, bus %s:%s, clock %s, zenoh %s, checkpoint %s (%s)",
             self.n, self.config.bus.interface, self.config.bus.channel,
+            self.config.mapping.time_signal or "frame timestamps",
             ",".join(self.config.zenoh.listen) if self.publisher is not None else "off",
             self.config.checkpoint.path, self.health.checkpoint_state,
         )

@@ -45,6 +45,8 @@ _DECODER_FLAGS: dict[str, str] = {
     "timestamp_backwards": "decode_errors",
     "timestamp_jump": "decode_errors",
     "clock_reanchor": "clock_reanchored",
+    "no_time_sync": "decode_errors",
+    "time_sync_missing": "decode_errors",
 }
 
 
