@@ -73,6 +73,9 @@ class PackSnapshot:
     stale: np.ndarray | None = None
     status_flags: dict[str, bool] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
+    #: state of health per cell (``capacity_rel``, ``capacity_std_ah``, ``resistance_rel``, ... as
+    #: :meth:`service.estimators.pipeline.PackEstimator.health`); empty: no SOCD_CellHealth frames
+    health: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.stale is None:

@@ -34,7 +34,7 @@ HISTORY = 3600
 SORT_KEYS = ("cell", "soc", "sigma", "voltage")
 #: characters one ``cell SOC σ V`` group takes in the grid (columns plus padding), and one
 #: compact ``cell SOC`` group (used when the full grid would be taller than the terminal)
-GROUP_WIDTH = 32
+GROUP_WIDTH = 46  # cell, SOC, σ, V, capacity %, R %
 COMPACT_GROUP_WIDTH = 16
 #: lines the header, the grid's column titles and its caption take
 HEADER_LINES = 12
@@ -68,9 +68,11 @@ class PackView:
     """The latest state of a pack as seen on Zenoh (payload models, validated)."""
 
     def __init__(self) -> None:
-        from service.daemon.payloads import CellSoc, Health, Summary
+        from service.daemon.payloads import CellParams, CellSoc, Health, Summary
 
         self.cells: dict[int, CellSoc] = {}
+        #: the latest parameters and state of health of each cell (capacity, resistance growth)
+        self.params: dict[int, CellParams] = {}
         self.summary: Summary | None = None
         self.health: Health | None = None
         self.messages = 0
@@ -80,7 +82,7 @@ class PackView:
     def on_sample(self, key: str, payload: str) -> None:
         from pydantic import ValidationError
 
-        from service.daemon.payloads import CellSoc, Health, Summary
+        from service.daemon.payloads import CellParams, CellSoc, Health, Summary
 
         kind = key.rsplit("/", 1)[-1]
         self.messages += 1
@@ -88,6 +90,9 @@ class PackView:
             if kind == "soc":
                 c = CellSoc.model_validate_json(payload)
                 self.cells[c.cell] = c
+            elif kind == "params":
+                p = CellParams.model_validate_json(payload)
+                self.params[p.cell] = p
             elif kind == "summary":
                 self.summary = Summary.model_validate_json(payload)
                 self.history.append((self.summary.t_s, {i: c.soc_pct for i, c in self.cells.items()
@@ -103,6 +108,8 @@ class PackView:
         snap = Snapshot.model_validate_json(payload)
         for c in snap.cells:
             self.cells.setdefault(c.cell, c)
+        for p in snap.params:
+            self.params.setdefault(p.cell, p)
         self.summary = self.summary or snap.summary
         self.health = self.health or snap.health
 
@@ -183,11 +190,12 @@ class PackView:
 
         cells = self.sorted_cells(sort)
         groups = max(1, min(len(cells) or 1, width // (COMPACT_GROUP_WIDTH if compact else GROUP_WIDTH)))
-        per_cell = 2 if compact else 4
+        per_cell = 2 if compact else 6
         rows = -(-len(cells) // groups) if cells else 0
         t = Table(box=box.SIMPLE_HEAD, padding=(0, 1), pad_edge=False, show_edge=False,
-                  caption=f"sorted by {sort}, read down then across; ~ stale, ! filter re-initialised"
-                + ("; σ and V hidden to fit the screen" if compact else ""),
+                  caption=f"sorted by {sort}, read down then across; ~ stale, ! filter re-initialised; "
+                  "C: capacity, R: resistance, % of the profile's"
+                + ("; C and R, σ and V hidden to fit the screen" if compact else ""),
                   caption_justify="left")
         for _ in range(groups):
             t.add_column("cell", justify="right", style="bold", min_width=4, no_wrap=True)
@@ -195,6 +203,8 @@ class PackView:
             if not compact:
                 t.add_column("σ %", justify="right", min_width=5, no_wrap=True)
                 t.add_column("V", justify="right", min_width=6, no_wrap=True)
+                t.add_column("C %", justify="right", min_width=6, no_wrap=True)
+                t.add_column("R %", justify="right", min_width=5, no_wrap=True)
         for r in range(rows):
             row: list = []
             for g in range(groups):
@@ -205,7 +215,10 @@ class PackView:
                     mark = "!" if c.resets else ("~" if c.stale else " ")
                     row += [Text(f"{c.cell}{mark}", style=style or "bold"), Text(_num(c.soc_pct, 2), style)]
                     if not compact:
-                        row += [Text(_num(c.soc_std_pct, 2), style), Text(_num(c.voltage_v, 3), style)]
+                        p = self.params.get(c.cell)
+                        row += [Text(_num(c.soc_std_pct, 2), style), Text(_num(c.voltage_v, 3), style),
+                                Text(_num(p.capacity_pct if p else None, 1), style),
+                                Text(_num(p.resistance_pct if p else None, 0), style)]
                 else:
                     row += [""] * per_cell
             t.add_row(*row)

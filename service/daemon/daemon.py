@@ -531,7 +531,12 @@ class Daemon:
             stale=stale,
             status_flags=flags,
             counters={"frames_rejected": counters.get("frames_rejected", 0), "stale_cells": int(stale.sum())},
+            health=self._health_cells(),
         )
+
+    def _health_cells(self) -> dict[str, np.ndarray]:
+        fn = getattr(self.estimator, "health", None)
+        return {k: np.array(v, dtype=float) for k, v in fn().items()} if fn is not None else {}
 
     async def _can_output(self) -> None:
         if self.encoder is None or not self.initialised:
@@ -565,6 +570,7 @@ class Daemon:
             resets=np.array(est.reset_count, dtype=int),
             frame_wall_s=self._last_frame_wall if self.initialised else None,
             initialised=self.initialised,
+            health_cells=snap.health,
         )
 
     async def _zenoh_output(self) -> None:

@@ -113,6 +113,8 @@ class PublishRound:
     #: wall time of the newest frame in this round, for the frame→publication latency
     frame_wall_s: float | None = None
     initialised: bool = True
+    #: :meth:`PackEstimator.health` arrays (capacity_ah, capacity_std_ah, capacity_rel, resistance_rel)
+    health_cells: dict[str, np.ndarray] | None = None
 
     @property
     def n_cells(self) -> int:
@@ -136,6 +138,10 @@ def build_payloads(pack: str, r: PublishRound) -> RoundPayloads:
     """The pydantic payloads of one round (runs on the publisher thread)."""
     n = r.n_cells
     resets = r.resets if r.resets is not None else np.zeros(n, dtype=int)
+    soh = r.health_cells or {}
+
+    def soh_value(key: str, i: int, scale: float = 1.0, nd: int = 6) -> float | None:
+        return _num(soh[key][i], scale, nd) if key in soh and r.initialised else None
     cells, params = [], []
     for i in range(n):
         ok = r.initialised
@@ -151,6 +157,8 @@ def build_payloads(pack: str, r: PublishRound) -> RoundPayloads:
         params.append(CellParams(
             pack=pack, t_s=r.t_s, cell=i,
             **{k: (_num(r.params[k][i], 1.0, 9) if k in r.params else None) for k in PARAMETER_NAMES},
+            capacity_ah=soh_value("capacity_ah", i, 1.0, 5), capacity_std_ah=soh_value("capacity_std_ah", i, 1.0, 5),
+            capacity_pct=soh_value("capacity_rel", i, 100.0, 3), resistance_pct=soh_value("resistance_rel", i, 100.0, 3),
         ))
     soc = np.asarray(r.soc, float)
     good = np.isfinite(soc) & r.initialised
