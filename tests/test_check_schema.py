@@ -107,7 +107,9 @@ def test_schema_files_validate_their_examples(tmp_path: Path, capsys) -> None:
         assert schema == model.model_json_schema()
         assert set(example) <= set(schema["properties"]) and set(schema.get("required", [])) <= set(example)
         assert model.model_validate(example).model_dump(mode="json") == example
-        assert example["schema_version"] == payloads.SCHEMA_VERSION
+        assert example["schema_version"] == model.model_fields["schema_version"].default
+        assert example["schema_version"] == (payloads.PARAMS_SCHEMA_VERSION if name == "cell_params"
+                                             else payloads.SCHEMA_VERSION)
     snap = payloads.Snapshot.model_validate_json((out / "snapshot.example.json").read_text())
     assert len(snap.cells) == snap.summary.n_cells == 2 and snap.summary.cell_min == 1
     # without -o: one JSON document on stdout with the same content

@@ -34,7 +34,7 @@ HISTORY = 3600
 SORT_KEYS = ("cell", "soc", "sigma", "voltage")
 #: characters one ``cell SOC σ V`` group takes in the grid (columns plus padding), and one
 #: compact ``cell SOC`` group (used when the full grid would be taller than the terminal)
-GROUP_WIDTH = 46  # cell, SOC, σ, V, capacity %, R %
+GROUP_WIDTH = 32
 COMPACT_GROUP_WIDTH = 16
 #: lines the header, the grid's column titles and its caption take
 HEADER_LINES = 12
@@ -129,6 +129,25 @@ class PackView:
         cells: list[CellSoc] = list(self.cells.values())
         return sorted(cells, key=lambda c: (order(c), c.cell))
 
+    def state_of_health(self) -> str | None:
+        """Capacity and resistance growth (% of the profile's) over the cells, lowest and highest
+        capacity and highest resistance with their cells; None before any schema-2 params."""
+        cap = {i: p for i, p in self.params.items() if p.capacity_pct is not None}
+        res = {i: p for i, p in self.params.items() if p.resistance_pct is not None}
+        if not cap and not res:
+            return None
+        parts = []
+        if cap:
+            lo = min(cap, key=lambda i: (cap[i].capacity_pct, i))
+            hi = max(cap, key=lambda i: (cap[i].capacity_pct, -i))
+            sd = cap[lo].capacity_std_ah / cap[lo].capacity_ah * 100 if cap[lo].capacity_std_ah and cap[lo].capacity_ah else None
+            parts.append(f"capacity min {cap[lo].capacity_pct:.1f} %" + (f" ±{sd:.1f}" if sd is not None else "")
+                         + f" (cell {lo})  max {cap[hi].capacity_pct:.1f} % (cell {hi})")
+        if res:
+            worst = max(res, key=lambda i: (res[i].resistance_pct, -i))
+            parts.append(f"resistance max {res[worst].resistance_pct:.0f} % (cell {worst})")
+        return "   ".join(parts) + "   (of the profile's)"
+
     def render(self, title: str, sort: str = "cell", width: int = 120, height: int | None = None):
         """The whole view as one rich renderable: summary header above the cell grid.
 
@@ -179,6 +198,9 @@ class PackView:
                 f"estimate p50/p99 {_ms(lat.get('estimate_p50'))}/{_ms(lat.get('estimate_p99'))}   "
                 f"publish p50/p99 {_ms(lat.get('publish_p50'))}/{_ms(lat.get('publish_p99'))}   "
                 f"checkpoint: {self.health.checkpoint}"))
+        soh = self.state_of_health()
+        if soh is not None:
+            t.add_row("SOH", Text(soh))
         t.add_row("watch", Text(f"{self.messages} messages, {self.bad} invalid", style="dim"))
         return t
 
@@ -190,12 +212,11 @@ class PackView:
 
         cells = self.sorted_cells(sort)
         groups = max(1, min(len(cells) or 1, width // (COMPACT_GROUP_WIDTH if compact else GROUP_WIDTH)))
-        per_cell = 2 if compact else 6
+        per_cell = 2 if compact else 4
         rows = -(-len(cells) // groups) if cells else 0
         t = Table(box=box.SIMPLE_HEAD, padding=(0, 1), pad_edge=False, show_edge=False,
-                  caption=f"sorted by {sort}, read down then across; ~ stale, ! filter re-initialised; "
-                  "C: capacity, R: resistance, % of the profile's"
-                + ("; C and R, σ and V hidden to fit the screen" if compact else ""),
+                  caption=f"sorted by {sort}, read down then across; ~ stale, ! filter re-initialised"
+                + ("; σ and V hidden to fit the screen" if compact else ""),
                   caption_justify="left")
         for _ in range(groups):
             t.add_column("cell", justify="right", style="bold", min_width=4, no_wrap=True)
@@ -203,8 +224,6 @@ class PackView:
             if not compact:
                 t.add_column("σ %", justify="right", min_width=5, no_wrap=True)
                 t.add_column("V", justify="right", min_width=6, no_wrap=True)
-                t.add_column("C %", justify="right", min_width=6, no_wrap=True)
-                t.add_column("R %", justify="right", min_width=5, no_wrap=True)
         for r in range(rows):
             row: list = []
             for g in range(groups):
@@ -215,10 +234,7 @@ class PackView:
                     mark = "!" if c.resets else ("~" if c.stale else " ")
                     row += [Text(f"{c.cell}{mark}", style=style or "bold"), Text(_num(c.soc_pct, 2), style)]
                     if not compact:
-                        p = self.params.get(c.cell)
-                        row += [Text(_num(c.soc_std_pct, 2), style), Text(_num(c.voltage_v, 3), style),
-                                Text(_num(p.capacity_pct if p else None, 1), style),
-                                Text(_num(p.resistance_pct if p else None, 0), style)]
+                        row += [Text(_num(c.soc_std_pct, 2), style), Text(_num(c.voltage_v, 3), style)]
                 else:
                     row += [""] * per_cell
             t.add_row(*row)

@@ -86,7 +86,8 @@ class PackEstimator:
         if identification == "multi" and s.slow_identifier:
             self.slow = SlowIdentifier(self.n, s.memory_length, s.slow_soc_delta, s.slow_param_process_rel)
         self.capacity: CapacityEstimator | None = None
-        if s.capacity_estimation != "off":
+        # a one-cell "pack" has no median cell to learn against: pack-relative is then off
+        if s.capacity_estimation == "absolute" or (s.capacity_estimation == "pack-relative" and self.n >= 2):
             self.capacity = CapacityEstimator(
                 self.n, profile.effective_capacity_ah, s.capacity_estimation, s.capacity_init_std_rel,
                 s.capacity_bounds_rel, s.capacity_innovation_inflation, s.capacity_walk_rel_per_sqrt_s)
