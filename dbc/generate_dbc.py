@@ -35,6 +35,9 @@ counters, multiplexed cell data):
 * ``SOCD_PackUsable`` 0x18FF54E5: usable SOC (0.01 %/bit, limited by the weakest cell in
   each direction), remaining energy (1 Wh/bit), a valid bit, imbalance (1 mAh/bit), the
   weakest cell's index, rolling counter (:mod:`service.estimators.pack_view`).
+* ``SOCD_CellHealth`` 0x18FF55E5: mux ``SOCD_HlthCellIndex``, ``SOCD_CapacityPct`` (estimated
+  capacity / the profile's, 0.01 %/bit), ``SOCD_CapacityStdPct`` (its σ, 0.01 %/bit),
+  ``SOCD_ResistancePct`` (R / R_nominal, 0.1 %/bit), ``SOCD_HlthCounter``.
 
 The user-DBC example (``configs/user_dbc_example/acme_bms.dbc``) is written by
 ``--user-example``: different IDs, names, byte order and layout, to prove a user's own
@@ -199,6 +202,7 @@ PARAMS_FRAME_ID = 0x18FF51E5
 SUMMARY_FRAME_ID = 0x18FF52E5
 STATUS_FRAME_ID = 0x18FF53E5
 PACK_USABLE_FRAME_ID = 0x18FF54E5
+HEALTH_FRAME_ID = 0x18FF55E5  # 0x18FF54E5 is SOCD_PackUsable's
 
 
 def output_database(max_cells: int = MAX_OUTPUT_CELLS) -> Database:
@@ -285,7 +289,23 @@ def output_database(max_cells: int = MAX_OUTPUT_CELLS) -> Database:
             _sig("SOCD_PackUsableCounter", 60, 4, comment="Rolling counter, +1 per frame, modulo 16."),
         ],
     )
-    return Database(messages=[soc, params, summary, status, usable],
+    health = Message(
+        frame_id=HEALTH_FRAME_ID, name="SOCD_CellHealth", length=8, cycle_time=1000, senders=["SOCD"],
+        is_extended_frame=True,
+        comment="Per-cell state of health: estimated capacity and resistance growth; one frame per cell.",
+        signals=[
+            _sig("SOCD_HlthCellIndex", 0, 8, is_mux=True, minimum=0, maximum=max_cells - 1,
+                 comment="Cell index, 0-based."),
+            _sig("SOCD_CapacityPct", 8, 16, scale=0.01, unit="%", mux_ids=ids, mux_signal="SOCD_HlthCellIndex",
+                 comment="Estimated capacity / the cell profile's capacity (SOH-energy)."),
+            _sig("SOCD_CapacityStdPct", 24, 12, scale=0.01, unit="%", mux_ids=ids,
+                 mux_signal="SOCD_HlthCellIndex", comment="Standard deviation of SOCD_CapacityPct (1 sigma)."),
+            _sig("SOCD_ResistancePct", 36, 12, scale=0.1, unit="%", mux_ids=ids, mux_signal="SOCD_HlthCellIndex",
+                 comment="(R_ohm + R_ct) / the profile's at the cell's temperature and SOC (SOH-power)."),
+            _sig("SOCD_HlthCounter", 60, 4, comment="Rolling counter, +1 per frame, modulo 16."),
+        ],
+    )
+    return Database(messages=[soc, params, summary, status, usable, health],
                     nodes=[Node("SOCD", comment="SOC estimator")])
 
 

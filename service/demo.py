@@ -9,7 +9,8 @@
   ``tcp/127.0.0.1:<free port>`` (multicast scouting off);
 - a Zenoh subscriber session counting what arrives (callbacks bridged into the loop
   with ``loop.call_soon_threadsafe``), and a third Bus counting the CAN output frames;
-- at the end, every cell's SOC error against the replay's truth.
+- at the end, every cell's SOC error against the replay's truth, and its estimated capacity's
+  error against the capacity the pack was built with.
 
 :func:`run_demo` returns a :class:`DemoResult`; ``socd demo`` prints it and writes the
 JSON and the plot.
@@ -70,6 +71,9 @@ class DemoResult:
     soc_max_err_pct: float
     soc_rmse_after_600s_pct: float | None
     per_cell_rmse_pct: list[float]
+    #: per cell at the end: (estimated capacity / the cell's true capacity - 1), %
+    capacity_err_pct: list[float]
+    capacity_spread: float
     final_soc_pct: list[float]
     final_truth_pct: list[float]
     zenoh_messages: int
@@ -89,6 +93,8 @@ class DemoResult:
 
 
 SHIPPED_DBC_CELLS = 96
+#: σ of the demo pack's relative cell capacity
+DEFAULT_CAPACITY_SPREAD = 0.02
 
 
 def _generated_input_dbc(n_cells: int, workdir: Path) -> Path:
@@ -133,8 +139,13 @@ def run_demo(
     faults: Any = None,
     status: TextIO | bool | None = True,
     live: bool | None = None,
+    capacity_spread: float = DEFAULT_CAPACITY_SPREAD,
+    capacity_estimation: str | None = None,
 ) -> tuple[DemoResult, dict[str, np.ndarray]]:
-    """Run the demo; return the result and the traces (``t_s``, ``soc``, ``truth``) for a plot."""
+    """Run the demo; return the result and the traces (``t_s``, ``soc``, ``truth``) for a plot.
+
+    ``capacity_spread``: σ of the cells' relative capacity (clipped at ±3σ);
+    ``capacity_estimation``: overrides ``estimator.capacity_estimation`` ("off" freezes it)."""
     import zenoh
 
     from replay.pack import SpreadSpec, pack_frames
@@ -162,7 +173,10 @@ def run_demo(
     channel = f"socd-demo-{os.getpid()}-{time.monotonic_ns()}"
     port = free_port()
     config = _demo_config(cells, channel, port, workdir, profile_path)
-    spread = SpreadSpec(capacity=0.02, resistance=0.05, soc=0.02, temperature_c=0.5)
+    if capacity_estimation is not None:
+        config = config.model_copy(update={"estimator": config.estimator.model_copy(
+            update={"capacity_estimation": capacity_estimation})})
+    spread = SpreadSpec(capacity=capacity_spread, resistance=0.05, soc=0.02, temperature_c=0.5)
     frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc)
     if status is True:
         status = sys.stdout  # looked up now: the caller may have redirected it
@@ -267,6 +281,8 @@ def run_demo(
     else:
         rmse, rmse_late, per_cell = float("nan"), None, np.full(cells, np.nan)
     counters = daemon.counters()
+    capacity_now = daemon.estimator.health()["capacity_ah"]
+    capacity_err = (capacity_now / pack.capacity_ah - 1.0) * 100.0
     result = DemoResult(
         cells=cells,
         recording=recording_path.name,
@@ -282,6 +298,8 @@ def run_demo(
         soc_max_err_pct=round(float(np.max(np.abs(err))) if err.size else float("nan"), 4),
         soc_rmse_after_600s_pct=None if rmse_late is None else round(rmse_late, 4),
         per_cell_rmse_pct=[round(float(x), 4) for x in per_cell],
+        capacity_err_pct=[round(float(x), 3) for x in capacity_err],
+        capacity_spread=capacity_spread,
         final_soc_pct=[round(100 * float(x), 3) for x in (soc[-1] if len(soc) else [])],
         final_truth_pct=[round(100 * float(x), 3) for x in (truth[-1] if len(truth) else [])],
         zenoh_messages=int(sum(zenoh_counts.values())),
@@ -356,6 +374,8 @@ def summary_text(r: DemoResult) -> str:
         + (f", RMSE after 600 s {r.soc_rmse_after_600s_pct:.2f} %" if r.soc_rmse_after_600s_pct is not None else ""),
         "per cell RMSE %: " + " ".join(f"{x:.2f}" for x in r.per_cell_rmse_pct)
         + (f"  (worst: cell {worst})" if r.per_cell_rmse_pct else ""),
+        "per cell capacity error %: " + " ".join(f"{x:+.2f}" for x in r.capacity_err_pct)
+        + f"  (capacity spread σ {100 * r.capacity_spread:g} %)",
         f"Zenoh messages received {r.zenoh_messages} {dict(sorted(r.zenoh_by_kind.items()))}; "
         f"CAN output frames sent {r.can_frames_out}, seen {r.can_frames_seen}",
         "latency ms (frame -> estimate / -> Zenoh put): "

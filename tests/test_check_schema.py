@@ -108,9 +108,9 @@ def test_schema_files_validate_their_examples(tmp_path: Path, capsys) -> None:
         assert set(example) <= set(schema["properties"]) and set(schema.get("required", [])) <= set(example)
         assert model.model_validate(example).model_dump(mode="json") == example
         assert example["schema_version"] == model.model_fields["schema_version"].default
-    # a payload's version moves with its own shape: the summary (and the snapshot holding one) gained the pack view
+    # a payload's version moves with its own shape: the summary (and the snapshot holding one) gained the pack view, the cell params the capacity
     versions = {name: json.loads((out / f"{name}.example.json").read_text())["schema_version"] for name in models}
-    assert versions == {"cell_soc": 1, "cell_params": 1, "summary": 2, "health": 1, "snapshot": 2}
+    assert versions == {"cell_soc": 1, "cell_params": 2, "summary": 2, "health": 1, "snapshot": 2}
     snap = payloads.Snapshot.model_validate_json((out / "snapshot.example.json").read_text())
     assert len(snap.cells) == snap.summary.n_cells == 2 and snap.summary.cell_min == 1
     summary = json.loads((out / "summary.example.json").read_text())

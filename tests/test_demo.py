@@ -23,6 +23,7 @@ def _check(out: Path, cells: int) -> dict:
     assert data["zenoh_messages"] > 0 and data["zenoh_by_kind"]["soc"] >= cells
     assert data["can_frames_out"] > 0 and data["can_frames_seen"] == data["can_frames_out"]
     assert all(0.0 <= s <= 100.0 for s in data["final_soc_pct"])
+    assert len(data["capacity_err_pct"]) == cells and all(abs(x) < 31 for x in data["capacity_err_pct"])
     return data
 
 

@@ -174,4 +174,5 @@ def test_parameter_names_are_the_profile_and_payload_fields():
 
     assert [f for f in ParameterPoint.model_fields if f not in ("temp_c", "i0_a")] == list(PARAMETER_NAMES)
     payload = list(CellParams.model_fields)
-    assert payload[payload.index("cell") + 1:] == list(PARAMETER_NAMES)
+    start = payload.index("cell") + 1
+    assert payload[start:start + len(PARAMETER_NAMES)] == list(PARAMETER_NAMES)

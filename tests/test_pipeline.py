@@ -96,7 +96,7 @@ def test_pack_batch_equals_single_cell_runs(nmc_profile) -> None:
     SOC and σ as each cell estimated on its own (checked on a spread of cells: 200 single
     runs would dominate the suite's runtime).  Slow identifier off: see the xfail below."""
     cells = [0, 1, 37, 99, 150, 198, 199]
-    pack, singles = _batch_vs_single(nmc_profile, EstimatorSettings(slow_identifier=False), cells)
+    pack, singles = _batch_vs_single(nmc_profile, EstimatorSettings(slow_identifier=False, capacity_estimation="absolute"), cells)
     for c, one in zip(cells, singles):
         assert pack.soc[c] == pytest.approx(one.soc[0], rel=1e-9, abs=1e-10), c
         assert pack.soc_std[c] == pytest.approx(one.soc_std[0], rel=1e-7, abs=1e-12), c
@@ -108,7 +108,7 @@ def test_pack_batch_equals_single_cell_runs(nmc_profile) -> None:
 
 def test_pack_batch_equals_single_cell_runs_with_slow_identifier(nmc_profile) -> None:
     cells = [1, 199]
-    pack, singles = _batch_vs_single(nmc_profile, EstimatorSettings(), cells)
+    pack, singles = _batch_vs_single(nmc_profile, EstimatorSettings(capacity_estimation="absolute"), cells)
     for c, one in zip(cells, singles):
         assert pack.soc[c] == pytest.approx(one.soc[0], rel=1e-9, abs=1e-10), c
 
@@ -117,7 +117,7 @@ def test_pack_batch_equals_single_cell_runs_with_slow_identifier(nmc_profile) ->
 def test_stale_cells_take_no_voltage_update_and_their_sigma_grows(nmc_profile) -> None:
     N, warm, stale = 4, 200, 150
     current, voltage, temp, start, _ = _pack_data(nmc_profile, N, warm + stale, seed=2)
-    s = EstimatorSettings()
+    s = EstimatorSettings(capacity_estimation="absolute")  # cells independent: pack-relative couples them
     a, b, ref, all_active = (PackEstimator(nmc_profile, N, s) for _ in range(4))
     for est in (a, b, ref, all_active):
         est.start(start)
@@ -401,7 +401,7 @@ def test_current_offset_state_stays_near_zero_without_an_offset(nmc_recording, n
 
 
 def test_current_offset_state_keeps_covariance_spd_and_batch_equal_to_single(nmc_profile) -> None:
-    settings = EstimatorSettings(current_bias_state=True, slow_identifier=False)
+    settings = EstimatorSettings(current_bias_state=True, slow_identifier=False, capacity_estimation="absolute")
     cells = [0, 77, 199]
     pack, singles = _batch_vs_single(nmc_profile, settings, cells)
     assert pack.ukf.P.shape[1] == pack.n_branches + 3

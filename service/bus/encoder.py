@@ -2,8 +2,10 @@
 
 Per snapshot: one ``SOCD_CellSoc`` and one ``SOCD_CellParams`` frame per cell, one
 ``SOCD_PackSummary``, one ``SOCD_Status`` and one ``SOCD_PackUsable`` (the snapshot's pack
-view; its valid bit 0 when there is none; left out with an output DBC that has no such
-message).  Values are converted to wire units (SOC in %,
+view; its valid bit 0 when there is none), then one ``SOCD_CellHealth`` per cell (capacity
+and resistance growth in % of the profile's) when the snapshot carries ``health``.  A message
+the output DBC lacks (a user's DBC from before it existed) is left out.  Values are converted
+to wire units (SOC in %,
 resistances in mΩ) and clamped into each signal's range; NaN goes out as the signal's
 minimum with the cell's stale bit set.  ``encode`` never raises on bad values.
 
@@ -24,6 +26,9 @@ from service.estimators.pack_view import PackView
 
 _WIRE_SCALE = {"r_ohm": 1e3, "r_ct": 1e3, "r_df": 1e3, "m": 1.0, "n": 1.0}  # SI -> wire units
 _PARAM_SIGNALS = {"r_ohm": "SOCD_ROhm", "r_ct": "SOCD_RCt", "r_df": "SOCD_RDf", "m": "SOCD_M", "n": "SOCD_N"}
+#: health key -> (signal, SI -> wire scale); the capacity σ goes out relative to the profile's capacity
+_HEALTH_SIGNALS = {"capacity_rel": ("SOCD_CapacityPct", 100.0), "capacity_std_rel": ("SOCD_CapacityStdPct", 100.0),
+                   "resistance_rel": ("SOCD_ResistancePct", 100.0)}
 
 
 def flag_signal(name: str) -> str:
@@ -103,6 +108,9 @@ class OutputEncoder:
             self.usable: _Out | None = _Out(db.get_message_by_name("SOCD_PackUsable"), "SOCD_PackUsableCounter")
         except KeyError:  # a user's output DBC from before the message existed
             self.usable = None
+        names = {m.name for m in db.messages}
+        self.health = _Out(db.get_message_by_name("SOCD_CellHealth"), "SOCD_HlthCounter") \
+            if "SOCD_CellHealth" in names else None
         self.max_cells = int(self.soc.ranges["SOCD_SocCellIndex"][1]) + 1
         self.errors = 0  # snapshots (or cells) that could not be encoded at all
 
@@ -157,6 +165,33 @@ class OutputEncoder:
         if self.usable is not None:
             try:
                 out.append(self._usable(self.usable, snapshot.pack, t))
+            except Exception:  # noqa: BLE001
+                self.errors += 1
+        if params and self.health is not None and snapshot.health:
+            out += self._health(snapshot.health, n, soc.shape, t)
+        return out
+
+    def _health(self, health: dict[str, np.ndarray], n: int, shape: tuple[int, ...], t: float) -> list[can.Message]:
+        arrays: dict[str, np.ndarray | None] = {}
+        try:
+            h = dict(health)
+            if "capacity_std_ah" in h and "capacity_ah" in h and "capacity_rel" in h:
+                cap = np.asarray(h["capacity_ah"], dtype=float)
+                h["capacity_std_rel"] = np.asarray(h["capacity_std_ah"], float) * np.asarray(h["capacity_rel"], float) / cap
+            for key in _HEALTH_SIGNALS:
+                arr = np.asarray(h.get(key, np.nan), dtype=float).ravel()
+                arrays[key] = np.broadcast_to(arr, shape) if arr.size in (1, shape[0]) else None
+        except Exception:  # noqa: BLE001
+            self.errors += 1
+            return []
+        out = []
+        for i in range(n):
+            values: dict[str, Any] = {"SOCD_HlthCellIndex": i}
+            for key, (sig, scale) in _HEALTH_SIGNALS.items():
+                a = arrays[key]
+                values[sig] = a[i] * scale if a is not None else 0.0
+            try:
+                out.append(self.health.frame(values, t))
             except Exception:  # noqa: BLE001
                 self.errors += 1
         return out

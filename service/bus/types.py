@@ -77,6 +77,9 @@ class PackSnapshot:
     status_flags: dict[str, bool] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
     pack: PackView | None = None
+    #: state of health per cell (``capacity_rel``, ``capacity_std_ah``, ``resistance_rel``, ... as
+    #: :meth:`service.estimators.pipeline.PackEstimator.health`); empty: no SOCD_CellHealth frames
+    health: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.stale is None:

@@ -33,6 +33,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                       help="true SOC at the recording's first sample, 0-1 (default: 1.0 for the bundled "
                            "drive, which starts fully charged; else estimated from the first rest voltage)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the per-cell spread (default 0)")
+    parser.add_argument("--spread-capacity", type=non_negative_float, default=0.02, metavar="SIGMA",
+                        help="σ of the cells' relative capacity, clipped at 3σ (default 0.02 = 2 %%)")
+    parser.add_argument("--freeze-capacity", action="store_true",
+                        help="estimate with the profile's capacity (estimator.capacity_estimation = 'off')")
     parser.add_argument("--plot", type=Path, default=None, metavar="FILE",
                         help=f"PNG of SOC vs truth (default {DEFAULT_PLOT} where matplotlib, of the "
                              "'fit' extra, is installed)")
@@ -52,6 +56,9 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(f"--speed must be >= 0, got {args.speed}")
     if args.seconds is not None and args.seconds <= 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
+    if not 0 <= args.spread_capacity < 1 / 3:
+        raise UserError(f"--spread-capacity must be in [0, 1/3) (a cell 3σ below would have no capacity), "
+                        f"got {args.spread_capacity}")
     if args.recording is not None and not args.recording.is_file():
         raise UserError(f"{args.recording}: no such recording")
     plot = args.plot
@@ -62,7 +69,8 @@ def _demo(args: argparse.Namespace) -> int:
         plot = DEFAULT_PLOT
     try:
         result, traces = run_demo(args.cells, args.speed, args.seconds, recording_path=args.recording,
-                                  start_soc=args.soc0, seed=args.seed)
+                                  start_soc=args.soc0, seed=args.seed, capacity_spread=args.spread_capacity,
+                                  capacity_estimation="off" if args.freeze_capacity else None)
     except (FileNotFoundError, ProfileError) as exc:
         raise UserError(str(exc)) from None
     out = text_stream(args)

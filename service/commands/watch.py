@@ -69,9 +69,11 @@ class PackView:
     """The latest state of a pack as seen on Zenoh (payload models, validated)."""
 
     def __init__(self) -> None:
-        from service.daemon.payloads import CellSoc, Health, Summary
+        from service.daemon.payloads import CellParams, CellSoc, Health, Summary
 
         self.cells: dict[int, CellSoc] = {}
+        #: the latest parameters and state of health of each cell (capacity, resistance growth)
+        self.params: dict[int, CellParams] = {}
         self.summary: Summary | None = None
         self.health: Health | None = None
         self.messages = 0
@@ -81,7 +83,7 @@ class PackView:
     def on_sample(self, key: str, payload: str) -> None:
         from pydantic import ValidationError
 
-        from service.daemon.payloads import CellSoc, Health, Summary
+        from service.daemon.payloads import CellParams, CellSoc, Health, Summary
 
         kind = key.rsplit("/", 1)[-1]
         self.messages += 1
@@ -89,6 +91,9 @@ class PackView:
             if kind == "soc":
                 c = CellSoc.model_validate_json(payload)
                 self.cells[c.cell] = c
+            elif kind == "params":
+                p = CellParams.model_validate_json(payload)
+                self.params[p.cell] = p
             elif kind == "summary":
                 self.summary = Summary.model_validate_json(payload)
                 self.history.append((self.summary.t_s, {i: c.soc_pct for i, c in self.cells.items()
@@ -104,6 +109,8 @@ class PackView:
         snap = Snapshot.model_validate_json(payload)
         for c in snap.cells:
             self.cells.setdefault(c.cell, c)
+        for p in snap.params:
+            self.params.setdefault(p.cell, p)
         self.summary = self.summary or snap.summary
         self.health = self.health or snap.health
 
@@ -122,6 +129,25 @@ class PackView:
         }[key]
         cells: list[CellSoc] = list(self.cells.values())
         return sorted(cells, key=lambda c: (order(c), c.cell))
+
+    def state_of_health(self) -> str | None:
+        """Capacity and resistance growth (% of the profile's) over the cells, lowest and highest
+        capacity and highest resistance with their cells; None before any schema-2 params."""
+        cap = {i: p for i, p in self.params.items() if p.capacity_pct is not None}
+        res = {i: p for i, p in self.params.items() if p.resistance_pct is not None}
+        if not cap and not res:
+            return None
+        parts = []
+        if cap:
+            lo = min(cap, key=lambda i: (cap[i].capacity_pct, i))
+            hi = max(cap, key=lambda i: (cap[i].capacity_pct, -i))
+            sd = cap[lo].capacity_std_ah / cap[lo].capacity_ah * 100 if cap[lo].capacity_std_ah and cap[lo].capacity_ah else None
+            parts.append(f"capacity min {cap[lo].capacity_pct:.1f} %" + (f" ±{sd:.1f}" if sd is not None else "")
+                         + f" (cell {lo})  max {cap[hi].capacity_pct:.1f} % (cell {hi})")
+        if res:
+            worst = max(res, key=lambda i: (res[i].resistance_pct, -i))
+            parts.append(f"resistance max {res[worst].resistance_pct:.0f} % (cell {worst})")
+        return "   ".join(parts) + "   (of the profile's)"
 
     def render(self, title: str, sort: str = "cell", width: int = 120, height: int | None = None):
         """The whole view as one rich renderable: summary header above the cell grid.
@@ -174,6 +200,9 @@ class PackView:
                 f"estimate p50/p99 {_ms(lat.get('estimate_p50'))}/{_ms(lat.get('estimate_p99'))}   "
                 f"publish p50/p99 {_ms(lat.get('publish_p50'))}/{_ms(lat.get('publish_p99'))}   "
                 f"checkpoint: {self.health.checkpoint}"))
+        soh = self.state_of_health()
+        if soh is not None:
+            t.add_row("SOH", Text(soh))
         t.add_row("watch", Text(f"{self.messages} messages, {self.bad} invalid", style="dim"))
         return t
 

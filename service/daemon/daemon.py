@@ -545,12 +545,15 @@ class Daemon:
 
     def pack_view(self) -> PackView | None:
         """The pack view (:mod:`service.estimators.pack_view`) over the started cells, with
-        :attr:`capacity_ah` and each cell's last temperature; None before the first estimate."""
+        each cell's capacity (the estimator's online
+        estimate, else the profile's :attr:`capacity_ah`) and last temperature; None before the first estimate."""
         if not self.initialised:
             return None
         s = self._last_sample
         temp = 25.0 if s is None else self._filled(s.temperature_c, np.isfinite(s.temperature_c))
-        return pack_view(self.estimator.soc, self.capacity_ah, self._ocv_energy, temp, valid=self._cell_started)
+        cap = getattr(self.estimator, "capacity_ah", None)  # the online estimate where there is one
+        cap = self.capacity_ah if cap is None else np.asarray(cap, dtype=float)
+        return pack_view(self.estimator.soc, cap, self._ocv_energy, temp, valid=self._cell_started)
 
     def snapshot(self) -> PackSnapshot:
         stale = self.stale_mask()
@@ -569,7 +572,12 @@ class Daemon:
             status_flags=flags,
             counters={"frames_rejected": counters.get("frames_rejected", 0), "stale_cells": int(stale.sum())},
             pack=self.pack_view(),
+            health=self._health_cells(),
         )
+
+    def _health_cells(self) -> dict[str, np.ndarray]:
+        fn = getattr(self.estimator, "health", None)
+        return {k: np.array(v, dtype=float) for k, v in fn().items()} if fn is not None else {}
 
     async def _can_output(self) -> None:
         if self.encoder is None or not self.initialised:
@@ -604,6 +612,7 @@ class Daemon:
             frame_wall_s=self._last_frame_wall if self.initialised else None,
             initialised=self.initialised,
             pack=snap.pack,
+            health_cells=snap.health,
         )
 
     def estimate_round(self, fresh: np.ndarray) -> PublishRound:

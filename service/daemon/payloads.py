@@ -32,6 +32,9 @@ from pydantic import BaseModel, ConfigDict, Field
 SCHEMA_VERSION = 1
 #: version of :class:`Summary` and :class:`Snapshot`: 2 added the pack view (usable SOC, energy, imbalance)
 SUMMARY_SCHEMA_VERSION = 2
+#: :class:`CellParams` gained the capacity and resistance-growth fields (all optional: a
+#: version-1 consumer that ignores unknown fields still reads the rest)
+PARAMS_SCHEMA_VERSION = 2
 
 
 class _Payload(BaseModel):
@@ -53,8 +56,10 @@ class CellSoc(_Payload):
 
 
 class CellParams(_Payload):
-    """Identified MTS-FOM parameters (Zeng Fig. 1); C's are CPE coefficients, F·s^(α-1)."""
+    """Identified MTS-FOM parameters (Zeng Fig. 1); C's are CPE coefficients, F·s^(α-1).
+    Schema 2 adds the cell's state of health (:meth:`PackEstimator.health`)."""
 
+    schema_version: int = PARAMS_SCHEMA_VERSION
     cell: int = Field(ge=0)
     r_ohm: float | None = None
     r_ct: float | None = None
@@ -63,6 +68,11 @@ class CellParams(_Payload):
     r_df: float | None = None
     c_df: float | None = None
     n: float | None = None
+    capacity_ah: float | None = Field(None, description="estimated capacity, Ah (the profile's when frozen)")
+    capacity_std_ah: float | None = Field(None, description="1-σ uncertainty of capacity_ah, Ah (0 when frozen)")
+    capacity_pct: float | None = Field(None, description="capacity / the profile's capacity, % (SOH-energy)")
+    resistance_pct: float | None = Field(
+        None, description="(R_ohm + R_ct) / the profile's at the cell's temperature and SOC, % (SOH-power)")
 
 
 class Summary(_Payload):

@@ -133,6 +133,8 @@ class PublishRound:
     pack: PackView | None = None
     full: bool = True
     cells: np.ndarray | None = None
+    #: :meth:`PackEstimator.health` arrays (capacity_ah, capacity_std_ah, capacity_rel, resistance_rel)
+    health_cells: dict[str, np.ndarray] | None = None
 
     @property
     def n_cells(self) -> int:
@@ -211,9 +213,17 @@ def cell_soc_json(pack: str, r: PublishRound, idx: np.ndarray) -> list[str]:
 
 
 def cell_params_payload(pack: str, r: PublishRound, i: int) -> CellParams:
+    """Cell ``i``'s identified parameters and state of health (capacity, resistance growth)."""
+    soh = r.health_cells or {}
+
+    def soh_value(key: str, scale: float = 1.0, nd: int = 6) -> float | None:
+        return _num(soh[key][i], scale, nd) if key in soh and r.initialised else None
+
     return CellParams(
         pack=pack, t_s=r.t_s, cell=i,
         **{k: (_num(r.params[k][i], 1.0, 9) if k in r.params else None) for k in PARAMETER_NAMES},
+        capacity_ah=soh_value("capacity_ah", 1.0, 5), capacity_std_ah=soh_value("capacity_std_ah", 1.0, 5),
+        capacity_pct=soh_value("capacity_rel", 100.0, 3), resistance_pct=soh_value("resistance_rel", 100.0, 3),
     )
 
 

@@ -9,7 +9,10 @@ extension → FO-MI-UKF prediction and update → fast identifier (EKF over
 ``[R_ohm, R_ct, C_dl, m, U_df]`` using the SOC filter's gain) → G-L memory push.
 The slow identifier (``[R_df, C_df, n]``) buffers what it needs on the fast path and
 updates in :meth:`PackEstimator.slow_update`, which the service calls from its own
-task and the offline runner after every sample.
+task and the offline runner after every sample.  With ``capacity_estimation`` on, each
+cell's capacity is learned beside the SOC filter (:mod:`service.estimators.capacity`) and
+fed back as the capacity the filter counts charge with; :meth:`PackEstimator.health` gives
+it with its σ and the resistance growth ``R / R_nominal``.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from service.cell.profile import CellParameters, CellProfile
 from service.cell.soc_dependence import scaled_resistances
 from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.base import EstimateTrace
+from service.estimators.capacity import CapacityEstimator
 from service.estimators.fomiukf import FoMiUkf
 from service.estimators.parameter_ekf import PARAMETERS, ParameterEkf, apply_corrections
 from service.estimators.settings import EstimatorSettings
@@ -81,6 +85,12 @@ class PackEstimator:
             self.fast.measurement = s.fast_identifier_input
         if identification == "multi" and s.slow_identifier:
             self.slow = SlowIdentifier(self.n, s.memory_length, s.slow_soc_delta, s.slow_param_process_rel)
+        self.capacity: CapacityEstimator | None = None
+        # a one-cell "pack" has no median cell to learn against: pack-relative is then off
+        if s.capacity_estimation == "absolute" or (s.capacity_estimation == "pack-relative" and self.n >= 2):
+            self.capacity = CapacityEstimator(
+                self.n, profile.effective_capacity_ah, s.capacity_estimation, s.capacity_init_std_rel,
+                s.capacity_bounds_rel, s.capacity_innovation_inflation, s.capacity_walk_rel_per_sqrt_s)
         self.reset_count = np.zeros(self.n, dtype=int)
         self.ocv_initialised = np.zeros(self.n, dtype=bool)
         self.steps = 0
@@ -133,6 +143,8 @@ class PackEstimator:
             apply_corrections(nom, self.fast.names, self.fast.z, p)
         if self.slow is not None:
             apply_corrections(nom, list(PARAMETERS)[4:7], self.slow.z, p)
+        if self.capacity is not None:
+            p.capacity_ah = nom.capacity_ah / self.capacity.state.phi
         return p
 
     def parameters(self) -> dict[str, np.ndarray]:
@@ -150,6 +162,32 @@ class PackEstimator:
         if self.fast is not None and self.fast.u_df is not None:
             out["u_df"] = self.fast.u_df.copy()
         return out
+
+    @property
+    def capacity_ah(self) -> np.ndarray:
+        """Each cell's capacity as the SOC filter uses it: the online estimate, or the profile's
+        when capacity estimation is off."""
+        if self.capacity is not None:
+            return self.capacity.capacity_ah.copy()
+        return np.full(self.n, float(self.profile.effective_capacity_ah))
+
+    def health(self) -> dict[str, np.ndarray]:
+        """State of health per cell: ``capacity_ah`` and its σ ``capacity_std_ah`` (the profile's
+        with σ 0 when the estimate is frozen), ``capacity_rel`` (capacity / profile's) and
+        ``resistance_rel``, the SOH-power figure ``(R_ohm + R_ct) / (R_ohm + R_ct)_nominal``.
+
+        The identified resistances are corrections of the profile's at the cell's own
+        temperature (Arrhenius table) and SOC (:mod:`service.cell.soc_dependence`), so their
+        ratio to that nominal is the resistance normalised to the profile's reference
+        conditions: a cell at 10 °C with the profile's resistance there reads 1.0."""
+        nominal = self.profile.effective_capacity_ah
+        cap = self.capacity_ah
+        cap_std = self.capacity.capacity_std_ah if self.capacity is not None else np.zeros(self.n)
+        p, nom = self.params, self.nominal_now
+        r = p.r_ohm + p.r[:, 0]
+        r_nom = nom.r_ohm + nom.r[:, 0]
+        return {"capacity_ah": cap, "capacity_std_ah": cap_std, "capacity_rel": cap / nominal,
+                "resistance_rel": r / r_nom}
 
     # -- initialisation -----------------------------------------------------------------
     def initialise(
@@ -184,6 +222,8 @@ class PackEstimator:
         self.surface_deficit[cells] = 0.0
         if self.fast is not None:
             self.fast.reset(cells)
+        if self.capacity is not None:
+            self.capacity.restart(cells)
         self.ocv_initialised[cells] = False
 
     def widen_soc_std(self, extra_std: float | np.ndarray, max_std: float = 0.5) -> None:
@@ -267,7 +307,15 @@ class PackEstimator:
         self._surface_step(dt, i, params)
         surface = self.surface_deficit if self.surface is not None else None
         ukf.predict(dt, i, params, weights)
+        if self.capacity is not None:  # the capacity's uncertainty as SOC process noise
+            ukf.P[:, ukf.i_soc, ukf.i_soc] += self.capacity.soc_process_var(i - params.current_bias_a, dt)
         ukf.update(v, i, temp, params, act, self.cell_ocv, surface)
+        if self.capacity is not None:
+            soc_now = ukf.soc if surface is None else ukf.soc - surface
+            usable = act & (ukf.soc_std < self.settings.identify_below_soc_std)
+            shift = self.capacity.update(i - params.current_bias_a, dt, ukf.innovation, ukf.innovation_var,
+                                         self.cell_ocv.slope(soc_now), ukf.gain[:, ukf.i_soc], usable)
+            ukf.x[:, ukf.i_soc] = np.clip(ukf.x[:, ukf.i_soc] + shift, 0.0, 1.0)
         if self.fast is not None:
             x_id = ukf.x_single if self.settings.identifier_sees == "single" else ukf.x
             soc_post = x_id[:, ukf.i_soc]
@@ -344,6 +392,8 @@ class PackEstimator:
             st.update(self.fast.difference_state(self.n))
         if self.slow is not None:
             st.update(slow_z=self.slow.z, slow_P=self.slow.P, slow_ring=self.slow.ring, slow_moved=self.slow.moved)
+        if self.capacity is not None:
+            st.update(self.capacity.get_state())
         return {k: np.array(v, copy=True) for k, v in st.items()}
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
@@ -386,6 +436,10 @@ class PackEstimator:
         if self.slow is not None:
             slow = (need("slow_z", self.slow.z.shape), need("slow_P", self.slow.P.shape),
                     need("slow_ring", self.slow.ring.shape), need("slow_moved", self.slow.moved.shape))
+        # the capacity estimate (states written before it existed, or while frozen: the profile's)
+        capacity = None
+        if self.capacity is not None and all(k in state for k in CapacityEstimator.STATE_KEYS):
+            capacity = tuple(need(k, (self.n,)) for k in CapacityEstimator.STATE_KEYS)
         resets = need("reset_count", self.reset_count.shape).astype(int)
         ocv_init = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
         # states written before the surface deficit was kept: a relaxed surface
@@ -402,6 +456,8 @@ class PackEstimator:
             self.slow.hist0 = self.slow.ring.copy()
             self.slow.length = 0
             self.slow.start[:] = 0
+        if capacity is not None:
+            self.capacity.set_state(capacity)
 
 
 # -- offline estimators (one cell, for ``socd evaluate``) ---------------------------------

@@ -87,4 +87,20 @@ class EstimatorSettings(BaseModel):
     ukf_kappa: float = Field(0.0)
     param_process_rel: float = Field(1e-4, ge=0, description="relative σ per step of parameter random walk (fast)")
     slow_param_process_rel: float = Field(2e-2, ge=0, description="relative σ per slow update (slow)")
+    capacity_estimation: Literal["off", "pack-relative", "absolute"] = Field(
+        "pack-relative",
+        description="online capacity per cell (service.estimators.capacity, a dual EKF on the SOC filter's "
+        "innovations): 'pack-relative' learns each cell against the pack's median cell (the profile's "
+        "model error, common to the pack, cancels; a one-cell pack learns nothing), 'absolute' against the "
+        "voltage alone, 'off' freezes the profile's capacity (results as without the estimator)",
+    )
+    capacity_init_std_rel: float = Field(0.05, gt=0, le=0.5, description="σ of a cell's capacity at start, "
+                                         "relative to the profile's")
+    capacity_bounds_rel: float = Field(0.3, gt=0, lt=1, description="the capacity stays within ± this "
+                                       "fraction of the profile's")
+    capacity_innovation_inflation: float = Field(
+        10.0, ge=1, description="consecutive SOC-filter innovations that count as one independent sample "
+        "for the capacity (model error correlates them)")
+    capacity_walk_rel_per_sqrt_s: float = Field(1e-6, ge=0, description="random walk of the relative "
+                                                "capacity, per √s (fade)")
     divergence_sigma: float = Field(8.0, gt=1, description="normalised innovation that counts as divergence")
