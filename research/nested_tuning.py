@@ -69,7 +69,9 @@ def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[l
             score = r.get(metric)
             if score is None:
                 raise GridError(f"{path}: recording {r.get('recording')}: no '{metric}'")
-            grid[cell][r["recording"]][value][cond] = float(score)
+            # under @CELL a recording is named with its profile: two profiles of one cell score the same files
+            rec = f"{Path(str(doc.get('cell', path))).stem}/{r['recording']}" if cell_name else r["recording"]
+            grid[cell][rec][value][cond] = float(score)
     for cell, recs in grid.items():
         for rec, by_value in recs.items():
             for v in values:

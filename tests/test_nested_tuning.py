@@ -110,8 +110,8 @@ def test_leave_one_cell_out_scores_each_cell_with_the_value_the_others_chose(tmp
 
 def test_at_cell_joins_two_profiles_of_one_cell(tmp_path: Path) -> None:
     a = _results(tmp_path / "a.json", "profile_hppc.toml", {"r1": 0.5})
-    b = _results(tmp_path / "b.json", "profile_us06.toml", {"r2": 0.7})
+    b = _results(tmp_path / "b.json", "profile_us06.toml", {"r1": 0.7})  # the same file, another profile
     values, conds, grid = load_grid([f"v={a}@pan", f"v={b}@pan"], "ecm2rc-ekf")
-    assert list(grid) == ["pan"] and set(grid["pan"]) == {"r1", "r2"}
+    assert list(grid) == ["pan"] and set(grid["pan"]) == {"profile_hppc/r1", "profile_us06/r1"}
     with pytest.raises(GridError):
         load_grid(["v="], "ecm2rc-ekf")
