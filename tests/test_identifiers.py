@@ -154,7 +154,7 @@ def test_slow_identifier_waits_for_charge_throughput() -> None:
 def test_pipeline_slow_identifier_moves_r_df_toward_truth(nmc_recording, nmc_profile_factory, truth) -> None:
     true_r_df = truth["r_df"]
     rec = nmc_recording(duration_s=1500, seed=1, soc0=0.9)
-    est = _run(PackEstimator(nmc_profile_factory(r_df=1.3 * true_r_df), 1), rec)
+    est = _run(PackEstimator(nmc_profile_factory(r_df=1.3 * true_r_df), 1, EstimatorSettings(slow_identifier=True)), rec)
     assert est.slow.updates > 10
     assert abs(est.parameters()["r_df"][0] - true_r_df) < 0.3 * true_r_df
 

@@ -263,7 +263,7 @@ def _corrupt(state: dict, key: str, how: str) -> dict:
     ],
 )
 def test_set_state_rejects_bad_state(nmc_profile, key: str, how: str) -> None:
-    est, _ = _warm_pack(nmc_profile, steps=30)
+    est, _ = _warm_pack(nmc_profile, EstimatorSettings(slow_identifier=True), steps=30)  # every state part present
     good = est.get_state()
     before = est.get_state()
     with pytest.raises(ValueError, match=key):

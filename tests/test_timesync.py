@@ -248,10 +248,8 @@ def test_a_sync_time_a_little_ahead_is_rolled_back(cfg, ahead_s: float) -> None:
 
 # -- the daemon: the same SOC from an in-process replay and a kernel-stamped 20x replay -------------
 def daemon_config(tmp_path: Path, time_signal: str | None, tag: str):
-    """The daemon's config for one run.  The slow identifier is off: its task runs every
-    SLOW_PERIOD_S of wall time, at whatever sample the replay has reached, so two identical
-    in-process runs already differ by up to ~0.1 % SOC through it; without it a run is
-    deterministic and the comparison measures the clock alone."""
+    """The daemon's config for one run, with every identifier on: the slow identifier is
+    clocked by sample time, so a run is deterministic at any replay speed."""
     return build_config({
         "cell_profile": str(DEFAULT_CELL_PROFILE),
         "dbc": {"input": str(DEFAULT_INPUT_DBC), "output": str(DEFAULT_OUTPUT_DBC)},
@@ -259,7 +257,6 @@ def daemon_config(tmp_path: Path, time_signal: str | None, tag: str):
         "mapping": {"time_signal": time_signal},
         "bus": {"interface": "virtual", "channel": f"timesync-{tag}-{time.monotonic_ns()}"},
         "output": {"zenoh_enabled": False, "can_enabled": False},
-        "estimator": {"slow_identifier": False},
         "checkpoint": {"path": str(tmp_path / f"{tag}.ckpt")},
     })
 

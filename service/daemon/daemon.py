@@ -22,7 +22,8 @@ One asyncio loop runs these tasks:
   every key again, which also carries cells that went stale because samples stopped).
   Building a round is a copy of a few arrays on the loop; JSON and ``put`` happen on the
   publisher's thread, so a slow or absent Zenoh never blocks estimation.
-- **slow identifier** every :data:`SLOW_PERIOD_S`.
+- **slow identifier** every :data:`SLOW_PERIOD_S` of *sample* time, on the estimation path, so a
+  replay at any speed (or an in-process feed) identifies exactly as a real-time run does.
 - **checkpoint** every ``checkpoint.interval_s`` (file I/O in an executor) and once more on
   SIGTERM/SIGINT before a clean shutdown.
 
@@ -70,7 +71,7 @@ log = logging.getLogger(__name__)
 #: cells from OCV unless the pack was at rest (|I| <= REST_C_RATE · C) at both ends of it
 MAX_STEP_S = 10.0
 REST_C_RATE = 0.05
-#: period of the slow identifier task
+#: period of the slow identifier, in sample time
 SLOW_PERIOD_S = 1.0
 #: an OCV start counts as converged once every cell's SOC σ is below this
 OCV_CONVERGED_STD = 0.03
@@ -164,6 +165,7 @@ class Daemon:
         self._ckpt_lock = threading.Lock()
         self.samples = 0
         self.steps = 0
+        self._slow_due_t: float | None = None
         self.step_time_s = 0.0
         self.can_frames_out = 0
         self.stopping = False
@@ -184,7 +186,6 @@ class Daemon:
             self.publisher.start()
         tasks = {
             asyncio.create_task(self._rx_loop(), name="socd-rx"),
-            asyncio.create_task(self._periodic(SLOW_PERIOD_S, self._slow_update), name="socd-slow"),
             asyncio.create_task(self._periodic(self.config.checkpoint.interval_s, self._checkpoint_async),
                                 name="socd-checkpoint"),
         }
@@ -437,6 +438,7 @@ class Daemon:
         return all(c is not None and np.isfinite(c) and abs(c) <= limit for c in currents)
 
     def _after_step(self, s: PackSample, fresh: np.ndarray, frame_wall_s: float | None) -> None:
+        self._slow_identify(s.t_s)
         est = self.estimator
         resets = int(np.sum(est.reset_count))
         if resets > self._resets_seen:
@@ -503,11 +505,17 @@ class Daemon:
         fill = float(np.mean(x[ok])) if ok.any() else 25.0
         return np.where(ok, x, fill)
 
-    async def _slow_update(self) -> None:
-        if self.initialised and self.steps:
-            done = self.estimator.slow_update()
-            if np.any(done):
-                self.health.count("slow_updates")
+    def _slow_identify(self, t_s: float) -> None:
+        """The slow identifier once per :data:`SLOW_PERIOD_S` of sample time."""
+        if self._slow_due_t is None or not np.isfinite(self._slow_due_t) or t_s < self._slow_due_t - SLOW_PERIOD_S:
+            self._slow_due_t = t_s + SLOW_PERIOD_S  # first step, or the timeline moved back (re-anchored)
+            return
+        if t_s < self._slow_due_t or not self.steps:
+            return
+        self._slow_due_t = t_s + SLOW_PERIOD_S
+        done = self.estimator.slow_update()
+        if np.any(done):
+            self.health.count("slow_updates")
 
     # -- outputs -------------------------------------------------------------------------
     def stale_mask(self) -> np.ndarray:

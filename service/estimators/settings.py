@@ -40,7 +40,10 @@ class EstimatorSettings(BaseModel):
         "voltage change, which separates the fast dynamics from the OCV (and the SOC error), so the identifier "
         "does not chase a flat OCV plateau with R_ohm and R_ct"
     )
-    slow_identifier: bool = Field(True, description="run the slow-rate EKF over [R_df, C_df, n]")
+    slow_identifier: bool = Field(
+        False, description="run the slow-rate EKF over [R_df, C_df, n]; off by default: in a pack it and the "
+        "online capacity estimate explain the same voltage drift and pull each other off (docs/results/tuning.md)"
+    )
     identify_below_soc_std: float = Field(
         0.02, gt=0, description="identifiers adapt a cell only once its SOC σ is below this (SOC and "
         "parameters are confounded while SOC is still converging)"
