@@ -373,19 +373,20 @@ python -m research.nested_tuning --estimator fomiukf $G --json out/nested_bias.j
           nested_table("nested_bias.json"), 100, ("needs:nested_both",)),
     Table("loco_defaults", "tuning.md", REAL + f"""\
 mkdir -p out/loco   # the profiles are the char_* tables' (out/s25/)
-printf "" > out/loco/def.toml
+printf "slow_identifier = true\\n" > out/loco/both_ids.toml
 printf "fast_identifier = false\\nslow_identifier = false\\n" > out/loco/noid.toml
-printf "voltage_noise_per_amp_v = 0.0\\ncurrent_noise_a = 0.05\\nbranch_noise_v_per_sqrt_s = 2e-4\\n" > out/loco/ekfnoise.toml
-cat out/loco/noid.toml out/loco/ekfnoise.toml > out/loco/noid_ekfnoise.toml
+printf "slow_identifier = false\\n" > out/loco/noslow.toml
+printf "slow_identifier = true\\nvoltage_noise_per_amp_v = 0.0\\ncurrent_noise_a = 0.05\\nbranch_noise_v_per_sqrt_s = 2e-4\\n" > out/loco/ekfnoise.toml
+(cat out/loco/noid.toml; grep -v slow_identifier out/loco/ekfnoise.toml) > out/loco/noid_ekfnoise.toml
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
-for o in def noid ekfnoise noid_ekfnoise; do for b in 0 0.01; do
+for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
   E="--estimator fomiukf --no-bar --settings out/loco/$o.toml --current-bias-c $b -q"
   socd evaluate --cell out/s25/calce.toml {CALCE} $E --json out/loco/calce_${{o}}_b$b.json
   socd evaluate --cell out/s25/a123.toml {A123} $E --json out/loco/a123_${{o}}_b$b.json
   socd evaluate --cell out/s25/pan_hppc.toml $PANX $E --json out/loco/panhppc_${{o}}_b$b.json
   socd evaluate --cell out/s25/pan_us06.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json out/loco/panus06_${{o}}_b$b.json
 done; done
-G=""; for o in def noid ekfnoise noid_ekfnoise; do for b in 0 0.01; do
+G=""; for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
   G="$G $o=out/loco/calce_${{o}}_b$b.json $o=out/loco/a123_${{o}}_b$b.json"
   G="$G $o=out/loco/panhppc_${{o}}_b$b.json@panasonic $o=out/loco/panus06_${{o}}_b$b.json@panasonic"; done; done
 python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_defaults.json""",
