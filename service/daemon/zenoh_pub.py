@@ -16,7 +16,10 @@ one after every estimator step, so a dashboard sees a change within milliseconds
 key is rate-limited on its own: a key put less than ``min_interval_s`` ago is held back,
 its newest value put as soon as its interval has passed (counted ``zenoh_rate_limited``
 when a newer value replaced a held one); a full round's SOC and summary keys, repeats of
-what the estimate rounds put, are skipped instead of held.  The ``publish`` latency is from a frame's wall
+what the estimate rounds put, are skipped instead of held.  A full round's parameter and health keys
+go out in chunks of :data:`BACKLOG_CHUNK` between estimate rounds, so the hundreds of parameter
+payloads never hold an estimate round back (a newer full round replaces what is left of an older
+one's, counted ``zenoh_rate_limited``).  The ``publish`` latency is from a frame's wall
 time to the ``put`` of the summary of the estimate round that carried it (all its cells
 are put before the summary).
 
@@ -61,6 +64,10 @@ log = logging.getLogger(__name__)
 
 #: how often the publisher checks that a configured ``connect`` peer is actually connected
 PEER_CHECK_S = 1.0
+
+
+#: parameter/health keys put between two looks at the queue of estimate rounds
+BACKLOG_CHUNK = 16
 
 
 def zenoh_config(mode: str, listen: Sequence[str], connect: Sequence[str], scouting_multicast: bool):
@@ -360,6 +367,8 @@ class ZenohPublisher:
         self._latest_full: PublishRound | None = None
         self._latest_lock = threading.Lock()
         self._limit = KeyRateLimit(min_interval_s)
+        #: a full round's parameter and health keys still to put (see the module doc)
+        self._backlog: deque[tuple[str, tuple[PublishRound, str, int]]] = deque()
         self._soc_keys: list[str] = []
         self._params_keys: list[str] = []
         self._backoff_initial = backoff_initial_s
@@ -474,15 +483,21 @@ class ZenohPublisher:
                 if r is not None:
                     self._publish(r)
                 self._flush_due()
+                if not self._queue and self._backlog:
+                    chunk = [self._backlog.popleft() for _ in range(min(BACKLOG_CHUNK, len(self._backlog)))]
+                    self._put_all(chunk)
             except Exception as exc:  # noqa: BLE001
-                lost = (r.n_messages if r is not None else 0) + len(self._limit.pending)
+                lost = (r.n_messages if r is not None else 0) + len(self._limit.pending) + len(self._backlog)
                 self._limit.pending.clear()
+                self._backlog.clear()
                 self.health.count("zenoh_dropped", lost, flag="publish_drops")
                 self._fail(f"put failed: {exc}")
         self._close_session()
 
     def _wait_s(self) -> float:
         """How long the thread may sleep: until the next held-back key is due, at most PEER_CHECK_S."""
+        if self._backlog:
+            return 0.0
         due = self._limit.next_due()
         if due is None:
             return PEER_CHECK_S
@@ -514,11 +529,13 @@ class ZenohPublisher:
         k = self.keys
         soc_keys, params_keys = self._cell_keys(r.n_cells)
         items: list[tuple[str, str, int]] = [(soc_keys[i], "soc", i) for i in r.cell_indices().tolist()]
-        if r.full:
-            items += [(params_keys[i], "params", i) for i in range(r.n_cells)]
         items.append((k.summary, "summary", -1))
-        if r.full and r.health is not None:
-            items.append((k.health, "health", -1))
+        if r.full:
+            slow = [(params_keys[i], "params", i) for i in range(r.n_cells)]
+            if r.health is not None:
+                slow.append((k.health, "health", -1))
+            self.health.count("zenoh_rate_limited", len(self._backlog))  # superseded by this round's values
+            self._backlog = deque((key, (r, kind, i)) for key, kind, i in slow)
         now = time.monotonic()
         superseded = self._limit.superseded
         # A full round's SOC and summary repeat what the estimate rounds already put (the
