@@ -15,7 +15,6 @@ No assertion here is on latency; counts and values only.
 from __future__ import annotations
 
 import asyncio
-import socket
 import threading
 import time
 from pathlib import Path
@@ -23,23 +22,14 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-import zenoh
+from zenoh_support import free_port as _port
+from zenoh_support import loopback_session as _session
 
 from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config
 from service.daemon.health import HealthMonitor
 from service.daemon.payloads import SUMMARY_SCHEMA_VERSION, CellSoc, Summary
-from service.daemon.zenoh_pub import KeyRateLimit, PublishRound, ZenohPublisher, zenoh_config
+from service.daemon.zenoh_pub import KeyRateLimit, PublishRound, ZenohPublisher
 from service.estimators.pack_view import OcvEnergy, pack_view
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _session(mode: str = "peer", listen: list[str] | None = None, connect: list[str] | None = None):
-    return zenoh.open(zenoh_config(mode, listen or [], connect or [], scouting_multicast=False))
 
 
 class _Collector:

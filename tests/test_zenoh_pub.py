@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import threading
 import time
 from pathlib import Path
@@ -21,22 +20,21 @@ import can
 import numpy as np
 import pytest
 import zenoh
+from zenoh_support import free_port as _port
+from zenoh_support import loopback_session as _session
 
 from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config
 from service.daemon.health import HealthMonitor
-from service.daemon.payloads import (SCHEMA_VERSION, SUMMARY_SCHEMA_VERSION, CellParams, CellSoc, Health, Snapshot,
-                                     Summary)
+from service.daemon.payloads import (
+    SCHEMA_VERSION,
+    SUMMARY_SCHEMA_VERSION,
+    CellParams,
+    CellSoc,
+    Health,
+    Snapshot,
+    Summary,
+)
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher, zenoh_config
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _session(mode: str = "peer", listen: list[str] | None = None, connect: list[str] | None = None):
-    return zenoh.open(zenoh_config(mode, listen or [], connect or [], scouting_multicast=False))
 
 
 class _Section:
