@@ -248,8 +248,8 @@ def test_a_sync_time_a_little_ahead_is_rolled_back(cfg, ahead_s: float) -> None:
 
 # -- the daemon: the same SOC from an in-process replay and a kernel-stamped 20x replay -------------
 def daemon_config(tmp_path: Path, time_signal: str | None, tag: str):
-    """The daemon's config for one run, with every identifier on: the slow identifier is
-    clocked by sample time, so a run is deterministic at any replay speed."""
+    """The daemon's config for one run, with both identifiers on (the slow one is off by
+    default): it is clocked by sample time, so a run is the same at any replay speed."""
     return build_config({
         "cell_profile": str(DEFAULT_CELL_PROFILE),
         "dbc": {"input": str(DEFAULT_INPUT_DBC), "output": str(DEFAULT_OUTPUT_DBC)},
@@ -257,6 +257,7 @@ def daemon_config(tmp_path: Path, time_signal: str | None, tag: str):
         "mapping": {"time_signal": time_signal},
         "bus": {"interface": "virtual", "channel": f"timesync-{tag}-{time.monotonic_ns()}"},
         "output": {"zenoh_enabled": False, "can_enabled": False},
+        "estimator": {"slow_identifier": True},
         "checkpoint": {"path": str(tmp_path / f"{tag}.ckpt")},
     })
 

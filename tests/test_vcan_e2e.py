@@ -31,14 +31,15 @@ N_CELLS = 8
 REPLAY_S = 40
 
 
-def _config(tmp_path: Path) -> Path:
-    cfg = tmp_path / "vcan.toml"
-    cfg.write_text(
+def _write_config(path: Path, *, interface: str, channel: str, output: str, checkpoint: Path,
+                  checkpoint_interval_s: float, time_signal: str | None = None) -> Path:
+    """A daemon config on the shipped DBCs and the bundled Panasonic profile, ``N_CELLS`` cells."""
+    path.write_text(
         f"""
 cell_profile = "{REPO / 'configs/cells/panasonic_18650pf.toml'}"
 [bus]
-interface = "socketcan"
-channel = "{VCAN_CHANNEL}"
+interface = "{interface}"
+channel = "{channel}"
 [dbc]
 input = "{REPO / 'dbc/bms_pack.dbc'}"
 output = "{REPO / 'dbc/socd_output.dbc'}"
@@ -50,15 +51,21 @@ current_sign = -1.0
 cell_voltage_pattern = "BMS_Cell{{number:03d}}_V"
 temperature_pattern = "BMS_Temp{{number:02d}}_C"
 cells_per_sensor = 4
+{f'time_signal = "{time_signal}"' if time_signal else ""}
 [output]
-can_period_s = 0.5
-zenoh_enabled = false
+{output}
 [checkpoint]
-path = "{tmp_path / 'state.ckpt'}"
-interval_s = 5.0
+path = "{checkpoint}"
+interval_s = {checkpoint_interval_s}
 """
     )
-    return cfg
+    return path
+
+
+def _config(tmp_path: Path) -> Path:
+    return _write_config(tmp_path / "vcan.toml", interface="socketcan", channel=VCAN_CHANNEL,
+                         output="can_period_s = 0.5\nzenoh_enabled = false", checkpoint=tmp_path / "state.ckpt",
+                         checkpoint_interval_s=5.0)
 
 
 def _wait_for_line(proc: subprocess.Popen, needle: str, timeout_s: float) -> str:
@@ -140,36 +147,10 @@ SYNC_REPLAY_S = 300
 
 
 def _sync_config(tmp_path: Path, time_signal: str | None, interface: str, channel: str, tag: str) -> Path:
-    """The config of the 20x comparison (every identifier on: the slow one is clocked by
-    sample time, so it lands on the same samples at 20x as in an unpaced in-process run)."""
-    cfg = tmp_path / f"{tag}.toml"
-    cfg.write_text(
-        f"""
-cell_profile = "{REPO / 'configs/cells/panasonic_18650pf.toml'}"
-[bus]
-interface = "{interface}"
-channel = "{channel}"
-[dbc]
-input = "{REPO / 'dbc/bms_pack.dbc'}"
-output = "{REPO / 'dbc/socd_output.dbc'}"
-[pack]
-n_cells = {N_CELLS}
-[mapping]
-current_signal = "BMS_PackCurrent"
-current_sign = -1.0
-cell_voltage_pattern = "BMS_Cell{{number:03d}}_V"
-temperature_pattern = "BMS_Temp{{number:02d}}_C"
-cells_per_sensor = 4
-{f'time_signal = "{time_signal}"' if time_signal else ""}
-[output]
-can_enabled = false
-zenoh_enabled = false
-[checkpoint]
-path = "{tmp_path / f'{tag}.ckpt'}"
-interval_s = 1.0
-"""
-    )
-    return cfg
+    """The config of the 20x comparison."""
+    return _write_config(tmp_path / f"{tag}.toml", interface=interface, channel=channel,
+                         output="can_enabled = false\nzenoh_enabled = false",
+                         checkpoint=tmp_path / f"{tag}.ckpt", checkpoint_interval_s=1.0, time_signal=time_signal)
 
 
 def _checkpoint_t_s(path: Path) -> float | None:
