@@ -281,7 +281,7 @@ def run_demo(
     else:
         rmse, rmse_late, per_cell = float("nan"), None, np.full(cells, np.nan)
     counters = daemon.counters()
-    capacity_now = daemon.estimator.health()["capacity_ah"]
+    capacity_now = daemon.estimator.capacity_ah
     capacity_err = (capacity_now / pack.capacity_ah - 1.0) * 100.0
     result = DemoResult(
         cells=cells,

@@ -37,9 +37,9 @@ and a cell that is invalid from the start does not hold the others back.
 A restored state is only as good as its age: the checkpoint's frame time is compared with
 the first new sample.  Past ``checkpoint.max_age_s`` the pack may have moved while the
 daemon was down, so every cell's SOC σ is widened by ``checkpoint.aged_c_rate`` × age (in
-hours of 1 C) and its polarisation branches' σ to what that current would hold; if the age cannot be known (the new timeline is more than ``max_age_s``
-before the checkpoint, or the checkpoint has no time), the cells restart from OCV.  Either way ``state_aged`` is
-raised.  A sample marked ``reanchored`` by the decoder (its clock jumped) is not
+hours of 1 C) and its polarisation branches' σ to what that current would hold; if the age
+cannot be known (the new timeline is more than ``max_age_s`` before the checkpoint, or the
+checkpoint has no time), the cells restart from OCV.  Either way ``state_aged`` is raised.  A sample marked ``reanchored`` by the decoder (its clock jumped) is not
 integrated: the time since the previous sample is unknown.
 """
 
@@ -139,8 +139,6 @@ class Daemon:
                                          host=metrics_cfg.host, port=metrics_cfg.port)
             self.metrics.attach(self.health)
 
-        #: per-cell capacity for the pack view (Ah); an online capacity estimate may replace it
-        self.capacity_ah = np.full(self.n, float(self.profile.effective_capacity_ah))
         self._ocv_energy = OcvEnergy(self.profile.ocv_table())
         # estimation state
         self.initialised = False
@@ -552,15 +550,15 @@ class Daemon:
         return flags
 
     def pack_view(self) -> PackView | None:
-        """The pack view (:mod:`service.estimators.pack_view`) over the started cells, with
-        each cell's capacity (the estimator's online
-        estimate, else the profile's :attr:`capacity_ah`) and last temperature; None before the first estimate."""
+        """The pack view (:mod:`service.estimators.pack_view`) over the started cells, with each
+        cell's capacity as the estimator counts with it (its online estimate, or the profile's)
+        and its last temperature; None before the first estimate."""
         if not self.initialised:
             return None
         s = self._last_sample
         temp = 25.0 if s is None else self._filled(s.temperature_c, np.isfinite(s.temperature_c))
-        cap = getattr(self.estimator, "capacity_ah", None)  # the online estimate where there is one
-        cap = self.capacity_ah if cap is None else np.asarray(cap, dtype=float)
+        cap = getattr(self.estimator, "capacity_ah", None)  # an injected estimator may have none
+        cap = np.full(self.n, float(self.profile.effective_capacity_ah)) if cap is None else np.asarray(cap, float)
         return pack_view(self.estimator.soc, cap, self._ocv_energy, temp, valid=self._cell_started)
 
     def snapshot(self) -> PackSnapshot:

@@ -8,8 +8,8 @@ identifiers → the solid-diffusion surface deficit, if the profile carries that
 extension → FO-MI-UKF prediction and update → fast identifier (EKF over
 ``[R_ohm, R_ct, C_dl, m, U_df]`` using the SOC filter's gain) → G-L memory push.
 The slow identifier (``[R_df, C_df, n]``) buffers what it needs on the fast path and
-updates in :meth:`PackEstimator.slow_update`, which the service calls from its own
-task and the offline runner after every sample.  With ``capacity_estimation`` on, each
+updates in :meth:`PackEstimator.slow_update`, which the service calls once per second of
+sample time and the offline runner after every sample.  With ``capacity_estimation`` on, each
 cell's capacity is learned beside the SOC filter (:mod:`service.estimators.capacity`) and
 fed back as the capacity the filter counts charge with; :meth:`PackEstimator.health` gives
 it with its σ and the resistance growth ``R / R_nominal``.
