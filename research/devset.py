@@ -1,0 +1,479 @@
+"""A development set for ``socd diagnose``, and its rules chosen leave-one-cell-out.
+
+The labelled synthetic files are one cell on a handful of drives; rules tuned on them lose power
+on other cells.  This module builds a larger set the same way (PyBaMM SPMe with a lumped thermal
+model, the effects of :mod:`research.validate_pybamm` at three levels, the labelled files' noise)
+over several parameter sets and drive kinds, diagnoses every recording once with the product's
+pipeline, and chooses the significance rules on all cells but one, scoring them on that one.
+
+Three stages, each cached in ``--workdir`` (a file already there is not made again)::
+
+    python -m research.devset build     [--workdir out/devset] [--jobs 2]
+    python -m research.devset evidence  [--workdir out/devset] [--jobs 2]
+    python -m research.devset rules     [--workdir out/devset] [--json OUT] [--markdown OUT]
+
+* ``build`` simulates every recording of :func:`plan` (``STEM.csv``, ``STEM_ocv.csv``, the
+  fresh cell's OCV table the user would have, and ``STEM.json``, the truth).
+* ``evidence`` diagnoses each recording as ``socd diagnose STEM.csv --ocv STEM_ocv.csv
+  --capacity-ah X`` does, on the chronological split, and scores every effect its signature
+  nominated on the confirmation split as well (whatever the verdict), so the verdict under any
+  significance rule can be worked out again from the figures (``STEM.evidence.json``).
+* ``rules`` re-decides every verdict over :data:`RULE_GRID` with the pipeline's own
+  :func:`~service.diagnosis.pipeline.significance_reasons` and
+  :func:`~service.diagnosis.pipeline.rank`; for each cell the rule with the fewest false alarms
+  on the *other* cells' clean recordings, then the most verdicts right there, is scored on the
+  held-out cell.  Reported per cell and pooled: the confusion matrix, false alarms on clean
+  recordings, detection by level, the held-out RMSE cut of the named effect and the share of
+  the effect's part of the held-out RMSE it removed, against the recording's clean twin (the
+  clean recording of the same cell and drive, whose base held-out RMSE is the model's floor).
+
+Each cell gets every effect at three levels, each on one of the drive kinds (rotating, so every
+effect meets every drive over the cells), and one clean recording per drive kind; all the
+recordings of a cell and drive kind share one current profile, so the clean one is the others'
+twin.  Needs PyBaMM (``pip install -e .[research]``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+import statistics
+import sys
+import time
+from collections import Counter, defaultdict
+from collections.abc import Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from research.validate_pybamm import EFFECTS, LEVELS
+
+#: PyBaMM parameter sets: the labelled files' cell (OKane2022), four other NMC/NCA cells and an
+#: LFP cell (Prada2013)
+CELLS = ("OKane2022", "Chen2020", "Mohtat2020", "Marquis2019", "Ai2020", "Prada2013")
+#: drive kinds (research.validate_pybamm.drive): a drive cycle without long rests, one with parking
+#: rests, HPPC, a random walk with charging
+DRIVES = ("dst", "rests", "hppc", "walk")
+DEFAULT_WORKDIR = Path("out/devset")
+#: the level of a clean recording on a drive profile of its own (not a twin), for the false-alarm count
+REPEAT = "repeat"
+#: drive kinds with a second clean recording per cell (their own seed)
+REPEAT_DRIVES = ("dst", "hppc", "walk")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One development recording: the cell, its effect and level, the drive and its seed."""
+
+    cell: str
+    effect: str
+    level: str
+    drive: str
+    seed: int
+
+    @property
+    def stem(self) -> str:
+        level = "clean" if self.effect == "none" and self.level != REPEAT else self.level
+        return f"{self.cell}_{self.effect}_{level}_{self.drive}"
+
+    @property
+    def twin_stem(self) -> str:
+        return f"{self.cell}_none_clean_{self.drive}"
+
+
+def plan(cells: Sequence[str] = CELLS) -> list[Spec]:
+    """Every recording of the set: per cell, each effect at each level on a drive that rotates with
+    the effect, the level and the cell, plus one clean recording per drive kind and a second one,
+    on a profile of its own, for each of :data:`REPEAT_DRIVES`.  The seed depends
+    on the cell and the drive only (one current profile per cell and drive: the clean twin)."""
+    specs = []
+    for c, cell in enumerate(cells):
+        seed_of = {d: 1000 * (c + 1) + 10 * k + 1 for k, d in enumerate(DRIVES)}
+        for d in DRIVES:
+            specs.append(Spec(cell, "none", LEVELS[1], d, seed_of[d]))
+        for d in REPEAT_DRIVES:
+            specs.append(Spec(cell, "none", REPEAT, d, seed_of[d] + 5))
+        for e, effect in enumerate(x for x in EFFECTS if x != "none"):
+            for k, level in enumerate(LEVELS):
+                d = DRIVES[(e + k + c) % len(DRIVES)]
+                specs.append(Spec(cell, effect, level, d, seed_of[d]))
+    return specs
+
+
+# -- build -----------------------------------------------------------------------------------------
+def build_one(job: tuple[Spec, str]) -> tuple[str, str]:
+    """Simulate one recording into ``workdir`` unless it is there; ``(stem, status)``."""
+    from research.validate_pybamm import _pybamm, simulate
+    from service.recording import save_recording
+
+    spec, workdir = job
+    out = Path(workdir)
+    if (out / f"{spec.stem}.json").exists():
+        return spec.stem, "cached"
+    try:
+        level = spec.level if spec.level in LEVELS else LEVELS[1]  # a clean repeat has no level
+        data, soc, ocv, info = simulate(spec.cell, spec.effect, level, spec.seed, spec.drive)
+    except (RuntimeError, _pybamm().SolverError) as exc:
+        (out / f"{spec.stem}.failed").write_text(f"{type(exc).__name__}: {exc}\n")
+        return spec.stem, f"not simulated: {type(exc).__name__}: {exc}"
+    save_recording(out / f"{spec.stem}.csv", data)
+    np.savetxt(out / f"{spec.stem}_ocv.csv", np.column_stack([soc, ocv]), delimiter=",", header="soc,ocv_v",
+               comments="", fmt="%.5f")
+    info.update(stem=spec.stem, twin=spec.twin_stem, samples=int(len(data)))
+    (out / f"{spec.stem}.json").write_text(json.dumps(info, indent=1))
+    return spec.stem, "simulated"
+
+
+# -- evidence --------------------------------------------------------------------------------------
+@dataclass
+class Candidate:
+    """One effect's figures on one split, as :func:`~service.diagnosis.pipeline.rank` reads them,
+    with the reasons that do not depend on the significance rules (a fitted size of a healthy
+    cell, a missing signature)."""
+
+    name: str
+    score: float
+    rmse_before_mv: float
+    rmse_after_mv: float
+    delta_bic: float
+    evidence: str
+    fixed_reasons: list[str] = field(default_factory=list)
+    significant: bool = False
+
+
+@dataclass
+class Evidence:
+    """What the rules need of one recording's diagnosis (``STEM.evidence.json``)."""
+
+    stem: str
+    cell: str
+    effect: str
+    level: str
+    drive: str
+    noise_mv: float
+    base_rmse_heldout_mv: float
+    candidates: list[Candidate]
+    confirm_noise_mv: float | None
+    confirm_candidates: list[Candidate]
+    #: seconds of the diagnosis the default rules run (the confirmation only where they retry)
+    seconds_chronological: float
+    seconds_confirmation: float
+
+    @classmethod
+    def from_json(cls, doc: dict) -> Evidence:
+        doc = dict(doc)
+        doc["candidates"] = [Candidate(**c) for c in doc["candidates"]]
+        doc["confirm_candidates"] = [Candidate(**c) for c in doc["confirm_candidates"]]
+        return cls(**doc)
+
+
+def _candidates(dg, opt) -> list[Candidate]:
+    """The effects of a diagnosis as candidates, the rule-dependent reasons taken out."""
+    from service.diagnosis.pipeline import significance_reasons
+
+    noise_mv = dg.thresholds["noise_sigma_mv"]
+    out = []
+    for e in dg.effects:
+        n_rule = len(significance_reasons(e.score, e.rmse_before_mv, e.rmse_after_mv, e.delta_bic, noise_mv,
+                                          e.evidence, opt))
+        out.append(Candidate(name=e.name, score=float(e.score), rmse_before_mv=float(e.rmse_before_mv),
+                             rmse_after_mv=float(e.rmse_after_mv), delta_bic=float(e.delta_bic), evidence=e.evidence,
+                             fixed_reasons=list(e.reasons[n_rule:])))
+    return out
+
+
+def evidence_one(job: tuple[Spec, str]) -> tuple[str, str]:
+    """Diagnose one recording (chronological split, then every nominated effect on the
+    confirmation split) and write ``STEM.evidence.json``; ``(stem, status)``."""
+    from service.diagnosis.pipeline import DiagnoseOptions, _diagnose_on_split, table_profile
+    from service.recording import load_recording
+
+    spec, workdir = job
+    out = Path(workdir)
+    path = out / f"{spec.stem}.evidence.json"
+    if path.exists():
+        return spec.stem, "cached"
+    if not (out / f"{spec.stem}.json").exists():
+        return spec.stem, "not built"
+    info = json.loads((out / f"{spec.stem}.json").read_text())
+    ocv = np.loadtxt(out / f"{spec.stem}_ocv.csv", delimiter=",", skiprows=1)
+    profile = table_profile(spec.stem, info["capacity_ah"], ocv[:, 0], ocv[:, 1])
+    rec = load_recording(out / f"{spec.stem}.csv")
+    opt = DiagnoseOptions()
+    quiet = lambda _msg: None  # noqa: E731
+    dg = _diagnose_on_split(rec, profile, opt, quiet)
+    nominated = tuple(e.name for e in dg.effects if e.evidence == "nominated")
+    confirm_cands: list[Candidate] = []
+    confirm_noise = None
+    seconds_confirm = 0.0
+    if nominated and opt.confirm_split:
+        sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=nominated), quiet)
+        confirm_cands = _candidates(sub, opt)
+        confirm_noise = sub.thresholds["noise_sigma_mv"]
+        # what the default rules spend: the retry runs only on a none verdict with a nominated
+        # effect short of its bar
+        if dg.verdict == "none" and any(not e.significant for e in dg.effects if e.evidence == "nominated"):
+            seconds_confirm = sub.seconds
+    ev = Evidence(stem=spec.stem, cell=spec.cell, effect=spec.effect, level=spec.level, drive=spec.drive,
+                  noise_mv=dg.thresholds["noise_sigma_mv"], base_rmse_heldout_mv=float(dg.base["rmse_heldout_mv"]),
+                  candidates=_candidates(dg, opt), confirm_noise_mv=confirm_noise, confirm_candidates=confirm_cands,
+                  seconds_chronological=dg.seconds, seconds_confirmation=seconds_confirm)
+    path.write_text(json.dumps(asdict(ev), indent=1))
+    return spec.stem, f"{dg.verdict} ({dg.seconds + seconds_confirm:.0f} s)"
+
+
+# -- rules -----------------------------------------------------------------------------------------
+#: the significance rules searched (fields of DiagnoseOptions); the product's defaults are in each list
+RULE_GRID: dict[str, tuple[float, ...]] = {
+    "min_rel_gain": (0.10, 0.15, 0.20, 0.25, 0.30, 0.40),
+    "min_rel_gain_nominated": (0.0, 0.03, 0.05, 0.10, 0.15, 0.20),
+    "min_abs_gain_noise": (0.0, 0.25, 0.5, 1.0),
+    "min_delta_bic": (0.0, 10.0, 50.0),
+    "direct_max_rise_noise": (0.5, 1.0, 2.0),
+    "direct_max_rise_rel": (0.05, 0.10, 0.20),
+}
+
+
+def rule_grid() -> list[dict[str, float]]:
+    keys = list(RULE_GRID)
+    return [dict(zip(keys, values)) for values in itertools.product(*(RULE_GRID[k] for k in keys))]
+
+
+def _judge(cands: Iterable[Candidate], noise_mv: float, opt) -> list[Candidate]:
+    """The candidates with ``significant`` set under ``opt`` and ranked as the pipeline ranks them."""
+    from service.diagnosis.pipeline import rank, significance_reasons
+
+    judged = []
+    for c in cands:
+        reasons = significance_reasons(c.score, c.rmse_before_mv, c.rmse_after_mv, c.delta_bic, noise_mv,
+                                       c.evidence, opt)
+        judged.append(replace(c, significant=not reasons and not c.fixed_reasons))
+    return rank(judged, opt.min_abs_gain_noise * noise_mv)
+
+
+def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]:
+    """The verdict :func:`~service.diagnosis.pipeline.run_diagnosis` reaches on ``ev`` with the
+    significance rule ``rule``, and the named candidate (with the split's figures it was named on)."""
+    from service.diagnosis.pipeline import DiagnoseOptions
+
+    opt = replace(DiagnoseOptions(), **rule)
+    ranked = _judge(ev.candidates, ev.noise_mv, opt)
+    if ranked and ranked[0].significant:
+        return ranked[0].name, ranked[0]
+    retry = {c.name for c in ranked if c.evidence == "nominated" and not c.significant}
+    if retry and ev.confirm_noise_mv is not None:
+        sub = _judge([c for c in ev.confirm_candidates if c.name in retry], ev.confirm_noise_mv, opt)
+        confirmed = [c for c in sub if c.significant and c.evidence == "nominated"]
+        if confirmed:
+            return confirmed[0].name, confirmed[0]
+    return "none", None
+
+
+@dataclass
+class Tally:
+    right: int = 0
+    total: int = 0
+    clean: int = 0
+    false_alarms: int = 0
+
+    def key(self) -> tuple[int, int]:
+        """Smaller is better: false alarms on clean recordings first, then verdicts wrong."""
+        return (self.false_alarms, self.total - self.right)
+
+
+def tally(evs: Sequence[Evidence], rule: dict[str, float]) -> Tally:
+    t = Tally()
+    for ev in evs:
+        verdict, _ = decide(ev, rule)
+        t.total += 1
+        t.right += verdict == ev.effect
+        if ev.effect == "none":
+            t.clean += 1
+            t.false_alarms += verdict != "none"
+    return t
+
+
+def _distance_to_default(rule: dict[str, float]) -> float:
+    """Grid steps from the product's current default (the tie-break: move no further than needed)."""
+    from service.diagnosis.pipeline import DiagnoseOptions
+
+    default = DiagnoseOptions()
+    return sum(abs(RULE_GRID[k].index(v) - RULE_GRID[k].index(getattr(default, k))) for k, v in rule.items())
+
+
+def choose_rule(evs: Sequence[Evidence], grid: Sequence[dict[str, float]]) -> tuple[dict[str, float], Tally]:
+    """The rule with the fewest false alarms, then the most verdicts right, on ``evs``; ties go to
+    the rule nearest the product's default."""
+    scored = [(tally(evs, r), r) for r in grid]
+    best = min(scored, key=lambda tr: (tr[0].key(), _distance_to_default(tr[1])))
+    return best[1], best[0]
+
+
+@dataclass
+class Row:
+    """One held-out recording's verdict under the rule chosen on the other cells."""
+
+    stem: str
+    cell: str
+    effect: str
+    level: str
+    drive: str
+    verdict: str
+    cut: float | None  # held-out RMSE cut of the named effect (1 - after / before)
+    excess_removed: float | None  # (before - after) / (before - twin's base held-out RMSE)
+
+
+def leave_one_cell_out(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = None,
+                       progress=None) -> tuple[list[Row], dict[str, dict]]:
+    """Rows scored with the rule chosen on the other cells, and per cell the rule and its
+    training tally."""
+    grid = grid if grid is not None else rule_grid()
+    floors = {ev.stem: ev.base_rmse_heldout_mv for ev in evs if ev.effect == "none"}
+    rows, chosen = [], {}
+    for cell in dict.fromkeys(ev.cell for ev in evs):
+        train = [ev for ev in evs if ev.cell != cell]
+        rule, t = choose_rule(train, grid)
+        chosen[cell] = {"rule": rule, "train": asdict(t)}
+        for ev in (ev for ev in evs if ev.cell == cell):
+            verdict, named = decide(ev, rule)
+            cut = excess = None
+            if named is not None:
+                cut = named.score
+                floor = floors.get(f"{ev.cell}_none_clean_{ev.drive}")
+                if floor is not None and named.rmse_before_mv > floor:
+                    excess = (named.rmse_before_mv - named.rmse_after_mv) / (named.rmse_before_mv - floor)
+            rows.append(Row(ev.stem, ev.cell, ev.effect, ev.level, ev.drive, verdict, cut, excess))
+        if progress:
+            progress(cell)
+    return rows, chosen
+
+
+def _pct(a: int, b: int) -> str:
+    return f"{a}/{b} ({100 * a / b:.0f} %)" if b else "0/0"
+
+
+def report(rows: Sequence[Row], chosen: dict[str, dict], pooled_rule: dict[str, float]) -> str:
+    """Markdown: per-cell results and rules, the pooled confusion matrix, false alarms, detection by
+    level and drive, and the named effects' held-out cuts."""
+    truths = [e for e in EFFECTS if any(r.effect == e for r in rows)]
+    verdicts = truths + sorted({r.verdict for r in rows} - set(truths))
+    out = ["| held-out cell | right | clean: false alarms | rule chosen on the other cells |", "|---|---|---|---|"]
+    for cell, info in chosen.items():
+        mine = [r for r in rows if r.cell == cell]
+        clean = [r for r in mine if r.effect == "none"]
+        rule = ", ".join(f"{k}={v:g}" for k, v in info["rule"].items())
+        out.append(f"| {cell} | {_pct(sum(r.verdict == r.effect for r in mine), len(mine))} | "
+                   f"{sum(r.verdict != 'none' for r in clean)}/{len(clean)} | {rule} |")
+    clean = [r for r in rows if r.effect == "none"]
+    effect_rows = [r for r in rows if r.effect != "none"]
+    out += ["", f"**Pooled over held-out cells: {_pct(sum(r.verdict == r.effect for r in rows), len(rows))} right; "
+                f"false alarms on clean recordings {sum(r.verdict != 'none' for r in clean)}/{len(clean)}; effects "
+                f"named as another effect {sum(r.verdict not in ('none', r.effect) for r in effect_rows)}/"
+                f"{len(effect_rows)}.**", "",
+            "Confusion matrix, pooled (rows: truth, columns: verdict):", "",
+            "| truth | " + " | ".join(verdicts) + " |", "|---|" + "---|" * len(verdicts)]
+    for t in truths:
+        counts = Counter(r.verdict for r in rows if r.effect == t)
+        out.append(f"| {t} | " + " | ".join(str(counts.get(v, 0) or "") for v in verdicts) + " |")
+    out += ["", "Per cell (right / recordings, by truth):", "",
+            "| cell | " + " | ".join(truths) + " |", "|---|" + "---|" * len(truths)]
+    for cell in chosen:
+        cells = []
+        for t in truths:
+            rs = [r for r in rows if r.cell == cell and r.effect == t]
+            cells.append(f"{sum(r.verdict == t for r in rs)}/{len(rs)}")
+        out.append(f"| {cell} | " + " | ".join(cells) + " |")
+    out += ["", "Detection by level and by drive (effect recordings named right):", "",
+            "| level | right |", "|---|---|"]
+    for lv in LEVELS:
+        rs = [r for r in effect_rows if r.level == lv]
+        out.append(f"| {lv} | {_pct(sum(r.verdict == r.effect for r in rs), len(rs))} |")
+    out += ["", "| drive | right (effects) | clean false alarms |", "|---|---|---|"]
+    for d in DRIVES:
+        rs = [r for r in effect_rows if r.drive == d]
+        cs = [r for r in clean if r.drive == d]
+        out.append(f"| {d} | {_pct(sum(r.verdict == r.effect for r in rs), len(rs))} | "
+                   f"{sum(r.verdict != 'none' for r in cs)}/{len(cs)} |")
+    cuts = [r.cut for r in effect_rows if r.verdict == r.effect and r.cut is not None]
+    excess = [r.excess_removed for r in effect_rows if r.verdict == r.effect and r.excess_removed is not None]
+    out += ["", f"Named right: median held-out RMSE cut {_median_pct(cuts)} (n = {len(cuts)}); median share of the "
+                f"effect's part of the held-out RMSE removed, against the clean twin's floor, {_median_pct(excess)} "
+                f"(n = {len(excess)}).",
+            "", "Rule chosen on all cells (the product's default): "
+            + ", ".join(f"`{k}` = {v:g}" for k, v in pooled_rule.items()) + "."]
+    return "\n".join(out)
+
+
+def _median_pct(xs: Sequence[float]) -> str:
+    return f"{100 * statistics.median(xs):.0f} %" if xs else "-"
+
+
+def load_evidence(workdir: Path) -> list[Evidence]:
+    return [Evidence.from_json(json.loads(p.read_text())) for p in sorted(workdir.glob("*.evidence.json"))]
+
+
+# -- command line ----------------------------------------------------------------------------------
+def _run_jobs(fn, specs: Sequence[Spec], workdir: Path, jobs: int, what: str) -> None:
+    from rich.progress import Progress
+
+    with Progress(transient=False) as bar, ProcessPoolExecutor(max_workers=max(1, jobs)) as pool:
+        task = bar.add_task(what, total=len(specs))
+        for stem, status in pool.map(fn, [(s, str(workdir)) for s in specs]):
+            bar.console.print(f"{stem}: {status}")
+            bar.advance(task)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m research.devset", description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("stage", choices=("build", "evidence", "rules", "plan"),
+                    help="build: simulate the recordings; evidence: diagnose each once; rules: the leave-one-cell-out "
+                         "rule search and its report; plan: list the recordings")
+    ap.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR, help="the set's cache (default: %(default)s)")
+    ap.add_argument("--cells", default=",".join(CELLS), help="PyBaMM parameter sets (default: %(default)s)")
+    ap.add_argument("--jobs", type=int, default=1, help="recordings simulated or diagnosed at once (default 1)")
+    ap.add_argument("--json", type=Path, help="rules: write the rows and chosen rules as JSON")
+    ap.add_argument("--markdown", type=Path, help="rules: write the report as Markdown")
+    args = ap.parse_args(argv)
+    cells = [c for c in args.cells.split(",") if c]
+    specs = plan(cells)
+    if args.stage == "plan":
+        for s in specs:
+            print(s.stem, s.seed)
+        print(f"{len(specs)} recordings", file=sys.stderr)
+        return 0
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    if args.stage == "build":
+        from research.validate_pybamm import _pybamm
+
+        _pybamm()
+        _run_jobs(build_one, specs, args.workdir, args.jobs, "simulating")
+        return 0
+    if args.stage == "evidence":
+        _run_jobs(evidence_one, specs, args.workdir, args.jobs, "diagnosing")
+        return 0
+    evs = [ev for ev in load_evidence(args.workdir) if ev.cell in cells]
+    if len({ev.cell for ev in evs}) < 2:
+        ap.error(f"{args.workdir}: evidence for fewer than two cells; run the build and evidence stages first")
+    t0 = time.perf_counter()
+    rows, chosen = leave_one_cell_out(evs, progress=lambda c: print(f"held out {c}", file=sys.stderr))
+    pooled_rule, pooled = choose_rule(evs, rule_grid())
+    text = report(rows, chosen, pooled_rule)
+    text += (f"\n\nIn-sample with that rule: {pooled.right}/{pooled.total} right, false alarms "
+             f"{pooled.false_alarms}/{pooled.clean} ({time.perf_counter() - t0:.0f} s search over "
+             f"{len(rule_grid())} rules).")
+    print(text)
+    if args.markdown:
+        args.markdown.write_text(text + "\n")
+    if args.json:
+        args.json.write_text(json.dumps({"rows": [asdict(r) for r in rows], "chosen": chosen,
+                                         "pooled_rule": pooled_rule, "pooled": asdict(pooled)}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
