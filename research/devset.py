@@ -186,10 +186,39 @@ def _candidates(dg, opt) -> list[Candidate]:
     return out
 
 
+def evidence_of(spec: Spec, dg, sub, opt) -> Evidence:
+    """The rule-independent figures of ``dg`` (the chronological diagnosis) and ``sub`` (its
+    nominated effects on the confirmation split, or ``None``) under the options ``opt`` they ran with."""
+    retried = dg.verdict == "none" and any(not e.significant for e in dg.effects if e.evidence == "nominated")
+    return Evidence(stem=spec.stem, cell=spec.cell, effect=spec.effect, level=spec.level, drive=spec.drive,
+                    noise_mv=dg.thresholds["noise_sigma_mv"], base_rmse_heldout_mv=float(dg.base["rmse_heldout_mv"]),
+                    candidates=_candidates(dg, opt),
+                    confirm_noise_mv=sub.thresholds["noise_sigma_mv"] if sub is not None else None,
+                    confirm_candidates=_candidates(sub, opt) if sub is not None else [],
+                    seconds_chronological=dg.seconds,
+                    # what the default rules spend: the retry runs only on a none verdict with a
+                    # nominated effect short of its bar
+                    seconds_confirmation=sub.seconds if sub is not None and retried else 0.0)
+
+
+def diagnose_for_evidence(spec: Spec, rec, profile, opt) -> Evidence:
+    """Diagnose ``rec`` on ``opt.split``, then every effect its signature nominated on
+    ``opt.confirm_split`` whatever the verdict, so :func:`decide` can retry under any rule."""
+    from service.diagnosis.pipeline import _diagnose_on_split
+
+    quiet = lambda _msg: None  # noqa: E731
+    dg = _diagnose_on_split(rec, profile, opt, quiet)
+    nominated = tuple(e.name for e in dg.effects if e.evidence == "nominated")
+    sub = None
+    if nominated and opt.confirm_split and opt.confirm_split != opt.split:
+        sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=nominated), quiet)
+    return evidence_of(spec, dg, sub, opt)
+
+
 def evidence_one(job: tuple[Spec, str]) -> tuple[str, str]:
-    """Diagnose one recording (chronological split, then every nominated effect on the
-    confirmation split) and write ``STEM.evidence.json``; ``(stem, status)``."""
-    from service.diagnosis.pipeline import DiagnoseOptions, _diagnose_on_split, table_profile
+    """Diagnose one recording of the set with the default options and write
+    ``STEM.evidence.json``; ``(stem, status)``."""
+    from service.diagnosis.pipeline import DiagnoseOptions, table_profile
     from service.recording import load_recording
 
     spec, workdir = job
@@ -202,28 +231,10 @@ def evidence_one(job: tuple[Spec, str]) -> tuple[str, str]:
     info = json.loads((out / f"{spec.stem}.json").read_text())
     ocv = np.loadtxt(out / f"{spec.stem}_ocv.csv", delimiter=",", skiprows=1)
     profile = table_profile(spec.stem, info["capacity_ah"], ocv[:, 0], ocv[:, 1])
-    rec = load_recording(out / f"{spec.stem}.csv")
-    opt = DiagnoseOptions()
-    quiet = lambda _msg: None  # noqa: E731
-    dg = _diagnose_on_split(rec, profile, opt, quiet)
-    nominated = tuple(e.name for e in dg.effects if e.evidence == "nominated")
-    confirm_cands: list[Candidate] = []
-    confirm_noise = None
-    seconds_confirm = 0.0
-    if nominated and opt.confirm_split:
-        sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=nominated), quiet)
-        confirm_cands = _candidates(sub, opt)
-        confirm_noise = sub.thresholds["noise_sigma_mv"]
-        # what the default rules spend: the retry runs only on a none verdict with a nominated
-        # effect short of its bar
-        if dg.verdict == "none" and any(not e.significant for e in dg.effects if e.evidence == "nominated"):
-            seconds_confirm = sub.seconds
-    ev = Evidence(stem=spec.stem, cell=spec.cell, effect=spec.effect, level=spec.level, drive=spec.drive,
-                  noise_mv=dg.thresholds["noise_sigma_mv"], base_rmse_heldout_mv=float(dg.base["rmse_heldout_mv"]),
-                  candidates=_candidates(dg, opt), confirm_noise_mv=confirm_noise, confirm_candidates=confirm_cands,
-                  seconds_chronological=dg.seconds, seconds_confirmation=seconds_confirm)
+    ev = diagnose_for_evidence(spec, load_recording(out / f"{spec.stem}.csv"), profile, DiagnoseOptions())
     path.write_text(json.dumps(asdict(ev), indent=1))
-    return spec.stem, f"{dg.verdict} ({dg.seconds + seconds_confirm:.0f} s)"
+    verdict, _ = decide(ev, {})
+    return spec.stem, f"{verdict} ({ev.seconds_chronological + ev.seconds_confirmation:.0f} s)"
 
 
 # -- rules -----------------------------------------------------------------------------------------

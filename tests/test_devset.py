@@ -1,0 +1,113 @@
+"""The diagnosis development set: its plan, the verdict worked out again from cached figures, and
+the leave-one-cell-out rule choice (PyBaMM is not needed: the diagnosis runs on the estimator's
+own model, as in test_diagnose)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import replace
+
+import pytest
+
+from research.devset import (
+    CELLS,
+    DRIVES,
+    REPEAT,
+    Candidate,
+    Evidence,
+    Spec,
+    choose_rule,
+    decide,
+    evidence_of,
+    leave_one_cell_out,
+    plan,
+    report,
+)
+from research.validate import user_profile, write_case
+from research.validate_pybamm import EFFECTS, LEVELS
+from service.diagnosis.pipeline import DiagnoseOptions, _diagnose_on_split, confirm_nominated
+from service.recording import load_recording
+
+pytestmark = pytest.mark.research
+
+
+def test_plan_gives_every_effect_every_level_and_drive_and_a_clean_twin():
+    specs = plan()
+    assert len(specs) == 25 * len(CELLS) >= 150
+    assert len({s.stem for s in specs}) == len(specs), "stems are unique"
+    by_stem = {s.stem: s for s in specs}
+    for s in specs:
+        if s.effect != "none":
+            twin = by_stem[s.twin_stem]
+            assert twin.effect == "none" and twin.seed == s.seed and twin.drive == s.drive, s.stem
+    effects = [e for e in EFFECTS if e != "none"]
+    for e in effects:
+        mine = [s for s in specs if s.effect == e]
+        assert Counter(s.level for s in mine) == {lv: len(CELLS) for lv in LEVELS}
+        assert {s.drive for s in mine} == set(DRIVES), f"{e} meets every drive kind"
+    repeats = [s for s in specs if s.level == REPEAT]
+    assert repeats and all(s.effect == "none" and s.seed not in {t.seed for t in specs if t.level != REPEAT}
+                           for s in repeats), "a repeat has a drive profile of its own"
+
+
+def _cand(name, score, evidence="fit", before=10.0, dbic=100.0, fixed=()):
+    return Candidate(name=name, score=score, rmse_before_mv=before, rmse_after_mv=before * (1 - score),
+                     delta_bic=dbic, evidence=evidence, fixed_reasons=list(fixed))
+
+
+def _ev(cell, effect, cands, confirm=(), stem=None, drive="dst", before=10.0):
+    return Evidence(stem=stem or f"{cell}_{effect}", cell=cell, effect=effect, level="moderate", drive=drive,
+                    noise_mv=1.5, base_rmse_heldout_mv=before, candidates=list(cands),
+                    confirm_noise_mv=1.5 if confirm else None, confirm_candidates=list(confirm),
+                    seconds_chronological=1.0, seconds_confirmation=0.0)
+
+
+def test_decide_names_the_best_significant_and_retries_a_nominated_one():
+    ev = _ev("A", "kinetics", [_cand("kinetics", 0.4), _cand("ocv", 0.35)])
+    assert decide(ev, {})[0] == "kinetics"
+    # a fitted size of a healthy cell holds whatever the rule
+    held = _ev("A", "kinetics", [_cand("kinetics", 0.9, fixed=["fitted exchange current 0.3 C"])])
+    assert decide(held, {"min_rel_gain": 0.1})[0] == "none"
+    # nominated but short of its bar on the chronological split: named if the confirmation split clears it
+    diff = _ev("A", "diffusion", [_cand("diffusion", 0.05, "nominated")], confirm=[_cand("diffusion", 0.2, "nominated")])
+    verdict, named = decide(diff, {})
+    assert verdict == "diffusion" and named.score == pytest.approx(0.2)
+    assert decide(diff, {"min_rel_gain_nominated": 0.25})[0] == "none"
+
+
+def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
+    """Effects at a gain of 0.2 and clean recordings whose best candidate gains 0.12: 0.15 is the
+    bar that names every effect and no clean one; 0.10 names more effects on cell C only at the
+    price of a false alarm, so it is not chosen."""
+    evs = []
+    for cell in ("A", "B", "C"):
+        evs.append(_ev(cell, "kinetics", [_cand("kinetics", 0.2)], stem=f"{cell}_kinetics"))
+        evs.append(_ev(cell, "none", [_cand("ocv", 0.12)], stem=f"{cell}_none_clean_dst", before=6.0))
+    evs.append(_ev("C", "capacity", [_cand("capacity", 0.11)], stem="C_capacity"))
+    grid = [{"min_rel_gain": g} for g in (0.10, 0.15, 0.30)]
+    rule, t = choose_rule(evs, grid)
+    assert rule == {"min_rel_gain": 0.15} and t.false_alarms == 0 and t.right == 6
+    rows, chosen = leave_one_cell_out(evs, grid)
+    assert all(info["rule"] == {"min_rel_gain": 0.15} for info in chosen.values())
+    assert [r.verdict for r in rows if r.cell == "C"] == ["kinetics", "none", "none"]
+    kin = next(r for r in rows if r.stem == "A_kinetics")
+    # cut 20 % of 10 mV; the twin's floor is 6 mV, so 2 of the 4 mV of the effect's part
+    assert kin.cut == pytest.approx(0.2) and kin.excess_removed == pytest.approx(0.5)
+    text = report(rows, chosen, rule)
+    assert "**Pooled over held-out cells: 6/7 (86 %) right; false alarms on clean recordings 0/3" in text
+    assert "| kinetics |  |  | 3 |" in text and "| capacity | 1 |  |  |" in text
+
+
+def test_decide_reproduces_the_pipeline_verdict_on_a_real_diagnosis(tmp_path):
+    """The cached figures give back the verdict run_diagnosis reaches, with the default rule and a
+    stricter one (every fitted effect refused)."""
+    rec = load_recording(write_case(tmp_path / "kin.csv", "kinetics", "clear", seed=0))
+    opt = DiagnoseOptions(base_seconds=10.0, base_de_maxiter=10, effect_seconds=8.0,
+                          effects=("kinetics", "capacity", "hysteresis"))
+    dg = _diagnose_on_split(rec, user_profile(), opt, lambda _m: None)
+    ev = evidence_of(Spec("own", "kinetics", "clear", "dst", 0), dg, None, opt)
+    rule = {k: getattr(opt, k) for k in ("min_rel_gain", "min_rel_gain_nominated", "min_abs_gain_noise")}
+    verdict = confirm_nominated(dg, rec, user_profile(), replace(opt, confirm_split=None), lambda _m: None).verdict
+    assert decide(ev, rule)[0] == verdict == "kinetics"
+    strict = {"min_rel_gain": 0.99, "min_rel_gain_nominated": 0.99}
+    assert decide(ev, strict)[0] == "none"
