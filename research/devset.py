@@ -38,11 +38,9 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import math
 import statistics
 import sys
-import time
-from collections import Counter, defaultdict
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -123,7 +121,7 @@ def build_one(job: tuple[Spec, str]) -> tuple[str, str]:
     save_recording(out / f"{spec.stem}.csv", data)
     np.savetxt(out / f"{spec.stem}_ocv.csv", np.column_stack([soc, ocv]), delimiter=",", header="soc,ocv_v",
                comments="", fmt="%.5f")
-    info.update(stem=spec.stem, twin=spec.twin_stem, samples=int(len(data)))
+    info.update(stem=spec.stem, twin=spec.twin_stem, samples=len(data))
     (out / f"{spec.stem}.json").write_text(json.dumps(info, indent=1))
     return spec.stem, "simulated"
 
@@ -143,6 +141,8 @@ class Candidate:
     evidence: str
     fixed_reasons: list[str] = field(default_factory=list)
     significant: bool = False
+    #: the fitted size a plausibility bound reads (kinetics: the exchange current in C), if any
+    size: float | None = None
 
 
 @dataclass
@@ -162,13 +162,52 @@ class Evidence:
     #: seconds of the diagnosis the default rules run (the confirmation only where they retry)
     seconds_chronological: float
     seconds_confirmation: float
+    #: the model-free signatures' statistics the signature rules read (:func:`signature_stats`)
+    signatures: dict[str, dict] = field(default_factory=dict)
 
     @classmethod
     def from_json(cls, doc: dict) -> Evidence:
         doc = dict(doc)
-        doc["candidates"] = [Candidate(**c) for c in doc["candidates"]]
-        doc["confirm_candidates"] = [Candidate(**c) for c in doc["confirm_candidates"]]
+        doc["candidates"] = [_candidate_from_json(c) for c in doc["candidates"]]
+        doc["confirm_candidates"] = [_candidate_from_json(c) for c in doc["confirm_candidates"]]
         return cls(**doc)
+
+
+#: how the kinetics extension's plausibility reason begins (service.diagnosis.effects._kin_implausible)
+KINETICS_SIZE_REASON = "fitted exchange current "
+
+
+def _candidate_from_json(doc: dict) -> Candidate:
+    """A cached candidate; one cached before ``size`` was stored gets the kinetics exchange
+    current back from its plausibility reason, which prints it (two decimals)."""
+    c = Candidate(**doc)
+    if c.size is None and c.name == "kinetics":
+        for r in c.fixed_reasons:
+            if r.startswith(KINETICS_SIZE_REASON):
+                c.size = float(r[len(KINETICS_SIZE_REASON):].split()[0])
+    return c
+
+
+def signature_stats(sig: dict) -> dict[str, dict]:
+    """What the signature rules of :data:`SIGNATURE_RULES` read from a diagnosis's signatures
+    (``Diagnosis.signatures``): the kinetics step fit's exchange current and its 95 % upper bound,
+    and the diffusion relaxation ratio and its z."""
+    kin, rel = sig.get("kinetics", {}), sig.get("diffusion", {})
+    return {"kinetics": {"i0_upper_c": kin.get("i0_upper_c"), "resolved": bool(kin.get("resolved", False))},
+            "diffusion": {"statistic": rel.get("statistic") if "z" in rel else None, "z": rel.get("z")}}
+
+
+def recording_signature_stats(rec, capacity_ah: float, fit_fraction: float) -> dict[str, dict]:
+    """:func:`signature_stats` computed from the recording itself, over the chronological split's
+    fit part, as the pipeline computes them (for evidence cached before the statistics were kept)."""
+    from service.diagnosis.pipeline import chronological_fit_mask
+    from service.diagnosis.signatures import rest_relaxation, step_kinetics
+
+    fit = chronological_fit_mask(rec.time_s, fit_fraction)
+    return signature_stats({
+        "kinetics": step_kinetics(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, capacity_ah, usable=fit),
+        "diffusion": rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, capacity_ah, usable=fit),
+    })
 
 
 def _candidates(dg, opt) -> list[Candidate]:
@@ -176,13 +215,15 @@ def _candidates(dg, opt) -> list[Candidate]:
     from service.diagnosis.pipeline import significance_reasons
 
     noise_mv = dg.thresholds["noise_sigma_mv"]
+    cap = dg.base_profile.effective_capacity_ah
     out = []
     for e in dg.effects:
         n_rule = len(significance_reasons(e.score, e.rmse_before_mv, e.rmse_after_mv, e.delta_bic, noise_mv,
                                           e.evidence, opt))
+        size = e.params["kinetics_i0_a"] / cap if e.name == "kinetics" else None
         out.append(Candidate(name=e.name, score=float(e.score), rmse_before_mv=float(e.rmse_before_mv),
                              rmse_after_mv=float(e.rmse_after_mv), delta_bic=float(e.delta_bic), evidence=e.evidence,
-                             fixed_reasons=list(e.reasons[n_rule:])))
+                             fixed_reasons=list(e.reasons[n_rule:]), size=size))
     return out
 
 
@@ -198,7 +239,8 @@ def evidence_of(spec: Spec, dg, sub, opt) -> Evidence:
                     seconds_chronological=dg.seconds,
                     # what the default rules spend: the retry runs only on a none verdict with a
                     # nominated effect short of its bar
-                    seconds_confirmation=sub.seconds if sub is not None and retried else 0.0)
+                    seconds_confirmation=sub.seconds if sub is not None and retried else 0.0,
+                    signatures=signature_stats(dg.signatures))
 
 
 def diagnose_for_evidence(spec: Spec, rec, profile, opt) -> Evidence:
@@ -206,7 +248,7 @@ def diagnose_for_evidence(spec: Spec, rec, profile, opt) -> Evidence:
     ``opt.confirm_split`` whatever the verdict, so :func:`decide` can retry under any rule."""
     from service.diagnosis.pipeline import _diagnose_on_split
 
-    quiet = lambda _msg: None  # noqa: E731
+    quiet = lambda _msg: None
     dg = _diagnose_on_split(rec, profile, opt, quiet)
     nominated = tuple(e.name for e in dg.effects if e.evidence == "nominated")
     sub = None
@@ -238,20 +280,63 @@ def evidence_one(job: tuple[Spec, str]) -> tuple[str, str]:
 
 
 # -- rules -----------------------------------------------------------------------------------------
-#: the significance rules searched (fields of DiagnoseOptions); the product's defaults are in each list
+#: the rules searched: significance thresholds (fields of DiagnoseOptions) and signature levels
+#: (:data:`SIGNATURE_RULES`); each list holds the product's current value
 RULE_GRID: dict[str, tuple[float, ...]] = {
-    "min_rel_gain": (0.10, 0.15, 0.20, 0.25, 0.30, 0.40),
-    "min_rel_gain_nominated": (0.0, 0.03, 0.05, 0.10, 0.15, 0.20),
-    "min_abs_gain_noise": (0.0, 0.25, 0.5, 1.0),
-    "min_delta_bic": (0.0, 10.0, 50.0),
-    "direct_max_rise_noise": (0.5, 1.0, 2.0),
-    "direct_max_rise_rel": (0.05, 0.10, 0.20),
+    "min_rel_gain": (0.15, 0.20, 0.25, 0.30, 0.40),
+    "min_rel_gain_nominated": (0.03, 0.05, 0.10, 0.15),
+    "min_abs_gain_noise": (0.25, 0.5, 1.0),
+    "min_delta_bic": (0.0, 10.0),
+    "kinetics_max_i0_c": (0.10, 0.12, 0.15, 0.18, 0.20),
+    "relax_min_ratio": (0.15, 0.20, 0.30),
+    "relax_min_z": (3.0, 5.0),
 }
+#: signature levels: the kinetics bound (service.diagnosis.effects.KINETICS_MAX_I0_C: the step fit
+#: nominates kinetics below it and the extension's fitted exchange current must lie below it) and
+#: the relaxation signature's ratio and z (service.diagnosis.signatures.RELAX_MIN_RATIO, RELAX_MIN_Z)
+SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z")
+
+
+def current_rule() -> dict[str, float]:
+    """The product's current value of every rule of :data:`RULE_GRID`."""
+    from service.diagnosis import signatures
+    from service.diagnosis.effects import KINETICS_MAX_I0_C
+    from service.diagnosis.pipeline import DiagnoseOptions
+
+    opt = DiagnoseOptions()
+    now = {k: getattr(opt, k) for k in RULE_GRID if k not in SIGNATURE_RULES}
+    now.update(kinetics_max_i0_c=KINETICS_MAX_I0_C, relax_min_ratio=signatures.RELAX_MIN_RATIO,
+               relax_min_z=signatures.RELAX_MIN_Z)
+    return now
 
 
 def rule_grid() -> list[dict[str, float]]:
     keys = list(RULE_GRID)
     return [dict(zip(keys, values)) for values in itertools.product(*(RULE_GRID[k] for k in keys))]
+
+
+def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[str, float]) -> list[Candidate]:
+    """``cands`` with the evidence class and plausibility the signature levels in ``rule`` give
+    (a level not in ``rule`` keeps the class the diagnosis ran with)."""
+    out = []
+    for c in cands:
+        if c.name == "kinetics" and "kinetics_max_i0_c" in rule:
+            k = rule["kinetics_max_i0_c"]
+            sig = ev.signatures["kinetics"]
+            nominated = sig["i0_upper_c"] is not None and sig["i0_upper_c"] < k and sig["resolved"]
+            fixed = [r for r in c.fixed_reasons if not r.startswith(KINETICS_SIZE_REASON)]
+            if c.size is not None and c.size >= k:
+                fixed.append(f"{KINETICS_SIZE_REASON}{c.size:.2f} C >= {k:g} C")
+            c = replace(c, evidence="nominated" if nominated else "fit", fixed_reasons=fixed)
+        elif c.name == "diffusion" and ("relax_min_ratio" in rule or "relax_min_z" in rule):
+            from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_MIN_Z
+
+            sig = ev.signatures["diffusion"]
+            nominated = (sig["statistic"] is not None and sig["statistic"] >= rule.get("relax_min_ratio", RELAX_MIN_RATIO)
+                         and sig["z"] >= rule.get("relax_min_z", RELAX_MIN_Z))
+            c = replace(c, evidence="nominated" if nominated else "fit")
+        out.append(c)
+    return out
 
 
 def _judge(cands: Iterable[Candidate], noise_mv: float, opt) -> list[Candidate]:
@@ -268,17 +353,20 @@ def _judge(cands: Iterable[Candidate], noise_mv: float, opt) -> list[Candidate]:
 
 def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]:
     """The verdict :func:`~service.diagnosis.pipeline.run_diagnosis` reaches on ``ev`` with the
-    significance rule ``rule``, and the named candidate (with the split's figures it was named on)."""
+    rule ``rule`` (significance thresholds and signature levels; a key left out keeps the value the
+    diagnosis ran with), and the named candidate (with the figures of the split it was named on).
+    A retry on the confirmation split is possible only for effects the diagnosis itself nominated
+    (their figures are the only ones there)."""
     from service.diagnosis.pipeline import DiagnoseOptions
 
-    opt = replace(DiagnoseOptions(), **rule)
-    ranked = _judge(ev.candidates, ev.noise_mv, opt)
+    opt = replace(DiagnoseOptions(), **{k: v for k, v in rule.items() if k not in SIGNATURE_RULES})
+    ranked = _judge(_with_signature_rules(ev.candidates, ev, rule), ev.noise_mv, opt)
     if ranked and ranked[0].significant:
         return ranked[0].name, ranked[0]
     retry = {c.name for c in ranked if c.evidence == "nominated" and not c.significant}
     if retry and ev.confirm_noise_mv is not None:
-        sub = _judge([c for c in ev.confirm_candidates if c.name in retry], ev.confirm_noise_mv, opt)
-        confirmed = [c for c in sub if c.significant and c.evidence == "nominated"]
+        again = _with_signature_rules([c for c in ev.confirm_candidates if c.name in retry], ev, rule)
+        confirmed = [c for c in _judge(again, ev.confirm_noise_mv, opt) if c.significant and c.evidence == "nominated"]
         if confirmed:
             return confirmed[0].name, confirmed[0]
     return "none", None
@@ -295,6 +383,9 @@ class Tally:
         """Smaller is better: false alarms on clean recordings first, then verdicts wrong."""
         return (self.false_alarms, self.total - self.right)
 
+    def __add__(self, other: Tally) -> Tally:
+        return Tally(*(getattr(self, f.name) + getattr(other, f.name) for f in fields(self)))
+
 
 def tally(evs: Sequence[Evidence], rule: dict[str, float]) -> Tally:
     t = Tally()
@@ -308,20 +399,41 @@ def tally(evs: Sequence[Evidence], rule: dict[str, float]) -> Tally:
     return t
 
 
-def _distance_to_default(rule: dict[str, float]) -> float:
-    """Grid steps from the product's current default (the tie-break: move no further than needed)."""
-    from service.diagnosis.pipeline import DiagnoseOptions
+def _distance_to_default(rule: dict[str, float], now: dict[str, float]) -> float:
+    """Grid steps from the product's current rule (the tie-break: move no further than needed)."""
+    steps = 0.0
+    for k, v in rule.items():
+        grid = RULE_GRID.get(k, (v,))
+        current = now.get(k, v)
+        steps += abs(grid.index(v) - grid.index(current)) if v in grid and current in grid else float(v != current)
+    return steps
 
-    default = DiagnoseOptions()
-    return sum(abs(RULE_GRID[k].index(v) - RULE_GRID[k].index(getattr(default, k))) for k, v in rule.items())
+
+def tallies_by_cell(evs: Sequence[Evidence], grid: Sequence[dict[str, float]], progress=None) -> list[dict[str, Tally]]:
+    """For each rule of ``grid``, its tally on each cell's recordings (computed once; a fold's
+    training tally is the sum over its cells)."""
+    cells = list(dict.fromkeys(ev.cell for ev in evs))
+    out = []
+    for n, rule in enumerate(grid):
+        out.append({c: tally([ev for ev in evs if ev.cell == c], rule) for c in cells})
+        if progress and n % 500 == 499:
+            progress(f"{n + 1}/{len(grid)} rules")
+    return out
 
 
-def choose_rule(evs: Sequence[Evidence], grid: Sequence[dict[str, float]]) -> tuple[dict[str, float], Tally]:
-    """The rule with the fewest false alarms, then the most verdicts right, on ``evs``; ties go to
-    the rule nearest the product's default."""
-    scored = [(tally(evs, r), r) for r in grid]
-    best = min(scored, key=lambda tr: (tr[0].key(), _distance_to_default(tr[1])))
-    return best[1], best[0]
+def _best(grid: Sequence[dict[str, float]], totals: Sequence[Tally]) -> tuple[dict[str, float], Tally]:
+    now = current_rule()
+    k = min(range(len(grid)), key=lambda j: (totals[j].key(), _distance_to_default(grid[j], now)))
+    return grid[k], totals[k]
+
+
+def choose_rule(evs: Sequence[Evidence], grid: Sequence[dict[str, float]],
+                by_cell: list[dict[str, Tally]] | None = None, leave_out: str | None = None) -> tuple[dict[str, float], Tally]:
+    """The rule with the fewest false alarms, then the most verdicts right, on ``evs`` (without the
+    cell ``leave_out``); ties go to the rule nearest the product's current one."""
+    by_cell = by_cell if by_cell is not None else tallies_by_cell(evs, grid)
+    totals = [sum((t for c, t in per.items() if c != leave_out), Tally()) for per in by_cell]
+    return _best(grid, totals)
 
 
 @dataclass
@@ -339,15 +451,15 @@ class Row:
 
 
 def leave_one_cell_out(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = None,
-                       progress=None) -> tuple[list[Row], dict[str, dict]]:
+                       progress=None, by_cell: list[dict[str, Tally]] | None = None) -> tuple[list[Row], dict[str, dict]]:
     """Rows scored with the rule chosen on the other cells, and per cell the rule and its
     training tally."""
     grid = grid if grid is not None else rule_grid()
+    by_cell = by_cell if by_cell is not None else tallies_by_cell(evs, grid, progress)
     floors = {ev.stem: ev.base_rmse_heldout_mv for ev in evs if ev.effect == "none"}
     rows, chosen = [], {}
     for cell in dict.fromkeys(ev.cell for ev in evs):
-        train = [ev for ev in evs if ev.cell != cell]
-        rule, t = choose_rule(train, grid)
+        rule, t = choose_rule(evs, grid, by_cell, leave_out=cell)
         chosen[cell] = {"rule": rule, "train": asdict(t)}
         for ev in (ev for ev in evs if ev.cell == cell):
             verdict, named = decide(ev, rule)
@@ -358,8 +470,6 @@ def leave_one_cell_out(evs: Sequence[Evidence], grid: Sequence[dict[str, float]]
                 if floor is not None and named.rmse_before_mv > floor:
                     excess = (named.rmse_before_mv - named.rmse_after_mv) / (named.rmse_before_mv - floor)
             rows.append(Row(ev.stem, ev.cell, ev.effect, ev.level, ev.drive, verdict, cut, excess))
-        if progress:
-            progress(cell)
     return rows, chosen
 
 
@@ -381,10 +491,10 @@ def report(rows: Sequence[Row], chosen: dict[str, dict], pooled_rule: dict[str, 
                    f"{sum(r.verdict != 'none' for r in clean)}/{len(clean)} | {rule} |")
     clean = [r for r in rows if r.effect == "none"]
     effect_rows = [r for r in rows if r.effect != "none"]
-    out += ["", f"**Pooled over held-out cells: {_pct(sum(r.verdict == r.effect for r in rows), len(rows))} right; "
+    out += ["", (f"**Pooled over held-out cells: {_pct(sum(r.verdict == r.effect for r in rows), len(rows))} right; "
                 f"false alarms on clean recordings {sum(r.verdict != 'none' for r in clean)}/{len(clean)}; effects "
                 f"named as another effect {sum(r.verdict not in ('none', r.effect) for r in effect_rows)}/"
-                f"{len(effect_rows)}.**", "",
+                f"{len(effect_rows)}.**"), "",
             "Confusion matrix, pooled (rows: truth, columns: verdict):", "",
             "| truth | " + " | ".join(verdicts) + " |", "|---|" + "---|" * len(verdicts)]
     for t in truths:
@@ -411,9 +521,9 @@ def report(rows: Sequence[Row], chosen: dict[str, dict], pooled_rule: dict[str, 
                    f"{sum(r.verdict != 'none' for r in cs)}/{len(cs)} |")
     cuts = [r.cut for r in effect_rows if r.verdict == r.effect and r.cut is not None]
     excess = [r.excess_removed for r in effect_rows if r.verdict == r.effect and r.excess_removed is not None]
-    out += ["", f"Named right: median held-out RMSE cut {_median_pct(cuts)} (n = {len(cuts)}); median share of the "
+    out += ["", (f"Named right: median held-out RMSE cut {_median_pct(cuts)} (n = {len(cuts)}); median share of the "
                 f"effect's part of the held-out RMSE removed, against the clean twin's floor, {_median_pct(excess)} "
-                f"(n = {len(excess)}).",
+                f"(n = {len(excess)})."),
             "", "Rule chosen on all cells (the product's default): "
             + ", ".join(f"`{k}` = {v:g}" for k, v in pooled_rule.items()) + "."]
     return "\n".join(out)
@@ -470,20 +580,48 @@ def main(argv: list[str] | None = None) -> int:
     evs = [ev for ev in load_evidence(args.workdir) if ev.cell in cells]
     if len({ev.cell for ev in evs}) < 2:
         ap.error(f"{args.workdir}: evidence for fewer than two cells; run the build and evidence stages first")
-    t0 = time.perf_counter()
-    rows, chosen = leave_one_cell_out(evs, progress=lambda c: print(f"held out {c}", file=sys.stderr))
-    pooled_rule, pooled = choose_rule(evs, rule_grid())
-    text = report(rows, chosen, pooled_rule)
-    text += (f"\n\nIn-sample with that rule: {pooled.right}/{pooled.total} right, false alarms "
-             f"{pooled.false_alarms}/{pooled.clean} ({time.perf_counter() - t0:.0f} s search over "
-             f"{len(rule_grid())} rules).")
+    for ev in evs:
+        if not ev.signatures:  # cached before the statistics were kept: read them off the recording
+            from service.diagnosis.pipeline import DiagnoseOptions
+            from service.recording import load_recording
+
+            info = json.loads((args.workdir / f"{ev.stem}.json").read_text())
+            ev.signatures = recording_signature_stats(load_recording(args.workdir / f"{ev.stem}.csv"),
+                                                      info["capacity_ah"], DiagnoseOptions().fit_fraction)
+    doc = search(evs, progress=lambda msg: print(msg, file=sys.stderr))
+    text = markdown(doc)
     print(text)
     if args.markdown:
         args.markdown.write_text(text + "\n")
     if args.json:
-        args.json.write_text(json.dumps({"rows": [asdict(r) for r in rows], "chosen": chosen,
-                                         "pooled_rule": pooled_rule, "pooled": asdict(pooled)}, indent=1))
+        args.json.write_text(json.dumps(doc, indent=1))
     return 0
+
+
+def search(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = None, progress=None) -> dict:
+    """The leave-one-cell-out rows, the rule per held-out cell, the rule chosen on every cell and
+    its in-sample tally, and the diagnosis run times, as the ``rules`` stage writes them."""
+    grid = grid if grid is not None else rule_grid()
+    by_cell = tallies_by_cell(evs, grid, progress)
+    rows, chosen = leave_one_cell_out(evs, grid, by_cell=by_cell)
+    pooled_rule, pooled = choose_rule(evs, grid, by_cell)
+    seconds = [ev.seconds_chronological + ev.seconds_confirmation for ev in evs]
+    return {"rows": [asdict(r) for r in rows], "chosen": chosen, "pooled_rule": pooled_rule,
+            "pooled": asdict(pooled), "rules_searched": len(grid), "recordings": len(evs),
+            "seconds": sorted(seconds)}
+
+
+def markdown(doc: dict) -> str:
+    """The report of a :func:`search` (or its JSON)."""
+    rows = [Row(**r) for r in doc["rows"]]
+    pooled = doc["pooled"]
+    sec = doc["seconds"]
+    return (report(rows, doc["chosen"], doc["pooled_rule"])
+            + f" In-sample with that rule: {pooled['right']}/{pooled['total']} right, false alarms "
+              f"{pooled['false_alarms']}/{pooled['clean']} ({doc['rules_searched']} rules searched)."
+            + f"\n\nDiagnosis run time per recording with the default rule (the retry included where it runs): "
+              f"median {statistics.median(sec):.0f} s, 90th percentile {sec[int(0.9 * (len(sec) - 1))]:.0f} s, "
+              f"longest {sec[-1]:.0f} s ({len(sec)} recordings, two diagnosed at once on two cores).")
 
 
 if __name__ == "__main__":

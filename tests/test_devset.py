@@ -4,6 +4,7 @@ own model, as in test_diagnose)."""
 
 from __future__ import annotations
 
+import json
 from collections import Counter
 from dataclasses import replace
 
@@ -21,7 +22,8 @@ from research.devset import (
     evidence_of,
     leave_one_cell_out,
     plan,
-    report,
+    markdown,
+    search,
 )
 from research.validate import user_profile, write_case
 from research.validate_pybamm import EFFECTS, LEVELS
@@ -93,9 +95,11 @@ def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     kin = next(r for r in rows if r.stem == "A_kinetics")
     # cut 20 % of 10 mV; the twin's floor is 6 mV, so 2 of the 4 mV of the effect's part
     assert kin.cut == pytest.approx(0.2) and kin.excess_removed == pytest.approx(0.5)
-    text = report(rows, chosen, rule)
+    text = markdown(json.loads(json.dumps(search(evs, grid))))  # as the rules stage writes and renders it
     assert "**Pooled over held-out cells: 6/7 (86 %) right; false alarms on clean recordings 0/3" in text
     assert "| kinetics |  |  | 3 |" in text and "| capacity | 1 |  |  |" in text
+    assert "Rule chosen on all cells (the product's default): `min_rel_gain` = 0.15." in text
+    assert "median 1 s" in text and "(7 recordings" in text
 
 
 def test_decide_reproduces_the_pipeline_verdict_on_a_real_diagnosis(tmp_path):
@@ -111,3 +115,21 @@ def test_decide_reproduces_the_pipeline_verdict_on_a_real_diagnosis(tmp_path):
     assert decide(ev, rule)[0] == verdict == "kinetics"
     strict = {"min_rel_gain": 0.99, "min_rel_gain_nominated": 0.99}
     assert decide(ev, strict)[0] == "none"
+
+
+def test_signature_levels_move_nomination_and_plausibility():
+    """A kinetics bound raised from 0.10 C to 0.15 C: the step fit (upper bound 0.13 C) now nominates
+    kinetics, and the extension's fitted 0.11 C is no longer a healthy cell's, so a 12 % gain names it;
+    a cached candidate gets its fitted size back from the reason that printed it."""
+    kin = _cand("kinetics", 0.12, fixed=["fitted exchange current 0.11 C >= 0.1 C: kinetics of a healthy cell"])
+    doc = {k: v for k, v in kin.__dict__.items() if k != "size"}
+    from research.devset import _candidate_from_json
+
+    kin = _candidate_from_json(doc)
+    assert kin.size == pytest.approx(0.11)
+    ev = _ev("A", "kinetics", [kin, _cand("ocv", 0.05)])
+    ev.signatures = {"kinetics": {"i0_upper_c": 0.13, "resolved": True}, "diffusion": {"statistic": None, "z": None}}
+    assert decide(ev, {"kinetics_max_i0_c": 0.10})[0] == "none"
+    assert decide(ev, {"kinetics_max_i0_c": 0.15})[0] == "kinetics"
+    ev.signatures["kinetics"]["resolved"] = False  # an exchange current pinned at the search bound measures nothing
+    assert decide(ev, {"kinetics_max_i0_c": 0.15})[0] == "none"

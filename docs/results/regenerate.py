@@ -191,6 +191,13 @@ def clean_twin_table(name: str) -> Callable[[Path], str]:
     return render
 
 
+def devset_table(name: str) -> Callable[[Path], str]:
+    """The development set's leave-one-cell-out report from ``devset rules --json``."""
+    def render(out: Path) -> str:
+        return tool("devset").markdown(_read(out, name))
+    return render
+
+
 def roundtrip_table(name: str) -> Callable[[Path], str]:
     def render(out: Path) -> str:
         rt = tool("roundtrip")
@@ -434,6 +441,11 @@ done""",
     Table("clean_twin", "diagnose.md", """\
 python -m research.clean_twin --data ../shared/data/synthetic --jobs 2 --workdir out/twin --json out/clean_twin.json""",
           clean_twin_table("clean_twin.json"), 13, ("needs:pybamm",)),
+    Table("devset_rules", "diagnose.md", """\
+python -m research.devset build --jobs 2 --workdir out/devset
+python -m research.devset evidence --jobs 2 --workdir out/devset
+python -m research.devset rules --workdir out/devset --json out/devset_rules.json""",
+          devset_table("devset_rules.json"), 90, ("needs:pybamm",)),
     Table("validate", "diagnose.md", "python -m research.validate --seeds 3 --workdir out/validate --json out/validate.json",
           validate_table("validate.json"), 8),
     Table("roundtrip", "diagnose.md", "python -m research.roundtrip --workdir out/roundtrip --json out/roundtrip.json",

@@ -631,9 +631,11 @@ def step_kinetics(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarr
     ln_x, se = float(best.x[1]), float(math.sqrt(max(cov[1, 1], 0.0)))
     upper = math.exp(min(ln_x + 1.96 * se, hi))
     i0_c = math.exp(ln_x)
+    # resolved: the 95 % interval clears the search's lower bound (an i0 pinned there is no measurement)
+    resolved = bool(ln_x - 1.96 * se > lo)
     out.update(statistic=round(i0_c, 4), i0_c=i0_c, i0_upper_c=upper, ln_i0_se=se, r_step_ohm=float(best.x[0]),
-               rms_mv=round(1000 * math.sqrt(var), 3),
-               nominated=bool(upper < KINETICS_MAX_I0_C and ln_x - 1.96 * se > lo))
+               rms_mv=round(1000 * math.sqrt(var), 3), resolved=resolved,
+               nominated=bool(upper < KINETICS_MAX_I0_C and resolved))
     return out
 
 
