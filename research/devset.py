@@ -286,7 +286,7 @@ RULE_GRID: dict[str, tuple[float, ...]] = {
     "min_rel_gain": (0.15, 0.20, 0.25, 0.30, 0.40),
     "min_rel_gain_nominated": (0.03, 0.05, 0.10, 0.15),
     "min_abs_gain_noise": (0.25, 0.5, 1.0),
-    "min_delta_bic": (0.0, 10.0),
+    "min_delta_bic": (-10.0, 0.0, 10.0),
     "kinetics_max_i0_c": (0.10, 0.12, 0.15, 0.18, 0.20),
     "relax_min_ratio": (0.15, 0.20, 0.30),
     "relax_min_z": (3.0, 5.0),
@@ -357,7 +357,7 @@ def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]
     diagnosis ran with), and the named candidate (with the figures of the split it was named on).
     A retry on the confirmation split is possible only for effects the diagnosis itself nominated
     (their figures are the only ones there)."""
-    from service.diagnosis.pipeline import DiagnoseOptions
+    from service.diagnosis.pipeline import SIGNATURE_REQUIRED, DiagnoseOptions
 
     opt = replace(DiagnoseOptions(), **{k: v for k, v in rule.items() if k not in SIGNATURE_RULES})
     ranked = _judge(_with_signature_rules(ev.candidates, ev, rule), ev.noise_mv, opt)
@@ -365,8 +365,11 @@ def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]
         return ranked[0].name, ranked[0]
     retry = {c.name for c in ranked if c.evidence == "nominated" and not c.significant}
     if retry and ev.confirm_noise_mv is not None:
-        again = _with_signature_rules([c for c in ev.confirm_candidates if c.name in retry], ev, rule)
-        confirmed = [c for c in _judge(again, ev.confirm_noise_mv, opt) if c.significant and c.evidence == "nominated"]
+        # retried because nominated: judged as nominated (service.diagnosis.pipeline.confirm_nominated)
+        again = [replace(c, evidence="nominated", fixed_reasons=[r for r in c.fixed_reasons
+                                                                 if not r.startswith(SIGNATURE_REQUIRED)])
+                 for c in _with_signature_rules([c for c in ev.confirm_candidates if c.name in retry], ev, rule)]
+        confirmed = [c for c in _judge(again, ev.confirm_noise_mv, opt) if c.significant]
         if confirmed:
             return confirmed[0].name, confirmed[0]
     return "none", None

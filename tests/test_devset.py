@@ -75,6 +75,9 @@ def test_decide_names_the_best_significant_and_retries_a_nominated_one():
     verdict, named = decide(diff, {})
     assert verdict == "diffusion" and named.score == pytest.approx(0.2)
     assert decide(diff, {"min_rel_gain_nominated": 0.25})[0] == "none"
+    # the confirmation split's own signature need not fire: the retried effect keeps its nominated bar
+    moved = _ev("A", "diffusion", [_cand("diffusion", 0.05, "nominated")], confirm=[_cand("diffusion", 0.2, "fit")])
+    assert decide(moved, {})[0] == "diffusion"
 
 
 def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():

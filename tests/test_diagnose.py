@@ -369,3 +369,32 @@ def test_a_self_heating_cell_is_not_named_temperature(tmp_path):
     assert dg.verdict != "temperature"
     assert [d["name"] for d in dg.assessment["refused_without_signature"]] == ["temperature"]
     assert dg.verdict == "none" and "self-heating" in dg.assessment["text"]
+
+
+def test_a_retried_effect_is_judged_as_nominated_on_the_confirmation_split():
+    """The confirmation split's fit part may not hold the rests the relaxation signature read on the
+    first split, so the retried effect arrives there as fit-only; it keeps its nominated bar, drops
+    a missing-signature refusal, and keeps a refusal for its fitted size."""
+    from service.diagnosis.pipeline import SIGNATURE_REQUIRED, DiagnoseOptions, EffectOutcome, rejudge
+
+    opt = DiagnoseOptions()
+
+    def outcome(score, reasons):
+        return EffectOutcome(name="diffusion", title="d", score=score, significant=False, rmse_before_mv=40.0,
+                             rmse_after_mv=40.0 * (1 - score), params={}, params_std={}, delta_bic=5.0, detection=0.0,
+                             whiteness_before=0.0, whiteness_after=0.0, rmse_fit_after_mv=0.0, fit_seconds=0.0,
+                             profile=base_profile(), v_sim=np.zeros(1), reasons=reasons)
+
+    e = outcome(0.2, ["held-out gain 20.0% < 30% (no signature of its own)"])
+    rejudge(e, "nominated", 1.5, opt)
+    assert e.significant and e.evidence == "nominated" and e.reasons == []
+    e = outcome(0.2, ["held-out gain 20.0% < 30% (no signature of its own)", SIGNATURE_REQUIRED + "x"])
+    rejudge(e, "nominated", 1.5, opt)
+    assert e.significant
+    size = "fitted surface lag τ 42 s < 60 s"
+    e = outcome(0.2, ["held-out gain 20.0% < 30% (no signature of its own)", size])
+    rejudge(e, "nominated", 1.5, opt)
+    assert not e.significant and e.reasons == [size]
+    e = outcome(0.05, [])
+    rejudge(e, "nominated", 1.5, opt)
+    assert not e.significant and "gain" in e.reasons[0]

@@ -351,6 +351,21 @@ def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: flo
     return reasons
 
 
+def rejudge(e: EffectOutcome, evidence: str, noise_mv: float, opt: DiagnoseOptions) -> None:
+    """Judge ``e`` again as evidence class ``evidence``: its significance reasons are replaced, the
+    others (a fitted size of a healthy cell) kept, and a missing-signature refusal dropped when the
+    class says a signature fired."""
+    n_rule = len(significance_reasons(e.score, e.rmse_before_mv, e.rmse_after_mv, e.delta_bic, noise_mv,
+                                      e.evidence, opt))
+    fixed = e.reasons[n_rule:]
+    if evidence != "fit":
+        fixed = [r for r in fixed if not r.startswith(SIGNATURE_REQUIRED)]
+    e.evidence = evidence
+    e.reasons = significance_reasons(e.score, e.rmse_before_mv, e.rmse_after_mv, e.delta_bic, noise_mv, evidence,
+                                     opt) + fixed
+    e.significant = not e.reasons
+
+
 def rank(outcomes: list[EffectOutcome], tie_mv: float) -> list[EffectOutcome]:
     """Significant effects first, and among them every effect a signature measured directly
     before any fitted one, whatever their held-out RMSEs: a measured departure whose extension the
@@ -459,7 +474,11 @@ def confirm_nominated(dg: Diagnosis, rec: Recording, profile: CellProfile, opt: 
         return dg
     say(f"confirming {', '.join(names)} on the {opt.confirm_split} split")
     sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=names), say)
-    confirmed = [e for e in sub.effects if e.significant and e.evidence == "nominated"]
+    # nominated on the first split: the confirmation split's fit part may not hold the rests or
+    # current steps the signature read there, so the effects keep that evidence
+    for e in sub.effects:
+        rejudge(e, "nominated", sub.thresholds["noise_sigma_mv"], opt)
+    confirmed = rank([e for e in sub.effects if e.significant], opt.min_abs_gain_noise * sub.thresholds["noise_sigma_mv"])
     dg.protocol["confirmation"] = {
         "split": opt.confirm_split, "effects": list(names), "confirmed": [e.name for e in confirmed],
         "base_rmse_heldout_mv": sub.base["rmse_heldout_mv"], "heldout_samples": sub.protocol["heldout_samples"],
