@@ -21,8 +21,8 @@ from research.devset import (
     decide,
     evidence_of,
     leave_one_cell_out,
-    plan,
     markdown,
+    plan,
     search,
 )
 from research.validate import user_profile, write_case

@@ -346,8 +346,8 @@ def test_a_self_heating_cell_is_not_named_temperature(tmp_path):
     explained by a constant ambient, so 'temperature' (the ambient moved) is refused and said so.
     The clean twin of the labelled capacity file (PyBaMM, 14 K of self-heating) was named
     temperature at +32 % before this rule."""
-    from service.diagnosis.pipeline import SIGNATURE_REQUIRED
     from research.validate import _arrhenius, simulate_cell
+    from service.diagnosis.pipeline import SIGNATURE_REQUIRED
 
     i = current_profile(11)
     temp = _thermal_trace(np.full(i.size, 25.0), np.abs(i) * 2.0)
@@ -375,7 +375,12 @@ def test_a_retried_effect_is_judged_as_nominated_on_the_confirmation_split():
     """The confirmation split's fit part may not hold the rests the relaxation signature read on the
     first split, so the retried effect arrives there as fit-only; it keeps its nominated bar, drops
     a missing-signature refusal, and keeps a refusal for its fitted size."""
-    from service.diagnosis.pipeline import SIGNATURE_REQUIRED, DiagnoseOptions, EffectOutcome, rejudge
+    from service.diagnosis.pipeline import (
+        SIGNATURE_REQUIRED,
+        DiagnoseOptions,
+        EffectOutcome,
+        rejudge,
+    )
 
     opt = DiagnoseOptions()
 
