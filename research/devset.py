@@ -57,6 +57,8 @@ CELLS = ("OKane2022", "Chen2020", "Mohtat2020", "Marquis2019", "Ai2020", "Prada2
 #: rests, HPPC, a random walk with charging
 DRIVES = ("dst", "rests", "hppc", "walk")
 DEFAULT_WORKDIR = Path("out/devset")
+#: the shared labelled recordings (checked under the chosen rule, never chosen on)
+LABELLED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
 #: the level of a clean recording on a drive profile of its own (not a twin), for the false-alarm count
 REPEAT = "repeat"
 #: drive kinds with a second clean recording per cell (their own seed)
@@ -277,6 +279,29 @@ def evidence_one(job: tuple[Spec, str]) -> tuple[str, str]:
     path.write_text(json.dumps(asdict(ev), indent=1))
     verdict, _ = decide(ev, {})
     return spec.stem, f"{verdict} ({ev.seconds_chronological + ev.seconds_confirmation:.0f} s)"
+
+
+def labelled_one(job: tuple[str, str, str]) -> tuple[str, str]:
+    """Diagnose one labelled recording of ``data`` (``STEM.csv``, ``STEM_ocv.csv``,
+    ``STEM.meta.json``, the truth in ``labels.json``) into ``workdir`` as :func:`evidence_one`
+    does, so the rules chosen on the development set can be checked on it; ``(stem, status)``."""
+    from service.diagnosis.pipeline import DiagnoseOptions, table_profile
+    from service.recording import load_recording
+
+    stem, data, workdir = job
+    path = Path(workdir) / f"{stem}.evidence.json"
+    if path.exists():
+        return stem, "cached"
+    src = Path(data)
+    label = json.loads((src / "labels.json").read_text())[stem]
+    cap = json.loads((src / f"{stem}.meta.json").read_text())["capacity_ah"]
+    ocv = np.loadtxt(src / f"{stem}_ocv.csv", delimiter=",", skiprows=1)
+    spec = Spec("labelled", label["effect"], label.get("level") or LEVELS[1], label.get("profile", "?"), 0)
+    ev = diagnose_for_evidence(spec, load_recording(src / f"{stem}.csv"),
+                               table_profile(stem, cap, ocv[:, 0], ocv[:, 1]), DiagnoseOptions())
+    ev.stem = stem
+    path.write_text(json.dumps(asdict(ev), indent=1))
+    return stem, f"{decide(ev, {})[0]} (truth {label['effect']})"
 
 
 # -- rules -----------------------------------------------------------------------------------------
@@ -541,12 +566,12 @@ def load_evidence(workdir: Path) -> list[Evidence]:
 
 
 # -- command line ----------------------------------------------------------------------------------
-def _run_jobs(fn, specs: Sequence[Spec], workdir: Path, jobs: int, what: str) -> None:
+def _run_jobs(fn, jobs_args: Sequence[tuple], jobs: int, what: str) -> None:
     from rich.progress import Progress
 
     with Progress(transient=False) as bar, ProcessPoolExecutor(max_workers=max(1, jobs)) as pool:
-        task = bar.add_task(what, total=len(specs))
-        for stem, status in pool.map(fn, [(s, str(workdir)) for s in specs]):
+        task = bar.add_task(what, total=len(jobs_args))
+        for stem, status in pool.map(fn, jobs_args):
             bar.console.print(f"{stem}: {status}")
             bar.advance(task)
 
@@ -554,12 +579,18 @@ def _run_jobs(fn, specs: Sequence[Spec], workdir: Path, jobs: int, what: str) ->
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m research.devset", description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("stage", choices=("build", "evidence", "rules", "plan"),
-                    help="build: simulate the recordings; evidence: diagnose each once; rules: the leave-one-cell-out "
-                         "rule search and its report; plan: list the recordings")
+    ap.add_argument("stage", choices=("build", "evidence", "labelled", "rules", "plan"),
+                    help="build: simulate the recordings; evidence: diagnose each once; labelled: diagnose the "
+                         "labelled files of --labelled likewise (into --labelled-workdir); rules: the leave-one-cell-out "
+                         "rule search and its report (with the labelled files' verdicts under the chosen rule when "
+                         "their evidence is there); plan: list the recordings")
     ap.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR, help="the set's cache (default: %(default)s)")
     ap.add_argument("--cells", default=",".join(CELLS), help="PyBaMM parameter sets (default: %(default)s)")
     ap.add_argument("--jobs", type=int, default=1, help="recordings simulated or diagnosed at once (default 1)")
+    ap.add_argument("--labelled", type=Path, default=LABELLED_DATA,
+                    help="the labelled synthetic recordings (default: %(default)s)")
+    ap.add_argument("--labelled-workdir", type=Path, default=DEFAULT_WORKDIR / "labelled",
+                    help="their evidence (default: %(default)s)")
     ap.add_argument("--json", type=Path, help="rules: write the rows and chosen rules as JSON")
     ap.add_argument("--markdown", type=Path, help="rules: write the report as Markdown")
     args = ap.parse_args(argv)
@@ -575,10 +606,18 @@ def main(argv: list[str] | None = None) -> int:
         from research.validate_pybamm import _pybamm
 
         _pybamm()
-        _run_jobs(build_one, specs, args.workdir, args.jobs, "simulating")
+        _run_jobs(build_one, [(s, str(args.workdir)) for s in specs], args.jobs, "simulating")
         return 0
     if args.stage == "evidence":
-        _run_jobs(evidence_one, specs, args.workdir, args.jobs, "diagnosing")
+        _run_jobs(evidence_one, [(s, str(args.workdir)) for s in specs], args.jobs, "diagnosing")
+        return 0
+    if args.stage == "labelled":
+        if not (args.labelled / "labels.json").is_file():
+            ap.error(f"--labelled {args.labelled}: no labels.json there")
+        args.labelled_workdir.mkdir(parents=True, exist_ok=True)
+        stems = sorted(json.loads((args.labelled / "labels.json").read_text()))
+        _run_jobs(labelled_one, [(st, str(args.labelled), str(args.labelled_workdir)) for st in stems], args.jobs,
+                  "diagnosing the labelled files")
         return 0
     evs = [ev for ev in load_evidence(args.workdir) if ev.cell in cells]
     if len({ev.cell for ev in evs}) < 2:
@@ -592,6 +631,9 @@ def main(argv: list[str] | None = None) -> int:
             ev.signatures = recording_signature_stats(load_recording(args.workdir / f"{ev.stem}.csv"),
                                                       info["capacity_ah"], DiagnoseOptions().fit_fraction)
     doc = search(evs, progress=lambda msg: print(msg, file=sys.stderr))
+    labelled = load_evidence(args.labelled_workdir) if args.labelled_workdir.is_dir() else []
+    doc["labelled"] = [{"stem": ev.stem, "truth": ev.effect, "verdict": decide(ev, doc["pooled_rule"])[0],
+                        "verdict_before": decide(ev, {})[0]} for ev in labelled]
     text = markdown(doc)
     print(text)
     if args.markdown:
@@ -624,7 +666,19 @@ def markdown(doc: dict) -> str:
               f"{pooled['false_alarms']}/{pooled['clean']} ({doc['rules_searched']} rules searched)."
             + f"\n\nDiagnosis run time per recording with the default rule (the retry included where it runs): "
               f"median {statistics.median(sec):.0f} s, 90th percentile {sec[int(0.9 * (len(sec) - 1))]:.0f} s, "
-              f"longest {sec[-1]:.0f} s ({len(sec)} recordings, two diagnosed at once on two cores).")
+              f"longest {sec[-1]:.0f} s ({len(sec)} recordings, two diagnosed at once on two cores)."
+            + _labelled_line(doc.get("labelled", [])))
+
+
+def _labelled_line(labelled: Sequence[dict]) -> str:
+    """The labelled files' verdicts under the rule chosen on the development set (never chosen on them)."""
+    if not labelled:
+        return ""
+    right = sum(d["verdict"] == d["truth"] for d in labelled)
+    before = sum(d["verdict_before"] == d["truth"] for d in labelled)
+    wrong = ", ".join(f"{d['stem']} ({d['truth']} named {d['verdict']})" for d in labelled if d["verdict"] != d["truth"])
+    return (f"\n\nThe labelled files (`../shared/data/synthetic`, not in the set) under that rule: {right}/"
+            f"{len(labelled)} right (the rule before: {before}/{len(labelled)})" + (f"; wrong: {wrong}." if wrong else "."))
 
 
 if __name__ == "__main__":

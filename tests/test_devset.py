@@ -98,7 +98,11 @@ def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     kin = next(r for r in rows if r.stem == "A_kinetics")
     # cut 20 % of 10 mV; the twin's floor is 6 mV, so 2 of the 4 mV of the effect's part
     assert kin.cut == pytest.approx(0.2) and kin.excess_removed == pytest.approx(0.5)
-    text = markdown(json.loads(json.dumps(search(evs, grid))))  # as the rules stage writes and renders it
+    doc = search(evs, grid)
+    doc["labelled"] = [{"stem": "dst_s101", "truth": "none", "verdict": "none", "verdict_before": "none"},
+                       {"stem": "hppc_s105", "truth": "diffusion", "verdict": "none", "verdict_before": "diffusion"}]
+    text = markdown(json.loads(json.dumps(doc)))  # as the rules stage writes and renders it
+    assert "under that rule: 1/2 right (the rule before: 2/2); wrong: hppc_s105 (diffusion named none)." in text
     assert "**Pooled over held-out cells: 6/7 (86 %) right; false alarms on clean recordings 0/3" in text
     assert "| kinetics |  |  | 3 |" in text and "| capacity | 1 |  |  |" in text
     assert "Rule chosen on all cells (the product's default): `min_rel_gain` = 0.15." in text
