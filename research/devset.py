@@ -199,17 +199,30 @@ def signature_stats(sig: dict) -> dict[str, dict]:
             "diffusion": {"statistic": rel.get("statistic") if "z" in rel else None, "z": rel.get("z")}}
 
 
-def recording_signature_stats(rec, capacity_ah: float, fit_fraction: float) -> dict[str, dict]:
-    """:func:`signature_stats` computed from the recording itself, over the chronological split's
-    fit part, as the pipeline computes them (for evidence cached before the statistics were kept)."""
-    from service.diagnosis.pipeline import chronological_fit_mask
+def confirm_unread(sub_signatures: dict) -> list[str]:
+    """The effects whose fit-part signature found nothing to read on the confirmation split."""
+    from service.diagnosis.pipeline import FIT_PART_SIGNATURES, signature_unread
+
+    return [n for n in FIT_PART_SIGNATURES if signature_unread(sub_signatures, n)]
+
+
+def _fit_part_signatures(rec, capacity_ah: float, fit: np.ndarray) -> dict[str, dict]:
     from service.diagnosis.signatures import rest_relaxation, step_kinetics
 
-    fit = chronological_fit_mask(rec.time_s, fit_fraction)
-    return signature_stats({
-        "kinetics": step_kinetics(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, capacity_ah, usable=fit),
-        "diffusion": rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, capacity_ah, usable=fit),
-    })
+    return {"kinetics": step_kinetics(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, capacity_ah,
+                                      usable=fit),
+            "diffusion": rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, capacity_ah, usable=fit)}
+
+
+def recording_signature_stats(rec, capacity_ah: float, opt) -> dict:
+    """:func:`signature_stats` and :func:`confirm_unread` computed from the recording itself, on the
+    fit parts of ``opt.split`` and ``opt.confirm_split``, as the pipeline computes them (for
+    evidence cached before they were kept)."""
+    from service.diagnosis.pipeline import held_out_mask
+
+    first = _fit_part_signatures(rec, capacity_ah, ~held_out_mask(rec.time_s, opt))
+    retry = _fit_part_signatures(rec, capacity_ah, ~held_out_mask(rec.time_s, replace(opt, split=opt.confirm_split)))
+    return {**signature_stats(first), "confirm_unread": confirm_unread(retry)}
 
 
 def _candidates(dg, opt) -> list[Candidate]:
@@ -242,7 +255,8 @@ def evidence_of(spec: Spec, dg, sub, opt) -> Evidence:
                     # what the default rules spend: the retry runs only on a none verdict with a
                     # nominated effect short of its bar
                     seconds_confirmation=sub.seconds if sub is not None and retried else 0.0,
-                    signatures=signature_stats(dg.signatures))
+                    signatures={**signature_stats(dg.signatures),
+                                "confirm_unread": confirm_unread(sub.signatures) if sub is not None else []})
 
 
 def diagnose_for_evidence(spec: Spec, rec, profile, opt) -> Evidence:
@@ -390,11 +404,14 @@ def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]
         return ranked[0].name, ranked[0]
     retry = {c.name for c in ranked if c.evidence == "nominated" and not c.significant}
     if retry and ev.confirm_noise_mv is not None:
-        # retried because nominated: judged as nominated (service.diagnosis.pipeline.confirm_nominated)
+        # a fit-part signature with nothing to read on the confirmation split keeps the first split's
+        # nomination (service.diagnosis.pipeline.confirm_nominated)
+        unread = set(ev.signatures.get("confirm_unread", []))
         again = [replace(c, evidence="nominated", fixed_reasons=[r for r in c.fixed_reasons
                                                                  if not r.startswith(SIGNATURE_REQUIRED)])
+                 if c.name in unread else c
                  for c in _with_signature_rules([c for c in ev.confirm_candidates if c.name in retry], ev, rule)]
-        confirmed = [c for c in _judge(again, ev.confirm_noise_mv, opt) if c.significant]
+        confirmed = [c for c in _judge(again, ev.confirm_noise_mv, opt) if c.significant and c.evidence == "nominated"]
         if confirmed:
             return confirmed[0].name, confirmed[0]
     return "none", None
@@ -623,15 +640,12 @@ def main(argv: list[str] | None = None) -> int:
     if len({ev.cell for ev in evs}) < 2:
         ap.error(f"{args.workdir}: evidence for fewer than two cells; run the build and evidence stages first")
     for ev in evs:
-        if not ev.signatures:  # cached before the statistics were kept: read them off the recording
-            from service.diagnosis.pipeline import DiagnoseOptions
-            from service.recording import load_recording
-
-            info = json.loads((args.workdir / f"{ev.stem}.json").read_text())
-            ev.signatures = recording_signature_stats(load_recording(args.workdir / f"{ev.stem}.csv"),
-                                                      info["capacity_ah"], DiagnoseOptions().fit_fraction)
+        _complete(ev, args.workdir / f"{ev.stem}.csv", json.loads((args.workdir / f"{ev.stem}.json").read_text())["capacity_ah"])
     doc = search(evs, progress=lambda msg: print(msg, file=sys.stderr))
     labelled = load_evidence(args.labelled_workdir) if args.labelled_workdir.is_dir() else []
+    for ev in labelled:
+        _complete(ev, args.labelled / f"{ev.stem}.csv",
+                  json.loads((args.labelled / f"{ev.stem}.meta.json").read_text())["capacity_ah"])
     doc["labelled"] = [{"stem": ev.stem, "truth": ev.effect, "verdict": decide(ev, doc["pooled_rule"])[0],
                         "verdict_before": decide(ev, {})[0]} for ev in labelled]
     text = markdown(doc)
@@ -641,6 +655,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.write_text(json.dumps(doc, indent=1))
     return 0
+
+
+def _complete(ev: Evidence, csv: Path, capacity_ah: float) -> None:
+    """Evidence cached before the signature statistics were kept gets them from its recording."""
+    if "confirm_unread" in ev.signatures:
+        return
+    from service.diagnosis.pipeline import DiagnoseOptions
+    from service.recording import load_recording
+
+    ev.signatures = recording_signature_stats(load_recording(csv), capacity_ah, DiagnoseOptions())
 
 
 def search(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = None, progress=None) -> dict:

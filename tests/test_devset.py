@@ -75,9 +75,14 @@ def test_decide_names_the_best_significant_and_retries_a_nominated_one():
     verdict, named = decide(diff, {})
     assert verdict == "diffusion" and named.score == pytest.approx(0.2)
     assert decide(diff, {"min_rel_gain_nominated": 0.25})[0] == "none"
-    # the confirmation split's own signature need not fire: the retried effect keeps its nominated bar
+    # the retried effect keeps its nominated bar though the confirmation split's signature did not fire ...
+    # ... when its signature found nothing to read on that split's fit part; read there without
+    # firing, it withdraws the nomination
     moved = _ev("A", "diffusion", [_cand("diffusion", 0.05, "nominated")], confirm=[_cand("diffusion", 0.2, "fit")])
+    moved.signatures = {"confirm_unread": ["diffusion"]}
     assert decide(moved, {})[0] == "diffusion"
+    moved.signatures = {"confirm_unread": []}
+    assert decide(moved, {})[0] == "none"
 
 
 def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():

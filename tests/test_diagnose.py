@@ -403,3 +403,14 @@ def test_a_retried_effect_is_judged_as_nominated_on_the_confirmation_split():
     e = outcome(0.05, [])
     rejudge(e, "nominated", 1.5, opt)
     assert not e.significant and "gain" in e.reasons[0]
+
+
+def test_only_a_fit_part_signature_with_nothing_to_read_keeps_the_nomination():
+    """On the confirmation split a relaxation or step signature that found no rest or step in its fit
+    part says nothing; one that read rests and did not fire withdraws the nomination."""
+    from service.diagnosis.pipeline import signature_unread
+
+    assert signature_unread({"diffusion": {"skipped": "no rest of 10 min in the fit part"}}, "diffusion")
+    assert not signature_unread({"diffusion": {"nominated": False, "z": 0.4}}, "diffusion")
+    assert not signature_unread({"hysteresis": {"skipped": "no rest"}}, "hysteresis")
+    assert not signature_unread({}, "kinetics")

@@ -260,6 +260,25 @@ def chronological_fit_mask(time_s: np.ndarray, fit_fraction: float) -> np.ndarra
     return time_s <= split_time(time_s, fit_fraction)
 
 
+def held_out_mask(time_s: np.ndarray, opt: DiagnoseOptions) -> np.ndarray:
+    """The held-out samples of the split ``opt.split`` (module docstring, *Split*), before the
+    samples a signature reads are taken out of it."""
+    if opt.split == "interleaved":
+        block = np.minimum(((time_s - time_s[0]) / (time_s[-1] - time_s[0]) * 10).astype(int), 9)
+        return np.isin(block % 5, (1, 3))
+    if opt.split == "blocks":
+        # alternating blocks (fit, held, fit, ...): both parts span the whole SOC range, so a
+        # capacity scale or a sensor offset is fitted where its signature is (the knee), while
+        # the model still runs through the whole recording
+        duration = float(time_s[-1] - time_s[0])
+        n_blocks = max(4, round(duration / opt.block_s))
+        block = np.minimum(((time_s - time_s[0]) / duration * n_blocks).astype(int), n_blocks - 1)
+        return block % 2 == 1
+    if opt.split == "chronological":
+        return time_s > split_time(time_s, opt.fit_fraction)
+    raise ValueError(f"split '{opt.split}' not recognised; choose chronological, interleaved or blocks")
+
+
 def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float, rmse_held_base_mv: float,
            noise_mv: float, signatures: dict | None = None) -> dict:
     """What the verdict means for the user, in numbers.
@@ -349,6 +368,18 @@ def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: flo
     if delta_bic < opt.min_delta_bic:
         reasons.append(f"dBIC {delta_bic:.1f} < {opt.min_delta_bic:g}")
     return reasons
+
+
+#: signatures read on the fit part only (the relaxation at rest ends, the current steps): on the
+#: confirmation split's fit part they may find no rest or step to read at all
+FIT_PART_SIGNATURES = ("diffusion", "kinetics")
+
+
+def signature_unread(signatures: dict, name: str) -> bool:
+    """Whether ``name``'s signature reads the fit part only and found nothing to read there: an
+    effect retried for its nomination on the first split keeps that nomination, while a signature
+    that was read and did not fire withdraws it."""
+    return name in FIT_PART_SIGNATURES and bool(signatures.get(name, {}).get("skipped"))
 
 
 def rejudge(e: EffectOutcome, evidence: str, noise_mv: float, opt: DiagnoseOptions) -> None:
@@ -474,11 +505,11 @@ def confirm_nominated(dg: Diagnosis, rec: Recording, profile: CellProfile, opt: 
         return dg
     say(f"confirming {', '.join(names)} on the {opt.confirm_split} split")
     sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=names), say)
-    # nominated on the first split: the confirmation split's fit part may not hold the rests or
-    # current steps the signature read there, so the effects keep that evidence
     for e in sub.effects:
-        rejudge(e, "nominated", sub.thresholds["noise_sigma_mv"], opt)
-    confirmed = rank([e for e in sub.effects if e.significant], opt.min_abs_gain_noise * sub.thresholds["noise_sigma_mv"])
+        if e.evidence == "fit" and signature_unread(sub.signatures, e.name):
+            rejudge(e, "nominated", sub.thresholds["noise_sigma_mv"], opt)
+    confirmed = rank([e for e in sub.effects if e.significant and e.evidence == "nominated"],
+                     opt.min_abs_gain_noise * sub.thresholds["noise_sigma_mv"])
     dg.protocol["confirmation"] = {
         "split": opt.confirm_split, "effects": list(names), "confirmed": [e.name for e in confirmed],
         "base_rmse_heldout_mv": sub.base["rmse_heldout_mv"], "heldout_samples": sub.protocol["heldout_samples"],
@@ -526,21 +557,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
         # a user-given initial SOC stands in for the rest voltage: its OCV on the table
         v_rest0 = float(ocv.ocv(np.array(opt.soc0), float(rec.temperature_c[0])))
     t_split = split_time(rec.time_s, opt.fit_fraction)
-    if opt.split == "interleaved":
-        block = np.minimum(((rec.time_s - rec.time_s[0]) / (rec.time_s[-1] - rec.time_s[0]) * 10).astype(int), 9)
-        held = np.isin(block % 5, (1, 3))
-    elif opt.split == "blocks":
-        # alternating blocks (fit, held, fit, ...): both parts span the whole SOC range, so a
-        # capacity scale or a sensor offset is fitted where its signature is (the knee), while
-        # the model still runs through the whole recording
-        duration = float(rec.time_s[-1] - rec.time_s[0])
-        n_blocks = max(4, round(duration / opt.block_s))
-        block = np.minimum(((rec.time_s - rec.time_s[0]) / duration * n_blocks).astype(int), n_blocks - 1)
-        held = block % 2 == 1
-    elif opt.split == "chronological":
-        held = rec.time_s > t_split
-    else:
-        raise ValueError(f"split '{opt.split}' not recognised; choose chronological, interleaved or blocks")
+    held = held_out_mask(rec.time_s, opt)
     fit_full = ~held
     # the capacity check (signatures.two_point_capacity) reads the voltage at its end point: it
     # is scored by no candidate, so no held-out score contains a sample a signature measured
