@@ -210,6 +210,19 @@ def test_a_cold_start_that_warms_smoothly_is_nominated_by_its_opening_temperatur
     assert not signatures(t, i, temp, CAP, nominal_ambient_c=None)["temperature"]["nominated"]
 
 
+def test_a_warm_start_that_cools_smoothly_is_nominated_by_its_coldest_temperature():
+    """A cell opening at the nominal 25 °C in a 10 °C ambient cools along one first-order lag
+    (misfit below its bar, opening nominal); the cell falling 15 K below the nominal
+    ambient, which self-heating cannot do, nominates it."""
+    t, i = drive(3, hours=2.0)
+    temp = _thermal(t, i, 25.0, np.full(t.size, 10.0), tau_s=2500.0)
+    sig = signatures(t, i, temp, CAP)["temperature"]
+    assert sig["rms_k"] < 0.5 and sig["opening_temp_c"] == pytest.approx(25.0, abs=0.5)
+    assert sig["nominated"] and "cools" in sig["why"], sig
+    assert sig["coldest_temp_c"] < 20.0
+    assert not signatures(t, i, temp, CAP, nominal_ambient_c=None)["temperature"]["nominated"]
+
+
 @pytest.mark.parametrize(("t_start", "t_amb_c", "heat_k"), [(25.0, 25.0, 2.0), (0.0, 0.0, 0.2), (27.0, 25.0, 2.0)])
 def test_a_nominal_or_constant_temperature_recording_is_not_nominated(t_start, t_amb_c, heat_k):
     """Self-heating at the nominal ambient, a cold chamber that holds its temperature (a cold

@@ -247,7 +247,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
            f"{100 * dg.signatures['current_bias']['min_frac_1c']:.2f} % of 1C."), ""]
           if dg.signatures.get("current_bias", {}).get("se_a") else []),
         *([(f"Temperature: {dg.signatures['temperature']['why']} (opening temperature "
-            f"{dg.signatures['temperature']['opening_temp_c']:.1f} °C, range {dg.signatures['temperature']['range_k']:.1f} K, "
+            f"{dg.signatures['temperature']['opening_temp_c']:.1f} °C, coldest "
+            f"{dg.signatures['temperature'].get('coldest_temp_c', float('nan')):.1f} °C, range {dg.signatures['temperature']['range_k']:.1f} K, "
             f"constant-ambient misfit {dg.signatures['temperature']['rms_k']:.2f} K)."), ""]
           if dg.signatures.get("temperature", {}).get("why") else []),
         *(_capacity_lines(dg.signatures["capacity"]) if "capacity_scale" in dg.signatures.get("capacity", {}) else []),

@@ -19,7 +19,12 @@ departure the effect describes is present.  An effect whose signature fires is
   sits at its ambient, so one that opens :data:`OPENING_TEMP_K` or more from the nominal
   ambient (:data:`NOMINAL_AMBIENT_C`, the ``--nominal-ambient-c`` of ``socd diagnose``)
   and whose temperature then moves by :data:`TEMP_RANGE_K` or more is in an ambient that
-  is not the nominal one.  A recording at a constant temperature is never nominated by it.
+  is not the nominal one.  The third is the **coldest temperature** (1st percentile): a cell
+  heats itself but cannot cool below its ambient, so one that falls :data:`OPENING_TEMP_K`
+  or more below the nominal ambient (a warm start that cools, an ambient that drops) sits in
+  a colder one.  A fitted constant ambient would say the same but is extrapolated when the
+  lag is long (a real 25 °C drive that warms 4 K fits an ambient of −10 °C), so it is not
+  read.  A recording at a constant temperature is never nominated by these.
 * ``current_bias`` — in a rest the true current is exactly zero, so the mean of the
   *measured* current over rest samples is the sensor offset itself (:func:`rest_current_offset`).
   Rests are runs of at least :data:`REST_MIN_SAMPLES` samples with ``|I| < REST_MAX_C · C``
@@ -548,6 +553,11 @@ def opening_temperature_c(time_s: np.ndarray, temperature_c: np.ndarray) -> floa
     return float(np.median(temperature_c[first]))
 
 
+def coldest_temperature_c(temperature_c: np.ndarray) -> float:
+    """The recording's coldest temperature: its 1st percentile (one noisy sample does not set it)."""
+    return float(np.percentile(temperature_c, 1.0))
+
+
 def temperature_signature(time_s: np.ndarray, current_a: np.ndarray, temperature_c: np.ndarray, capacity_ah: float,
                           nominal_ambient_c: float | None = NOMINAL_AMBIENT_C) -> dict:
     """The ``temperature`` signature: the constant-ambient misfit, or an opening away from the
@@ -555,17 +565,21 @@ def temperature_signature(time_s: np.ndarray, current_a: np.ndarray, temperature
     None: the misfit alone."""
     amb = ambient_drift_k(time_s, current_a, temperature_c, capacity_ah)
     t_open = opening_temperature_c(time_s, temperature_c)
+    t_cold = coldest_temperature_c(temperature_c)
     drift = amb["rms_k"] >= AMBIENT_DRIFT_K
-    off_nominal = (nominal_ambient_c is not None and abs(t_open - nominal_ambient_c) >= OPENING_TEMP_K
-                   and amb["range_k"] >= TEMP_RANGE_K)
+    moves = nominal_ambient_c is not None and amb["range_k"] >= TEMP_RANGE_K
+    opens_off = moves and abs(t_open - nominal_ambient_c) >= OPENING_TEMP_K
+    cools_below = moves and nominal_ambient_c - t_cold >= OPENING_TEMP_K
     why = ("the temperature does not follow a constant ambient" if drift else
            f"it opens {t_open - nominal_ambient_c:+.1f} K from the nominal {nominal_ambient_c:g} °C ambient and then "
-           f"moves {amb['range_k']:.1f} K" if off_nominal else "")
-    return {"nominated": bool(drift or off_nominal), "statistic": round(amb["rms_k"], 3),
-            "what": "RMS misfit (K) of a constant-ambient self-heating model to the temperature; opening temperature "
-                    "against the nominal ambient",
+           f"moves {amb['range_k']:.1f} K" if opens_off else
+           f"it cools to {t_cold:.1f} °C, {nominal_ambient_c - t_cold:.1f} K below the nominal {nominal_ambient_c:g} °C "
+           f"ambient, which self-heating cannot do" if cools_below else "")
+    return {"nominated": bool(drift or opens_off or cools_below), "statistic": round(amb["rms_k"], 3),
+            "what": "RMS misfit (K) of a constant-ambient self-heating model to the temperature; opening and coldest "
+                    "temperature against the nominal ambient",
             "threshold": AMBIENT_DRIFT_K, **{k: round(v, 3) for k, v in amb.items()},
-            "opening_temp_c": round(t_open, 2), "nominal_ambient_c": nominal_ambient_c,
+            "opening_temp_c": round(t_open, 2), "coldest_temp_c": round(t_cold, 2), "nominal_ambient_c": nominal_ambient_c,
             "opening_threshold_k": OPENING_TEMP_K, "range_threshold_k": TEMP_RANGE_K, "why": why}
 
 
