@@ -194,9 +194,11 @@ def signature_stats(sig: dict) -> dict[str, dict]:
     """What the signature rules of :data:`SIGNATURE_RULES` read from a diagnosis's signatures
     (``Diagnosis.signatures``): the kinetics step fit's exchange current and its 95 % upper bound,
     and the diffusion relaxation ratio and its z."""
-    kin, rel = sig.get("kinetics", {}), sig.get("diffusion", {})
+    kin, rel, temp = sig.get("kinetics", {}), sig.get("diffusion", {}), sig.get("temperature", {})
     return {"kinetics": {"i0_upper_c": kin.get("i0_upper_c"), "resolved": bool(kin.get("resolved", False))},
-            "diffusion": {"statistic": rel.get("statistic") if "z" in rel else None, "z": rel.get("z")}}
+            "diffusion": {"statistic": rel.get("statistic") if "z" in rel else None, "z": rel.get("z")},
+            "temperature": {"opening_c": temp.get("opening_temp_c"), "coldest_c": temp.get("coldest_temp_c"),
+                            "nominal_c": temp.get("nominal_ambient_c")}}
 
 
 def confirm_unread(sub_signatures: dict) -> list[str]:
@@ -219,8 +221,11 @@ def recording_signature_stats(rec, capacity_ah: float, opt) -> dict:
     fit parts of ``opt.split`` and ``opt.confirm_split``, as the pipeline computes them (for
     evidence cached before they were kept)."""
     from service.diagnosis.pipeline import held_out_mask
+    from service.diagnosis.signatures import temperature_signature
 
     first = _fit_part_signatures(rec, capacity_ah, ~held_out_mask(rec.time_s, opt))
+    first["temperature"] = temperature_signature(rec.time_s, rec.current_a, rec.temperature_c, capacity_ah,
+                                                 opt.nominal_ambient_c)
     retry = _fit_part_signatures(rec, capacity_ah, ~held_out_mask(rec.time_s, replace(opt, split=opt.confirm_split)))
     return {**signature_stats(first), "confirm_unread": confirm_unread(retry)}
 
@@ -659,7 +664,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _complete(ev: Evidence, csv: Path, capacity_ah: float) -> None:
     """Evidence cached before the signature statistics were kept gets them from its recording."""
-    if "confirm_unread" in ev.signatures:
+    if "confirm_unread" in ev.signatures and (ev.signatures.get("temperature") or {}).get("coldest_c") is not None:
         return
     from service.diagnosis.pipeline import DiagnoseOptions
     from service.recording import load_recording
@@ -677,7 +682,29 @@ def search(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = No
     seconds = [ev.seconds_chronological + ev.seconds_confirmation for ev in evs]
     return {"rows": [asdict(r) for r in rows], "chosen": chosen, "pooled_rule": pooled_rule,
             "pooled": asdict(pooled), "rules_searched": len(grid), "recordings": len(evs),
-            "seconds": sorted(seconds)}
+            "seconds": sorted(seconds), "ambient_margin": ambient_margin(evs)}
+
+
+def ambient_off_nominal_k(ev: Evidence) -> float | None:
+    """How far the recording says its ambient is from the nominal one, as the temperature signature
+    reads it: its opening temperature's distance from the nominal ambient, or how far it cools below."""
+    t = ev.signatures.get("temperature") or {}
+    if t.get("nominal_c") is None or t.get("coldest_c") is None:
+        return None
+    return max(abs(t["opening_c"] - t["nominal_c"]), t["nominal_c"] - t["coldest_c"])
+
+
+def ambient_margin(evs: Sequence[Evidence]) -> dict | None:
+    """The largest :func:`ambient_off_nominal_k` of a recording whose ambient did not change and the
+    smallest of one whose ambient did, with their stems: the room the temperature signature's
+    5 K level has on the set."""
+    pairs = [(ambient_off_nominal_k(ev), ev) for ev in evs]
+    without = [(k, ev.stem) for k, ev in pairs if k is not None and ev.effect != "temperature"]
+    with_ = [(k, ev.stem) for k, ev in pairs if k is not None and ev.effect == "temperature"]
+    if not without or not with_:
+        return None
+    (k_out, s_out), (k_in, s_in) = max(without), min(with_)
+    return {"without_k": round(k_out, 2), "without_stem": s_out, "with_k": round(k_in, 2), "with_stem": s_in}
 
 
 def markdown(doc: dict) -> str:
@@ -691,7 +718,19 @@ def markdown(doc: dict) -> str:
             + f"\n\nDiagnosis run time per recording with the default rule (the retry included where it runs): "
               f"median {statistics.median(sec):.0f} s, 90th percentile {sec[int(0.9 * (len(sec) - 1))]:.0f} s, "
               f"longest {sec[-1]:.0f} s ({len(sec)} recordings, two diagnosed at once on two cores)."
+            + _ambient_line(doc.get("ambient_margin"))
             + _labelled_line(doc.get("labelled", [])))
+
+
+def _ambient_line(margin: dict | None) -> str:
+    from service.diagnosis.signatures import OPENING_TEMP_K
+
+    if not margin:
+        return ""
+    return (f"\n\nThe temperature signature's level ({OPENING_TEMP_K:g} K from the nominal ambient, at the opening or "
+            f"below it) on the set: the recording without an ambient change that comes closest reads "
+            f"{margin['without_k']:.1f} K (`{margin['without_stem']}`); the recording with one that comes least "
+            f"far reads {margin['with_k']:.1f} K (`{margin['with_stem']}`).")
 
 
 def _labelled_line(labelled: Sequence[dict]) -> str:

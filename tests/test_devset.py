@@ -145,3 +145,17 @@ def test_signature_levels_move_nomination_and_plausibility():
     assert decide(ev, {"kinetics_max_i0_c": 0.15})[0] == "kinetics"
     ev.signatures["kinetics"]["resolved"] = False  # an exchange current pinned at the search bound measures nothing
     assert decide(ev, {"kinetics_max_i0_c": 0.15})[0] == "none"
+
+
+def test_the_ambient_margin_is_the_nearest_recording_on_each_side_of_the_level():
+    from research.devset import ambient_margin
+
+    def ev(stem, effect, opening, coldest):
+        e = _ev("A", effect, [], stem=stem)
+        e.signatures = {"temperature": {"opening_c": opening, "coldest_c": coldest, "nominal_c": 25.0}}
+        return e
+
+    evs = [ev("clean", "none", 25.0, 24.8), ev("warm_open", "kinetics", 27.5, 25.1),
+           ev("cooled", "temperature", 25.0, 17.0), ev("cold_open", "temperature", 10.0, 9.9)]
+    assert ambient_margin(evs) == {"without_k": 2.5, "without_stem": "warm_open", "with_k": 8.0, "with_stem": "cooled"}
+    assert ambient_margin(evs[:2]) is None

@@ -444,6 +444,7 @@ python -m research.clean_twin --data ../shared/data/synthetic --jobs 2 --workdir
     Table("devset_rules", "diagnose.md", """\
 python -m research.devset build --jobs 2 --workdir out/devset
 python -m research.devset evidence --jobs 2 --workdir out/devset
+python -m research.devset labelled --jobs 2 --workdir out/devset
 python -m research.devset rules --workdir out/devset --json out/devset_rules.json""",
           devset_table("devset_rules.json"), 90, ("needs:pybamm",)),
     Table("validate", "diagnose.md", "python -m research.validate --seeds 3 --workdir out/validate --json out/validate.json",
