@@ -38,6 +38,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import statistics
 import sys
 from collections import Counter
@@ -498,6 +499,9 @@ class Row:
     verdict: str
     cut: float | None  # held-out RMSE cut of the named effect (1 - after / before)
     excess_removed: float | None  # (before - after) / (before - twin's base held-out RMSE)
+    # the effect's part of the base held-out RMSE, sqrt(base² - twin²), over the twin's (the model's
+    # floor on that drive): below 1 the effect is smaller than what the base model misses anyway
+    effect_to_floor: float | None = None
 
 
 def leave_one_cell_out(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = None,
@@ -519,12 +523,32 @@ def leave_one_cell_out(evs: Sequence[Evidence], grid: Sequence[dict[str, float]]
                 floor = floors.get(f"{ev.cell}_none_clean_{ev.drive}")
                 if floor is not None and named.rmse_before_mv > floor:
                     excess = (named.rmse_before_mv - named.rmse_after_mv) / (named.rmse_before_mv - floor)
-            rows.append(Row(ev.stem, ev.cell, ev.effect, ev.level, ev.drive, verdict, cut, excess))
+            floor = floors.get(f"{ev.cell}_none_clean_{ev.drive}")
+            visible = (math.sqrt(max(ev.base_rmse_heldout_mv**2 - floor**2, 0.0)) / floor
+                       if floor and ev.effect != "none" else None)
+            rows.append(Row(ev.stem, ev.cell, ev.effect, ev.level, ev.drive, verdict, cut, excess, visible))
     return rows, chosen
 
 
 def _pct(a: int, b: int) -> str:
     return f"{a}/{b} ({100 * a / b:.0f} %)" if b else "0/0"
+
+
+def _visibility_lines(effect_rows: Sequence[Row]) -> list[str]:
+    """Per truth: how large the effect is against the clean twin's floor, for the recordings named
+    right and for the ones missed (named ``none``)."""
+    out = [("How large each effect is against the model's floor (its part of the base held-out RMSE over the "
+            "clean twin's; median, with the share below 1):"), "",
+           "| truth | named right | missed (none) |", "|---|---|---|"]
+
+    def cell(rs: list[Row]) -> str:
+        v = [r.effect_to_floor for r in rs if r.effect_to_floor is not None]
+        return f"{statistics.median(v):.2f} ({sum(x < 1 for x in v)}/{len(v)} below 1)" if v else "–"
+
+    for t in dict.fromkeys(r.effect for r in effect_rows):
+        rs = [r for r in effect_rows if r.effect == t]
+        out.append(f"| {t} | {cell([r for r in rs if r.verdict == t])} | {cell([r for r in rs if r.verdict == 'none'])} |")
+    return out
 
 
 def report(rows: Sequence[Row], chosen: dict[str, dict], pooled_rule: dict[str, float]) -> str:
@@ -574,6 +598,7 @@ def report(rows: Sequence[Row], chosen: dict[str, dict], pooled_rule: dict[str, 
     out += ["", (f"Named right: median held-out RMSE cut {_median_pct(cuts)} (n = {len(cuts)}); median share of the "
                 f"effect's part of the held-out RMSE removed, against the clean twin's floor, {_median_pct(excess)} "
                 f"(n = {len(excess)})."),
+            "", *_visibility_lines(effect_rows),
             "", "Rule chosen on all cells (the product's default): "
             + ", ".join(f"`{k}` = {v:g}" for k, v in pooled_rule.items()) + "."]
     return "\n".join(out)

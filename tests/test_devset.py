@@ -103,6 +103,8 @@ def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     kin = next(r for r in rows if r.stem == "A_kinetics")
     # cut 20 % of 10 mV; the twin's floor is 6 mV, so 2 of the 4 mV of the effect's part
     assert kin.cut == pytest.approx(0.2) and kin.excess_removed == pytest.approx(0.5)
+    # the effect's part, sqrt(10² - 6²) = 8 mV, over the 6 mV floor
+    assert kin.effect_to_floor == pytest.approx(8 / 6)
     doc = search(evs, grid)
     doc["labelled"] = [{"stem": "dst_s101", "truth": "none", "verdict": "none", "verdict_before": "none"},
                        {"stem": "hppc_s105", "truth": "diffusion", "verdict": "none", "verdict_before": "diffusion"}]
@@ -112,6 +114,7 @@ def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     assert "| kinetics |  |  | 3 |" in text and "| capacity | 1 |  |  |" in text
     assert "Rule chosen on all cells (the product's default): `min_rel_gain` = 0.15." in text
     assert "median 1 s" in text and "(7 recordings" in text
+    assert "| kinetics | 1.33 (0/3 below 1) | – |" in text
 
 
 def test_decide_reproduces_the_pipeline_verdict_on_a_real_diagnosis(tmp_path):
