@@ -106,10 +106,11 @@ def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     # the effect's part, sqrt(10² - 6²) = 8 mV, over the 6 mV floor
     assert kin.effect_to_floor == pytest.approx(8 / 6)
     doc = search(evs, grid)
-    doc["labelled"] = [{"stem": "dst_s101", "truth": "none", "verdict": "none", "verdict_before": "none"},
-                       {"stem": "hppc_s105", "truth": "diffusion", "verdict": "none", "verdict_before": "diffusion"}]
+    doc["labelled"] = [{"stem": "dst_s101", "cell": "A", "truth": "none", "verdict": "none", "verdict_before": "none"},
+                       {"stem": "hppc_s105", "cell": "A", "truth": "diffusion", "verdict": "none",
+                        "verdict_before": "diffusion"}]
     text = markdown(json.loads(json.dumps(doc)))  # as the rules stage writes and renders it
-    assert "under that rule: 1/2 right (the rule before: 2/2); wrong: hppc_s105 (diffusion named none)." in text
+    assert "with their cell, A), held out with it: 1/2 right (the rule before: 2/2); wrong: hppc_s105" in text
     assert "**Pooled over held-out cells: 6/7 (86 %) right; false alarms on clean recordings 0/3" in text
     assert "| kinetics |  |  | 3 |" in text and "| capacity | 1 |  |  |" in text
     assert "Rule chosen on all cells (the product's default): `min_rel_gain` = 0.15." in text
@@ -162,3 +163,10 @@ def test_the_ambient_margin_is_the_nearest_recording_on_each_side_of_the_level()
            ev("cooled", "temperature", 25.0, 17.0), ev("cold_open", "temperature", 10.0, 9.9)]
     assert ambient_margin(evs) == {"without_k": 2.5, "without_stem": "warm_open", "with_k": 8.0, "with_stem": "cooled"}
     assert ambient_margin(evs[:2]) is None
+
+
+def test_a_labelled_file_joins_the_set_under_its_cell():
+    from research.devset import set_cell
+
+    assert set_cell("okane2022", ("OKane2022", "Chen2020")) == "OKane2022"
+    assert set_cell("Xu2019", ("OKane2022",)) == "Xu2019"

@@ -47,7 +47,7 @@ Protocol (stated in every report and JSON):
   recording's rests) and ``ΔBIC >= min_delta_bic``.  The verdict is the best significant
   effect, else ``none``.
 * **Size**: an effect whose fitted size is that of a healthy cell is not significant
-  (:attr:`Effect.implausible`; kinetics: apparent exchange current ``>= 0.1 C``,
+  (:attr:`Effect.implausible`; kinetics: apparent exchange current ``>= 0.18 C``,
   :data:`service.diagnosis.effects.KINETICS_MAX_I0_C`; diffusion: a surface lag faster than
   :data:`service.diagnosis.effects.DIFFUSION_MIN_TAU_S`).
 * **Ranking** (:func:`rank`): a significant effect its signature measured directly goes
@@ -123,7 +123,8 @@ class DiagnoseOptions:
     # the ambient a nominal recording is in (the temperature signature); None = judge the
     # temperature by its constant-ambient misfit only
     nominal_ambient_c: float | None = NOMINAL_AMBIENT_C
-    # significance thresholds (see module docstring)
+    # significance thresholds (see module docstring), chosen leave-one-cell-out on the development
+    # set (research.devset; docs/results/diagnose.md)
     min_rel_gain: float = 0.30
     # an effect nominated by its own signature (service.cell.diagnosis.signatures) needs less
     min_rel_gain_nominated: float = 0.10
@@ -133,7 +134,9 @@ class DiagnoseOptions:
     # ... or by more than this share of the base's held-out RMSE, whichever is larger: the nominated
     # bar mirrored (a voltage change inside the base model's own misfit neither confirms nor refutes)
     direct_max_rise_rel: float = 0.10
-    min_delta_bic: float = 0.0
+    # ΔBIC on the fit part: a held-out gain may come with a slightly worse fit-part BIC (an extension
+    # that extrapolates well but adds parameters the fit part barely needs)
+    min_delta_bic: float = -10.0
     min_abs_gain_noise: float = 0.5
     # a none verdict with an effect nominated (not measured) by its signature whose extension
     # misses its bar on the chronological split: that effect alone is refitted and scored again
