@@ -135,25 +135,17 @@ def drive(kind: str, seed: int, capacity_ah: float, max_s: int = int(4 * SECONDS
             i += [capacity_ah] * n + [0.0] * int(rng.integers(720, 1200))
             i += [pulse * capacity_ah] * 10 + [0.0] * 40 + [-0.75 * pulse * capacity_ah] * 10 + [0.0] * 40
             drawn += capacity_ah * n + 0.25 * pulse * capacity_ah * 10
-    elif kind == "dst":
+    elif kind in ("dst", "rests"):
         table = np.array([0, 1, 0, -0.5, 1, 2, -0.8, 0, 1, 0.5, 2.5, -1.0, 0.5, 1, 0, -0.5, 1.5, 0.5, 1, 0])
         table = table * (0.8 + 0.2 * rng.random())
         steps = rng.integers(8, 30, table.size)
-        while drawn < target and len(i) < max_s:
-            for c, n in zip(table, steps):
-                i += [c * capacity_ah] * int(n)
-                drawn += c * capacity_ah * n
-    elif kind == "rests":
-        table = np.array([0, 1, 0, -0.5, 1, 2, -0.8, 0, 1, 0.5, 2.5, -1.0, 0.5, 1, 0, -0.5, 1.5, 0.5, 1, 0])
-        table = table * (0.8 + 0.2 * rng.random())
-        steps = rng.integers(8, 30, table.size)
-        block = 0.0
+        block = 0.0  # charge drawn since the last parking rest
         while drawn < target and len(i) < max_s:
             for c, n in zip(table, steps):
                 i += [c * capacity_ah] * int(n)
                 drawn += c * capacity_ah * n
                 block += c * capacity_ah * n
-            if block >= 0.15 * capacity_ah * SECONDS_PER_HOUR:
+            if kind == "rests" and block >= 0.15 * capacity_ah * SECONDS_PER_HOUR:
                 i += [0.0] * int(rng.integers(1200, 2400))
                 block = 0.0
     elif kind == "smooth":
