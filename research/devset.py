@@ -213,25 +213,17 @@ def confirm_unread(sub_signatures: dict) -> list[str]:
     return [n for n in FIT_PART_SIGNATURES if signature_unread(sub_signatures, n)]
 
 
-def _fit_part_signatures(rec, capacity_ah: float, fit: np.ndarray) -> dict[str, dict]:
-    from service.diagnosis.signatures import rest_relaxation, step_kinetics
-
-    return {"kinetics": step_kinetics(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, capacity_ah,
-                                      usable=fit),
-            "diffusion": rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, capacity_ah, usable=fit)}
-
-
 def recording_signature_stats(rec, capacity_ah: float, opt) -> dict:
     """:func:`signature_stats` and :func:`confirm_unread` computed from the recording itself, on the
     fit parts of ``opt.split`` and ``opt.confirm_split``, as the pipeline computes them (for
     evidence cached before they were kept)."""
-    from service.diagnosis.pipeline import held_out_mask
+    from service.diagnosis.pipeline import fit_part_signatures, held_out_mask
     from service.diagnosis.signatures import temperature_signature
 
-    first = _fit_part_signatures(rec, capacity_ah, ~held_out_mask(rec.time_s, opt))
+    first = fit_part_signatures(rec, capacity_ah, ~held_out_mask(rec.time_s, opt))
     first["temperature"] = temperature_signature(rec.time_s, rec.current_a, rec.temperature_c, capacity_ah,
                                                  opt.nominal_ambient_c)
-    retry = _fit_part_signatures(rec, capacity_ah, ~held_out_mask(rec.time_s, replace(opt, split=opt.confirm_split)))
+    retry = fit_part_signatures(rec, capacity_ah, ~held_out_mask(rec.time_s, replace(opt, split=opt.confirm_split)))
     return {**signature_stats(first), "confirm_unread": confirm_unread(retry)}
 
 
@@ -283,12 +275,22 @@ def diagnose_for_evidence(spec: Spec, rec, profile, opt) -> Evidence:
     return evidence_of(spec, dg, sub, opt)
 
 
-def evidence_one(job: tuple[Spec, str]) -> tuple[str, str]:
-    """Diagnose one recording of the set with the default options and write
-    ``STEM.evidence.json``; ``(stem, status)``."""
+def write_evidence(spec: Spec, src: Path, stem: str, capacity_ah: float, path: Path) -> Evidence:
+    """Diagnose ``src/STEM.csv`` with its OCV table ``src/STEM_ocv.csv`` and the default options, as
+    ``socd diagnose --ocv --capacity-ah`` does, and write its evidence (named ``stem``) to ``path``."""
     from service.diagnosis.pipeline import DiagnoseOptions, table_profile
     from service.recording import load_recording
 
+    ocv = np.loadtxt(src / f"{stem}_ocv.csv", delimiter=",", skiprows=1)
+    ev = diagnose_for_evidence(spec, load_recording(src / f"{stem}.csv"),
+                               table_profile(stem, capacity_ah, ocv[:, 0], ocv[:, 1]), DiagnoseOptions())
+    ev.stem = stem
+    path.write_text(json.dumps(asdict(ev), indent=1))
+    return ev
+
+
+def evidence_one(job: tuple[Spec, str]) -> tuple[str, str]:
+    """Diagnose one recording of the set and write ``STEM.evidence.json``; ``(stem, status)``."""
     spec, workdir = job
     out = Path(workdir)
     path = out / f"{spec.stem}.evidence.json"
@@ -297,10 +299,7 @@ def evidence_one(job: tuple[Spec, str]) -> tuple[str, str]:
     if not (out / f"{spec.stem}.json").exists():
         return spec.stem, "not built"
     info = json.loads((out / f"{spec.stem}.json").read_text())
-    ocv = np.loadtxt(out / f"{spec.stem}_ocv.csv", delimiter=",", skiprows=1)
-    profile = table_profile(spec.stem, info["capacity_ah"], ocv[:, 0], ocv[:, 1])
-    ev = diagnose_for_evidence(spec, load_recording(out / f"{spec.stem}.csv"), profile, DiagnoseOptions())
-    path.write_text(json.dumps(asdict(ev), indent=1))
+    ev = write_evidence(spec, out, spec.stem, info["capacity_ah"], path)
     verdict, _ = decide(ev, {})
     return spec.stem, f"{verdict} ({ev.seconds_chronological + ev.seconds_confirmation:.0f} s)"
 
@@ -308,10 +307,7 @@ def evidence_one(job: tuple[Spec, str]) -> tuple[str, str]:
 def labelled_one(job: tuple[str, str, str]) -> tuple[str, str]:
     """Diagnose one labelled recording of ``data`` (``STEM.csv``, ``STEM_ocv.csv``,
     ``STEM.meta.json``, the truth in ``labels.json``) into ``workdir`` as :func:`evidence_one`
-    does, so the rules chosen on the development set can be checked on it; ``(stem, status)``."""
-    from service.diagnosis.pipeline import DiagnoseOptions, table_profile
-    from service.recording import load_recording
-
+    does; the rules stage puts it with its cell's recordings.  ``(stem, status)``."""
     stem, data, workdir = job
     path = Path(workdir) / f"{stem}.evidence.json"
     if path.exists():
@@ -319,12 +315,8 @@ def labelled_one(job: tuple[str, str, str]) -> tuple[str, str]:
     src = Path(data)
     label = json.loads((src / "labels.json").read_text())[stem]
     cap = json.loads((src / f"{stem}.meta.json").read_text())["capacity_ah"]
-    ocv = np.loadtxt(src / f"{stem}_ocv.csv", delimiter=",", skiprows=1)
     spec = Spec("labelled", label["effect"], label.get("level") or LEVELS[1], label.get("profile", "?"), 0)
-    ev = diagnose_for_evidence(spec, load_recording(src / f"{stem}.csv"),
-                               table_profile(stem, cap, ocv[:, 0], ocv[:, 1]), DiagnoseOptions())
-    ev.stem = stem
-    path.write_text(json.dumps(asdict(ev), indent=1))
+    ev = write_evidence(spec, src, stem, cap, path)
     return stem, f"{decide(ev, {})[0]} (truth {label['effect']})"
 
 

@@ -378,6 +378,15 @@ def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: flo
 FIT_PART_SIGNATURES = ("diffusion", "kinetics")
 
 
+def fit_part_signatures(rec: Recording, capacity_ah: float, fit: np.ndarray) -> dict[str, dict]:
+    """The :data:`FIT_PART_SIGNATURES` read on the samples ``fit`` (no held-out voltage enters
+    them): the slow relaxation at the ends of long rests and the Butler-Volmer curvature of the
+    voltage across current steps (no model)."""
+    return {"diffusion": rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, capacity_ah, usable=fit),
+            "kinetics": step_kinetics(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, capacity_ah,
+                                      usable=fit)}
+
+
 def signature_unread(signatures: dict, name: str) -> bool:
     """Whether ``name``'s signature reads the fit part only and found nothing to read there: an
     effect retried for its nomination on the first split keeps that nomination, while a signature
@@ -633,10 +642,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
     branch["direction"] = direction_offset(rec.time_s, rec.current_a, r_base, cap, fit_full)
     if not branch["nominated"] and branch["direction"]["nominated"]:
         branch.update(nominated=True, direct=False, nominated_by="direction state in the base residual")
-    # slow relaxation at the ends of the fit part's long rests (no held-out voltage enters it)
-    sig["diffusion"] = rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, cap, usable=fit_full)
-    # the curvature of the voltage across the fit part's current steps (Butler-Volmer, no model)
-    sig["kinetics"] = step_kinetics(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c, cap, usable=fit_full)
+    sig.update(fit_part_signatures(rec, cap, fit_full))
     bias_rest = (bias_sig.get("offset_a"), bias_sig.get("se_a")) if bias_sig.get("n_rest_samples") and bias_sig.get("se_a") else (None, None)
     problem.ctx = Context(
         time_s=grid.time_s, current_a=grid.current_a, temperature_c=grid.temperature_c,
