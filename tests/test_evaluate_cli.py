@@ -4,6 +4,7 @@ errors, and the scoring metrics."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -502,3 +503,27 @@ def test_fit_refuses_a_capacity_the_recording_contradicts(tmp_path: Path, nmc_re
     err = _fail(["fit", str(rec.path), "--capacity-ah", "0.2", "--max-seconds", "3", "-o", str(out)], capsys)
     assert str(rec.path) in err and "--capacity-ah 0.2" in err
     assert not out.exists()
+
+
+def test_a_kinetics_fit_never_ends_worse_than_its_2rc_start(tmp_path: Path, nmc_recording, monkeypatch) -> None:
+    """The guard that keeps the 2-RC start point when the search ends worse covers ``--kinetics`` too:
+    the start then carries the search's largest exchange current (the Butler-Volmer term practically
+    linear), so the profile still has i0 at every temperature. The search is replaced by one that
+    returns a point far off (the real optimiser rarely does on this clean recording)."""
+    import service.characterisation.characterise as ch
+    from service.cell.fitting import KINETICS_BOUNDS, FitResult
+    from service.recording import load_recording
+
+    def far_off(prof, segs, **kw):
+        start = kw["x0"]
+        bad = start.model_copy(update={"r_ohm": start.r_ohm * 8.0, "i0_a": 0.1})
+        return FitResult(point=bad, hysteresis=None, rmse_mv=1e3, n_evaluations=1)
+
+    monkeypatch.setattr(ch, "fit_parameters", far_off)
+    rec = nmc_recording(name="kinstart", duration_s=2400, seed=4, soc0=0.95)
+    profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=True, max_seconds=1)
+    (t,) = report.temperatures
+    assert t.source == "2-RC start"
+    assert t.rmse_mv <= t.ecm_rmse_mv * 1.05 + 0.5
+    assert profile.parameters[0].i0_a == pytest.approx(math.exp(KINETICS_BOUNDS["ln_i0_a"][1]))
+    ch.check_fit_quality(report)

@@ -25,6 +25,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from collections import defaultdict
 from collections.abc import Callable
@@ -34,7 +35,7 @@ from itertools import pairwise
 import numpy as np
 
 from service.cell.coulomb import coulomb_soc
-from service.cell.fitting import FitSegment, fit_parameters, last_current_direction
+from service.cell.fitting import KINETICS_BOUNDS, FitSegment, fit_parameters, last_current_direction
 from service.cell.model import simulate
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.profile import (
@@ -362,9 +363,10 @@ def characterise(
         hyst_t = res.hysteresis or prof.hysteresis
         rmse = segments_rmse_mv(prof, pt, hyst_t, segs, memory_length)
         source = "fractional fit"
-        if not fit_kinetics and not (fit_hysteresis and t == ref_t):
+        if not (fit_hysteresis and t == ref_t):
             # the search may end worse than the point it started from (a time-bounded global
             # stage on windows): keep whichever fits the whole segments better
+            start = ecm_start_point(ecm[t], t, linear_kinetics=fit_kinetics)
             start_rmse = segments_rmse_mv(prof, start, hyst_t, segs, memory_length)
             if start_rmse < rmse:
                 pt, rmse, source = start, start_rmse, "2-RC start"
@@ -406,13 +408,18 @@ def check_counted_soc(part: Recording, capacity_ah: float, soc0: float) -> None:
             f"{where}: the capacity is wrong for this cell or the full-charge point (--full-at) is; nothing written")
 
 
-def ecm_start_point(fit: Ecm2RcFit, temp_c: float) -> ParameterPoint:
+def ecm_start_point(fit: Ecm2RcFit, temp_c: float, linear_kinetics: bool = False) -> ParameterPoint:
     """The fractional model's point that is the textbook 2-RC model (orders 1, ``C = τ/R``):
-    where the fractional search starts, so it begins at the bar it has to clear."""
+    where the fractional search starts, so it begins at the bar it has to clear.
+
+    ``linear_kinetics``: for a fit with the Butler–Volmer term, the start carries the largest
+    exchange current of the search (:data:`KINETICS_BOUNDS`), where the term is practically linear
+    and the point is still the 2-RC model."""
     r1, r2 = max(fit.r1, 1e-5), max(fit.r2, 1e-5)
     tau2 = max(fit.tau2_s, 3.0 * fit.tau1_s)
+    i0 = math.exp(KINETICS_BOUNDS["ln_i0_a"][1]) if linear_kinetics else None
     return ParameterPoint(temp_c=temp_c, r_ohm=max(fit.r0, 1e-4), r_ct=r1, c_dl=fit.tau1_s / r1, m=1.0,
-                          r_df=r2, c_df=tau2 / r2, n=1.0)
+                          r_df=r2, c_df=tau2 / r2, n=1.0, i0_a=i0)
 
 
 def segments_rmse_mv(template: CellProfile, point: ParameterPoint, hysteresis: HysteresisSpec,

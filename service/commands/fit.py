@@ -39,9 +39,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="which branch the OCV table or test is: 'mean' (the average of charge and discharge, "
                    "default) or one branch, e.g. 'charge' for an LFP charge curve; the profile records it and "
                    "the model reads the mean as that branch minus/plus U_H (needs --hysteresis)")
-    p.add_argument("--kinetics", action="store_true",
+    p.add_argument("--kinetics", action=argparse.BooleanOptionalAction, default=False,
                    help="also fit a Butler-Volmer exchange current i0 per temperature (the apparent resistance "
-                   "falls as the current rises; matters in the cold and when the recordings pulse at several currents)")
+                   "falls as the current rises; matters in the cold and when the recordings pulse at several "
+                   "currents); off by default: chosen leave-one-cell-out it did not win pooled "
+                   "(docs/results/tuning.md)")
     p.add_argument("--min-order", type=float, default=None, metavar="A",
                    help="lower bound of the CPE orders m, n (default 0.3); the short G-L memory represents low "
                    "orders poorly (the bundled Panasonic profile uses 0.5)")
@@ -68,7 +70,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="write the profile even when a temperature's fit is poor (RMSE above 50 mV) or worse than "
                    "the textbook 2-RC fit of the same data; without it such a fit exits 2 and writes nothing")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", help="profile to write (.toml or .json)")
     add_common_arguments(p, progress=True, bounds=True)
     p.set_defaults(func=run)
