@@ -45,13 +45,16 @@ def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[l
     """``VALUE=JSON[@CELL]`` pairs -> (values, conditions, {cell: {recording: {value: {condition: score}}}}).
 
     The cell is the profile named in the JSON unless ``@CELL`` names it (two profiles of one
-    cell, e.g. characterised from different data, then count as one cell).
+    cell, e.g. characterised from different data, then count as one cell). Under ``@CELL`` the
+    k-th file given for a cell at one value and condition is matched with the k-th at every other
+    value, so each value may have its own profiles (e.g. fitted with other ``socd fit`` options).
 
     A condition is what a file was run under (``socd evaluate --current-bias-c``); the same
     recording under several conditions is scored by its mean over them."""
     values: list[str] = []
     conditions: list[str] = []
     grid: dict = defaultdict(lambda: defaultdict(lambda: defaultdict(dict)))
+    files_seen: dict[tuple[str, str, str], int] = defaultdict(int)
     for pair in pairs:
         value, sep, path = pair.partition("=")
         path, _, cell_name = path.partition("@")
@@ -65,12 +68,14 @@ def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[l
         values += [value] if value not in values else []
         conditions += [cond] if cond not in conditions else []
         cell = cell_name or str(doc.get("cell", path))
+        k = files_seen[(cell, value, cond)]
+        files_seen[(cell, value, cond)] += 1
         for r in rows:
             score = r.get(metric)
             if score is None:
                 raise GridError(f"{path}: recording {r.get('recording')}: no '{metric}'")
-            # under @CELL a recording is named with its profile: two profiles of one cell score the same files
-            rec = f"{Path(str(doc.get('cell', path))).stem}/{r['recording']}" if cell_name else r["recording"]
+            # under @CELL a recording is named by its file's place: two profiles of one cell score the same files
+            rec = f"{cell}#{k + 1}/{r['recording']}" if cell_name else r["recording"]
             grid[cell][rec][value][cond] = float(score)
     for cell, recs in grid.items():
         for rec, by_value in recs.items():

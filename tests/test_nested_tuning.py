@@ -112,6 +112,13 @@ def test_at_cell_joins_two_profiles_of_one_cell(tmp_path: Path) -> None:
     a = _results(tmp_path / "a.json", "profile_hppc.toml", {"r1": 0.5})
     b = _results(tmp_path / "b.json", "profile_us06.toml", {"r1": 0.7})  # the same file, another profile
     values, conds, grid = load_grid([f"v={a}@pan", f"v={b}@pan"], "ecm2rc-ekf")
-    assert list(grid) == ["pan"] and set(grid["pan"]) == {"profile_hppc/r1", "profile_us06/r1"}
+    assert list(grid) == ["pan"] and set(grid["pan"]) == {"pan#1/r1", "pan#2/r1"}
+    assert grid["pan"]["pan#1/r1"]["v"]["bias +0C"] == pytest.approx(0.5)
+    # each value with its own profiles (another `socd fit` option): matched by their place
+    c = _results(tmp_path / "c.json", "profile_hppc_kin.toml", {"r1": 0.4})
+    d = _results(tmp_path / "d.json", "profile_us06_kin.toml", {"r1": 0.9})
+    values, conds, grid = load_grid([f"v={a}@pan", f"v={b}@pan", f"w={c}@pan", f"w={d}@pan"], "ecm2rc-ekf")
+    assert grid["pan"]["pan#1/r1"]["w"]["bias +0C"] == pytest.approx(0.4)
+    assert grid["pan"]["pan#2/r1"]["w"]["bias +0C"] == pytest.approx(0.9)
     with pytest.raises(GridError):
         load_grid(["v="], "ecm2rc-ekf")
