@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,6 +29,7 @@ from service.cell.profile import (
     ParameterPoint,
     SocResistanceSpec,
 )
+from service.recording import Recording
 
 TRUE = ParameterPoint(r_ohm=0.030, r_ct=0.015, c_dl=300.0, m=0.9, r_df=0.020, c_df=9000.0, n=0.85)
 
@@ -242,3 +244,38 @@ def test_resistances_bounded_by_the_neighbouring_temperatures():
     # unconstrained, the same data gives the true ohmic resistance
     free = fit_parameters(profile(), seg, max_seconds=30, x0=TRUE, de_maxiter=5).point
     assert free.r_ohm == pytest.approx(TRUE.r_ohm, rel=0.1)
+
+
+def _pulse_segment(n_pulses: int, amp_a: float) -> Recording:
+    """1 Hz: rest 30 s, pulse 10 s at ``amp_a``, repeated, then a rest; two clean steps per pulse."""
+    block = np.concatenate([np.zeros(30), np.full(10, amp_a)])
+    current = np.concatenate([np.tile(block, n_pulses), np.zeros(30)])
+    t = np.arange(current.size, dtype=float)
+    return Recording(path=Path("pulses.csv"), time_s=t, current_a=current, voltage_v=3.7 - 0.05 * current,
+                     temperature_c=np.full(t.size, 25.0))
+
+
+def test_kinetics_is_fitted_only_where_current_steps_resolve_it() -> None:
+    """The default ``socd fit`` rule: the exchange current is fitted at a temperature whose recordings
+    have the diagnosis's kinetics signature's 20 steps reaching 0.5C, and not from a few small steps."""
+    from service.characterisation.characterise import FitReport, kinetics_resolvable
+
+    rep = FitReport(echo=lambda _: None)
+    assert kinetics_resolvable([_pulse_segment(10, -2.0)], 2.0, 25.0, rep)  # 20 steps at 1C
+    assert not kinetics_resolvable([_pulse_segment(9, -2.0)], 2.0, 25.0, rep)  # 18 steps
+    assert not kinetics_resolvable([_pulse_segment(10, -0.8)], 2.0, 25.0, rep)  # 0.4C peak
+    assert kinetics_resolvable([_pulse_segment(5, -2.0), _pulse_segment(5, -2.0)], 2.0, 0.0, rep)  # counted over recordings
+    assert "not fitted (needs 20 reaching 0.5C" in rep.lines[1]
+
+
+def test_temperatures_without_a_fitted_exchange_current_get_the_linear_one() -> None:
+    from service.cell.fitting import KINETICS_BOUNDS
+    from service.characterisation.characterise import with_linear_kinetics_where_unfitted
+
+    base = ParameterPoint(temp_c=25.0, r_ohm=0.03, r_ct=0.01, c_dl=100.0, m=0.8, r_df=0.02, c_df=1000.0, n=0.9)
+    cold = base.model_copy(update={"temp_c": -10.0, "i0_a": 0.2})
+    mixed = with_linear_kinetics_where_unfitted([cold, base])
+    assert mixed[0] == cold
+    assert mixed[1].i0_a == pytest.approx(math.exp(KINETICS_BOUNDS["ln_i0_a"][1]))
+    assert mixed[1].model_copy(update={"i0_a": None}) == base
+    assert with_linear_kinetics_where_unfitted([base, base]) == [base, base]

@@ -63,6 +63,13 @@ from service.characterisation.ocv_sources import (
     rest_spans,
 )
 from service.characterisation.relaxation import measure_slow_relaxation
+from service.diagnosis.signatures import (
+    STEP_MIN_PEAK_C,
+    STEP_MIN_STEPS,
+    current_steps,
+    steps_peak_c,
+    steps_resolve_kinetics,
+)
 from service.recording import Recording
 
 TEMP_GROUP_C = 5.0
@@ -213,7 +220,7 @@ def characterise(
     full_at: list[str | float | None],
     ocv_table: tuple[np.ndarray, np.ndarray] | None = None,
     fit_hysteresis: bool = False,
-    fit_kinetics: bool = False,
+    fit_kinetics: bool | None = None,
     max_seconds: float = 60.0,
     min_order: float | None = None,
     monotone: bool = False,
@@ -230,7 +237,9 @@ def characterise(
     table or test is (:class:`HysteresisSpec` ``table_branch``; needs ``fit_hysteresis``
     unless ``mean``).  ``rest_anchor``: a jointly fitted OCV table (no table, no OCV test) is
     shifted to pass through the relaxed voltages at the ends of the recordings' long rests
-    (one or more) before the parameters are fitted on it."""
+    (one or more) before the parameters are fitted on it.  ``fit_kinetics``: fit the Butler-Volmer
+    exchange current at every temperature (True), at none (False), or (None, the default) at each
+    temperature whose recordings have the current steps that resolve it (:func:`kinetics_resolvable`)."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
     rep = report if report is not None else FitReport()
@@ -353,9 +362,11 @@ def characterise(
             # resistances monotone in temperature: bounded by the nearest fitted warmer / colder point
             warmer = min((p for tp, p in points.items() if tp > t), key=lambda p: p.temp_c, default=None)
             colder = max((p for tp, p in points.items() if tp < t), key=lambda p: p.temp_c, default=None)
+        kinetics_t = (fit_kinetics if fit_kinetics is not None
+                      else kinetics_resolvable([part for part, _ in groups[t]], capacity_ah, t, rep))
         start = ecm_start_point(ecm[t], t)
         res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis and t == ref_t,
-                             fit_kinetics=fit_kinetics, max_seconds=max_seconds, seed=seed, x0=start,
+                             fit_kinetics=kinetics_t, max_seconds=max_seconds, seed=seed, x0=start,
                              warmer=warmer, colder=colder, min_order=min_order, max_tau_df_s=MAX_TAU_DF_S)
         # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
         pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": t}), res.point.i0_a,
@@ -366,7 +377,7 @@ def characterise(
         if not (fit_hysteresis and t == ref_t):
             # the search may end worse than the point it started from (a time-bounded global
             # stage on windows): keep whichever fits the whole segments better
-            start = ecm_start_point(ecm[t], t, linear_kinetics=fit_kinetics)
+            start = ecm_start_point(ecm[t], t, linear_kinetics=kinetics_t)
             start_rmse = segments_rmse_mv(prof, start, hyst_t, segs, memory_length)
             if start_rmse < rmse:
                 pt, rmse, source = start, start_rmse, "2-RC start"
@@ -385,7 +396,7 @@ def characterise(
         if outcome.at_bounds:
             rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}")
     profile = prof.model_copy(update={
-        "parameters": [points[t] for t in sorted(points)],
+        "parameters": with_linear_kinetics_where_unfitted([points[t] for t in sorted(points)]),
         "hysteresis": hyst or HysteresisSpec(table_branch=ocv_branch),
         "ecm2rc": ecm_spec,
         "notes": {"fitted_from": ", ".join(r.name for r in recordings), "memory_length": str(memory_length)}
@@ -406,6 +417,34 @@ def check_counted_soc(part: Recording, capacity_ah: float, soc0: float) -> None:
         raise FitQualityError(
             f"{part.path}: SOC counted with --capacity-ah {capacity_ah:g} from {soc0:.2f} at the start reaches "
             f"{where}: the capacity is wrong for this cell or the full-charge point (--full-at) is; nothing written")
+
+
+def kinetics_resolvable(recordings: list[Recording], capacity_ah: float, temp_c: float, rep: FitReport) -> bool:
+    """Whether a temperature's recordings (each cut from its full-charge point) resolve the
+    Butler-Volmer exchange current: enough clean current steps, reaching high enough
+    (:func:`service.diagnosis.signatures.steps_resolve_kinetics`, the rule the diagnosis's kinetics
+    signature reads). Without them the extra parameter is not measured, and the search uses it to
+    absorb other model error."""
+    n_steps, peak = 0, 0.0
+    for rec in recordings:
+        steps = current_steps(rec.time_s, rec.current_a, capacity_ah)
+        n_steps += int(steps.size)
+        peak = max(peak, steps_peak_c(rec.current_a, steps, capacity_ah))
+    resolved = steps_resolve_kinetics(n_steps, peak)
+    rep.say(f"kinetics at {temp_c:g} °C: {n_steps} current steps reaching {peak:.2f}C: "
+            + ("exchange current fitted" if resolved else
+               f"not fitted (needs {STEP_MIN_STEPS} reaching {STEP_MIN_PEAK_C:g}C; --kinetics fits it anyway)"))
+    return resolved
+
+
+def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[ParameterPoint]:
+    """A profile carries i0 at every temperature or at none: where some temperatures fitted it and
+    others did not, the others get the search's largest exchange current (practically linear, the
+    point unchanged)."""
+    if all(p.i0_a is None for p in points) or all(p.i0_a is not None for p in points):
+        return points
+    linear = math.exp(KINETICS_BOUNDS["ln_i0_a"][1])
+    return [p if p.i0_a is not None else p.model_copy(update={"i0_a": linear}) for p in points]
 
 
 def ecm_start_point(fit: Ecm2RcFit, temp_c: float, linear_kinetics: bool = False) -> ParameterPoint:

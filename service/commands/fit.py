@@ -39,10 +39,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="which branch the OCV table or test is: 'mean' (the average of charge and discharge, "
                    "default) or one branch, e.g. 'charge' for an LFP charge curve; the profile records it and "
                    "the model reads the mean as that branch minus/plus U_H (needs --hysteresis)")
-    p.add_argument("--kinetics", action=argparse.BooleanOptionalAction, default=False,
-                   help="also fit a Butler-Volmer exchange current i0 per temperature (the apparent resistance "
-                   "falls as the current rises; matters in the cold and when the recordings pulse at several "
-                   "currents); off by default: chosen leave-one-cell-out it did not win pooled "
+    p.add_argument("--kinetics", action=argparse.BooleanOptionalAction, default=None,
+                   help="fit a Butler-Volmer exchange current i0 per temperature (the apparent resistance falls as "
+                   "the current rises; matters in the cold). Default: at each temperature whose recordings have "
+                   "20 or more clean current steps reaching 0.5C (HPPC tests, pulse and DST-like cycles), the "
+                   "steps that measure it; --kinetics fits it at every temperature, --no-kinetics at none "
                    "(docs/results/tuning.md)")
     p.add_argument("--min-order", type=float, default=None, metavar="A",
                    help="lower bound of the CPE orders m, n (default 0.3); the short G-L memory represents low "

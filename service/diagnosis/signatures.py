@@ -592,19 +592,14 @@ def signatures(time_s: np.ndarray, current_a: np.ndarray, temperature_c: np.ndar
     }
 
 
-def step_kinetics(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, temperature_c: np.ndarray,
-                  capacity_ah: float, usable: np.ndarray | None = None) -> dict:
-    """The apparent exchange current from the voltage across current steps (module docstring,
-    ``kinetics``).  ``usable`` (optional mask): only steps whose four samples lie inside it."""
-    out = {"nominated": False, "statistic": None, "threshold": KINETICS_MAX_I0_C, "min_steps": STEP_MIN_STEPS,
-           "min_step_c": STEP_MIN_C, "min_peak_c": STEP_MIN_PEAK_C,
-           "what": "apparent exchange current i0 (C) from the curvature of the voltage change across current "
-                   "steps against the current (Butler-Volmer; the 95 % upper bound must be below the threshold; "
-                   "no model)"}
+def current_steps(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float,
+                  usable: np.ndarray | None = None) -> np.ndarray:
+    """Indices ``j`` of clean current steps (module docstring, ``kinetics``): the current moves by at
+    least :data:`STEP_MIN_C` × 1C from sample ``j`` to ``j + 1`` and is steady in the sample before
+    and the one after. ``usable`` (optional mask): only steps whose four samples lie inside it."""
     n = current_a.size
     if n < 4:
-        out.update(n_steps=0, skipped="fewer than 4 samples")
-        return out
+        return np.zeros(0, dtype=int)
     dt = np.diff(time_s)
     di = np.diff(current_a)
     j = np.arange(1, n - 2)
@@ -615,12 +610,41 @@ def step_kinetics(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarr
           & (dt[j] <= 2.0 * float(np.median(dt))))
     if usable is not None:
         ok &= usable[j - 1] & usable[j] & usable[j + 1] & usable[j + 2]
-    j = j[ok]
+    return j[ok]
+
+
+def steps_peak_c(current_a: np.ndarray, steps: np.ndarray, capacity_ah: float) -> float:
+    """The largest |current| [C-rate] on either side of the ``steps``."""
+    if not steps.size:
+        return 0.0
+    return float(np.max(np.abs(np.concatenate([current_a[steps], current_a[steps + 1]])))) / capacity_ah
+
+
+def steps_resolve_kinetics(n_steps: int, peak_c: float) -> bool:
+    """Enough current steps, reaching high enough, for the Butler-Volmer curvature to be measured:
+    :data:`STEP_MIN_STEPS` steps reaching :data:`STEP_MIN_PEAK_C`. The kinetics signature reads
+    nothing below this, and ``socd fit`` does not fit the exchange current from data below it."""
+    return n_steps >= STEP_MIN_STEPS and peak_c >= STEP_MIN_PEAK_C
+
+
+def step_kinetics(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, temperature_c: np.ndarray,
+                  capacity_ah: float, usable: np.ndarray | None = None) -> dict:
+    """The apparent exchange current from the voltage across current steps (module docstring,
+    ``kinetics``).  ``usable`` (optional mask): only steps whose four samples lie inside it."""
+    out = {"nominated": False, "statistic": None, "threshold": KINETICS_MAX_I0_C, "min_steps": STEP_MIN_STEPS,
+           "min_step_c": STEP_MIN_C, "min_peak_c": STEP_MIN_PEAK_C,
+           "what": "apparent exchange current i0 (C) from the curvature of the voltage change across current "
+                   "steps against the current (Butler-Volmer; the 95 % upper bound must be below the threshold; "
+                   "no model)"}
+    if current_a.size < 4:
+        out.update(n_steps=0, skipped="fewer than 4 samples")
+        return out
+    j = current_steps(time_s, current_a, capacity_ah, usable)
     c1, c2 = current_a[j] / capacity_ah, current_a[j + 1] / capacity_ah
     out["n_steps"] = int(j.size)
-    peak = float(np.max(np.abs(np.concatenate([c1, c2])))) if j.size else 0.0
+    peak = steps_peak_c(current_a, j, capacity_ah)
     out["peak_c"] = round(peak, 3)
-    if j.size < STEP_MIN_STEPS or peak < STEP_MIN_PEAK_C:
+    if not steps_resolve_kinetics(j.size, peak):
         out["skipped"] = (f"{j.size} current steps of at least {STEP_MIN_C:g}C reaching {peak:.2f}C "
                           f"(needs {STEP_MIN_STEPS} reaching {STEP_MIN_PEAK_C:g}C)")
         return out
