@@ -95,6 +95,24 @@ def group_table(name: str, groups: tuple[tuple[str, str], ...]) -> Callable[[Pat
     return render
 
 
+def runs_table(runs: tuple[tuple[str, str], ...], groups: tuple[tuple[str, str], ...],
+               estimator: str = "fomiukf") -> Callable[[Path], str]:
+    """One row per ``socd evaluate --json`` run (label, file), one column per group of recordings
+    (a regular expression on the name): ``estimator``'s mean SOC RMSE after 600 s there."""
+    def render(out: Path) -> str:
+        lines = ["| run | " + " | ".join(label for label, _ in groups) + " |", "|---|" + "---|" * len(groups)]
+        for label, name in runs:
+            rows = [r for r in _read(out, name)["results"] if r["estimator"] == estimator]
+            cells = []
+            for _, pattern in groups:
+                vals = [r["soc_rmse_after_600s_pct"] for r in rows if re.search(pattern, r["recording"])
+                        and r["soc_rmse_after_600s_pct"] is not None]
+                cells.append(f"{sum(vals) / len(vals):.2f}" if vals else "-")
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        return "\n".join(lines)
+    return render
+
+
 def bench_table(*names: str) -> Callable[[Path], str]:
     """One row per ``socd bench --json`` run."""
     def render(out: Path) -> str:
@@ -399,6 +417,38 @@ G=""; for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; 
 python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_defaults.json""",
           nested_table("loco_defaults.json"), 240, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
                                                      "needs:char_pan_us06")),
+    Table("loco_fit_options", "tuning.md", REAL + f"""\
+mkdir -p out/fitopt
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+fit_and_score() {{  # VARIANT SEED FIT-FLAGS...: the four characterisations of the char_* tables, each scored
+  v=$1; s=$2; shift 2; o=out/fitopt; E="--estimator fomiukf -q"
+  if [ $s = 0 ]; then
+    socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 "$@" -q -o $o/calce_$v.toml
+    socd evaluate --cell $o/calce_$v.toml {CALCE} $E --json $o/calce_$v.json
+    socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv --capacity-ah 2.77 "$@" -q -o $o/panus06_$v.toml
+    socd evaluate --cell $o/panus06_$v.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json $o/panus06_$v.json
+  fi
+  socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
+      --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv "$@" --seed $s -q -o $o/a123s${{s}}_$v.toml
+  socd evaluate --cell $o/a123s${{s}}_$v.toml {A123} $E --json $o/a123s${{s}}_$v.json
+  if [ $s != 2 ]; then
+    socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 "$@" --seed $s -q -o $o/panhppcs${{s}}_$v.toml
+    socd evaluate --cell $o/panhppcs${{s}}_$v.toml $PANX $E --json $o/panhppcs${{s}}_$v.json
+  fi
+}}
+fit_and_score auto 0; fit_and_score nokin 0 --no-kinetics; fit_and_score kin 0 --kinetics
+fit_and_score nokin_mo5 0 --no-kinetics --min-order 0.5
+for s in 1 2; do fit_and_score nokin $s --no-kinetics; fit_and_score kin $s --kinetics; done
+G=""; for v in auto nokin kin nokin_mo5; do
+  G="$G $v=out/fitopt/calce_$v.json@calce $v=out/fitopt/a123s0_$v.json@a123"
+  G="$G $v=out/fitopt/panhppcs0_$v.json@panasonic $v=out/fitopt/panus06_$v.json@panasonic"; done
+python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_fit_options.json""",
+          lambda out: nested_table("loco_fit_options.json")(out) + "\n\nThe same fits with other optimiser seeds "
+          "(`--seed`; mean SOC RMSE after 600 s, %, of `fomiukf`):\n\n" + runs_table(
+              tuple((f"{cell} `{v}` seed {s}", f"fitopt/{cell}s{s}_{v}.json") for cell, seeds in
+                    (("a123", (0, 1, 2)), ("panhppc", (0, 1))) for v in ("nokin", "kin") for s in seeds),
+              (("A123 (all)", r"calce_a123"),) + PAN_GROUPS)(out),
+          150),
     Table("char_calce", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 -q -o out/s25/calce.toml
 socd evaluate --cell out/s25/calce.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_def.json""",
