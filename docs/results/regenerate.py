@@ -257,7 +257,7 @@ CALCE = ("$C/calce20r_25C_{DST_50soc,FUDS_80soc,FUDS_50soc,US06_50soc,US06_80soc
 A123 = "$A/calce_a123_20C_{FUDS,US06}.csv --full-at 4478 --full-at 4436"
 PAN_FIT = ("socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv \\\n"
            "    --capacity-ah 2.77 --min-order 0.5 --max-seconds 150")
-CALCE_FIT = "socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --max-seconds 90"
+CALCE_FIT = "socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --max-seconds 90 --no-kinetics"
 #: the Panasonic recordings by temperature; the 10 °C `trise` files in their own row (DESIGN §7)
 PAN_GROUPS = (("25 °C", r"_25C_"), ("10 °C (not `trise`)", r"_10C_(?!trise)"),
               ("10 °C `trise` (truth caveat)", r"_10C_trise"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"),
@@ -281,10 +281,10 @@ class Table:
 TABLES: tuple[Table, ...] = (
     Table("profiles", "soc_accuracy.md", REAL + f"""\
 {PAN_FIT} --kinetics -o configs/cells/panasonic_18650pf.toml
-{PAN_FIT} -o configs/cells/panasonic_18650pf_nokinetics.toml
+{PAN_FIT} --no-kinetics -o configs/cells/panasonic_18650pf_nokinetics.toml
 {CALCE_FIT} -o configs/cells/calce_inr18650_20r.toml   # no OCV test: joint OCV fit
 socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
-    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --max-seconds 90 -o configs/cells/calce_a123.toml
+    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --max-seconds 90 --no-kinetics -o configs/cells/calce_a123.toml
 {CALCE_FIT} --slow-branch -o configs/cells/calce_inr18650_20r_slow.toml
 {CALCE_FIT} --rest-anchor -o configs/cells/calce_inr18650_20r_anchored.toml""", None, 20),
     Table("eval_pan25", "soc_accuracy.md", REAL + f"""\
@@ -351,7 +351,7 @@ socd evaluate --cell out/pan_slow.toml {PAN25} --estimator fomiukf --estimator f
           evaluate_table("eval_pan25_slow.json"), 25),
     Table("eval_a123_charge", "cell_options.md", REAL + f"""\
 socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis --ocv-branch charge \\
-    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --max-seconds 90 -o out/a123_charge.toml
+    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --max-seconds 90 --no-kinetics -o out/a123_charge.toml
 socd evaluate --cell out/a123_charge.toml {A123} --json out/eval_a123_charge.json
 socd evaluate --warm-start --cell out/a123_charge.toml {A123} --json out/eval_a123_charge_warm.json""",
           evaluate_table("eval_a123_charge.json", "eval_a123_charge_warm.json"), 8),
