@@ -117,7 +117,7 @@ def test_at_cell_joins_two_profiles_of_one_cell(tmp_path: Path) -> None:
     # each value with its own profiles (another `socd fit` option): matched by their place
     c = _results(tmp_path / "c.json", "profile_hppc_kin.toml", {"r1": 0.4})
     d = _results(tmp_path / "d.json", "profile_us06_kin.toml", {"r1": 0.9})
-    values, conds, grid = load_grid([f"v={a}@pan", f"v={b}@pan", f"w={c}@pan", f"w={d}@pan"], "ecm2rc-ekf")
+    _, _, grid = load_grid([f"v={a}@pan", f"v={b}@pan", f"w={c}@pan", f"w={d}@pan"], "ecm2rc-ekf")
     assert grid["pan"]["pan#1/r1"]["w"]["bias +0C"] == pytest.approx(0.4)
     assert grid["pan"]["pan#2/r1"]["w"]["bias +0C"] == pytest.approx(0.9)
     with pytest.raises(GridError):

@@ -35,6 +35,13 @@ from itertools import pairwise
 import numpy as np
 
 from service.cell.coulomb import coulomb_soc
+from service.cell.current_steps import (
+    STEP_MIN_PEAK_C,
+    STEP_MIN_STEPS,
+    current_steps,
+    steps_peak_c,
+    steps_resolve_kinetics,
+)
 from service.cell.fitting import KINETICS_BOUNDS, FitSegment, fit_parameters, last_current_direction
 from service.cell.model import simulate
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
@@ -63,13 +70,6 @@ from service.characterisation.ocv_sources import (
     rest_spans,
 )
 from service.characterisation.relaxation import measure_slow_relaxation
-from service.diagnosis.signatures import (
-    STEP_MIN_PEAK_C,
-    STEP_MIN_STEPS,
-    current_steps,
-    steps_peak_c,
-    steps_resolve_kinetics,
-)
 from service.recording import Recording
 
 TEMP_GROUP_C = 5.0
@@ -422,7 +422,7 @@ def check_counted_soc(part: Recording, capacity_ah: float, soc0: float) -> None:
 def kinetics_resolvable(recordings: list[Recording], capacity_ah: float, temp_c: float, rep: FitReport) -> bool:
     """Whether a temperature's recordings (each cut from its full-charge point) resolve the
     Butler-Volmer exchange current: enough clean current steps, reaching high enough
-    (:func:`service.diagnosis.signatures.steps_resolve_kinetics`, the rule the diagnosis's kinetics
+    (:func:`service.cell.current_steps.steps_resolve_kinetics`, the rule the diagnosis's kinetics
     signature reads). Without them the extra parameter is not measured, and the search uses it to
     absorb other model error."""
     n_steps, peak = 0, 0.0
