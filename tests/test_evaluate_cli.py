@@ -4,7 +4,6 @@ errors, and the scoring metrics."""
 from __future__ import annotations
 
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path
@@ -511,7 +510,7 @@ def test_a_kinetics_fit_never_ends_worse_than_its_2rc_start(tmp_path: Path, nmc_
     linear), so the profile still has i0 at every temperature. The search is replaced by one that
     returns a point far off (the real optimiser rarely does on this clean recording)."""
     import service.characterisation.characterise as ch
-    from service.cell.fitting import KINETICS_BOUNDS, FitResult
+    from service.cell.fitting import LINEAR_I0_A, FitResult
     from service.recording import load_recording
 
     def far_off(prof, segs, **kw):
@@ -525,5 +524,5 @@ def test_a_kinetics_fit_never_ends_worse_than_its_2rc_start(tmp_path: Path, nmc_
     (t,) = report.temperatures
     assert t.source == "2-RC start"
     assert t.rmse_mv <= t.ecm_rmse_mv * 1.05 + 0.5
-    assert profile.parameters[0].i0_a == pytest.approx(math.exp(KINETICS_BOUNDS["ln_i0_a"][1]))
+    assert profile.parameters[0].i0_a == pytest.approx(LINEAR_I0_A)
     ch.check_fit_quality(report)

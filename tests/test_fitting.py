@@ -269,13 +269,13 @@ def test_kinetics_is_fitted_only_where_current_steps_resolve_it() -> None:
 
 
 def test_temperatures_without_a_fitted_exchange_current_get_the_linear_one() -> None:
-    from service.cell.fitting import KINETICS_BOUNDS
+    from service.cell.fitting import LINEAR_I0_A
     from service.characterisation.characterise import with_linear_kinetics_where_unfitted
 
     base = ParameterPoint(temp_c=25.0, r_ohm=0.03, r_ct=0.01, c_dl=100.0, m=0.8, r_df=0.02, c_df=1000.0, n=0.9)
     cold = base.model_copy(update={"temp_c": -10.0, "i0_a": 0.2})
     mixed = with_linear_kinetics_where_unfitted([cold, base])
     assert mixed[0] == cold
-    assert mixed[1].i0_a == pytest.approx(math.exp(KINETICS_BOUNDS["ln_i0_a"][1]))
+    assert mixed[1].i0_a == pytest.approx(LINEAR_I0_A)
     assert mixed[1].model_copy(update={"i0_a": None}) == base
     assert with_linear_kinetics_where_unfitted([base, base]) == [base, base]

@@ -72,6 +72,8 @@ HYSTERESIS_BOUNDS: dict[str, tuple[float, float]] = {
 #: Butler-Volmer exchange current (``--kinetics``): from strongly non-linear (0.05 A) to
 #: practically linear over a cell's currents (500 A)
 KINETICS_BOUNDS: dict[str, tuple[float, float]] = {"ln_i0_a": (math.log(0.05), math.log(500.0))}
+#: the exchange current of a point whose Butler-Volmer term is practically linear (the bound above)
+LINEAR_I0_A = math.exp(KINETICS_BOUNDS["ln_i0_a"][1])
 BASE_NAMES = tuple(BOUNDS)
 
 

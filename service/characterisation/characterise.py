@@ -25,7 +25,6 @@
 
 from __future__ import annotations
 
-import math
 import sys
 from collections import defaultdict
 from collections.abc import Callable
@@ -42,7 +41,7 @@ from service.cell.current_steps import (
     steps_peak_c,
     steps_resolve_kinetics,
 )
-from service.cell.fitting import KINETICS_BOUNDS, FitSegment, fit_parameters, last_current_direction
+from service.cell.fitting import LINEAR_I0_A, FitSegment, fit_parameters, last_current_direction
 from service.cell.model import simulate
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.profile import (
@@ -443,8 +442,7 @@ def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[Pa
     point unchanged)."""
     if all(p.i0_a is None for p in points) or all(p.i0_a is not None for p in points):
         return points
-    linear = math.exp(KINETICS_BOUNDS["ln_i0_a"][1])
-    return [p if p.i0_a is not None else p.model_copy(update={"i0_a": linear}) for p in points]
+    return [p if p.i0_a is not None else p.model_copy(update={"i0_a": LINEAR_I0_A}) for p in points]
 
 
 def ecm_start_point(fit: Ecm2RcFit, temp_c: float, linear_kinetics: bool = False) -> ParameterPoint:
@@ -452,11 +450,11 @@ def ecm_start_point(fit: Ecm2RcFit, temp_c: float, linear_kinetics: bool = False
     where the fractional search starts, so it begins at the bar it has to clear.
 
     ``linear_kinetics``: for a fit with the Butler–Volmer term, the start carries the largest
-    exchange current of the search (:data:`KINETICS_BOUNDS`), where the term is practically linear
+    exchange current of the search (:data:`LINEAR_I0_A`), where the term is practically linear
     and the point is still the 2-RC model."""
     r1, r2 = max(fit.r1, 1e-5), max(fit.r2, 1e-5)
     tau2 = max(fit.tau2_s, 3.0 * fit.tau1_s)
-    i0 = math.exp(KINETICS_BOUNDS["ln_i0_a"][1]) if linear_kinetics else None
+    i0 = LINEAR_I0_A if linear_kinetics else None
     return ParameterPoint(temp_c=temp_c, r_ohm=max(fit.r0, 1e-4), r_ct=r1, c_dl=fit.tau1_s / r1, m=1.0,
                           r_df=r2, c_df=tau2 / r2, n=1.0, i0_a=i0)
 
