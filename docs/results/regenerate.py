@@ -437,9 +437,9 @@ fit_and_score() {{  # VARIANT SEED FIT-FLAGS...: the four characterisations of t
   fi
 }}
 fit_and_score auto 0; fit_and_score nokin 0 --no-kinetics; fit_and_score kin 0 --kinetics
-fit_and_score nokin_mo5 0 --no-kinetics --min-order 0.5
+fit_and_score nokin_mo5 0 --no-kinetics --min-order 0.5; fit_and_score auto_ms150 0 --max-seconds 150
 for s in 1 2; do fit_and_score nokin $s --no-kinetics; fit_and_score kin $s --kinetics; done
-G=""; for v in auto nokin kin nokin_mo5; do
+G=""; for v in auto nokin kin nokin_mo5 auto_ms150; do
   G="$G $v=out/fitopt/calce_$v.json@calce $v=out/fitopt/a123s0_$v.json@a123"
   G="$G $v=out/fitopt/panhppcs0_$v.json@panasonic $v=out/fitopt/panus06_$v.json@panasonic"; done
 python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_fit_options.json""",
