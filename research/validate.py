@@ -27,7 +27,6 @@ from pathlib import Path
 
 import numpy as np
 
-from service.cell.model import simulate
 from service.cell.profile import (
     ArrheniusSpec,
     CellProfile,
@@ -39,6 +38,7 @@ from service.cell.profile import (
     SurfaceDiffusionSpec,
     kinetic_linear_ohm,
 )
+from service.cell.trajectory import simulate
 from service.recording import save_recording
 
 CAP = 2.0

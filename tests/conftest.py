@@ -2,7 +2,7 @@
 
 A small synthetic NMC-like cell (2.0 Ah, R_ohm 20 mΩ, R_ct 10 mΩ with τ 10 s, R_df
 20 mΩ with τ 300 s, orders 0.8 / 0.7), a seeded pulse/rest current profile, and a
-helper that simulates a recording with :func:`service.cell.model.simulate`, adds
+helper that simulates a recording with :func:`service.cell.trajectory.simulate`, adds
 voltage noise and writes the CSV a ``socd`` command reads.
 
 Every fixture is named for what it is (``nmc_*``) and none is autouse, so the test
@@ -29,8 +29,8 @@ settings.register_profile("ci", derandomize=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
 
-from service.cell.model import simulate
 from service.cell.profile import CellProfile, Extensions, HysteresisSpec, OcvSpec, ParameterPoint
+from service.cell.trajectory import simulate
 
 NMC_CAPACITY_AH = 2.0
 TAU_CT_S = 10.0

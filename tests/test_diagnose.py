@@ -1,7 +1,7 @@
 """socd diagnose names the physics each simulated recording carries, and nothing on a clean one.
 
 Recordings are simulated with the estimator's own model plus one extension each
-(``service.cell.model.simulate`` on an extended profile), with voltage noise; diagnose
+(``service.cell.trajectory.simulate`` on an extended profile), with voltage noise; diagnose
 sees only the recording, the OCV table and the capacity.
 """
 
@@ -25,12 +25,12 @@ from research.validate import (
     write_case,
 )
 from research.validate import CASES as VALIDATION_CASES
-from service.cell.model import simulate
 from service.cell.profile import (
     CellProfile,
     Extensions,
     SurfaceDiffusionSpec,
 )
+from service.cell.trajectory import simulate
 from service.cli import UserError, main
 from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
 from service.recording import load_recording
@@ -188,7 +188,7 @@ def test_bad_inputs_name_the_file_or_field(tmp_path, capsys):
 
 @pytest.mark.parametrize("name", ["hysteresis", "temperature", "diffusion", "capacity", "current_bias", "kinetics", "ocv"])
 def test_each_extension_is_the_estimator_model(name):
-    """Fitting-time simulation of an extension == service.cell.model.simulate on the saved profile."""
+    """Fitting-time simulation of an extension == service.cell.trajectory.simulate on the saved profile."""
     from service.cell.fitting import FitSegment, encode_point
     from service.diagnosis.effects import EFFECTS, Context
     from service.diagnosis.pipeline import _score_profile

@@ -84,9 +84,9 @@ def _two_point(scale: float, tail: str = "rest", sign: float = 1.0, polarisation
     or under 2C load after 88 % (a cut-off near empty, where the OCV is steep) (``tail``).
     The model the check is given is the true one at the *stated* capacity, with its
     polarisation off by ``polarisation_error`` (a fraction)."""
-    from service.cell.model import simulate
-    from service.cell.profile import Extensions
     from research.validate import TRUE, base_profile
+    from service.cell.profile import Extensions
+    from service.cell.trajectory import simulate
 
     stated = base_profile() if ocv is None else base_profile().model_copy(update={"ocv": ocv})
     cap = stated.capacity_ah
@@ -239,9 +239,9 @@ def test_a_nominal_or_constant_temperature_recording_is_not_nominated(t_start, t
 def test_current_steps_measure_a_slow_exchange_current(level, i0_c):
     """The estimator's own model with a Butler-Volmer term (research.validate's grid,
     i0 0.03 / 0.06 C): the step statistic finds i0 within 10 % and nominates kinetics."""
-    from service.diagnosis.signatures import step_kinetics
     from research.validate import CAP as GRID_CAP
     from research.validate import simulate_case
+    from service.diagnosis.signatures import step_kinetics
 
     for seed in (0, 1):
         c = simulate_case("kinetics", level, seed)
@@ -255,9 +255,9 @@ def test_current_steps_measure_a_slow_exchange_current(level, i0_c):
 def test_current_steps_of_a_linear_cell_do_not_nominate_kinetics(effect):
     """Without a Butler-Volmer term the steps are linear in the current (every other effect of
     the grid is linear or slow), whatever else the cell does."""
-    from service.diagnosis.signatures import step_kinetics
     from research.validate import CAP as GRID_CAP
     from research.validate import simulate_case
+    from service.diagnosis.signatures import step_kinetics
 
     for seed in (0, 1):
         c = simulate_case(effect, "clear", seed)
@@ -267,9 +267,9 @@ def test_current_steps_of_a_linear_cell_do_not_nominate_kinetics(effect):
 
 
 def test_current_steps_outside_the_usable_part_or_too_few_are_not_read():
-    from service.diagnosis.signatures import STEP_MIN_STEPS, step_kinetics
     from research.validate import CAP as GRID_CAP
     from research.validate import simulate_case
+    from service.diagnosis.signatures import STEP_MIN_STEPS, step_kinetics
 
     c = simulate_case("kinetics", "clear", 0)
     t, i, v, temp = c.T

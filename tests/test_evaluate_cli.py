@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cell.model import simulate
 from service.cell.profile import load_profile
+from service.cell.trajectory import simulate
 from service.cli import main
 from service.estimators.registry import ESTIMATORS
 from service.evaluation.metrics import CONVERGENCE_HOLD_S, convergence_time, score

@@ -14,14 +14,11 @@ from service.cell.fitting import (
     excited_window,
     fit_parameters,
     point_from_x,
-    simulate_batch,
 )
-from service.cell.model import simulate
 from service.cell.profile import (
     FARADAY,
     GAS_CONSTANT,
     KELVIN,
-    ArrheniusSpec,
     CellProfile,
     Extensions,
     HysteresisSpec,
@@ -29,6 +26,7 @@ from service.cell.profile import (
     ParameterPoint,
     SocResistanceSpec,
 )
+from service.cell.trajectory import simulate
 from service.recording import Recording
 
 TRUE = ParameterPoint(r_ohm=0.030, r_ct=0.015, c_dl=300.0, m=0.9, r_df=0.020, c_df=9000.0, n=0.85)
@@ -54,24 +52,6 @@ def pulse_current(n: int, capacity_ah: float, seed: int, dt_s: float = 1.0) -> n
     cur = np.array(out[:n], dtype=float)
     cur[: int(60 / dt_s)] = 0.0
     return cur
-
-
-def test_batch_simulation_equals_model():
-    prof = profile(
-        hysteresis=HysteresisSpec(u_h_max_v=0.02, rate=40.0),
-        extensions=Extensions(current_bias_a=0.03, capacity_scale=0.9, kinetics_i0_a=1.5,
-                              arrhenius=ArrheniusSpec(ref_temp_c=25.0, ea_r_ohm_j_mol=2e4, ea_r_ct_j_mol=4e4)),
-    )
-    n = 800
-    t = np.arange(n, dtype=float)
-    i = pulse_current(n, 2.0, 3)
-    temp = np.linspace(10.0, 35.0, n)
-    v_ref, soc_ref = simulate(prof, t, i, temp, 0.9, u_h0=0.01)
-    params = prof.parameters_at(float(temp[0]), n_cells=2)
-    v, soc = simulate_batch(prof, t, i, temp, np.full(2, 0.9), params, u_h0=0.01,
-                            params_at=lambda tc: prof.parameters_at(tc, n_cells=2))
-    assert np.max(np.abs(v[:, 1] - v_ref)) < 1e-12
-    assert np.max(np.abs(soc[:, 0] - soc_ref)) < 1e-12
 
 
 def _pulse_drive(prof, n: int, seed: int, scale: float = 1.0, temp_c: float = 25.0):

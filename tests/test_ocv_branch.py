@@ -20,10 +20,9 @@ from service.cell.fitting import (
     excited_window,
     fit_parameters,
     last_current_direction,
-    simulate_batch,
 )
-from service.cell.model import simulate
 from service.cell.profile import CellProfile, HysteresisSpec, OcvSpec
+from service.cell.trajectory import simulate, simulate_batch
 from service.characterisation.characterise import split_at_rests
 from service.recording import Recording
 from tests.test_fitting import TRUE as POINT

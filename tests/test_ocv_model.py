@@ -10,7 +10,7 @@ import pytest
 
 from service.cell.coulomb import coulomb_soc
 from service.cell.hysteresis import hysteresis_decay, hysteresis_step
-from service.cell.model import MtsFom, simulate, soc_step
+from service.cell.model import MtsFom, soc_step
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.profile import (
     ArrheniusSpec,
@@ -23,6 +23,7 @@ from service.cell.profile import (
     load_profile,
     save_profile,
 )
+from service.cell.trajectory import simulate
 
 # make_monotone adds 1e-6 V per grid step so rows are strictly increasing
 MONOTONE_NUDGE_V = 1e-6 * GRID_POINTS

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cell.model import simulate
 from service.cell.profile import BranchSpec, CellProfile, Extensions
+from service.cell.trajectory import simulate
 from service.characterisation.characterise import characterise
 from service.characterisation.relaxation import long_rests, measure_slow_relaxation, rc_voltage
 from service.recording import Recording

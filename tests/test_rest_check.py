@@ -11,8 +11,8 @@ import pytest
 from conftest import make_nmc_profile, write_recording_csv
 
 from research.rest_check import main, read_rests
-from service.cell.model import simulate
 from service.cell.profile import save_profile
+from service.cell.trajectory import simulate
 from service.cell.truth import truth_and_start
 from service.recording import load_recording
 

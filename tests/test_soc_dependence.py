@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 from test_fitting import nmc_like_ocv, pulse_current
 
-from service.cell.fitting import simulate_batch
-from service.cell.model import simulate
 from service.cell.profile import CellProfile, Extensions, ParameterPoint, SocResistanceSpec
 from service.cell.soc_dependence import SocScaleTable, pulse_resistances, scale_rows
+from service.cell.trajectory import simulate
 from service.estimators.ecm2rc_ekf import Ecm2RcEkf
 from service.estimators.pipeline import fomiukf
 from service.recording import load_recording
@@ -73,20 +72,6 @@ def test_constant_scales_equal_scaled_parameters():
     v_u, _ = simulate(_profile(_u_shaped()), t, i, temp, 0.9)
     v_plain, _ = simulate(_profile(None), t, i, temp, 0.9)
     assert np.max(np.abs(v_u - v_plain)) > 5e-3
-
-
-def test_batch_simulation_with_soc_scales_equals_model():
-    prof = _profile(_u_shaped((10.0, 30.0)))
-    n = 900
-    t = np.arange(n, dtype=float)
-    i = pulse_current(n, 2.0, 6)
-    temp = np.linspace(12.0, 28.0, n)
-    v_ref, soc_ref = simulate(prof, t, i, temp, 0.95)
-    params = prof.parameters_at(float(temp[0]), n_cells=2)
-    v, soc = simulate_batch(prof, t, i, temp, np.full(2, 0.95), params,
-                            params_at=lambda tc: prof.parameters_at(tc, n_cells=2))
-    assert np.max(np.abs(v[:, 0] - v_ref)) < 1e-12
-    assert np.max(np.abs(soc[:, 1] - soc_ref)) < 1e-12
 
 
 def _hppc(prof: CellProfile, levels: int = 9, pulse_a: float = 2.0) -> tuple[np.ndarray, ...]:

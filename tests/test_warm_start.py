@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from service.cell.model import MtsFom, simulate
+from service.cell.model import MtsFom
 from service.cell.profile import BranchSpec, CellProfile, Extensions, HysteresisSpec, save_profile
+from service.cell.trajectory import simulate
 from service.cli import main
 from service.estimators.ecm2rc_ekf import Ecm2RcEkf, Ecm2RcEkfBank
 from service.estimators.pipeline import PackEstimator, foukf

@@ -2,7 +2,7 @@
 
 Shared by ``socd fit`` (characterise a cell) and ``socd diagnose`` (fit the base model
 before naming what it misses).  The model fitted is :class:`service.cell.model.MtsFom`
-itself, run through :func:`service.cell.model.simulate` with ``N`` parameter
+itself, run through :func:`service.cell.trajectory.simulate_batch` with ``N`` parameter
 candidates at once, so what is fitted is exactly what the estimator runs.
 
 Search space (all bounded, physical)::
@@ -37,14 +37,11 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy.optimize import differential_evolution, least_squares
 
-from service.cell.fractional import cpe_step, push_history
-from service.cell.hysteresis import hysteresis_step
-from service.cell.model import DEFAULT_MEMORY_LENGTH, MtsFom, kinetic_overpotential, soc_step, terminal_voltage
+from service.cell.model import DEFAULT_MEMORY_LENGTH
 from service.cell.profile import (
     CellParameters,
     CellProfile,
@@ -53,6 +50,7 @@ from service.cell.profile import (
     kinetic_floor_ohm,
     lift_to_kinetic_floor,
 )
+from service.cell.trajectory import simulate_batch
 from service.cell.units import SECONDS_PER_HOUR
 
 #: bounds of the search coordinates (see module docstring)
@@ -222,86 +220,6 @@ def estimate_r_ohm(segments: list[FitSegment]) -> float | None:
         return None
     r = float(np.median(np.concatenate(vals)))
     return r if r > 0 else None
-
-
-# -- the model, batched ---------------------------------------------------------------------
-def simulate_batch(
-    profile: CellProfile,
-    time_s: np.ndarray,
-    current_a: np.ndarray,
-    temp_c: np.ndarray,
-    soc0: np.ndarray,
-    params: CellParameters,
-    memory_length: int = DEFAULT_MEMORY_LENGTH,
-    u_h0: np.ndarray | float = 0.0,
-    params_at: Callable[[float], CellParameters] | None = None,
-    temp_update_k: float = 0.2,
-    surface: tuple[np.ndarray, np.ndarray] | None = None,
-    u_h0_branch: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`service.cell.model.simulate` for ``N`` candidates, about twice as fast.
-
-    The same parts of :class:`MtsFom` in the same order (SOC, hysteresis, CPE branches,
-    Zeng Eq. 6, Butler-Volmer); only the OCV lookup, which feeds no state, is done once
-    for the whole trajectory after the loop.  ``params_at(T)`` (optional) gives the
-    candidates' parameters at temperature ``T``; they are updated when the temperature
-    moves by more than ``temp_update_k`` (the rule of ``simulate``).  ``surface =
-    (tau_s[N], gain[N])`` (optional) sets the candidates' solid-diffusion surface lag
-    (otherwise the profile's ``extensions.diffusion_surface``, if any).  ``u_h0_branch``
-    adds that many of each candidate's ``U_H`` to ``u_h0`` (see :class:`FitSegment`).
-    Equality with ``simulate`` is checked in the tests.
-    """
-    n = params.r.shape[0]
-    soc0 = np.broadcast_to(np.asarray(soc0, dtype=float), (n,))
-    t0 = float(temp_c[0])
-    p = params_at(t0) if params_at is not None else params
-    u_h_start = np.broadcast_to(u_h0, (n,)) + u_h0_branch * p.u_h_max
-    model = MtsFom(profile, p, soc0, memory_length, u_h_start)
-    if surface is not None:
-        model.surface_tau_s = np.broadcast_to(np.asarray(surface[0], dtype=float), (n,)).copy()
-        model.surface_gain = np.broadcast_to(np.asarray(surface[1], dtype=float), (n,)).copy()
-    surf_on = model.surface_tau_s is not None
-    dt = np.diff(time_s, prepend=time_s[0])
-    size = time_s.size
-    branch_v = np.empty((size, n))
-    ohm_v = np.empty((size, n))
-    u_h = np.empty((size, n))
-    soc = np.empty((size, n))
-    x_surf = np.zeros((size, n)) if surf_on else None
-    i_true = np.empty((size, n))
-    last_t = t0
-    hyst = bool(np.any(p.u_h_max != 0)) or bool(np.any(model.u_h != 0))
-    scaled = model.soc_scale is not None
-    with np.errstate(all="ignore"):
-        for k in range(size):
-            if params_at is not None and abs(temp_c[k] - last_t) > temp_update_k:
-                model.set_params(params_at(float(temp_c[k])))
-                p = model.params
-                last_t = float(temp_c[k])
-            i = current_a[k] - p.current_bias_a
-            r_ohm, r, c = model.effective_resistances(np.full(n, temp_c[k])) if scaled else (p.r_ohm, p.r, p.c)
-            model.soc = soc_step(model.soc, i, dt[k], p.capacity_ah)
-            if surf_on:
-                model.surface_step(i, dt[k])
-                x_surf[k] = model.x_surf
-            if hyst:
-                model.u_h = hysteresis_step(model.u_h, i, dt[k], p.u_h_max, p.hyst_rate, p.capacity_ah)
-            u = cpe_step(model.history, i[:, None], dt[k], r, c, p.alpha, model._weights)
-            push_history(model.history, u)
-            branch_v[k] = u.sum(axis=-1)
-            ohm_v[k] = r_ohm * i
-            u_h[k] = model.u_h
-            soc[k] = model.soc
-            i_true[k] = i
-        temp_tn = np.broadcast_to(np.asarray(temp_c, dtype=float)[:, None], soc.shape)
-        saved = model.soc
-        model.soc = soc
-        ocv = model.open_circuit(temp_tn) if not surf_on else model.open_circuit(temp_tn, soc - x_surf)
-        model.soc = saved
-        v = terminal_voltage(ocv, model.hysteresis_voltage(u_h, p.u_h_max), 1.0, ohm_v, branch_v)
-        if np.any(np.isfinite(p.kinetics_i0_a)):
-            v = v - kinetic_overpotential(i_true, p.kinetics_i0_a[None, :], temp_tn)
-    return v, soc
 
 
 # -- parameter coding ---------------------------------------------------------------------

@@ -27,6 +27,8 @@ from service.cell.soc_dependence import scaled_resistances
 from service.cell.units import SECONDS_PER_HOUR
 
 DEFAULT_MEMORY_LENGTH = 16
+#: the temperature move (K) after which a simulation re-reads the parameters along a recording
+TEMP_FOLLOW_K = 0.2
 
 
 def soc_step(soc: np.ndarray, current_a: np.ndarray, dt_s, capacity_ah: np.ndarray) -> np.ndarray:
@@ -95,7 +97,7 @@ class MtsFom:
         self._branch_sign = profile.hysteresis.branch_sign
         self._table_u_h = profile.hysteresis.u_h_max_v
         self.history = np.zeros((n, b, self.memory_length))
-        self._weights = gl_weights(params.alpha, self.memory_length)
+        self.weights = gl_weights(params.alpha, self.memory_length)
         entropic = profile.extensions.arrhenius
         self._entropic = 0.0 if entropic is None else entropic.entropic_v_per_k
         self._entropic_ref = 25.0 if entropic is None else entropic.ref_temp_c
@@ -124,7 +126,7 @@ class MtsFom:
 
     def set_params(self, params: CellParameters) -> None:
         self.params = params
-        self._weights = gl_weights(params.alpha, self.memory_length)
+        self.weights = gl_weights(params.alpha, self.memory_length)
 
     def open_circuit(self, temp_c: np.ndarray, soc: np.ndarray | None = None) -> np.ndarray:
         v = self.ocv.ocv(self.soc if soc is None else soc, temp_c)
@@ -147,42 +149,11 @@ class MtsFom:
         self.soc = soc_step(self.soc, i, dt_s, p.capacity_ah)
         self.surface_step(i, dt_s)
         self.u_h = hysteresis_step(self.u_h, i, dt_s, p.u_h_max, p.hyst_rate, p.capacity_ah)
-        u = cpe_step(self.history, i[:, None], dt_s, r, c, p.alpha, self._weights)
+        u = cpe_step(self.history, i[:, None], dt_s, r, c, p.alpha, self.weights)
         push_history(self.history, u)
         ocv = self.open_circuit(temp_c) if self.surface_tau_s is None else self.open_circuit(temp_c, self.soc - self.x_surf)
         v = terminal_voltage(ocv, self.hysteresis_voltage(self.u_h, p.u_h_max), r_ohm, i, u.sum(axis=-1))
         return v - kinetic_overpotential(i, p.kinetics_i0_a, temp_c)
-
-
-def simulate(
-    profile: CellProfile,
-    time_s: np.ndarray,
-    current_a: np.ndarray,
-    temp_c: np.ndarray,
-    soc0: float | np.ndarray,
-    params: CellParameters | None = None,
-    memory_length: int = DEFAULT_MEMORY_LENGTH,
-    u_h0: float | np.ndarray = 0.0,
-    temperature_dependent: bool = True,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Simulate terminal voltage and SOC along a recording.
-
-    With ``params`` given (``N`` candidates), they are used as they are at every
-    step and the result is ``[T, N]``; otherwise the profile's parameters follow the
-    recorded temperature (``temperature_dependent``) and the result is ``[T]``.
-    """
-    single = params is None
-    if single:
-        params = profile.parameters_at(float(temp_c[0]), n_cells=1)
-    n = params.r.shape[0]
-    model = MtsFom(profile, params, np.broadcast_to(soc0, (n,)), memory_length, np.broadcast_to(u_h0, (n,)))
-    multi_temp = single and (
-        (temperature_dependent and len(profile.parameters) > 1) or profile.extensions.arrhenius is not None
-    )
-    v, soc = drive(model, time_s, current_a, temp_c, follow_temperature=multi_temp)
-    if single:
-        return v[:, 0], soc[:, 0]
-    return v, soc
 
 
 def drive(
@@ -194,7 +165,10 @@ def drive(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Step every cell of ``model`` along one recorded current and temperature; return
     terminal voltage and SOC ``[T, N]``.  With ``follow_temperature`` the profile's
-    parameters are re-read whenever the temperature has moved more than 0.2 °C."""
+    parameters are re-read whenever the temperature has moved more than ``TEMP_FOLLOW_K``.
+
+    This is the step-by-step reference that :func:`service.cell.trajectory.simulate` computes
+    array-wise along a recording."""
     n = model.soc.size
     dt = np.diff(time_s, prepend=time_s[0])
     v = np.empty((time_s.size, n))
@@ -202,7 +176,7 @@ def drive(
     last_t = float(temp_c[0])
     for k in range(time_s.size):
         tk = np.full(n, temp_c[k])
-        if follow_temperature and abs(temp_c[k] - last_t) > 0.2:
+        if follow_temperature and abs(temp_c[k] - last_t) > TEMP_FOLLOW_K:
             model.set_params(model.profile.parameters_at(tk))
             last_t = float(temp_c[k])
         v[k] = model.step(dt[k], np.full(n, current_a[k]), tk)

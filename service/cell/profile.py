@@ -127,7 +127,7 @@ class SurfaceDiffusionSpec(_Strict):
     steep (low SOC on NMC) -- the SOC dependence a constant-R branch cannot give.
     ``gain`` is the steady-state surface deficit per 1C (fraction of SOC).  ``x`` starts
     at 0 (a rested cell).  Simulated by :mod:`service.cell.model` and
-    :func:`service.cell.fitting.simulate_batch`; the paper's pipeline
+    :func:`service.cell.trajectory.simulate_batch`; the paper's pipeline
     (:class:`service.estimators.pipeline.PackEstimator`: ``fomiukf``, ``foukf``,
     ``fom-single-scale`` and the service) propagates ``x`` from the measured current and
     reads its OCV at the surface.  The 2-RC EKF baseline ignores the term.

@@ -63,9 +63,10 @@ def scaled_resistances(r_ohm: np.ndarray, r: np.ndarray, c: np.ndarray, g_ohm: n
                        g_pol: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(R_ohm·g_ohm, R·g_pol, C/g_pol)`` with ``g_pol`` on the two base branches (charge
     transfer, diffusion) only; extra branches from extensions keep their values.
-    ``r_ohm``: ``[N]``; ``r, c``: ``[N, B]``; ``g_*``: ``[N]``."""
-    g = np.ones(r.shape)
-    g[:, :2] = g_pol[:, None]
+    ``r_ohm``: ``[N]``; ``r, c``: ``[N, B]``; ``g_*``: ``[N]``, or ``[T, N]`` for a
+    recording's samples (the result is then ``[T, N]`` and ``[T, N, B]``)."""
+    g = np.ones(np.shape(g_pol) + r.shape[-1:])
+    g[..., :2] = g_pol[..., None]
     return r_ohm * g_ohm, r * g, c / g
 
 

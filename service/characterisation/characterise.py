@@ -42,7 +42,6 @@ from service.cell.current_steps import (
     steps_resolve_kinetics,
 )
 from service.cell.fitting import LINEAR_I0_A, FitSegment, fit_parameters, last_current_direction
-from service.cell.model import simulate
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.profile import (
     BranchSpec,
@@ -57,6 +56,7 @@ from service.cell.profile import (
     lift_to_kinetic_floor,
 )
 from service.cell.soc_dependence import pulse_resistances, scale_rows
+from service.cell.trajectory import simulate
 from service.cell.truth import truth_and_start
 from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_sources import (

@@ -14,7 +14,7 @@ Protocol (stated in every report and JSON):
 * **Fit at full rate**: base and extended models are fitted on the same fit part at
   the recording's own sampling rate (the short G-L memory counts samples, so a
   subsampled fit would not transfer).  The held-out RMSEs come from
-  :func:`service.cell.model.simulate` on the saved profiles.
+  :func:`service.cell.trajectory.simulate` on the saved profiles.
 * **Evidence** for each effect, comparable across effects:
   held-out relative RMSE gain ``1 - after/before`` (the score); ``ΔBIC`` on the fit
   part with an effective sample count ``n_eff = n / τ_int`` (τ_int the integrated
@@ -65,8 +65,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from service.cell.fitting import FitSegment, encode_point, estimate_r_ohm, fit_parameters
-from service.cell.model import simulate
 from service.cell.profile import CellProfile, OcvSpec, ParameterPoint
+from service.cell.trajectory import simulate
 from service.diagnosis.effects import (
     DIFFUSION_MIN_TAU_S,
     EFFECTS,

@@ -208,7 +208,7 @@ def write_report(dg, out_dir: str | Path) -> Path:
         (f"- Initial state: {dg.protocol['initial_state']}; SOC0 = {dg.base['soc0']:.3f} "
         f"from {dg.base['v_rest0']:.4f} V."),
         ("- Every model is fitted at the recording's own rate; held-out RMSEs come from "
-        "`service.cell.model.simulate` on the saved profiles (the model `socd evaluate` runs)."),
+        "`service.cell.trajectory.simulate` on the saved profiles (the model `socd evaluate` runs)."),
         (f"- Significance (all required): held-out gain ≥ {100 * th['min_rel_gain']:.0f} % "
         f"({100 * th.get('min_rel_gain_nominated', th['min_rel_gain']):.0f} % for an effect its own signature "
         f"nominates: {', '.join(k for k, v in dg.signatures.items() if v.get('nominated')) or 'none here'}); "

@@ -9,14 +9,14 @@ parameters.  Extensions enter exactly where :mod:`service.cell.model` and
 * ``capacity_scale``, ``current_bias_a``, ``kinetics_i0_a``, the hysteresis and extra
   CPE branches are fields of :class:`CellParameters`, per candidate;
 * Arrhenius laws rescale ``R_ohm, R_ct, R_df`` when the temperature moves by more than
-  0.2 K (the rule of :func:`service.cell.model.simulate`);
+  0.2 K (the rule of :func:`service.cell.trajectory.simulate`);
 * the solid-diffusion surface lag (per candidate ``τ``, gain) is passed to
-  :func:`service.cell.fitting.simulate_batch`, which applies it as :class:`MtsFom` does;
+  :func:`service.cell.trajectory.simulate_batch`, which applies it as :class:`MtsFom` does;
 * the entropic term and an OCV correction are additive on the OCV, hence on the
   terminal voltage, and are added to the output.
 
 The reported "after" figures do not come from here: they come from
-:func:`service.cell.model.simulate` run on the extended :class:`CellProfile` that
+:func:`service.cell.trajectory.simulate` run on the extended :class:`CellProfile` that
 diagnose saves, so what is scored is what ``socd evaluate`` and the service run.
 """
 
@@ -26,13 +26,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.cell.fitting import FitSegment, decode, simulate_batch
+from service.cell.fitting import FitSegment, decode
 from service.cell.ocv import OcvTable
 from service.cell.profile import GAS_CONSTANT, KELVIN, CellParameters, CellProfile
-
-#: temperature change that triggers a parameter update (as in service.cell.model.simulate)
-TEMP_UPDATE_K = 0.2
-
+from service.cell.trajectory import simulate_batch
 
 @dataclass
 class Mods:
@@ -127,7 +124,7 @@ def simulate_candidates(
     dyn_temp = any(e is not None for e in (mods.ea_r_ohm, mods.ea_r_ct, mods.ea_r_df))
     v, soc = simulate_batch(
         profile, seg.time_s, seg.current_a, seg.temperature_c, soc0, mods.params, memory_length, mods.u_h0,
-        params_at=(lambda t: _params_at(mods, t)) if dyn_temp else None, temp_update_k=TEMP_UPDATE_K,
+        params_at=(lambda t: _params_at(mods, t)) if dyn_temp else None,
         surface=None if mods.surface_tau_s is None else (mods.surface_tau_s, mods.surface_gain),
     )
     v = v + mods.ocv_offset(soc, seg.temperature_c)

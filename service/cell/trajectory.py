@@ -1,0 +1,176 @@
+"""The MTS-FOM along a whole recording, for ``N`` cells or parameter candidates at once.
+
+:class:`service.cell.model.MtsFom` advances one sample at a time, as the online
+estimators need.  Along a recorded current most of the model is known before the CPE
+branch voltages are, so here each part is computed for the whole recording at once:
+
+* the SOC (Zeng Eq. 4) is a running difference, and the SOC-dependent resistance scales
+  follow from it;
+* the hysteresis voltage (Zeng Eq. 1) and the solid-diffusion surface lag are first-order
+  recursions whose coefficients are known in advance;
+* the CPE branches (Zeng Eqs. 2-3, implicit) are a linear recursion in their own last
+  ``L`` values (:func:`service.cell.fractional.cpe_trajectory`);
+* the OCV, Zeng Eq. 6 and the Butler-Volmer term have no state.
+
+The parts are the functions ``MtsFom.step`` calls, applied in the same order, with the
+parameters re-read when the temperature moves (the rule of :func:`drive`).  Equality with
+stepping :class:`MtsFom` is checked in the tests.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from service.cell.fractional import cpe_trajectory
+from service.cell.hysteresis import hysteresis_decay
+from service.cell.model import (
+    DEFAULT_MEMORY_LENGTH,
+    TEMP_FOLLOW_K,
+    MtsFom,
+    kinetic_overpotential,
+    terminal_voltage,
+)
+from service.cell.profile import CellParameters, CellProfile
+from service.cell.soc_dependence import scaled_resistances
+from service.cell.units import SECONDS_PER_HOUR
+
+
+def parameter_updates(temp_c: np.ndarray, update_k: float) -> list[int]:
+    """Sample indices at which the parameters are re-read: the temperature has moved more
+    than ``update_k`` since the last read (the first read is at sample 0)."""
+    starts = [0]
+    last = float(temp_c[0])
+    for k, t in enumerate(np.asarray(temp_c, dtype=float).tolist()):
+        if abs(t - last) > update_k:
+            starts.append(k)
+            last = t
+    return starts
+
+
+def first_order_trajectory(decay: np.ndarray, drive: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """``y_k = decay_k · y_{k-1} + drive_k`` from ``y_{-1} = start``, for ``[T, N]`` inputs."""
+    out = np.empty_like(drive)
+    y = start
+    for k in range(drive.shape[0]):
+        y = decay[k] * y + drive[k]
+        out[k] = y
+    return out
+
+
+def simulate_batch(
+    profile: CellProfile,
+    time_s: np.ndarray,
+    current_a: np.ndarray,
+    temp_c: np.ndarray,
+    soc0: np.ndarray,
+    params: CellParameters,
+    memory_length: int = DEFAULT_MEMORY_LENGTH,
+    u_h0: np.ndarray | float = 0.0,
+    params_at: Callable[[float], CellParameters] | None = None,
+    temp_update_k: float = TEMP_FOLLOW_K,
+    surface: tuple[np.ndarray, np.ndarray] | None = None,
+    u_h0_branch: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Terminal voltage and SOC ``[T, N]`` of ``N`` candidates along one recording.
+
+    ``params_at(T)`` (optional) gives the candidates' parameters at temperature ``T``;
+    they are re-read when the temperature moves by more than ``temp_update_k``.
+    ``surface = (tau_s[N], gain[N])`` (optional) sets the candidates' solid-diffusion
+    surface lag (otherwise the profile's ``extensions.diffusion_surface``, if any).
+    ``u_h0_branch`` adds that many of each candidate's ``U_H`` to ``u_h0`` (see
+    :class:`service.cell.fitting.FitSegment`).
+    """
+    n = params.r.shape[0]
+    soc0 = np.broadcast_to(np.asarray(soc0, dtype=float), (n,))
+    temp_c = np.asarray(temp_c, dtype=float)
+    p = params_at(float(temp_c[0])) if params_at is not None else params
+    u_h_start = np.broadcast_to(u_h0, (n,)) + u_h0_branch * p.u_h_max
+    model = MtsFom(profile, p, soc0, memory_length, u_h_start)
+    if surface is not None:
+        model.surface_tau_s = np.broadcast_to(np.asarray(surface[0], dtype=float), (n,)).copy()
+        model.surface_gain = np.broadcast_to(np.asarray(surface[1], dtype=float), (n,)).copy()
+    dt = np.diff(time_s, prepend=time_s[0])
+    size = time_s.size
+    starts = parameter_updates(temp_c, temp_update_k) if params_at is not None else [0]
+    parts: list[tuple[np.ndarray, ...]] = []
+    hyst = bool(np.any(p.u_h_max != 0)) or bool(np.any(model.u_h != 0))
+    with np.errstate(all="ignore"):
+        for k0, k1 in zip(starts, starts[1:] + [size]):
+            if k0 > 0:
+                model.set_params(params_at(float(temp_c[k0])))
+            parts.append(_advance(model, dt[k0:k1], current_a[k0:k1], temp_c[k0:k1], hyst))
+        i_true, soc, u_h, x_surf, ohm_v, branch_v = (np.concatenate(a, axis=0) for a in zip(*parts))
+        p = model.params
+        temp_tn = np.broadcast_to(temp_c[:, None], soc.shape)
+        ocv = model.open_circuit(temp_tn, soc if model.surface_tau_s is None else soc - x_surf)
+        v = terminal_voltage(ocv, model.hysteresis_voltage(u_h, p.u_h_max), 1.0, ohm_v, branch_v)
+        if np.any(np.isfinite(p.kinetics_i0_a)):
+            v = v - kinetic_overpotential(i_true, p.kinetics_i0_a[None, :], temp_tn)
+    return v, soc
+
+
+def _advance(model: MtsFom, dt: np.ndarray, current_a: np.ndarray, temp_c: np.ndarray,
+             hyst: bool) -> tuple[np.ndarray, ...]:
+    """Advance ``model`` over samples with fixed parameters; return ``[T, N]`` arrays of
+    current, SOC, ``U_h``, surface deficit, ohmic drop and branch-voltage sum, and leave
+    ``model`` in its end state (as ``MtsFom.step`` would)."""
+    p = model.params
+    h = dt[:, None]
+    i = current_a[:, None] - p.current_bias_a
+    soc_start = model.soc
+    # Zeng Eq. 4 (service.cell.model.soc_step), the same operations in the same order
+    soc = np.subtract.accumulate(np.vstack([soc_start[None], i * h / (SECONDS_PER_HOUR * p.capacity_ah)]))[1:]
+    r_ohm, r, c = p.r_ohm, p.r, p.c
+    if model.soc_scale is not None:  # resistances at the SOC before each step, as MtsFom.step
+        soc_before = np.vstack([soc_start[None], soc[:-1]])
+        g_ohm, g_pol = model.soc_scale(soc_before, np.broadcast_to(temp_c[:, None], soc.shape))
+        r_ohm, r, c = scaled_resistances(p.r_ohm, p.r, p.c, g_ohm, g_pol)
+    x_surf = np.zeros_like(soc)
+    if model.surface_tau_s is not None:  # service.cell.model.surface_deficit_step
+        a = np.exp(-h / model.surface_tau_s)
+        x_surf = first_order_trajectory(a, (1.0 - a) * model.surface_gain * i / p.capacity_ah, model.x_surf)
+        model.x_surf = x_surf[-1]
+    u_h = np.broadcast_to(model.u_h, soc.shape)
+    if hyst:  # service.cell.hysteresis.hysteresis_step
+        a = hysteresis_decay(i, h, p.hyst_rate, p.capacity_ah)
+        u_h = first_order_trajectory(a, (1.0 - a) * (-np.sign(i)) * p.u_h_max, model.u_h)
+        model.u_h = u_h[-1]
+    branch = cpe_trajectory(i, dt, r, c, p.alpha, model.weights, model.history)
+    model.soc = soc[-1]
+    return i, soc, u_h, x_surf, r_ohm * i, branch.sum(axis=-1)
+
+
+def simulate(
+    profile: CellProfile,
+    time_s: np.ndarray,
+    current_a: np.ndarray,
+    temp_c: np.ndarray,
+    soc0: float | np.ndarray,
+    params: CellParameters | None = None,
+    memory_length: int = DEFAULT_MEMORY_LENGTH,
+    u_h0: float | np.ndarray = 0.0,
+    temperature_dependent: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Simulate terminal voltage and SOC along a recording.
+
+    With ``params`` given (``N`` candidates), they are used as they are at every
+    step and the result is ``[T, N]``; otherwise the profile's parameters follow the
+    recorded temperature (``temperature_dependent``) and the result is ``[T]``.
+    """
+    single = params is None
+    if single:
+        params = profile.parameters_at(float(temp_c[0]), n_cells=1)
+    n = params.r.shape[0]
+    follow = single and (
+        (temperature_dependent and len(profile.parameters) > 1) or profile.extensions.arrhenius is not None
+    )
+    v, soc = simulate_batch(
+        profile, time_s, current_a, temp_c, np.broadcast_to(soc0, (n,)), params, memory_length,
+        np.broadcast_to(u_h0, (n,)),
+        params_at=(lambda t: profile.parameters_at(t, n_cells=1)) if follow else None,
+    )
+    if single:
+        return v[:, 0], soc[:, 0]
+    return v, soc
