@@ -9,7 +9,7 @@ branch voltages are, so here each part is computed for the whole recording at on
 * the hysteresis voltage (Zeng Eq. 1) and the solid-diffusion surface lag are first-order
   recursions whose coefficients are known in advance;
 * the CPE branches (Zeng Eqs. 2-3, implicit) are a linear recursion in their own last
-  ``L`` values (:func:`service.cell.fractional.cpe_trajectory`);
+  ``L`` values, one banded linear system per branch (:func:`cpe_trajectory`);
 * the OCV, Zeng Eq. 6 and the Butler-Volmer term have no state.
 
 The parts are the functions ``MtsFom.step`` calls, applied in the same order, with the
@@ -22,8 +22,9 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
+from scipy.linalg.lapack import dtbtrs
 
-from service.cell.fractional import cpe_trajectory
+from service.cell.fractional import cpe_gain, push_history
 from service.cell.hysteresis import hysteresis_decay
 from service.cell.model import (
     DEFAULT_MEMORY_LENGTH,
@@ -121,7 +122,8 @@ def _advance(model: MtsFom, dt: np.ndarray, current_a: np.ndarray, temp_c: np.nd
     i = current_a[:, None] - p.current_bias_a
     soc_start = model.soc
     # Zeng Eq. 4 (service.cell.model.soc_step), the same operations in the same order
-    soc = np.subtract.accumulate(np.vstack([soc_start[None], i * h / (SECONDS_PER_HOUR * p.capacity_ah)]))[1:]
+    charge = i * h / (SECONDS_PER_HOUR * p.capacity_ah)
+    soc = np.subtract.accumulate(np.vstack([soc_start[None], charge]))[1:]
     r_ohm, r, c = p.r_ohm, p.r, p.c
     if model.soc_scale is not None:  # resistances at the SOC before each step, as MtsFom.step
         soc_before = np.vstack([soc_start[None], soc[:-1]])
@@ -130,7 +132,8 @@ def _advance(model: MtsFom, dt: np.ndarray, current_a: np.ndarray, temp_c: np.nd
     x_surf = np.zeros_like(soc)
     if model.surface_tau_s is not None:  # service.cell.model.surface_deficit_step
         a = np.exp(-h / model.surface_tau_s)
-        x_surf = first_order_trajectory(a, (1.0 - a) * model.surface_gain * i / p.capacity_ah, model.x_surf)
+        drive = (1.0 - a) * model.surface_gain * i / p.capacity_ah
+        x_surf = first_order_trajectory(a, drive, model.x_surf)
         model.x_surf = x_surf[-1]
     u_h = np.broadcast_to(model.u_h, soc.shape)
     if hyst:  # service.cell.hysteresis.hysteresis_step
@@ -163,9 +166,8 @@ def simulate(
     if single:
         params = profile.parameters_at(float(temp_c[0]), n_cells=1)
     n = params.r.shape[0]
-    follow = single and (
-        (temperature_dependent and len(profile.parameters) > 1) or profile.extensions.arrhenius is not None
-    )
+    follow = single and ((temperature_dependent and len(profile.parameters) > 1)
+                         or profile.extensions.arrhenius is not None)
     v, soc = simulate_batch(
         profile, time_s, current_a, temp_c, np.broadcast_to(soc0, (n,)), params, memory_length,
         np.broadcast_to(u_h0, (n,)),
@@ -174,3 +176,57 @@ def simulate(
     if single:
         return v[:, 0], soc[:, 0]
     return v, soc
+
+
+def cpe_trajectory(
+    current_a: np.ndarray,
+    dt_s: np.ndarray,
+    r: np.ndarray,
+    c: np.ndarray,
+    alpha: np.ndarray,
+    weights: np.ndarray,
+    history: np.ndarray,
+    min_banded_steps: int = 64,
+) -> np.ndarray:
+    """Branch voltages ``U[T, N, B]`` of :func:`cpe_step` applied along a recording.
+
+    ``current_a[T, N]`` and ``dt_s[T]`` are the samples; ``r, c`` are ``[N, B]`` or, when
+    they change with the sample (SOC-dependent resistances), ``[T, N, B]``; ``alpha[N, B]``
+    and ``weights[N, B, L+1]`` as for :func:`cpe_step`.  ``history[N, B, L]`` (newest first)
+    is the state before the first sample and is left at the state after the last.
+
+    Along the recording the implicit G-L steps of one branch are one linear system,
+    ``(1 + g_k/R_k) U_k + Σ_{j=1..L} w_j U_{k-j} = g_k I_k``: lower triangular with ``L``
+    sub-diagonals, the history's part moved to the right-hand side.  It is solved by
+    forward substitution in LAPACK (``dtbtrs``), branch by branch; a few samples are
+    stepped directly.
+    """
+    steps, length = current_a.shape[0], history.shape[-1]
+    g = cpe_gain(np.asarray(dt_s, dtype=float)[:, None, None], c, alpha)
+    rhs = g * current_a[:, :, None]
+    diagonal = np.broadcast_to(1.0 + g / r, rhs.shape)
+    if steps < min_banded_steps:
+        out = np.empty_like(rhs)
+        for k in range(steps):
+            out[k] = (rhs[k] - np.einsum("...j,...j->...", weights[..., 1:], history)) / diagonal[k]
+            push_history(history, out[k])
+        return out
+    for k in range(min(length, steps)):  # U_{k-j} before the first sample: the history
+        rhs[k] -= np.einsum("nbj,nbj->nb", weights[..., k + 1:], history[..., :length - k])
+    out = _solve_lower_banded(diagonal, weights, rhs)
+    newest_first = np.concatenate([np.moveaxis(out[::-1], 0, -1), history], axis=-1)
+    history[...] = newest_first[..., :length]
+    return out
+
+
+def _solve_lower_banded(diagonal: np.ndarray, weights: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``U[T, N, B]`` of the banded systems of :func:`cpe_trajectory`, one per branch."""
+    length = weights.shape[-1] - 1
+    out = np.empty_like(rhs)
+    band = np.empty((length + 1, rhs.shape[0]))  # LAPACK's band storage: band[i, k] = A[k+i, k]
+    for n, b in np.ndindex(*rhs.shape[1:]):
+        band[0] = diagonal[:, n, b]
+        band[1:] = weights[n, b, 1:, None]
+        u, info = dtbtrs(band, rhs[:, n, b:b + 1], uplo="L")
+        out[:, n, b] = u[:, 0] if info == 0 else np.nan
+    return out
