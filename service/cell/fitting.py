@@ -115,6 +115,10 @@ class FitResult:
     n_evaluations: int
     #: the search coordinates that ended on a bound (:func:`coordinates_at_bounds`)
     at_bounds: list[str] = field(default_factory=list)
+    #: wall time of the search, and whether it was cut by ``max_seconds`` (its end point then
+    #: depends on the machine's speed and load) rather than ending by its own criteria
+    seconds: float = 0.0
+    time_bound: bool = False
 
 
 # -- data helpers -------------------------------------------------------------------------
@@ -414,8 +418,11 @@ def fit_parameters(
         r = obj_g.residuals(xt.T)
         return np.mean(r**2, axis=1)
 
+    cut = {"global": False, "polish": False}
+
     def stop(intermediate_result) -> bool:  # noqa: ARG001 - scipy matches the name
-        return time.perf_counter() > g_deadline
+        cut["global"] = time.perf_counter() > g_deadline
+        return cut["global"]
 
     de = differential_evolution(
         cost, bounds, seed=seed, popsize=max(6, 60 // p), maxiter=de_maxiter, tol=1e-4, mutation=(0.5, 1.0),
@@ -458,7 +465,7 @@ def fit_parameters(
         least_squares(fun, np.clip(x_best, lo + 1e-9, hi - 1e-9), jac=jac, bounds=(lo, hi), method="trf",
                       x_scale="jac", max_nfev=60, xtol=1e-6, ftol=1e-7)
     except _Deadline:
-        pass
+        cut["polish"] = True
     x_fin = best["x"] if np.isfinite(best["cost"]) else x_best
     if not np.isfinite(best["cost"]):
         best["cost"] = float(np.sum(obj.residuals(x_fin)[0] ** 2))
@@ -477,6 +484,8 @@ def fit_parameters(
         rmse_mv=rmse_mv,
         n_evaluations=obj_g.n_evaluations + obj.n_evaluations,
         at_bounds=coordinates_at_bounds(x_fin, names, lo, hi),
+        seconds=time.perf_counter() - t_start,
+        time_bound=cut["global"] or cut["polish"],
     )
 
 

@@ -391,7 +391,9 @@ def characterise(
                 f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}"
                 + (f", i0 {pt.i0_a:.2f} A" if pt.i0_a is not None else "")
                 + f"; fit RMSE {rmse:.1f} mV (textbook 2-RC {ecm[t].rmse_mv:.1f} mV)"
-                + (" from the 2-RC start point" if source != "fractional fit" else ""))
+                + (" from the 2-RC start point" if source != "fractional fit" else "")
+                + (f"; search stopped at its {max_seconds:g} s bound (--max-seconds)" if res.time_bound
+                   else f"; search finished in {res.seconds:.0f} s"))
         if outcome.at_bounds:
             rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}")
     profile = prof.model_copy(update={
