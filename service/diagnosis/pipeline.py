@@ -47,7 +47,7 @@ Protocol (stated in every report and JSON):
   recording's rests) and ``ΔBIC >= min_delta_bic``.  The verdict is the best significant
   effect, else ``none``.
 * **Size**: an effect whose fitted size is that of a healthy cell is not significant
-  (:attr:`Effect.implausible`; kinetics: apparent exchange current ``>= 0.18 C``,
+  (:attr:`Effect.implausible`; kinetics: apparent exchange current ``>= 0.15 C``,
   :data:`service.diagnosis.effects.KINETICS_MAX_I0_C`; diffusion: a surface lag faster than
   :data:`service.diagnosis.effects.DIFFUSION_MIN_TAU_S`).
 * **Ranking** (:func:`rank`): a significant effect its signature measured directly goes
