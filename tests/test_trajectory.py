@@ -115,3 +115,23 @@ def test_cpe_trajectory_equals_the_step_and_leaves_the_end_history(steps):
     out = cpe_trajectory(current, dt, r, c, alpha, weights, history)
     assert np.max(np.abs(out - ref)) < 1e-12
     assert np.max(np.abs(history - ref_history)) < 1e-12
+
+
+def test_bench_simulate_reports_throughput_and_agrees_with_stepping(capsys):
+    """`socd bench --simulate` (the bundled profile): both rates and the voltage difference of
+    the two simulations on the same inputs, as JSON. Only the agreement is asserted; speed
+    is for the benchmark to report, not for a test to time."""
+    import json
+
+    from service.cli import main
+
+    rc = main(["bench", "--simulate", "--cells", "3", "--steps", "300", "--reference-steps", "80",
+               "--json", "-"])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    result = json.loads(captured.out)
+    assert result["candidates"] == 3 and result["steps"] == 300 and result["reference_steps"] == 80
+    assert result["samples_per_s"] > 0 and result["reference_samples_per_s"] > 0
+    assert result["max_abs_diff_v"] < 1e-9
+    assert main(["bench", "--simulate", "--latency"]) == 2
+    assert "two different measurements" in capsys.readouterr().err

@@ -126,6 +126,20 @@ def bench_table(*names: str) -> Callable[[Path], str]:
     return render
 
 
+def simulate_bench_table(*names: str) -> Callable[[Path], str]:
+    """One row per ``socd bench --simulate --json`` run."""
+    def render(out: Path) -> str:
+        lines = ["| run | candidates | samples | along the recording, candidate-samples/s "
+                 "| stepping the model, candidate-samples/s | ratio | largest difference, V |",
+                 "|---|---|---|---|---|---|---|"]
+        for n in names:
+            b = _read(out, n)
+            lines.append(f"| `{n}` | {b['candidates']} | {b['steps']:,} | {b['samples_per_s']:,.0f} | "
+                         f"{b['reference_samples_per_s']:,.0f} | {b['ratio']:.0f}× | {b['max_abs_diff_v']:.1e} |")
+        return "\n".join(lines)
+    return render
+
+
 def latency_table(*names: str) -> Callable[[Path], str]:
     """One row per ``socd bench --latency --json`` run."""
     def render(out: Path) -> str:
@@ -471,6 +485,9 @@ socd evaluate --cell out/s25/pan_us06.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m
           group_table("s25/pan_us06_eval.json", PAN_GROUPS), 60),
     Table("bench", "bench.md", "for k in 1 2 3; do socd bench --cells 200 --json out/bench200_$k.json; done",
           bench_table("bench200_1.json", "bench200_2.json", "bench200_3.json"), 3),
+    Table("bench_simulate", "bench.md",
+          "for k in 1 2 3; do socd bench --simulate --json out/bench_simulate_$k.json; done",
+          simulate_bench_table("bench_simulate_1.json", "bench_simulate_2.json", "bench_simulate_3.json"), 2),
     Table("latency", "bench.md", "socd bench --latency --cells 200 --rate-hz 10 --seconds 60 --json out/latency200.json",
           latency_table("latency200.json"), 2),
     Table("demo", "bench.md", """\

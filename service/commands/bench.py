@@ -1,6 +1,7 @@
 """``socd bench``: throughput of the full pipeline, vectorised across a pack vs a per-cell loop;
 ``socd bench --latency``: frame-to-Zenoh latency of the running service
-(:mod:`service.commands.bench_latency`)."""
+(:mod:`service.commands.bench_latency`); ``socd bench --simulate``: the offline model simulation
+of ``socd fit`` and ``socd diagnose`` (:mod:`service.commands.bench_simulate`)."""
 
 from __future__ import annotations
 
@@ -26,10 +27,12 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "to one CPU. Inputs are a simulated drive (1 s steps) so the numbers do not depend on files."
         ),
     )
-    p.add_argument("--cells", type=positive_int, default=200, help="cells in the pack (default 200)")
-    p.add_argument("--steps", type=int_range(10, 10**7), default=400, help="time steps for the pack run (default 400)")
-    p.add_argument("--reference-steps", type=int_range(2, 10**7), default=40,
-                   help="time steps for the per-cell loop (default 40)")
+    p.add_argument("--cells", type=positive_int, default=None,
+                   help="cells in the pack (default 200); --simulate: parameter candidates (default 20)")
+    p.add_argument("--steps", type=int_range(10, 10**7), default=None,
+                   help="time steps for the pack run (default 400; --simulate: 10000)")
+    p.add_argument("--reference-steps", type=int_range(2, 10**7), default=None,
+                   help="time steps for the per-cell loop (default 40; --simulate: stepping the model, 1000)")
     p.add_argument("--latency", action="store_true",
                    help="instead: run the service (virtual CAN bus in, Zenoh on tcp/127.0.0.1 out) in real time and "
                         "report frame-to-Zenoh-put and frame-to-subscriber p50/p99")
@@ -38,6 +41,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="--latency: seconds measured, after the warm-up (default 60)")
     p.add_argument("--warmup", type=positive_float, default=5.0, metavar="S",
                    help="--latency: seconds run before measuring (default 5)")
+    p.add_argument("--simulate", action="store_true",
+                   help="instead: candidate-samples/s of the model simulated along a recording, as socd fit and "
+                        "socd diagnose run it (needs the [fit] extra), against stepping the model one sample "
+                        "at a time on the same inputs, and the largest voltage difference of the two")
     add_cell_argument(p, help="cell profile (default: the bundled Panasonic 18650PF)")
     add_common_arguments(p, json_out="the results")
     p.set_defaults(func=run)
@@ -65,8 +72,12 @@ def run(args: argparse.Namespace) -> int:
     from service.estimators.settings import EstimatorSettings
 
     setup_logging(args)
-    if args.cells < 1 or args.steps < 10 or args.reference_steps < 2:
-        raise UserError("--cells must be ≥ 1, --steps ≥ 10 and --reference-steps ≥ 2")
+    if args.latency and args.simulate:
+        raise UserError("--latency and --simulate are two different measurements: give one")
+    defaults = (20, 10_000, 1_000) if args.simulate else (200, 400, 40)
+    args.cells, args.steps, args.reference_steps = (
+        given if given is not None else default
+        for given, default in zip((args.cells, args.steps, args.reference_steps), defaults))
     try:
         profile = load_profile(args.cell or DEFAULT_CELL_PROFILE)
     except ProfileError as exc:
@@ -75,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     if args.latency:
         return _latency(args)
+    if args.simulate:
+        return _simulate(args, profile)
     from service.estimators.pipeline import PAPER_INNOVATION_LENGTH
 
     # the paper's full pipeline: multi-innovation window on (heavier than the service default)
@@ -130,5 +143,14 @@ def _latency(args: argparse.Namespace) -> int:
         raise UserError(f"--latency: --cells must be ≤ 256 (the output frames' cell index), not {args.cells}")
     result = run_latency(args.cells, args.rate_hz, args.seconds, args.warmup, profile_path=args.cell)
     print(result_text(result), file=text_stream(args))
+    write_json(args.json, result.to_json())
+    return 0
+
+
+def _simulate(args: argparse.Namespace, profile) -> int:
+    from service.commands.bench_simulate import run_simulate_bench
+
+    result = run_simulate_bench(profile, args.cells, args.steps, args.reference_steps)
+    print(result.text(), file=text_stream(args))
     write_json(args.json, result.to_json())
     return 0
