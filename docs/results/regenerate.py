@@ -113,65 +113,60 @@ def runs_table(runs: tuple[tuple[str, str], ...], groups: tuple[tuple[str, str],
     return render
 
 
-def bench_table(*names: str) -> Callable[[Path], str]:
-    """One row per ``socd bench --json`` run."""
+def json_rows_table(header: str, row: Callable[[str, dict], str], names: tuple[str, ...]) -> Callable[[Path], str]:
+    """One row per run from its ``--json``: ``row(name, data)`` under ``header``."""
     def render(out: Path) -> str:
-        lines = ["| run | cells | L | p | pipeline, cell-steps/s | per-cell loop, cell-steps/s | ratio |",
-                 "|---|---|---|---|---|---|---|"]
-        for n in names:
-            b = _read(out, n)
-            lines.append(f"| `{n}` | {b['cells']} | {b['memory_length']} | {b['innovation_length']} | "
-                         f"{b['cell_steps_per_s']:,.0f} | {b['reference_cell_steps_per_s']:,.0f} | {b['ratio']:.0f}× |")
+        lines = [header, "|" + "---|" * (header.count("|") - 1)]
+        lines += [row(n, _read(out, n)) for n in names]
         return "\n".join(lines)
     return render
+
+
+def bench_table(*names: str) -> Callable[[Path], str]:
+    """One row per ``socd bench --json`` run."""
+    return json_rows_table(
+        "| run | cells | L | p | pipeline, cell-steps/s | per-cell loop, cell-steps/s | ratio |",
+        lambda n, b: (f"| `{n}` | {b['cells']} | {b['memory_length']} | {b['innovation_length']} | "
+                      f"{b['cell_steps_per_s']:,.0f} | {b['reference_cell_steps_per_s']:,.0f} | {b['ratio']:.0f}× |"),
+        names)
 
 
 def simulate_bench_table(*names: str) -> Callable[[Path], str]:
     """One row per ``socd bench --simulate --json`` run."""
-    def render(out: Path) -> str:
-        lines = ["| run | candidates | samples | along the recording, candidate-samples/s "
-                 "| stepping the model, candidate-samples/s | ratio | largest difference, V |",
-                 "|---|---|---|---|---|---|---|"]
-        for n in names:
-            b = _read(out, n)
-            lines.append(f"| `{n}` | {b['candidates']} | {b['steps']:,} | {b['samples_per_s']:,.0f} | "
-                         f"{b['reference_samples_per_s']:,.0f} | {b['ratio']:.0f}× | {b['max_abs_diff_v']:.1e} |")
-        return "\n".join(lines)
-    return render
+    return json_rows_table(
+        "| run | candidates | samples | along the recording, candidate-samples/s "
+        "| stepping the model, candidate-samples/s | ratio | largest difference, V |",
+        lambda n, b: (f"| `{n}` | {b['candidates']} | {b['steps']:,} | {b['samples_per_s']:,.0f} | "
+                      f"{b['reference_samples_per_s']:,.0f} | {b['ratio']:.0f}× | {b['max_abs_diff_v']:.1e} |"),
+        names)
+
+
+def _p50_p99(p: dict) -> str:
+    return "–" if not p.get("n") else f"{p['p50']:.1f} / {p['p99']:.1f}"
 
 
 def latency_table(*names: str) -> Callable[[Path], str]:
     """One row per ``socd bench --latency --json`` run."""
-    def render(out: Path) -> str:
-        def pair(p: dict) -> str:
-            return "–" if not p.get("n") else f"{p['p50']:.1f} / {p['p99']:.1f}"
-        lines = ["| run | cells | rate, Hz | s | estimate p50 / p99, ms | Zenoh put p50 / p99, ms "
-                 "| delivered summary p50 / p99, ms | delivered last cell p50 / p99, ms | CPU, % of a core |",
-                 "|---|---|---|---|---|---|---|---|---|"]
-        for n in names:
-            d = _read(out, n)
-            lines.append(f"| `{n}` | {d['cells']} | {d['rate_hz']:g} | {d['seconds']:g} | {pair(d['estimate_ms'])} | "
-                         f"{pair(d['put_ms'])} | {pair(d['delivered_summary_ms'])} | "
-                         f"{pair(d['delivered_last_cell_ms'])} | {d['cpu_pct']:.0f} |")
-        return "\n".join(lines)
-    return render
+    return json_rows_table(
+        "| run | cells | rate, Hz | s | estimate p50 / p99, ms | Zenoh put p50 / p99, ms "
+        "| delivered summary p50 / p99, ms | delivered last cell p50 / p99, ms | CPU, % of a core |",
+        lambda n, d: (f"| `{n}` | {d['cells']} | {d['rate_hz']:g} | {d['seconds']:g} | {_p50_p99(d['estimate_ms'])} | "
+                      f"{_p50_p99(d['put_ms'])} | {_p50_p99(d['delivered_summary_ms'])} | "
+                      f"{_p50_p99(d['delivered_last_cell_ms'])} | {d['cpu_pct']:.0f} |"),
+        names)
 
 
 def demo_table(*names: str) -> Callable[[Path], str]:
     """One row per ``socd demo --json`` run."""
-    def render(out: Path) -> str:
-        lines = ["| run | cells | speed | frames | rejected | frames/s | CPU, % of a core | estimate p50 / p99, ms "
-                 "| Zenoh put p50 / p99, ms | SOC RMSE, % |",
-                 "|---|---|---|---|---|---|---|---|---|---|"]
-        for n in names:
-            d = _read(out, n)
-            lat = d["latency_ms"]
-            lines.append(f"| `{n}` | {d['cells']} | {d['speed']:g} | {d['frames_in']:,} | {d['frames_rejected']} | "
-                         f"{d['frames_per_s']:,.0f} | {d['cpu_pct']:.0f} | {lat.get('estimate_p50')} / "
-                         f"{lat.get('estimate_p99')} | {lat.get('publish_p50')} / {lat.get('publish_p99')} | "
-                         f"{d['soc_rmse_pct']:.2f} |")
-        return "\n".join(lines)
-    return render
+    def row(n: str, d: dict) -> str:
+        lat = d["latency_ms"]
+        return (f"| `{n}` | {d['cells']} | {d['speed']:g} | {d['frames_in']:,} | {d['frames_rejected']} | "
+                f"{d['frames_per_s']:,.0f} | {d['cpu_pct']:.0f} | {lat.get('estimate_p50')} / "
+                f"{lat.get('estimate_p99')} | {lat.get('publish_p50')} / {lat.get('publish_p99')} | "
+                f"{d['soc_rmse_pct']:.2f} |")
+    return json_rows_table(
+        "| run | cells | speed | frames | rejected | frames/s | CPU, % of a core | estimate p50 / p99, ms "
+        "| Zenoh put p50 / p99, ms | SOC RMSE, % |", row, names)
 
 
 def nested_table(name: str) -> Callable[[Path], str]:
