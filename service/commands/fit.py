@@ -65,7 +65,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="with no OCV table or test (the OCV fitted jointly with the model): shift the fitted table to "
                    "pass through the relaxed voltages at the ends of the recordings' rests of 600 s or more (the "
                    "outermost offset holds beyond them); off by default (docs/results/cell_options.md)")
-    p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time per temperature (default 60)")
+    p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
+                        "says whether the bound cut one (its end point then depends on the machine's load)")
     p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
     p.add_argument("--force", action="store_true",
                    help="write the profile even when a temperature's fit is poor (RMSE above 50 mV) or worse than "
