@@ -259,3 +259,15 @@ def test_temperatures_without_a_fitted_exchange_current_get_the_linear_one() -> 
     assert mixed[1].i0_a == pytest.approx(LINEAR_I0_A)
     assert mixed[1].model_copy(update={"i0_a": None}) == base
     assert with_linear_kinetics_where_unfitted([base, base]) == [base, base]
+
+
+def test_fit_result_says_whether_the_time_bound_cut_the_search():
+    """A search that ends by its own criteria reports ``time_bound`` False; one given almost no
+    time reports True (its end point would then depend on the machine's load)."""
+    t, i, temp, v = _pulse_drive(profile(), 600, 3)
+    seg = [FitSegment(t, i, v, temp, soc0=0.95)]
+    start = profile(ParameterPoint(r_ohm=0.01, r_ct=0.01, c_dl=100, m=0.8, r_df=0.01, c_df=1000, n=0.8))
+    done = fit_parameters(start, seg, max_seconds=600, seed=0, de_maxiter=2)
+    assert not done.time_bound and 0.0 < done.seconds < 600
+    cut = fit_parameters(start, seg, max_seconds=1e-3, seed=0, de_maxiter=2)
+    assert cut.time_bound
