@@ -22,6 +22,14 @@ def hysteresis_decay(
     return np.exp(-np.abs(rate * current_a * dt_s) / (SECONDS_PER_HOUR * capacity_ah))
 
 
+def hysteresis_coefficients(
+    current_a: np.ndarray, dt_s: np.ndarray | float, u_h_max: np.ndarray, rate: np.ndarray, capacity_ah: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(A, B)`` of Zeng Eq. 1 as ``U_h,k = A U_h,k-1 + B``: the decay and what the current drives."""
+    a = hysteresis_decay(current_a, dt_s, rate, capacity_ah)
+    return a, (1.0 - a) * (-np.sign(current_a)) * u_h_max
+
+
 def hysteresis_step(
     u_h: np.ndarray,
     current_a: np.ndarray,
@@ -31,5 +39,5 @@ def hysteresis_step(
     capacity_ah: np.ndarray,
 ) -> np.ndarray:
     """Next hysteresis voltage (Zeng Eq. 1, sign-corrected)."""
-    a = hysteresis_decay(current_a, dt_s, rate, capacity_ah)
-    return a * u_h + (1.0 - a) * (-np.sign(current_a)) * u_h_max
+    a, b = hysteresis_coefficients(current_a, dt_s, u_h_max, rate, capacity_ah)
+    return a * u_h + b

@@ -36,11 +36,30 @@ def soc_step(soc: np.ndarray, current_a: np.ndarray, dt_s, capacity_ah: np.ndarr
     return soc - current_a * dt_s / (SECONDS_PER_HOUR * capacity_ah)
 
 
-def surface_deficit_step(x: np.ndarray, current_a: np.ndarray, dt_s, tau_s, gain, capacity_ah) -> np.ndarray:
-    """Bulk − surface SOC after one sample: ``τ dx/dt = gain·I/Q − x`` solved exactly for a
-    current held over the sample (:class:`service.cell.profile.SurfaceDiffusionSpec`)."""
+def parameter_updates(temp_c: np.ndarray, update_k: float = TEMP_FOLLOW_K) -> list[int]:
+    """Sample indices at which a simulation reads the parameters: the first sample, and each one
+    where the temperature has moved more than ``update_k`` since the last read."""
+    starts = [0]
+    last = float(temp_c[0])
+    for k, t in enumerate(np.asarray(temp_c, dtype=float).tolist()):
+        if abs(t - last) > update_k:
+            starts.append(k)
+            last = t
+    return starts
+
+
+def surface_deficit_coefficients(current_a: np.ndarray, dt_s, tau_s, gain,
+                                 capacity_ah) -> tuple[np.ndarray, np.ndarray]:
+    """``(a, b)`` of one sample of ``τ dx/dt = gain·I/Q − x`` solved exactly for a current held
+    over the sample: ``x_k = a x_{k-1} + b`` (:class:`service.cell.profile.SurfaceDiffusionSpec`)."""
     a = np.exp(-dt_s / tau_s)
-    return a * x + (1.0 - a) * gain * current_a / capacity_ah
+    return a, (1.0 - a) * gain * current_a / capacity_ah
+
+
+def surface_deficit_step(x: np.ndarray, current_a: np.ndarray, dt_s, tau_s, gain, capacity_ah) -> np.ndarray:
+    """Bulk − surface SOC after one sample (:func:`surface_deficit_coefficients`)."""
+    a, b = surface_deficit_coefficients(current_a, dt_s, tau_s, gain, capacity_ah)
+    return a * x + b
 
 
 def entropic_shift_v(slope_v_per_k: float, ref_temp_c: float, temp_c: np.ndarray) -> np.ndarray:
@@ -173,12 +192,11 @@ def drive(
     dt = np.diff(time_s, prepend=time_s[0])
     v = np.empty((time_s.size, n))
     soc = np.empty((time_s.size, n))
-    last_t = float(temp_c[0])
+    updates = set(parameter_updates(temp_c)[1:]) if follow_temperature else set()
     for k in range(time_s.size):
         tk = np.full(n, temp_c[k])
-        if follow_temperature and abs(temp_c[k] - last_t) > TEMP_FOLLOW_K:
+        if k in updates:
             model.set_params(model.profile.parameters_at(tk))
-            last_t = float(temp_c[k])
         v[k] = model.step(dt[k], np.full(n, current_a[k]), tk)
         soc[k] = model.soc
     return v, soc

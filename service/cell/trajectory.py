@@ -24,30 +24,20 @@ from typing import Callable
 import numpy as np
 from scipy.linalg.lapack import dtbtrs
 
-from service.cell.fractional import cpe_gain, push_history
-from service.cell.hysteresis import hysteresis_decay
+from service.cell.fractional import cpe_gain, cpe_step, push_history
+from service.cell.hysteresis import hysteresis_coefficients
 from service.cell.model import (
     DEFAULT_MEMORY_LENGTH,
     TEMP_FOLLOW_K,
     MtsFom,
     kinetic_overpotential,
+    parameter_updates,
+    surface_deficit_coefficients,
     terminal_voltage,
 )
 from service.cell.profile import CellParameters, CellProfile
 from service.cell.soc_dependence import scaled_resistances
 from service.cell.units import SECONDS_PER_HOUR
-
-
-def parameter_updates(temp_c: np.ndarray, update_k: float) -> list[int]:
-    """Sample indices at which the parameters are re-read: the temperature has moved more
-    than ``update_k`` since the last read (the first read is at sample 0)."""
-    starts = [0]
-    last = float(temp_c[0])
-    for k, t in enumerate(np.asarray(temp_c, dtype=float).tolist()):
-        if abs(t - last) > update_k:
-            starts.append(k)
-            last = t
-    return starts
 
 
 def first_order_trajectory(decay: np.ndarray, drive: np.ndarray, start: np.ndarray) -> np.ndarray:
@@ -130,15 +120,14 @@ def _advance(model: MtsFom, dt: np.ndarray, current_a: np.ndarray, temp_c: np.nd
         g_ohm, g_pol = model.soc_scale(soc_before, np.broadcast_to(temp_c[:, None], soc.shape))
         r_ohm, r, c = scaled_resistances(p.r_ohm, p.r, p.c, g_ohm, g_pol)
     x_surf = np.zeros_like(soc)
-    if model.surface_tau_s is not None:  # service.cell.model.surface_deficit_step
-        a = np.exp(-h / model.surface_tau_s)
-        drive = (1.0 - a) * model.surface_gain * i / p.capacity_ah
-        x_surf = first_order_trajectory(a, drive, model.x_surf)
+    if model.surface_tau_s is not None:
+        a, b = surface_deficit_coefficients(i, h, model.surface_tau_s, model.surface_gain, p.capacity_ah)
+        x_surf = first_order_trajectory(a, b, model.x_surf)
         model.x_surf = x_surf[-1]
     u_h = np.broadcast_to(model.u_h, soc.shape)
-    if hyst:  # service.cell.hysteresis.hysteresis_step
-        a = hysteresis_decay(i, h, p.hyst_rate, p.capacity_ah)
-        u_h = first_order_trajectory(a, (1.0 - a) * (-np.sign(i)) * p.u_h_max, model.u_h)
+    if hyst:
+        a, b = hysteresis_coefficients(i, h, p.u_h_max, p.hyst_rate, p.capacity_ah)
+        u_h = first_order_trajectory(a, b, model.u_h)
         model.u_h = u_h[-1]
     branch = cpe_trajectory(i, dt, r, c, p.alpha, model.weights, model.history)
     model.soc = soc[-1]
@@ -199,18 +188,20 @@ def cpe_trajectory(
     ``(1 + g_k/R_k) U_k + Σ_{j=1..L} w_j U_{k-j} = g_k I_k``: lower triangular with ``L``
     sub-diagonals, the history's part moved to the right-hand side.  It is solved by
     forward substitution in LAPACK (``dtbtrs``), branch by branch; a few samples are
-    stepped directly.
+    stepped with :func:`cpe_step`.
     """
     steps, length = current_a.shape[0], history.shape[-1]
+    if steps < min_banded_steps:
+        out = np.empty(current_a.shape + history.shape[1:2])
+        per_sample = np.ndim(r) == 3
+        for k in range(steps):
+            r_k, c_k = (r[k], c[k]) if per_sample else (r, c)
+            out[k] = cpe_step(history, current_a[k][:, None], dt_s[k], r_k, c_k, alpha, weights)
+            push_history(history, out[k])
+        return out
     g = cpe_gain(np.asarray(dt_s, dtype=float)[:, None, None], c, alpha)
     rhs = g * current_a[:, :, None]
     diagonal = np.broadcast_to(1.0 + g / r, rhs.shape)
-    if steps < min_banded_steps:
-        out = np.empty_like(rhs)
-        for k in range(steps):
-            out[k] = (rhs[k] - np.einsum("...j,...j->...", weights[..., 1:], history)) / diagonal[k]
-            push_history(history, out[k])
-        return out
     for k in range(min(length, steps)):  # U_{k-j} before the first sample: the history
         rhs[k] -= np.einsum("nbj,nbj->nb", weights[..., k + 1:], history[..., :length - k])
     out = _solve_lower_banded(diagonal, weights, rhs)
