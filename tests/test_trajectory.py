@@ -36,8 +36,7 @@ def stepwise(prof: CellProfile, t, i, temp, soc0: float, u_h0: float = 0.0) -> t
 
 
 def irregular_time(n: int, seed: int) -> np.ndarray:
-    """1-s samples with a jittered stretch, a 0.1-s burst and two logging gaps: runs of
-    equal steps long and short."""
+    """1-s samples with a jittered stretch, a 0.1-s burst and two logging gaps."""
     rng = np.random.default_rng(seed)
     dt = np.ones(n)
     dt[n // 5:n // 5 + 60] = 1.0 + rng.uniform(-0.02, 0.02, dt[n // 5:n // 5 + 60].size)

@@ -12,6 +12,7 @@ import time
 import numpy as np
 
 from service.cli import UserError
+from service.commands.bench_drive import pulse_current
 from service.commands.common_args import (add_cell_argument, add_common_arguments, int_range, positive_float,
                                           positive_int, setup_logging, text_stream, write_json)
 
@@ -55,7 +56,7 @@ def _inputs(n_cells: int, steps: int, profile, seed: int = 0) -> tuple[np.ndarra
     from service.cell.model import MtsFom
 
     rng = np.random.default_rng(seed)
-    current = np.repeat(rng.normal(0.5, 1.5, steps // 10 + 1), 10)[:steps]
+    current = pulse_current(rng, steps)
     soc0 = rng.uniform(0.6, 0.9, n_cells)
     temp = np.full(n_cells, 25.0)
     model = MtsFom(profile, profile.parameters_at(temp), soc0)

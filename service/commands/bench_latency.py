@@ -37,6 +37,8 @@ from typing import Any
 import can
 import numpy as np
 
+from service.commands.bench_drive import pulse_current
+
 
 @dataclass
 class LatencyResult:
@@ -77,7 +79,7 @@ def _drive(profile, n_cells: int, samples: int, dt: float, seed: int = 0) -> tup
 
     rng = np.random.default_rng(seed)
     hold = max(1, int(round(1.0 / dt)))
-    current = np.repeat(rng.normal(0.5, 1.5, samples // hold + 1), hold)[:samples]
+    current = pulse_current(rng, samples, hold)
     temp = np.full(n_cells, 25.0)
     model = MtsFom(profile, profile.parameters_at(temp), rng.uniform(0.6, 0.9, n_cells))
     volts = np.empty((samples, n_cells))

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from service.cell.profile import CellProfile
+from service.commands.bench_drive import pulse_current
 
 #: the drive's time step and its jitter (real loggers stamp 1 s samples a few ms apart)
 STEP_S = 1.0
@@ -45,7 +46,7 @@ class SimulateBench:
 def _drive(steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Time, current and temperature of a pulse drive with jittered sample times."""
     rng = np.random.default_rng(seed)
-    current = np.repeat(rng.normal(0.5, 1.5, steps // 10 + 1), 10)[:steps]
+    current = pulse_current(rng, steps)
     time_s = np.concatenate([[0.0], np.cumsum(STEP_S + rng.uniform(-JITTER_S, JITTER_S, steps - 1))])
     return time_s, current, np.full(steps, 25.0)
 
