@@ -276,7 +276,7 @@ class OutputConfig(_Section):
     can_period_s: float = Field(1.0, gt=0)
     zenoh_enabled: bool = True
     zenoh_period_s: float = Field(0.5, gt=0, description="period of the full Zenoh round: every cell's "
-                                  "parameters, health, and every SOC key again")
+                                  "parameters, health, and the SOC keys no estimate refreshed since the last one")
     min_publish_interval_s: float = Field(0.05, ge=0, description="no Zenoh key is put more often than this; "
                                           "SOC and summary go out when estimated, held back only by it (0 = never)")
     queue_size: int = Field(256, ge=1)

@@ -291,3 +291,79 @@ def test_fast_cell_json_is_the_model_s_json() -> None:
                 model = cell_soc_payload('pack "q"', r, int(i))
                 assert json.loads(body) == json.loads(model.model_dump_json())
                 assert CellSoc.model_validate_json(body) == model
+
+
+def test_fast_params_json_is_the_model_s_json() -> None:
+    """The one-pass JSON for the parameter keys equals the CellParams model's, field for field:
+    a parameter missing from the round, NaN and inf as null, the health fields present or not,
+    before and after the first estimate."""
+    import json
+
+    from service.cell.parameters import PARAMETER_NAMES
+    from service.daemon.payloads import CellParams
+    from service.daemon.zenoh_pub import cell_params_json, cell_params_payload
+
+    n = 7
+    params = {name: np.linspace(0.001, 2.0, n) * (k + 1) for k, name in enumerate(PARAMETER_NAMES[1:])}
+    params["r_ct"][1], params["m"][4] = np.nan, np.inf
+    health = {"capacity_ah": np.linspace(2.7, 2.9, n), "capacity_std_ah": np.full(n, 0.0123456),
+              "capacity_rel": np.linspace(0.95, 1.02, n), "resistance_rel": np.full(n, 1.0512345)}
+    health["capacity_ah"][3] = np.nan
+    idx = np.array([0, 1, 3, 4, 6])
+    for initialised in (True, False):
+        for health_cells in (health, None):
+            r = PublishRound(t_s=1732443600.123456, soc=np.full(n, 0.5), soc_std=np.full(n, 0.01),
+                             voltage_v=np.full(n, 3.7), stale=np.zeros(n, bool), params=params, health=None,
+                             status_flags={}, initialised=initialised, health_cells=health_cells)
+            for i, body in zip(idx, cell_params_json('pack "q"', r, idx)):
+                model = cell_params_payload('pack "q"', r, int(i))
+                assert json.loads(body) == json.loads(model.model_dump_json())
+                assert CellParams.model_validate_json(body) == model
+
+
+def test_a_full_round_repeats_only_what_no_estimate_round_refreshed() -> None:
+    """While estimate rounds flow, a full round puts parameters and health but not the SOC keys
+    they just refreshed (a repeat would take the next estimate's rate-limit slot); a cell whose
+    stale flag changed goes out with it, and once estimates stop every SOC key goes out again."""
+    port = _port()
+    health = HealthMonitor(pack="packR")
+    section = type("S", (), dict(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], connect=[],
+                                 scouting_multicast=False, key_prefix="bms", pack_id="packR"))()
+    pub = ZenohPublisher(section, 16, health, min_interval_s=0.0)
+    pub.start()
+    sub_session = _session(connect=[f"tcp/127.0.0.1:{port}"])
+    got = _Collector()
+    sub = sub_session.declare_subscriber("bms/packR/**", got)
+    n = 5
+
+    def soc_times(i: int) -> list[float]:
+        return [CellSoc.model_validate_json(p).t_s for p in got.get(f"bms/packR/cell/{i}/soc")]
+
+    def full_round_done(t: float) -> bool:  # every parameter key of the round has arrived
+        return all(f'"t_s":{t}' in "".join(got.get(f"bms/packR/cell/{i}/params")) for i in range(n))
+
+    try:
+        k = 0
+        while not got.get("bms/packR/summary"):  # until the subscriber's session is connected
+            assert k < 400, "the subscriber never connected"
+            pub.submit(_round(n, 0.0, health, full=True))
+            k += 1
+            time.sleep(0.05)
+        pub.submit(_round(n, 1.0, health, full=False, cells=np.ones(n, bool)))
+        _wait(lambda: all(1.0 in soc_times(i) for i in range(n)), what="the estimate round")
+        full = _round(n, 2.0, health, full=True)
+        full.stale[3] = True
+        pub.submit(full)
+        _wait(lambda: full_round_done(2.0), what="the full round's parameters")
+        assert 2.0 in soc_times(3)  # its stale flag changed
+        assert all(2.0 not in soc_times(i) for i in (0, 1, 2, 4))
+        assert any('"t_s":2.0' in p for p in got.get("bms/packR/summary"))  # with the changed cell
+        assert any('"t_s":2.0' in p for p in got.get("bms/packR/health"))
+        pub.submit(_round(n, 3.0, health, full=True))  # no estimate round since the last full one
+        _wait(lambda: full_round_done(3.0), what="the second full round's parameters")
+        assert all(3.0 in soc_times(i) for i in range(n))
+        assert any('"t_s":3.0' in p for p in got.get("bms/packR/summary"))
+    finally:
+        sub.undeclare()
+        sub_session.close()
+        pub.stop()

@@ -15,6 +15,7 @@ minimum with the cell's stale bit set.  ``encode`` never raises on bad values.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import can
@@ -116,7 +117,12 @@ class OutputEncoder:
 
     def encode(self, snapshot: PackSnapshot, *, cells: bool = True, params: bool = True) -> list[can.Message]:
         """All output frames for ``snapshot``; never raises (failures are counted in ``errors``)."""
-        out: list[can.Message] = []
+        return list(self.frames(snapshot, cells=cells, params=params))
+
+    def frames(self, snapshot: PackSnapshot, *, cells: bool = True, params: bool = True) -> Iterator[can.Message]:
+        """:meth:`encode`'s frames one at a time, each encoded when it is taken: a caller on the
+        event loop sends a few and yields, instead of holding the loop while hundreds of cells'
+        frames are encoded."""
         t = float(snapshot.t_s) if snapshot.t_s is not None else 0.0
         try:
             soc = np.asarray(snapshot.soc, dtype=float).ravel()
@@ -124,19 +130,18 @@ class OutputEncoder:
             stale = np.broadcast_to(np.asarray(snapshot.stale, dtype=bool).ravel(), soc.shape)
         except Exception:  # noqa: BLE001
             self.errors += 1
-            return out
+            return
         n = min(soc.size, self.max_cells)
         if cells:
             for i in range(n):
-                try:
-                    out.append(self.soc.frame({
-                        "SOCD_SocCellIndex": i,
-                        "SOCD_Soc": soc[i] * 100.0,
-                        "SOCD_SocStd": std[i] * 100.0,
-                        "SOCD_SocStale": 1 if (stale[i] or not math.isfinite(soc[i])) else 0,
-                    }, t))
-                except Exception:  # noqa: BLE001
-                    self.errors += 1
+                frame = self._counted(self.soc.frame, {
+                    "SOCD_SocCellIndex": i,
+                    "SOCD_Soc": soc[i] * 100.0,
+                    "SOCD_SocStd": std[i] * 100.0,
+                    "SOCD_SocStale": 1 if (stale[i] or not math.isfinite(soc[i])) else 0,
+                }, t)
+                if frame is not None:
+                    yield frame
         if params:
             arrays = {}
             for key in _PARAM_SIGNALS:
@@ -150,26 +155,23 @@ class OutputEncoder:
                 for key, sig in _PARAM_SIGNALS.items():
                     a = arrays[key]
                     values[sig] = a[i] * _WIRE_SCALE[key] if a is not None else 0.0
-                try:
-                    out.append(self.params.frame(values, t))
-                except Exception:  # noqa: BLE001
-                    self.errors += 1
-        try:
-            out.append(self._summary(soc, stale, t))
-        except Exception:  # noqa: BLE001
-            self.errors += 1
-        try:
-            out.append(self._status(snapshot, stale, t))
-        except Exception:  # noqa: BLE001
-            self.errors += 1
+                frame = self._counted(self.params.frame, values, t)
+                if frame is not None:
+                    yield frame
+        pack_frames = [self._counted(self._summary, soc, stale, t), self._counted(self._status, snapshot, stale, t)]
         if self.usable is not None:
-            try:
-                out.append(self._usable(self.usable, snapshot.pack, t))
-            except Exception:  # noqa: BLE001
-                self.errors += 1
+            pack_frames.append(self._counted(self._usable, self.usable, snapshot.pack, t))
+        yield from (f for f in pack_frames if f is not None)
         if params and self.health is not None and snapshot.health:
-            out += self._health(snapshot.health, n, soc.shape, t)
-        return out
+            yield from self._health(snapshot.health, n, soc.shape, t)
+
+    def _counted(self, make: Callable[..., can.Message], *args: Any) -> can.Message | None:
+        """``make(*args)``, or None with the failure counted in ``errors``."""
+        try:
+            return make(*args)
+        except Exception:  # noqa: BLE001 - a value the DBC cannot carry must not stop the others
+            self.errors += 1
+            return None
 
     def _health(self, health: dict[str, np.ndarray], n: int, shape: tuple[int, ...], t: float) -> list[can.Message]:
         arrays: dict[str, np.ndarray | None] = {}

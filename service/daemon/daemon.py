@@ -19,7 +19,7 @@ One asyncio loop runs these tasks:
   :class:`~service.daemon.zenoh_pub.ZenohPublisher` (bounded queue, own thread, each key
   rate-limited to ``output.min_publish_interval_s``), so a change reaches a dashboard within
   milliseconds; and every ``output.zenoh_period_s`` a *full* round (parameters, health, and
-  every key again, which also carries cells that went stale because samples stopped).
+  the SOC keys no estimate refreshed, which carries cells that went stale because samples stopped).
   Building a round is a copy of a few arrays on the loop; JSON and ``put`` happen on the
   publisher's thread, so a slow or absent Zenoh never blocks estimation.
 - **slow identifier** every :data:`SLOW_PERIOD_S` of *sample* time, on the estimation path, so a
@@ -46,6 +46,7 @@ integrated: the time since the previous sample is unknown.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import signal
 import threading
@@ -588,13 +589,14 @@ class Daemon:
     async def _can_output(self) -> None:
         if self.encoder is None or not self.initialised:
             return
-        frames = self.encoder.encode(self.snapshot())
-        for k in range(0, len(frames), CAN_TX_CHUNK):
-            for f in frames[k:k + CAN_TX_CHUNK]:
+        # Frames are encoded chunk by chunk as they are sent: encoding a few hundred cells at once
+        # would hold the loop (and the estimate of any sample arriving meanwhile) for milliseconds.
+        frames = self.encoder.frames(self.snapshot())
+        while chunk := list(itertools.islice(frames, CAN_TX_CHUNK)):
+            for f in chunk:
                 if self.receiver.send(f):
                     self.can_frames_out += 1
-            if k + CAN_TX_CHUNK < len(frames):
-                await asyncio.sleep(CAN_TX_GAP_S)  # pace: a CAN tx queue is often only 10 frames deep
+            await asyncio.sleep(CAN_TX_GAP_S)  # pace: a CAN tx queue is often only 10 frames deep
         self.health.counters["can_frames_out"] = self.can_frames_out
 
     def publish_round(self) -> PublishRound:

@@ -12,9 +12,9 @@ Key expressions (``<prefix>/<pack>/...``, see :func:`keys`):
 =========================  ===================  ===============================================
 key                        model                when
 =========================  ===================  ===============================================
-``cell/<i>/soc``           :class:`CellSoc`     when estimated, and every ``output.zenoh_period_s``
+``cell/<i>/soc``           :class:`CellSoc`     when estimated; every ``output.zenoh_period_s`` if not
 ``cell/<i>/params``        :class:`CellParams`  every ``output.zenoh_period_s``
-``summary``                :class:`Summary`     when estimated, and every ``output.zenoh_period_s``
+``summary``                :class:`Summary`     when estimated; every ``output.zenoh_period_s`` if not
 ``health``                 :class:`Health`      every ``output.zenoh_period_s``
 ``snapshot`` (queryable)   :class:`Snapshot`    on request: latest state of every cell
 =========================  ===================  ===============================================

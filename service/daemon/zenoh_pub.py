@@ -9,14 +9,16 @@ it opens it (retrying with exponential backoff while it fails, flag ``zenoh_down
 turns rounds into JSON payloads (:mod:`service.daemon.payloads`) and ``put``s them with
 ``CongestionControl.DROP`` so a slow subscriber cannot back up into us.
 
-Two kinds of round: a *full* round (every key: each cell's SOC and parameters, summary,
-health; the daemon sends one every ``output.zenoh_period_s``) and an *estimate* round
+Two kinds of round: a *full* round (each cell's parameters, health, and the SOC keys and
+summary no estimate round refreshed since the last full round or whose cell's stale flag
+changed; the daemon sends one every ``output.zenoh_period_s``) and an *estimate* round
 (``full=False``: the SOC keys of the cells in ``r.cells`` and the summary; the daemon sends
 one after every estimator step, so a dashboard sees a change within milliseconds).  Every
 key is rate-limited on its own: a key put less than ``min_interval_s`` ago is held back,
 its newest value put as soon as its interval has passed (counted ``zenoh_rate_limited``
-when a newer value replaced a held one); a full round's SOC and summary keys, repeats of
-what the estimate rounds put, are skipped instead of held.  A full round's parameter and health keys
+when a newer value replaced a held one); a full round's SOC and summary keys are never
+held back, only skipped, and while estimate rounds flow they are not offered at all: a repeat
+put would take the next estimate's slot and hold it back by up to ``min_interval_s``.  A full round's parameter and health keys
 go out in chunks of :data:`BACKLOG_CHUNK` between estimate rounds, so the hundreds of parameter
 payloads never hold an estimate round back (a newer full round replaces what is left of an older
 one's, counted ``zenoh_rate_limited``).  The ``publish`` latency is from a frame's wall
@@ -68,6 +70,10 @@ PEER_CHECK_S = 1.0
 
 #: parameter/health keys put between two looks at the queue of estimate rounds
 BACKLOG_CHUNK = 16
+#: pause between two backlog chunks (cut short by a new round): the estimation loop shares the
+#: GIL with this thread, and a thread that never pauses makes it wait for the interpreter's
+#: switch interval at every frame it wakes up for
+BACKLOG_GAP_S = 0.002
 
 
 def zenoh_config(mode: str, listen: Sequence[str], connect: Sequence[str], scouting_multicast: bool):
@@ -119,7 +125,8 @@ def config_from_section(z: Any):
 class PublishRound:
     """One publication's worth of estimator output (arrays are the publisher's to keep).
 
-    ``full``: every key; otherwise an estimate round: the SOC keys of ``cells`` (a bool mask;
+    ``full``: parameters, health and every SOC key offered (the publisher skips those an estimate
+    round refreshed since the last full round); otherwise an estimate round: the SOC keys of ``cells`` (a bool mask;
     None = every cell) and the summary, and ``params``/``health`` may be left empty.
     """
 
@@ -223,15 +230,36 @@ def cell_params_payload(pack: str, r: PublishRound, i: int) -> CellParams:
     """Cell ``i``'s identified parameters and state of health (capacity, resistance growth)."""
     soh = r.health_cells or {}
 
-    def soh_value(key: str, scale: float = 1.0, nd: int = 6) -> float | None:
-        return _num(soh[key][i], scale, nd) if key in soh and r.initialised else None
-
     return CellParams(
         pack=pack, t_s=r.t_s, cell=i,
         **{k: (_num(r.params[k][i], 1.0, 9) if k in r.params else None) for k in PARAMETER_NAMES},
-        capacity_ah=soh_value("capacity_ah", 1.0, 5), capacity_std_ah=soh_value("capacity_std_ah", 1.0, 5),
-        capacity_pct=soh_value("capacity_rel", 100.0, 3), resistance_pct=soh_value("resistance_rel", 100.0, 3),
+        **{field: (_num(soh[key][i], scale, nd) if key in soh and r.initialised else None)
+           for field, key, scale, nd in _SOH_FIELDS},
     )
+
+
+#: the state-of-health fields of :class:`CellParams`: (payload field, key of
+#: ``PublishRound.health_cells``, scale, decimals)
+_SOH_FIELDS = (("capacity_ah", "capacity_ah", 1.0, 5), ("capacity_std_ah", "capacity_std_ah", 1.0, 5),
+               ("capacity_pct", "capacity_rel", 100.0, 3), ("resistance_pct", "resistance_rel", 100.0, 3))
+
+
+def cell_params_json(pack: str, r: PublishRound, idx: np.ndarray) -> list[str]:
+    """``cell_params_payload(pack, r, i).model_dump_json()`` for every ``i`` in ``idx``, in one pass
+    over the arrays, as :func:`cell_soc_json` does for the SOC keys: a full round puts every cell's
+    parameters, and building them one model at a time kept the publisher's thread (and so the
+    GIL) busy for tens of milliseconds.  ``tests/test_event_publish.py`` holds the two equal."""
+    idx = np.asarray(idx, dtype=int)
+    soh = r.health_cells or {}
+    columns = [(name, _rounded(r.params.get(name), idx, 1.0, 9)) for name in PARAMETER_NAMES]
+    columns += [(field, _rounded(soh.get(key), idx, scale, nd, bool(r.initialised)))
+                for field, key, scale, nd in _SOH_FIELDS]
+    head = f'{{"schema_version":{CellParams.model_fields["schema_version"].default},"pack":{json.dumps(pack)},' \
+           f'"t_s":{_js(float(r.t_s))},"cell":'
+    names = [name for name, _ in columns]
+    rows = zip(*(values for _, values in columns))
+    return [head + str(i) + "".join(f',"{name}":{_js(v)}' for name, v in zip(names, row)) + "}"
+            for i, row in zip(idx.tolist(), rows)]
 
 
 def _pack_fields(v: PackView | None) -> dict[str, Any]:
@@ -371,6 +399,10 @@ class ZenohPublisher:
         self._backlog: deque[tuple[str, tuple[PublishRound, str, int]]] = deque()
         self._soc_keys: list[str] = []
         self._params_keys: list[str] = []
+        #: SOC and summary keys an estimate round put since the last full round, and the stale
+        #: flag each cell's SOC key last went out with (see :meth:`_repeats`)
+        self._refreshed: set[str] = set()
+        self._stale_put: dict[int, bool] = {}
         self._backoff_initial = backoff_initial_s
         self._backoff_max = backoff_max_s
         self._state = _SessionState()
@@ -495,13 +527,13 @@ class ZenohPublisher:
         self._close_session()
 
     def _wait_s(self) -> float:
-        """How long the thread may sleep: until the next held-back key is due, at most PEER_CHECK_S."""
-        if self._backlog:
-            return 0.0
+        """How long the thread may sleep: until the next held-back key is due, at most
+        BACKLOG_GAP_S with a backlog to put, else PEER_CHECK_S."""
+        cap = BACKLOG_GAP_S if self._backlog else PEER_CHECK_S
         due = self._limit.next_due()
         if due is None:
-            return PEER_CHECK_S
-        return min(PEER_CHECK_S, max(0.0, due - time.monotonic()))
+            return cap
+        return min(cap, max(0.0, due - time.monotonic()))
 
     def _fail(self, why: str) -> None:
         self.health.count("zenoh_session_failures", flag="zenoh_down")
@@ -531,6 +563,7 @@ class ZenohPublisher:
         items: list[tuple[str, str, int]] = [(soc_keys[i], "soc", i) for i in r.cell_indices().tolist()]
         items.append((k.summary, "summary", -1))
         if r.full:
+            items = self._repeats(r, items)
             slow = [(params_keys[i], "params", i) for i in range(r.n_cells)]
             if r.health is not None:
                 slow.append((k.health, "health", -1))
@@ -546,6 +579,19 @@ class ZenohPublisher:
         self.health.count("zenoh_rate_limited", self._limit.superseded - superseded)
         self.rounds_published += 1
 
+    def _repeats(self, r: PublishRound, items: list[tuple[str, str, int]]) -> list[tuple[str, str, int]]:
+        """A full round's SOC and summary keys worth putting: those no estimate round put since the
+        previous full round (samples stopped, or the cell is not measured), and a cell whose stale
+        flag differs from the one its key last carried.  The summary goes with any of them.  While
+        estimate rounds flow, a full round's repeats would only take their rate-limit slot."""
+        stale = np.asarray(r.stale, dtype=bool)
+        soc = [(key, kind, i) for key, kind, i in items if kind == "soc"
+               and (key not in self._refreshed or self._stale_put.get(i) != bool(stale[i]))]
+        summary = [(key, kind, i) for key, kind, i in items if kind == "summary"
+                   and (soc or key not in self._refreshed)]
+        self._refreshed.clear()
+        return soc + summary
+
     def _cell_keys(self, n: int) -> tuple[list[str], list[str]]:
         """The per-cell key expressions (made once: a round uses hundreds of them)."""
         if len(self._soc_keys) < n:
@@ -559,34 +605,46 @@ class ZenohPublisher:
             self._put_all(self._limit.due(time.monotonic()))
 
     def _put_all(self, items: list[tuple[str, tuple[PublishRound, str, int]]]) -> None:
-        sent = unmatched = 0
-        soc_json: dict[tuple[int, int], str] = {}  # (round id, cell) -> JSON, built per round in one pass
-        by_round: dict[int, tuple[PublishRound, list[int]]] = {}
-        for _, (r, kind, i) in items:
-            if kind == "soc":
-                by_round.setdefault(id(r), (r, []))[1].append(i)
-        for rid, (r, cells) in by_round.items():
-            soc_json.update(zip(((rid, c) for c in cells), cell_soc_json(self.pack, r, np.array(cells, dtype=int))))
-        for key, (r, kind, i) in items:
-            if kind == "soc":
-                body = soc_json[(id(r), i)]
-            elif kind == "params":
-                body = cell_params_payload(self.pack, r, i).model_dump_json()
-            elif kind == "summary":
-                body = summary_payload(self.pack, r).model_dump_json()
-            else:
-                body = r.health.model_dump_json()
-            pub = self._publisher(key)
+        bodies = self._bodies(items)
+        publishers = self._state.publishers
+        unmatched = 0
+        for (key, (r, kind, _)), body in zip(items, bodies):
+            pub = publishers.get(key) or self._publisher(key)
             if not pub.matching_status.matching:
                 unmatched += 1  # put anyway: a subscriber may be declaring right now
             pub.put(body)
-            self._limit.sent(key, time.monotonic())
-            sent += 1
             if kind == "summary" and not r.full and r.frame_wall_s is not None:
                 self.health.record_latency("publish", time.time() - r.frame_wall_s)
-        self.messages_published += sent
-        self.health.count("zenoh_messages", sent)
+        now = time.monotonic()
+        for key, (r, kind, i) in items:
+            self._limit.sent(key, now)
+            if kind == "soc":
+                self._stale_put[i] = bool(r.stale[i])
+            if not r.full and kind in ("soc", "summary"):
+                self._refreshed.add(key)
+        self.messages_published += len(items)
+        self.health.count("zenoh_messages", len(items))
         self.health.count("zenoh_unmatched", unmatched)
+
+    def _bodies(self, items: list[tuple[str, tuple[PublishRound, str, int]]]) -> list[str]:
+        """The JSON of each item; per-cell bodies built per round and kind in one pass."""
+        cell_json: dict[tuple[str, int, int], str] = {}  # (kind, round id, cell) -> JSON
+        by_round: dict[tuple[str, int], tuple[PublishRound, list[int]]] = {}
+        for _, (r, kind, i) in items:
+            if kind in ("soc", "params"):
+                by_round.setdefault((kind, id(r)), (r, []))[1].append(i)
+        for (kind, rid), (r, cells) in by_round.items():
+            build = cell_soc_json if kind == "soc" else cell_params_json
+            cell_json.update(zip(((kind, rid, c) for c in cells), build(self.pack, r, np.array(cells, dtype=int))))
+        bodies = []
+        for _, (r, kind, i) in items:
+            if kind in ("soc", "params"):
+                bodies.append(cell_json[(kind, id(r), i)])
+            elif kind == "summary":
+                bodies.append(summary_payload(self.pack, r).model_dump_json())
+            else:
+                bodies.append(r.health.model_dump_json())
+        return bodies
 
     # -- queryable (Zenoh thread) --------------------------------------------------------
     def snapshot_json(self) -> str | None:
