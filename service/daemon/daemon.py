@@ -49,6 +49,7 @@ import asyncio
 import itertools
 import logging
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -78,6 +79,10 @@ SLOW_PERIOD_S = 1.0
 OCV_CONVERGED_STD = 0.03
 #: the receive loop yields to other tasks at least this often while it has a backlog
 RX_YIELD_S = 0.005
+#: the interpreter's thread switch interval while the service runs (Python's default is 5 ms):
+#: the receive thread, the Zenoh publisher and the loop hand the GIL to each other at every
+#: sample, and a thread that wants it waits up to this long for a busy one to let go
+GIL_SWITCH_INTERVAL_S = 0.001
 #: CAN output: frames sent back to back before yielding
 CAN_TX_CHUNK = 8
 CAN_TX_GAP_S = 0.001
@@ -174,7 +179,16 @@ class Daemon:
 
     # -- lifecycle ---------------------------------------------------------------------
     async def run(self, stop: asyncio.Event | None = None) -> None:
-        """Run until ``stop`` is set or SIGTERM/SIGINT; then a final checkpoint and a clean exit."""
+        """Run until ``stop`` is set or SIGTERM/SIGINT; then a final checkpoint and a clean exit.
+        While it runs the process's thread switch interval is :data:`GIL_SWITCH_INTERVAL_S`."""
+        switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+        try:
+            await self._run(stop)
+        finally:
+            sys.setswitchinterval(switch_interval)
+
+    async def _run(self, stop: asyncio.Event | None) -> None:
         stop = stop or asyncio.Event()
         loop = asyncio.get_running_loop()
         installed = self._add_signal_handlers(loop, stop) if self._install_signals else []
