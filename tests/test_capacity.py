@@ -23,6 +23,7 @@ from service.demo import bundled_recording
 from service.estimators.capacity import CapacityEstimator
 from service.estimators.pipeline import PackEstimator
 from service.estimators.settings import EstimatorSettings
+from service.estimators.state_of_health import CellHealth
 from service.recording import load_recording
 
 
@@ -55,8 +56,8 @@ def test_frozen_has_no_estimator_and_one_cell_runs_as_frozen() -> None:
     assert frozen.capacity is None and default.capacity is None
     assert np.array_equal(soc_frozen, soc_default)
     h = frozen.health()
-    assert np.all(h["capacity_ah"] == profile.effective_capacity_ah) and np.all(h["capacity_std_ah"] == 0)
-    assert np.all(np.isfinite(h["resistance_rel"])) and np.all(h["resistance_rel"] > 0)
+    assert np.all(h.capacity_ah == profile.effective_capacity_ah) and np.all(h.capacity_std_ah == 0)
+    assert np.all(np.isfinite(h.resistance_rel)) and np.all(h.resistance_rel > 0)
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +68,7 @@ def learned_and_frozen():
 
 def test_capacity_tracks_the_spread_and_lowers_the_worst_soc_error(learned_and_frozen) -> None:
     pack, (est, soc), (_, soc_frozen) = learned_and_frozen
-    err = (est.health()["capacity_ah"] / pack.capacity_ah - 1.0) * 100
+    err = (est.health().capacity_ah / pack.capacity_ah - 1.0) * 100
     frozen_err = (est.profile.effective_capacity_ah / pack.capacity_ah - 1.0) * 100
     # relative to the pack's median cell (what pack-relative learns) every cell is close ...
     spread_left = np.abs(err - np.median(err))
@@ -76,7 +77,7 @@ def test_capacity_tracks_the_spread_and_lowers_the_worst_soc_error(learned_and_f
     assert np.sqrt(np.mean(spread_left ** 2)) < 0.5 * np.sqrt(np.mean(frozen_left ** 2))
     # ... its σ has shrunk from the prior and the capacities stay inside the bounds
     assert np.all(est.capacity.capacity_std_ah < 0.05 * est.profile.effective_capacity_ah)
-    rel = est.health()["capacity_rel"]
+    rel = est.health().capacity_rel
     assert np.all((rel > 1 / 1.3) & (rel < 1 / 0.7))
     rmse = np.sqrt(np.mean((soc - pack.truth_soc) ** 2, axis=0)) * 100
     rmse_frozen = np.sqrt(np.mean((soc_frozen - pack.truth_soc) ** 2, axis=0)) * 100
@@ -100,18 +101,18 @@ def test_state_round_trip_and_old_state_without_capacity(learned_and_frozen) -> 
     state = est.get_state()
     restored = PackEstimator(est.profile, est.n, est.settings)
     restored.set_state(state)
-    assert np.array_equal(restored.health()["capacity_ah"], est.health()["capacity_ah"])
+    assert np.array_equal(restored.health().capacity_ah, est.health().capacity_ah)
     old = {k: v for k, v in state.items() if k not in CapacityEstimator.STATE_KEYS}
     legacy = PackEstimator(est.profile, est.n, est.settings)
     legacy.set_state(old)
-    assert np.all(legacy.health()["capacity_ah"] == est.profile.effective_capacity_ah)
+    assert np.all(legacy.health().capacity_ah == est.profile.effective_capacity_ah)
     assert np.array_equal(legacy.soc, est.soc)
 
 
 def test_cell_health_frame_and_params_payload() -> None:
     n = 3
-    health = {"capacity_ah": np.array([2.7, 2.9, 3.1]), "capacity_std_ah": np.array([0.03, 0.02, 0.01]),
-              "capacity_rel": np.array([2.7, 2.9, 3.1]) / 2.8, "resistance_rel": np.array([1.0, 1.25, 0.9])}
+    health = CellHealth(capacity_ah=np.array([2.7, 2.9, 3.1]), capacity_std_ah=np.array([0.03, 0.02, 0.01]),
+                        capacity_rel=np.array([2.7, 2.9, 3.1]) / 2.8, resistance_rel=np.array([1.0, 1.25, 0.9]))
     snap = PackSnapshot(t_s=1.0, soc=np.full(n, 0.5), soc_std=np.full(n, 0.01), voltage_v=np.full(n, 3.7),
                         health=health)
     enc = OutputEncoder()
@@ -121,9 +122,9 @@ def test_cell_health_frame_and_params_payload() -> None:
     assert len(rows) == n and frames[-1].arbitration_id == 0x18FF55E5 and frames[-1].is_extended_id
     for i, g in enumerate(rows):
         assert g["SOCD_HlthCellIndex"] == i
-        assert g["SOCD_CapacityPct"] == pytest.approx(100 * health["capacity_rel"][i], abs=0.01)
-        assert g["SOCD_CapacityStdPct"] == pytest.approx(100 * health["capacity_std_ah"][i] / 2.8, abs=0.01)
-        assert g["SOCD_ResistancePct"] == pytest.approx(100 * health["resistance_rel"][i], abs=0.1)
+        assert g["SOCD_CapacityPct"] == pytest.approx(100 * health.capacity_rel[i], abs=0.01)
+        assert g["SOCD_CapacityStdPct"] == pytest.approx(100 * health.capacity_std_ah[i] / 2.8, abs=0.01)
+        assert g["SOCD_ResistancePct"] == pytest.approx(100 * health.resistance_rel[i], abs=0.1)
     # a snapshot without health sends no health frames (older callers, frozen tools)
     assert not any(decode_output(f).get("message") == "SOCD_CellHealth"
                    for f in enc.encode(PackSnapshot(t_s=1.0, soc=np.full(n, 0.5), soc_std=np.full(n, 0.01),

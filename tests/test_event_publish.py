@@ -302,13 +302,14 @@ def test_fast_params_json_is_the_model_s_json() -> None:
     from service.cell.parameters import PARAMETER_NAMES
     from service.daemon.payloads import CellParams
     from service.daemon.zenoh_pub import cell_params_json, cell_params_payload
+    from service.estimators.state_of_health import CellHealth
 
     n = 7
     params = {name: np.linspace(0.001, 2.0, n) * (k + 1) for k, name in enumerate(PARAMETER_NAMES[1:])}
     params["r_ct"][1], params["m"][4] = np.nan, np.inf
-    health = {"capacity_ah": np.linspace(2.7, 2.9, n), "capacity_std_ah": np.full(n, 0.0123456),
-              "capacity_rel": np.linspace(0.95, 1.02, n), "resistance_rel": np.full(n, 1.0512345)}
-    health["capacity_ah"][3] = np.nan
+    health = CellHealth(capacity_ah=np.linspace(2.7, 2.9, n), capacity_std_ah=np.full(n, 0.0123456),
+                        capacity_rel=np.linspace(0.95, 1.02, n), resistance_rel=np.full(n, 1.0512345))
+    health.capacity_ah[3] = np.nan
     idx = np.array([0, 1, 3, 4, 6])
     for initialised in (True, False):
         for health_cells in (health, None):

@@ -24,10 +24,11 @@ import numpy as np
 from service.bus.types import STATUS_FLAGS, PackSnapshot
 from service.config import DEFAULT_OUTPUT_DBC, SocdConfig, load_dbc
 from service.estimators.pack_view import PackView
+from service.estimators.state_of_health import CellHealth
 
 _WIRE_SCALE = {"r_ohm": 1e3, "r_ct": 1e3, "r_df": 1e3, "m": 1.0, "n": 1.0}  # SI -> wire units
 _PARAM_SIGNALS = {"r_ohm": "SOCD_ROhm", "r_ct": "SOCD_RCt", "r_df": "SOCD_RDf", "m": "SOCD_M", "n": "SOCD_N"}
-#: health key -> (signal, SI -> wire scale); the capacity σ goes out relative to the profile's capacity
+#: CellHealth field -> (signal, SI -> wire scale); the capacity σ goes out relative to the profile's capacity
 _HEALTH_SIGNALS = {"capacity_rel": ("SOCD_CapacityPct", 100.0), "capacity_std_rel": ("SOCD_CapacityStdPct", 100.0),
                    "resistance_rel": ("SOCD_ResistancePct", 100.0)}
 
@@ -162,7 +163,7 @@ class OutputEncoder:
         if self.usable is not None:
             pack_frames.append(self._counted(self._usable, self.usable, snapshot.pack, t))
         yield from (f for f in pack_frames if f is not None)
-        if params and self.health is not None and snapshot.health:
+        if params and self.health is not None and snapshot.health is not None:
             yield from self._health(snapshot.health, n, soc.shape, t)
 
     def _counted(self, make: Callable[..., can.Message], *args: Any) -> can.Message | None:
@@ -173,15 +174,11 @@ class OutputEncoder:
             self.errors += 1
             return None
 
-    def _health(self, health: dict[str, np.ndarray], n: int, shape: tuple[int, ...], t: float) -> list[can.Message]:
+    def _health(self, health: CellHealth, n: int, shape: tuple[int, ...], t: float) -> list[can.Message]:
         arrays: dict[str, np.ndarray | None] = {}
         try:
-            h = dict(health)
-            if "capacity_std_ah" in h and "capacity_ah" in h and "capacity_rel" in h:
-                cap = np.asarray(h["capacity_ah"], dtype=float)
-                h["capacity_std_rel"] = np.asarray(h["capacity_std_ah"], float) * np.asarray(h["capacity_rel"], float) / cap
             for key in _HEALTH_SIGNALS:
-                arr = np.asarray(h.get(key, np.nan), dtype=float).ravel()
+                arr = np.asarray(getattr(health, key), dtype=float).ravel()
                 arrays[key] = np.broadcast_to(arr, shape) if arr.size in (1, shape[0]) else None
         except Exception:  # noqa: BLE001
             self.errors += 1

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from service.estimators.pack_view import PackView
+from service.estimators.state_of_health import CellHealth
 
 #: status flags the output DBC carries, in bit order (``SOCD_Flag<CamelCase>``)
 STATUS_FLAGS: tuple[str, ...] = (
@@ -77,9 +78,9 @@ class PackSnapshot:
     status_flags: dict[str, bool] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
     pack: PackView | None = None
-    #: state of health per cell (``capacity_rel``, ``capacity_std_ah``, ``resistance_rel``, ... as
-    #: :meth:`service.estimators.pipeline.PackEstimator.health`); empty: no SOCD_CellHealth frames
-    health: dict[str, np.ndarray] = field(default_factory=dict)
+    #: state of health per cell (:meth:`service.estimators.pipeline.PackEstimator.health`);
+    #: None (an estimator without one): no SOCD_CellHealth frames
+    health: CellHealth | None = None
 
     def __post_init__(self) -> None:
         if self.stale is None:

@@ -66,6 +66,7 @@ from service.daemon.checkpoint import load_checkpoint, profile_hash, save_checkp
 from service.daemon.health import HealthMonitor, wall_time_of
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
 from service.estimators.pack_view import OcvEnergy, PackView, pack_view
+from service.estimators.state_of_health import CellHealth
 
 log = logging.getLogger(__name__)
 
@@ -596,9 +597,9 @@ class Daemon:
             health=self._health_cells(),
         )
 
-    def _health_cells(self) -> dict[str, np.ndarray]:
+    def _health_cells(self) -> CellHealth | None:
         fn = getattr(self.estimator, "health", None)
-        return {k: np.array(v, dtype=float) for k, v in fn().items()} if fn is not None else {}
+        return fn().copy() if fn is not None else None
 
     async def _can_output(self) -> None:
         if self.encoder is None or not self.initialised:

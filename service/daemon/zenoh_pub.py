@@ -61,6 +61,7 @@ from service.cell.parameters import PARAMETER_NAMES
 from service.daemon.health import HealthMonitor
 from service.daemon.payloads import CellParams, CellSoc, Health, Keys, Snapshot, Summary, keys
 from service.estimators.pack_view import PackView
+from service.estimators.state_of_health import CellHealth
 
 log = logging.getLogger(__name__)
 
@@ -147,8 +148,8 @@ class PublishRound:
     pack: PackView | None = None
     full: bool = True
     cells: np.ndarray | None = None
-    #: :meth:`PackEstimator.health` arrays (capacity_ah, capacity_std_ah, capacity_rel, resistance_rel)
-    health_cells: dict[str, np.ndarray] | None = None
+    #: :meth:`PackEstimator.health` (None: an estimator without one)
+    health_cells: CellHealth | None = None
 
     @property
     def n_cells(self) -> int:
@@ -228,18 +229,17 @@ def cell_soc_json(pack: str, r: PublishRound, idx: np.ndarray) -> list[str]:
 
 def cell_params_payload(pack: str, r: PublishRound, i: int) -> CellParams:
     """Cell ``i``'s identified parameters and state of health (capacity, resistance growth)."""
-    soh = r.health_cells or {}
-
+    soh = r.health_cells if r.initialised else None
     return CellParams(
         pack=pack, t_s=r.t_s, cell=i,
         **{k: (_num(r.params[k][i], 1.0, 9) if k in r.params else None) for k in PARAMETER_NAMES},
-        **{field: (_num(soh[key][i], scale, nd) if key in soh and r.initialised else None)
+        **{field: (_num(getattr(soh, key)[i], scale, nd) if soh is not None else None)
            for field, key, scale, nd in _SOH_FIELDS},
     )
 
 
-#: the state-of-health fields of :class:`CellParams`: (payload field, key of
-#: ``PublishRound.health_cells``, scale, decimals)
+#: the state-of-health fields of :class:`CellParams`: (payload field, field of
+#: :class:`~service.estimators.state_of_health.CellHealth`, scale, decimals)
 _SOH_FIELDS = (("capacity_ah", "capacity_ah", 1.0, 5), ("capacity_std_ah", "capacity_std_ah", 1.0, 5),
                ("capacity_pct", "capacity_rel", 100.0, 3), ("resistance_pct", "resistance_rel", 100.0, 3))
 
@@ -250,9 +250,9 @@ def cell_params_json(pack: str, r: PublishRound, idx: np.ndarray) -> list[str]:
     parameters, and building them one model at a time kept the publisher's thread (and so the
     GIL) busy for tens of milliseconds.  ``tests/test_event_publish.py`` holds the two equal."""
     idx = np.asarray(idx, dtype=int)
-    soh = r.health_cells or {}
+    soh = r.health_cells
     columns = [(name, _rounded(r.params.get(name), idx, 1.0, 9)) for name in PARAMETER_NAMES]
-    columns += [(field, _rounded(soh.get(key), idx, scale, nd, bool(r.initialised)))
+    columns += [(field, _rounded(getattr(soh, key, None), idx, scale, nd, bool(r.initialised)))
                 for field, key, scale, nd in _SOH_FIELDS]
     head = f'{{"schema_version":{CellParams.model_fields["schema_version"].default},"pack":{json.dumps(pack)},' \
            f'"t_s":{_js(float(r.t_s))},"cell":'

@@ -35,6 +35,7 @@ from service.estimators.fomiukf import FoMiUkf
 from service.estimators.parameter_ekf import PARAMETERS, ParameterEkf, apply_corrections
 from service.estimators.settings import EstimatorSettings
 from service.estimators.slow_identifier import SlowIdentifier
+from service.estimators.state_of_health import CellHealth
 from service.recording import Recording
 
 Identification = Literal["multi", "single", "none"]
@@ -171,10 +172,10 @@ class PackEstimator:
             return self.capacity.capacity_ah.copy()
         return np.full(self.n, float(self.profile.effective_capacity_ah))
 
-    def health(self) -> dict[str, np.ndarray]:
-        """State of health per cell: ``capacity_ah`` and its σ ``capacity_std_ah`` (the profile's
-        with σ 0 when the estimate is frozen), ``capacity_rel`` (capacity / profile's) and
-        ``resistance_rel``, the SOH-power figure ``(R_ohm + R_ct) / (R_ohm + R_ct)_nominal``.
+    def health(self) -> CellHealth:
+        """State of health per cell: the capacity and its σ (the profile's with σ 0 when the
+        estimate is frozen), capacity / profile's, and the SOH-power figure
+        ``(R_ohm + R_ct) / (R_ohm + R_ct)_nominal``.
 
         The identified resistances are corrections of the profile's at the cell's own
         temperature (Arrhenius table) and SOC (:mod:`service.cell.soc_dependence`), so their
@@ -186,8 +187,8 @@ class PackEstimator:
         p, nom = self.params, self.nominal_now
         r = p.r_ohm + p.r[:, 0]
         r_nom = nom.r_ohm + nom.r[:, 0]
-        return {"capacity_ah": cap, "capacity_std_ah": cap_std, "capacity_rel": cap / nominal,
-                "resistance_rel": r / r_nom}
+        return CellHealth(capacity_ah=cap, capacity_std_ah=cap_std, capacity_rel=cap / nominal,
+                          resistance_rel=r / r_nom)
 
     # -- initialisation -----------------------------------------------------------------
     def initialise(
