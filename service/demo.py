@@ -30,10 +30,13 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import can
 import numpy as np
+
+if TYPE_CHECKING:
+    from service.recording import Recording
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +98,20 @@ class DemoResult:
 SHIPPED_DBC_CELLS = 96
 #: σ of the demo pack's relative cell capacity
 DEFAULT_CAPACITY_SPREAD = 0.02
+
+
+def within_every_cell(recording: Recording, truth_soc: np.ndarray) -> tuple[Recording, int | None]:
+    """``recording`` up to the first sample where a cell's true SOC leaves [0, 1], and that cell.
+
+    A pack built from one recorded cell gives a cell with less capacity (or a lower start) than the
+    recorded one a true SOC below 0 before the recording ends; a real pack's BMS stops the drive
+    when its weakest cell is empty, and a SOC outside [0, 1] is no truth to score against."""
+    outside = (truth_soc < 0.0) | (truth_soc > 1.0)
+    rows = np.flatnonzero(outside.any(axis=1))
+    if rows.size == 0:
+        return recording, None
+    k = int(rows[0])
+    return recording.slice(0, max(2, k)), int(np.flatnonzero(outside[k])[0])
 
 
 def _generated_input_dbc(n_cells: int, workdir: Path) -> Path:
@@ -177,11 +194,16 @@ def run_demo(
         config = config.model_copy(update={"estimator": config.estimator.model_copy(
             update={"capacity_estimation": capacity_estimation})})
     spread = SpreadSpec(capacity=capacity_spread, resistance=0.05, soc=0.02, temperature_c=0.5)
+    _, whole = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc, lazy=True)
+    recording, emptied = within_every_cell(recording, whole.truth_soc)
     frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc)
     if status is True:
         status = sys.stdout  # looked up now: the caller may have redirected it
     elif status is False:
         status = None
+    if emptied is not None and status is not None:
+        print(f"replay stops at {recording.time_s[-1] - recording.time_s[0]:.0f} s, where cell {emptied} is "
+              "empty (or full), as the pack's BMS would stop the drive", file=status)
     if live is None:
         live = status is not None and status.isatty()
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from service.cli import main
@@ -56,3 +57,27 @@ def test_demo_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["demo", "--cells", "0"]) == 2
     assert "--cells" in capsys.readouterr().err
     assert main(["demo", "--speed", "-1"]) == 2
+
+
+def test_the_replay_stops_where_a_cell_of_the_pack_is_empty() -> None:
+    """A 96-cell pack with a 5 % capacity spread built from the bundled drive has cells that would
+    be emptied before the recorded cell is: the demo replays up to the first of them, so every
+    truth it scores is a SOC in [0, 1]; the 8-cell default pack keeps the whole drive."""
+    from replay.pack import SpreadSpec, expand_pack
+    from service.cell.profile import load_profile
+    from service.config import DEFAULT_CELL_PROFILE
+    from service.demo import bundled_recording, within_every_cell
+    from service.recording import load_recording
+
+    profile, rec = load_profile(DEFAULT_CELL_PROFILE), load_recording(bundled_recording())
+    spread = SpreadSpec(capacity=0.05, resistance=0.05, soc=0.02, temperature_c=0.5)
+    pack = expand_pack(rec, profile, 96, spread, seed=0, start_soc=1.0)
+    assert pack.truth_soc.min() < 0  # the whole drive would score impossible truths
+    cut, cell = within_every_cell(rec, pack.truth_soc)
+    assert cell is not None and len(cut) < len(rec) and pack.truth_soc[len(cut), cell] < 0
+    kept = expand_pack(cut, profile, 96, spread, seed=0, start_soc=1.0)
+    assert kept.truth_soc.min() >= 0 and kept.truth_soc.max() <= 1
+    assert np.array_equal(kept.truth_soc, pack.truth_soc[:len(cut)])  # the same pack, shorter
+    default = expand_pack(rec, profile, 8, SpreadSpec(capacity=0.02, resistance=0.05, soc=0.02), seed=0,
+                          start_soc=1.0)
+    assert within_every_cell(rec, default.truth_soc) == (rec, None)
