@@ -77,6 +77,8 @@ class DemoResult:
     #: per cell at the end: (estimated capacity / the cell's true capacity - 1), %
     capacity_err_pct: list[float]
     capacity_spread: float
+    #: per cell: (the cell's true capacity / the profile's - 1), %, as the seeded spread drew it
+    true_capacity_pct: list[float]
     final_soc_pct: list[float]
     final_truth_pct: list[float]
     zenoh_messages: int
@@ -322,6 +324,7 @@ def run_demo(
         per_cell_rmse_pct=[round(float(x), 4) for x in per_cell],
         capacity_err_pct=[round(float(x), 3) for x in capacity_err],
         capacity_spread=capacity_spread,
+        true_capacity_pct=[round(100 * (float(x) / profile.effective_capacity_ah - 1.0), 3) for x in pack.capacity_ah],
         final_soc_pct=[round(100 * float(x), 3) for x in (soc[-1] if len(soc) else [])],
         final_truth_pct=[round(100 * float(x), 3) for x in (truth[-1] if len(truth) else [])],
         zenoh_messages=int(sum(zenoh_counts.values())),

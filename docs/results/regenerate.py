@@ -26,6 +26,7 @@ import datetime as dt
 import importlib
 import json
 import re
+import statistics
 import subprocess
 import sys
 from collections.abc import Callable
@@ -154,6 +155,20 @@ def latency_table(*names: str) -> Callable[[Path], str]:
                       f"{_p50_p99(d['put_ms'])} | {_p50_p99(d['delivered_summary_ms'])} | "
                       f"{_p50_p99(d['delivered_last_cell_ms'])} | {d['cpu_pct']:.0f} |"),
         names)
+
+
+def demo_capacity_table(*names: str) -> Callable[[Path], str]:
+    """One row per ``socd demo --json`` run: the online capacity and each cell's SOC error."""
+    def row(n: str, d: dict) -> str:
+        cap, rmse = d["capacity_err_pct"], d["per_cell_rmse_pct"]
+        median = statistics.median(d["true_capacity_pct"])
+        return (f"| `{n}` | {d['cells']} | {100 * d['capacity_spread']:g} % | {median:+.2f} % | {d['seconds_replayed']:,.0f} | "
+                f"{min(cap):+.2f} to {max(cap):+.2f} | {min(rmse):.2f}-{max(rmse):.2f} | "
+                f"{'yes' if max(map(abs, cap)) <= 1.5 and max(rmse) <= 0.7 else 'no'} |")
+    return json_rows_table(
+        "| run | cells | capacity spread σ | median cell's capacity vs the profile's | replayed, s "
+        "| capacity error per cell, % | SOC RMSE per cell, % "
+        "| both targets (±1.5 %, ≤ 0.7 %) |", row, names)
 
 
 def demo_table(*names: str) -> Callable[[Path], str]:
@@ -493,6 +508,16 @@ socd demo --cells 200 --json out/demo200.json --plot out/demo200.png
 socd demo --cells 96 --speed 1 --seconds 60 --recording $P/fullrate_10Hz/pan18650pf_25C_US06_10Hz.csv \\
     --json out/demo96_realtime.json --plot out/demo96_realtime.png""",
           demo_table("demo96.json", "demo200.json", "demo96_realtime.json"), 5),
+    Table("demo_capacity", "bench.md", """\
+socd demo --json out/demo8_cap2.json
+socd demo --spread-capacity 0.05 --json out/demo8_cap5.json
+socd demo --spread-capacity 0.05 --freeze-capacity --json out/demo8_cap5_frozen.json
+SOCD_ESTIMATOR__CAPACITY_ESTIMATION=absolute socd demo --spread-capacity 0.05 --json out/demo8_cap5_absolute.json
+for seed in 1 2; do socd demo --spread-capacity 0.05 --seed $seed --json out/demo8_cap5_seed$seed.json; done
+socd demo --cells 96 --spread-capacity 0.05 --json out/demo96_cap5.json""",
+          demo_capacity_table("demo8_cap2.json", "demo8_cap5.json", "demo8_cap5_frozen.json", "demo8_cap5_absolute.json",
+                              "demo8_cap5_seed1.json",
+                              "demo8_cap5_seed2.json", "demo96_cap5.json"), 3),
     Table("diag_labelled", "diagnose.md", """\
 S=../shared/data/synthetic
 for f in dst_s101_4e4041 hppc_s102_131537 bjdst_s103_55f05a randomwalk_s104_e90722 hppc_s105_437525 dst_s106_462959 randomwalk_s107_cac951; do
