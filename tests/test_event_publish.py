@@ -15,8 +15,10 @@ No assertion here is on latency; counts and values only.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import can
@@ -92,24 +94,36 @@ def _round(n: int, t: float, health: HealthMonitor, *, full: bool, cells: np.nda
     )
 
 
-def test_estimate_round_puts_only_its_cells_and_the_summary_with_the_pack_view() -> None:
+@contextlib.contextmanager
+def _connected(pack: str, n: int) -> Iterator[tuple[ZenohPublisher, HealthMonitor, _Collector]]:
+    """A publisher (no rate limit) on a loopback port and a subscriber to every key under
+    ``bms/<pack>/``, connected: full rounds of ``n`` cells at t = 0 are submitted until one arrives."""
     port = _port()
-    health = HealthMonitor(pack="packE")
+    health = HealthMonitor(pack=pack)
     section = type("S", (), dict(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], connect=[],
-                                 scouting_multicast=False, key_prefix="bms", pack_id="packE"))()
+                                 scouting_multicast=False, key_prefix="bms", pack_id=pack))()
     pub = ZenohPublisher(section, 16, health, min_interval_s=0.0)
     pub.start()
     sub_session = _session(connect=[f"tcp/127.0.0.1:{port}"])
     got = _Collector()
-    sub = sub_session.declare_subscriber("bms/packE/**", got)
+    sub = sub_session.declare_subscriber(f"bms/{pack}/**", got)
     try:
-        n = 6
         k = 0
-        while not got.get("bms/packE/summary"):  # until the subscriber's session is connected
+        while not got.get(f"bms/{pack}/summary"):
             assert k < 400, "the subscriber never connected"
             pub.submit(_round(n, 0.0, health, full=True))
             k += 1
             time.sleep(0.05)
+        yield pub, health, got
+    finally:
+        sub.undeclare()
+        sub_session.close()
+        pub.stop()
+
+
+def test_estimate_round_puts_only_its_cells_and_the_summary_with_the_pack_view() -> None:
+    n = 6
+    with _connected("packE", n) as (pub, health, got):
         before = {key: len(v) for key, v in got.by_key.items()}
         cells = np.zeros(n, bool)
         cells[[1, 4]] = True
@@ -130,10 +144,6 @@ def test_estimate_round_puts_only_its_cells_and_the_summary_with_the_pack_view()
         assert s.imbalance_ah == pytest.approx(0.4 * 2.9, rel=0.05)  # (70.7 − 30.7) % of ~2.9 Ah
         assert s.usable_energy_wh < s.remaining_energy_wh and s.usable_discharge_ah > 0
         assert health.latency_ms()["publish_p50"] is not None  # estimate rounds are the ones timed
-    finally:
-        sub.undeclare()
-        sub_session.close()
-        pub.stop()
 
 
 # -- the daemon: estimates published as they happen ---------------------------------------------
@@ -326,15 +336,6 @@ def test_a_full_round_repeats_only_what_no_estimate_round_refreshed() -> None:
     """While estimate rounds flow, a full round puts parameters and health but not the SOC keys
     they just refreshed (a repeat would take the next estimate's rate-limit slot); a cell whose
     stale flag changed goes out with it, and once estimates stop every SOC key goes out again."""
-    port = _port()
-    health = HealthMonitor(pack="packR")
-    section = type("S", (), dict(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], connect=[],
-                                 scouting_multicast=False, key_prefix="bms", pack_id="packR"))()
-    pub = ZenohPublisher(section, 16, health, min_interval_s=0.0)
-    pub.start()
-    sub_session = _session(connect=[f"tcp/127.0.0.1:{port}"])
-    got = _Collector()
-    sub = sub_session.declare_subscriber("bms/packR/**", got)
     n = 5
 
     def soc_times(i: int) -> list[float]:
@@ -343,13 +344,7 @@ def test_a_full_round_repeats_only_what_no_estimate_round_refreshed() -> None:
     def full_round_done(t: float) -> bool:  # every parameter key of the round has arrived
         return all(f'"t_s":{t}' in "".join(got.get(f"bms/packR/cell/{i}/params")) for i in range(n))
 
-    try:
-        k = 0
-        while not got.get("bms/packR/summary"):  # until the subscriber's session is connected
-            assert k < 400, "the subscriber never connected"
-            pub.submit(_round(n, 0.0, health, full=True))
-            k += 1
-            time.sleep(0.05)
+    with _connected("packR", n) as (pub, health, got):
         pub.submit(_round(n, 1.0, health, full=False, cells=np.ones(n, bool)))
         _wait(lambda: all(1.0 in soc_times(i) for i in range(n)), what="the estimate round")
         full = _round(n, 2.0, health, full=True)
@@ -364,7 +359,3 @@ def test_a_full_round_repeats_only_what_no_estimate_round_refreshed() -> None:
         _wait(lambda: full_round_done(3.0), what="the second full round's parameters")
         assert all(3.0 in soc_times(i) for i in range(n))
         assert any('"t_s":3.0' in p for p in got.get("bms/packR/summary"))
-    finally:
-        sub.undeclare()
-        sub_session.close()
-        pub.stop()
