@@ -18,8 +18,8 @@ key is rate-limited on its own: a key put less than ``min_interval_s`` ago is he
 its newest value put as soon as its interval has passed (counted ``zenoh_rate_limited``
 when a newer value replaced a held one); a full round's SOC and summary keys are never
 held back, only skipped, and while estimate rounds flow they are not offered at all: a repeat
-put would take the next estimate's slot and hold it back by up to ``min_interval_s``.  A full round's parameter and health keys
-go out in chunks of :data:`BACKLOG_CHUNK` between estimate rounds, so the hundreds of parameter
+put would take the next estimate's slot and hold it back by up to ``min_interval_s``.  A full
+round's parameter and health keys go out in chunks of :data:`BACKLOG_CHUNK` between estimate rounds, so the hundreds of parameter
 payloads never hold an estimate round back (a newer full round replaces what is left of an older
 one's, counted ``zenoh_rate_limited``).  The ``publish`` latency is from a frame's wall
 time to the ``put`` of the summary of the estimate round that carried it (all its cells
@@ -126,9 +126,10 @@ def config_from_section(z: Any):
 class PublishRound:
     """One publication's worth of estimator output (arrays are the publisher's to keep).
 
-    ``full``: parameters, health and every SOC key offered (the publisher skips those an estimate
-    round refreshed since the last full round); otherwise an estimate round: the SOC keys of ``cells`` (a bool mask;
-    None = every cell) and the summary, and ``params``/``health`` may be left empty.
+    ``full``: parameters, health and every SOC key offered (the publisher skips those an
+    estimate round refreshed since the last full round); otherwise an estimate round: the SOC
+    keys of ``cells`` (a bool mask; None = every cell) and the summary, and ``params``/``health``
+    may be left empty.
     """
 
     t_s: float
