@@ -174,7 +174,8 @@ class OutputEncoder:
             self.errors += 1
             return None
 
-    def _health(self, health: CellHealth, n: int, shape: tuple[int, ...], t: float) -> list[can.Message]:
+    def _health(self, health: CellHealth, n: int, shape: tuple[int, ...], t: float) -> Iterator[can.Message]:
+        """The SOCD_CellHealth frames, one cell at a time (as :meth:`frames`)."""
         arrays: dict[str, np.ndarray | None] = {}
         try:
             for key in _HEALTH_SIGNALS:
@@ -182,18 +183,15 @@ class OutputEncoder:
                 arrays[key] = np.broadcast_to(arr, shape) if arr.size in (1, shape[0]) else None
         except Exception:  # noqa: BLE001
             self.errors += 1
-            return []
-        out = []
+            return
         for i in range(n):
             values: dict[str, Any] = {"SOCD_HlthCellIndex": i}
             for key, (sig, scale) in _HEALTH_SIGNALS.items():
                 a = arrays[key]
                 values[sig] = a[i] * scale if a is not None else 0.0
-            try:
-                out.append(self.health.frame(values, t))
-            except Exception:  # noqa: BLE001
-                self.errors += 1
-        return out
+            frame = self._counted(self.health.frame, values, t)
+            if frame is not None:
+                yield frame
 
     def _summary(self, soc: np.ndarray, stale: np.ndarray, t: float) -> can.Message:
         ok = np.isfinite(soc) & ~stale
