@@ -392,8 +392,8 @@ def write_json(path: Path, result: DemoResult) -> Path:
 def summary_text(r: DemoResult) -> str:
     worst = int(np.argmax(r.per_cell_rmse_pct)) if r.per_cell_rmse_pct else 0
     lines = [
-        f"replayed {r.seconds_replayed:.0f} s of {r.recording} for {r.cells} cells in {r.wall_s:.1f} s "
-        f"({r.frames_per_s:.0f} frames/s, CPU {r.cpu_pct:.0f} % of one core)",
+        (f"replayed {r.seconds_replayed:.0f} s of {r.recording} for {r.cells} cells in {r.wall_s:.1f} s "
+         f"({r.frames_per_s:.0f} frames/s, CPU {r.cpu_pct:.0f} % of one core)"),
         f"frames in {r.frames_in}, rejected {r.frames_rejected}; estimator steps {r.steps}",
         f"SOC error vs truth: RMSE {r.soc_rmse_pct:.2f} %, MAE {r.soc_mae_pct:.2f} %, max {r.soc_max_err_pct:.2f} %"
         + (f", RMSE after 600 s {r.soc_rmse_after_600s_pct:.2f} %" if r.soc_rmse_after_600s_pct is not None else ""),
@@ -401,11 +401,11 @@ def summary_text(r: DemoResult) -> str:
         + (f"  (worst: cell {worst})" if r.per_cell_rmse_pct else ""),
         "per cell capacity error %: " + " ".join(f"{x:+.2f}" for x in r.capacity_err_pct)
         + f"  (capacity spread σ {100 * r.capacity_spread:g} %)",
-        f"Zenoh messages received {r.zenoh_messages} {dict(sorted(r.zenoh_by_kind.items()))}; "
-        f"CAN output frames sent {r.can_frames_out}, seen {r.can_frames_seen}",
-        "latency ms (frame -> estimate / -> Zenoh put): "
-        f"p50 {r.latency_ms.get('estimate_p50')} / {r.latency_ms.get('publish_p50')}, "
-        f"p99 {r.latency_ms.get('estimate_p99')} / {r.latency_ms.get('publish_p99')}",
+        (f"Zenoh messages received {r.zenoh_messages} {dict(sorted(r.zenoh_by_kind.items()))}; "
+         f"CAN output frames sent {r.can_frames_out}, seen {r.can_frames_seen}"),
+        ("latency ms (frame -> estimate / -> Zenoh put): "
+         f"p50 {r.latency_ms.get('estimate_p50')} / {r.latency_ms.get('publish_p50')}, "
+         f"p99 {r.latency_ms.get('estimate_p99')} / {r.latency_ms.get('publish_p99')}"),
     ]
     raised = [k for k, v in r.status_flags.items() if v]
     lines.append("status flags: " + (", ".join(sorted(raised)) if raised else "none"))

@@ -100,8 +100,8 @@ def _connected(pack: str, n: int) -> Iterator[tuple[ZenohPublisher, HealthMonito
     ``bms/<pack>/``, connected: full rounds of ``n`` cells at t = 0 are submitted until one arrives."""
     port = _port()
     health = HealthMonitor(pack=pack)
-    section = type("S", (), dict(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], connect=[],
-                                 scouting_multicast=False, key_prefix="bms", pack_id=pack))()
+    section = type("S", (), {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"], "connect": [],
+                                 "scouting_multicast": False, "key_prefix": "bms", "pack_id": pack})()
     pub = ZenohPublisher(section, 16, health, min_interval_s=0.0)
     pub.start()
     sub_session = _session(connect=[f"tcp/127.0.0.1:{port}"])
@@ -211,7 +211,7 @@ def test_daemon_publishes_each_estimate_without_waiting_for_a_period(tmp_path: P
             t += 0.1
             d.on_sample(_sample(n, t), time.time())
             want = t
-            await asyncio.to_thread(_wait, lambda: any(
+            await asyncio.to_thread(_wait, lambda want=want: any(
                 Summary.model_validate_json(p).t_s == want for p in got.get("bms/packD/summary")),
                 10.0, f"summary at t={want}")
             cell = CellSoc.model_validate_json(got.get(f"bms/packD/cell/{n - 1}/soc")[-1])

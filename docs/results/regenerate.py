@@ -570,7 +570,7 @@ def replace_block(text: str, kind: str, name: str, body: str, where: str = "mark
     """``text`` with the content between ``<!-- BEGIN kind:name -->`` and its END marker replaced
     by ``body``; :class:`RegenerateError` when the pair is missing or appears twice."""
     begin, end = f"<!-- BEGIN {kind}:{name} -->", f"<!-- END {kind}:{name} -->"
-    pattern = re.compile(re.escape(begin) + r"\n.*?" + re.escape(end), re.S)
+    pattern = re.compile(re.escape(begin) + r"\n.*?" + re.escape(end), re.DOTALL)
     found = pattern.findall(text)
     if len(found) != 1:
         raise RegenerateError(f"{where}: expected one '{begin}' … '{end}' pair, found {len(found)}")
@@ -656,7 +656,7 @@ def main(argv: list[str] | None = None) -> int:
             with ThreadPoolExecutor(max_workers=args.jobs) as pool:
                 for t, _ in zip(tables, pool.map(lambda t: run_commands(t, log_dir), tables)):
                     print(f"ran {t.name}", file=sys.stderr)
-        when, commit = dt.datetime.now(dt.timezone.utc), _commit()
+        when, commit = dt.datetime.now(dt.UTC), _commit()
         blocks: dict[str, list[tuple[str, str, str]]] = {}  # every table rendered before any file is written
         for t in tables:
             blocks.setdefault(t.doc, []).append(("command", t.name, command_block(t)))

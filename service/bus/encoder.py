@@ -76,7 +76,7 @@ class _Out:
             return lo
         if not math.isfinite(v):
             return lo if v != math.inf else hi
-        return hi if v > hi else lo if v < lo else v
+        return hi if v > hi else max(v, lo)
 
     def frame(self, values: dict[str, Any], t_s: float) -> can.Message:
         data = {n: self.clamp(n, v) for n, v in values.items() if n in self.ranges}

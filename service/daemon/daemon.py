@@ -267,7 +267,7 @@ class Daemon:
                     await res
             except asyncio.CancelledError:
                 raise
-            except Exception:  # noqa: BLE001 - one bad round must not stop the service
+            except Exception:  # one bad round must not stop the service
                 self.health.count("internal_errors")
                 log.exception("periodic task %s failed", getattr(fn, "__name__", fn))
 
@@ -314,14 +314,14 @@ class Daemon:
         if not self.initialised:
             return None
         self._ckpt_seq += 1
-        return dict(
-            seq=self._ckpt_seq,
-            path=self.config.checkpoint.path,
-            state=self.estimator.get_state(),
-            n_cells=self.n,
-            profile_sha256=self.profile_sha256,
-            t_s=self._last_t,
-        )
+        return {
+            "seq": self._ckpt_seq,
+            "path": self.config.checkpoint.path,
+            "state": self.estimator.get_state(),
+            "n_cells": self.n,
+            "profile_sha256": self.profile_sha256,
+            "t_s": self._last_t,
+        }
 
     def save_checkpoint(self) -> bool:
         """Write a checkpoint now (blocking); False if there is nothing to save or it failed."""
@@ -367,7 +367,7 @@ class Daemon:
                 samples = self.decoder.feed(msg)
                 for s in samples:
                     self.on_sample(s, wall_time_of(msg.timestamp, arrival))
-            except Exception:  # noqa: BLE001 - bad input must never stop the service
+            except Exception:  # bad input must never stop the service
                 self.health.count("internal_errors")
                 log.exception("frame %s could not be processed", msg)
             now = time.perf_counter()

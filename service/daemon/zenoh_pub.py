@@ -267,16 +267,16 @@ def _pack_fields(v: PackView | None) -> dict[str, Any]:
     """The summary's pack-view fields (all None without a view)."""
     if v is None or not v.ok:
         return {}
-    return dict(
-        usable_soc_pct=_num(v.usable_soc, 100.0, 4),
-        usable_discharge_ah=_num(v.usable_discharge_ah, 1.0, 6),
-        usable_charge_ah=_num(v.usable_charge_ah, 1.0, 6),
-        remaining_energy_wh=_num(v.remaining_energy_wh, 1.0, 3),
-        usable_energy_wh=_num(v.usable_energy_wh, 1.0, 3),
-        imbalance_ah=_num(v.imbalance_ah, 1.0, 6),
-        weakest_cell=v.weakest_cell,
-        fullest_cell=v.fullest_cell,
-    )
+    return {
+        "usable_soc_pct": _num(v.usable_soc, 100.0, 4),
+        "usable_discharge_ah": _num(v.usable_discharge_ah, 1.0, 6),
+        "usable_charge_ah": _num(v.usable_charge_ah, 1.0, 6),
+        "remaining_energy_wh": _num(v.remaining_energy_wh, 1.0, 3),
+        "usable_energy_wh": _num(v.usable_energy_wh, 1.0, 3),
+        "imbalance_ah": _num(v.imbalance_ah, 1.0, 6),
+        "weakest_cell": v.weakest_cell,
+        "fullest_cell": v.fullest_cell,
+    }
 
 
 def summary_payload(pack: str, r: PublishRound) -> Summary:
