@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from service.cli import UserError
-from service.commands.bench_drive import pulse_current
+from service.commands.bench_drive import pack_drive
 from service.commands.common_args import (add_cell_argument, add_common_arguments, int_range, positive_float,
                                           positive_int, setup_logging, text_stream, write_json)
 
@@ -52,18 +52,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _inputs(n_cells: int, steps: int, profile, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A pack drive: shared current, per-cell voltages from the model with a spread of SOC."""
-    from service.cell.model import MtsFom
-
-    rng = np.random.default_rng(seed)
-    current = pulse_current(rng, steps)
-    soc0 = rng.uniform(0.6, 0.9, n_cells)
-    temp = np.full(n_cells, 25.0)
-    model = MtsFom(profile, profile.parameters_at(temp), soc0)
-    volts = np.empty((steps, n_cells))
-    for k in range(steps):
-        volts[k] = model.step(1.0, np.full(n_cells, current[k]), temp) + rng.normal(0, 0.002, n_cells)
-    return current, volts, temp
+    """A pack drive of 1 s samples, the current held 10 s at a time (:func:`pack_drive`)."""
+    current, volts = pack_drive(profile, n_cells, steps, 1.0, hold=10, seed=seed)
+    return current, volts, np.full(n_cells, 25.0)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -37,7 +37,7 @@ from typing import Any
 import can
 import numpy as np
 
-from service.commands.bench_drive import pulse_current
+from service.commands.bench_drive import pack_drive
 
 
 @dataclass
@@ -70,22 +70,6 @@ def percentiles(values_ms: list[float]) -> dict[str, float | None]:
     a = np.asarray(values_ms, dtype=float)
     p50, p99 = np.percentile(a, [50, 99])
     return {"p50": round(float(p50), 3), "p99": round(float(p99), 3), "max": round(float(a.max()), 3), "n": int(a.size)}
-
-
-def _drive(profile, n_cells: int, samples: int, dt: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Pack current and per-cell terminal voltages of a simulated drive (the cell model, a
-    spread of start SOC, 2 mV noise)."""
-    from service.cell.model import MtsFom
-
-    rng = np.random.default_rng(seed)
-    hold = max(1, int(round(1.0 / dt)))
-    current = pulse_current(rng, samples, hold)
-    temp = np.full(n_cells, 25.0)
-    model = MtsFom(profile, profile.parameters_at(temp), rng.uniform(0.6, 0.9, n_cells))
-    volts = np.empty((samples, n_cells))
-    for k in range(samples):
-        volts[k] = model.step(dt, np.full(n_cells, current[k]), temp) + rng.normal(0, 0.002, n_cells)
-    return current, volts
 
 
 def _config(n_cells: int, channel: str, port: int, workdir: Path, profile_path: Path):
@@ -124,7 +108,7 @@ def run_latency(cells: int = 200, rate_hz: float = 10.0, seconds: float = 60.0, 
     config = _config(cells, channel, port, workdir, profile_path)
     dt = 1.0 / rate_hz
     total = int(round((warmup_s + seconds) * rate_hz))
-    current, volts = _drive(profile, cells, total, dt)
+    current, volts = pack_drive(profile, cells, total, dt, hold=max(1, int(round(1.0 / dt))))
     n_sensors = len(config.mapping.temperature_signals)
     builder = FrameBuilder(config)
     # frames built before the clock starts: the sender only sends (their timestamps are
