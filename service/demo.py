@@ -196,9 +196,13 @@ def run_demo(
         config = config.model_copy(update={"estimator": config.estimator.model_copy(
             update={"capacity_estimation": capacity_estimation})})
     spread = SpreadSpec(capacity=capacity_spread, resistance=0.05, soc=0.02, temperature_c=0.5)
-    _, whole = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc, lazy=True)
-    recording, emptied = within_every_cell(recording, whole.truth_soc)
-    frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc)
+    lazy_frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc,
+                                    lazy=True)
+    recording, emptied = within_every_cell(recording, pack.truth_soc)
+    if emptied is None:
+        frames = list(lazy_frames)
+    else:  # the same pack over the shorter recording (the spread is drawn from the seed alone)
+        frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc)
     if status is True:
         status = sys.stdout  # looked up now: the caller may have redirected it
     elif status is False:
