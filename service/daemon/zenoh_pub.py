@@ -607,10 +607,9 @@ class ZenohPublisher:
 
     def _put_all(self, items: list[tuple[str, tuple[PublishRound, str, int]]]) -> None:
         bodies = self._bodies(items)
-        publishers = self._state.publishers
         unmatched = 0
         for (key, (r, kind, _)), body in zip(items, bodies):
-            pub = publishers.get(key) or self._publisher(key)
+            pub = self._publisher(key)
             if not pub.matching_status.matching:
                 unmatched += 1  # put anyway: a subscriber may be declaring right now
             pub.put(body)
