@@ -206,6 +206,12 @@ def _js(v: float | None) -> str:
     return "null" if v is None else repr(v)
 
 
+def _cell_json_head(model: type[CellSoc | CellParams], pack: str, r: PublishRound) -> str:
+    """The fields every per-cell payload of a round starts with, up to the cell index's value."""
+    return (f'{{"schema_version":{model.model_fields["schema_version"].default},"pack":{json.dumps(pack)},'
+            f'"t_s":{_js(float(r.t_s))},"cell":')
+
+
 def cell_soc_json(pack: str, r: PublishRound, idx: np.ndarray) -> list[str]:
     """``cell_soc_payload(pack, r, i).model_dump_json()`` for every ``i`` in ``idx``, built in one
     pass over the arrays (the publisher's hot path: a 200-cell round in a fraction of the
@@ -219,8 +225,7 @@ def cell_soc_json(pack: str, r: PublishRound, idx: np.ndarray) -> list[str]:
     vpred = _rounded(r.v_pred, idx, 1.0, 4, ok)
     stale = np.asarray(r.stale, dtype=bool)[idx].tolist()
     resets = (np.asarray(r.resets, dtype=int)[idx] if r.resets is not None else np.zeros(idx.size, int)).tolist()
-    head = f'{{"schema_version":{CellSoc.model_fields["schema_version"].default},"pack":{json.dumps(pack)},' \
-           f'"t_s":{_js(float(r.t_s))},"cell":'
+    head = _cell_json_head(CellSoc, pack, r)
     return [
         f'{head}{i},"soc_pct":{_js(a)},"soc_std_pct":{_js(b)},"voltage_v":{_js(v)},"v_pred_v":{_js(vp)},'
         f'"stale":{"true" if st else "false"},"resets":{rs}}}'
@@ -255,8 +260,7 @@ def cell_params_json(pack: str, r: PublishRound, idx: np.ndarray) -> list[str]:
     columns = [(name, _rounded(r.params.get(name), idx, 1.0, 9)) for name in PARAMETER_NAMES]
     columns += [(field, _rounded(getattr(soh, key, None), idx, scale, nd, bool(r.initialised)))
                 for field, key, scale, nd in _SOH_FIELDS]
-    head = f'{{"schema_version":{CellParams.model_fields["schema_version"].default},"pack":{json.dumps(pack)},' \
-           f'"t_s":{_js(float(r.t_s))},"cell":'
+    head = _cell_json_head(CellParams, pack, r)
     names = [name for name, _ in columns]
     rows = zip(*(values for _, values in columns))
     return [head + str(i) + "".join(f',"{name}":{_js(v)}' for name, v in zip(names, row)) + "}"
