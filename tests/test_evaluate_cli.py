@@ -527,3 +527,45 @@ def test_a_kinetics_fit_never_ends_worse_than_its_2rc_start(tmp_path: Path, nmc_
     assert t.rmse_mv <= t.ecm_rmse_mv * 1.05 + 0.5
     assert profile.parameters[0].i0_a == pytest.approx(LINEAR_I0_A)
     ch.check_fit_quality(report)
+
+
+def test_on_2rc_submodel_is_orders_one_and_linear_kinetics() -> None:
+    from service.cell.fitting import LINEAR_I0_A
+    from service.cell.profile import ParameterPoint
+    from service.characterisation.characterise import on_2rc_submodel
+
+    rc = ParameterPoint(r_ohm=0.03, r_ct=0.01, c_dl=900.0, m=1.0, r_df=0.03, c_df=4000.0, n=0.99)
+    assert on_2rc_submodel(rc)
+    assert on_2rc_submodel(rc.model_copy(update={"i0_a": LINEAR_I0_A}))
+    assert not on_2rc_submodel(rc.model_copy(update={"i0_a": 0.5}))  # Butler-Volmer bends the drop
+    assert not on_2rc_submodel(rc.model_copy(update={"m": 0.9}))
+    assert not on_2rc_submodel(rc.model_copy(update={"n": 0.5}))
+
+
+def test_a_search_that_ends_on_the_2rc_submodel_keeps_the_2rc_fits_point(nmc_recording, monkeypatch) -> None:
+    """When the fractional search ends with both orders at 1 and no Butler-Volmer bend it is the 2-RC
+    model, and the linear 2-RC fit's point (the global optimum of that model over every sample) is kept
+    as long as it fits within the fit-quality tolerance. The real search runs, held to orders within
+    [0.999, 1] so it ends on the submodel; it lands on a different point from the 2-RC fit."""
+    import service.characterisation.characterise as ch
+    from service.recording import load_recording
+
+    real_fit = ch.fit_parameters
+    searched = {}
+
+    def on_submodel(prof, segs, **kw):
+        res = real_fit(prof, segs, **(kw | {"min_order": 0.999, "fit_kinetics": False}))
+        searched["point"] = res.point
+        return res
+
+    monkeypatch.setattr(ch, "fit_parameters", on_submodel)
+    rec = nmc_recording(name="submodel", duration_s=2400, seed=4, soc0=0.95)
+    profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=False, max_seconds=5)
+    (t,) = report.temperatures
+    assert ch.on_2rc_submodel(searched["point"])
+    assert searched["point"].c_dl != pytest.approx(profile.parameters[0].c_dl, rel=1e-3)
+    assert t.source == "2-RC fit", t.source
+    kept, ecm = profile.parameters[0], profile.ecm2rc.points[0]
+    assert (kept.r_ohm, kept.r_ct, kept.r_df) == pytest.approx((ecm.r0, ecm.r1, ecm.r2))
+    assert (kept.m, kept.n) == (1.0, 1.0)
+    assert any("2-RC" in line for line in report.lines)

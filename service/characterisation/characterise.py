@@ -94,6 +94,8 @@ ECM_TOLERANCE = (0.05, 0.5)
 #: how far outside [0, 1] the SOC counted through a characterisation recording may go (a
 #: capacity a few percent off, a full point a little early) before the fit is refused
 COUNTED_SOC_MARGIN = 0.1
+#: a fitted CPE order this close to 1 is a capacitor (the branch is an RC branch)
+ORDER_ONE_TOL = 0.02
 
 
 class FitQualityError(ValueError):
@@ -109,7 +111,9 @@ class TemperatureFit:
     rmse_mv: float
     ecm_rmse_mv: float
     at_bounds: list[str]
-    source: str  # "fractional fit" or "2-RC start" (the fractional fit did no better than its start)
+    #: "fractional fit"; "2-RC start" (the fractional fit did no better than its start); or
+    #: "2-RC fit" (the search ended on the 2-RC submodel and the 2-RC fit's point fits as well)
+    source: str
     #: RMS of the measured voltage minus the OCV at the counted SOC: what the dynamics must explain
     overpotential_rms_mv: float = 0.0
 
@@ -380,6 +384,10 @@ def characterise(
             start_rmse = segments_rmse_mv(prof, start, hyst_t, segs, memory_length)
             if start_rmse < rmse:
                 pt, rmse, source = start, start_rmse, "2-RC start"
+            elif on_2rc_submodel(pt) and start_rmse <= rmse * (1.0 + ECM_TOLERANCE[0]) + ECM_TOLERANCE[1]:
+                # the search ended on the 2-RC submodel, where the linear 2-RC fit's optimum
+                # is the global one over every sample: keep it
+                pt, rmse, source = start, start_rmse, "2-RC fit"
         points[t] = pt
         if res.hysteresis is not None:
             hyst = res.hysteresis
@@ -391,7 +399,9 @@ def characterise(
                 f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}"
                 + (f", i0 {pt.i0_a:.2f} A" if pt.i0_a is not None else "")
                 + f"; fit RMSE {rmse:.1f} mV (textbook 2-RC {ecm[t].rmse_mv:.1f} mV)"
-                + (" from the 2-RC start point" if source != "fractional fit" else "")
+                + {"2-RC start": " from the 2-RC start point",
+                   "2-RC fit": " (the search ended on the 2-RC submodel: orders 1, linear kinetics; the 2-RC "
+                               "fit's own point is kept)"}.get(source, "")
                 + (f"; search stopped at its {max_seconds:g} s bound (--max-seconds)" if res.time_bound
                    else f"; search finished in {res.seconds:.0f} s"))
         if outcome.at_bounds:
@@ -445,6 +455,14 @@ def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[Pa
     if all(p.i0_a is None for p in points) or all(p.i0_a is not None for p in points):
         return points
     return [p if p.i0_a is not None else p.model_copy(update={"i0_a": LINEAR_I0_A}) for p in points]
+
+
+def on_2rc_submodel(point: ParameterPoint) -> bool:
+    """True when a fitted point is the textbook 2-RC model in the fractional form: both CPE
+    orders at 1 (within :data:`ORDER_ONE_TOL`) and the Butler–Volmer term linear (not fitted,
+    or its exchange current at the largest the search allows, :data:`LINEAR_I0_A`)."""
+    linear = point.i0_a is None or point.i0_a >= (1.0 - ORDER_ONE_TOL) * LINEAR_I0_A
+    return point.m >= 1.0 - ORDER_ONE_TOL and point.n >= 1.0 - ORDER_ONE_TOL and linear
 
 
 def ecm_start_point(fit: Ecm2RcFit, temp_c: float, linear_kinetics: bool = False) -> ParameterPoint:

@@ -26,7 +26,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "temperatures give OCV(SOC, T) and temperature-dependent parameters (scipy differential evolution + "
             "least squares). The textbook 2-RC model (OCV, R0, R1/tau1, R2/tau2 per temperature) is fitted to the "
             "same data and stored beside the fractional one: 'ecm2rc-ekf' runs on it, and a temperature whose "
-            "fractional fit is poor or worse than it fails the command (exit 2, nothing written) unless --force."
+            "fractional fit is poor or worse than it fails the command (exit 2, nothing written) unless --force. "
+            "Where the fractional search ends on the 2-RC model itself (orders 1, no Butler-Volmer bend), the "
+            "2-RC fit's own point is kept for that temperature (the fit log says so)."
         ),
     )
     p.add_argument("recordings", nargs="+", metavar="RECORDING")
