@@ -465,7 +465,7 @@ def on_2rc_submodel(point: ParameterPoint) -> bool:
     return point.m >= 1.0 - ORDER_ONE_TOL and point.n >= 1.0 - ORDER_ONE_TOL and linear
 
 
-def ecm_start_point(fit: Ecm2RcFit, temp_c: float, linear_kinetics: bool = False) -> ParameterPoint:
+def ecm_start_point(fit: Ecm2RcFit | Ecm2RcPoint, temp_c: float, linear_kinetics: bool = False) -> ParameterPoint:
     """The fractional model's point that is the textbook 2-RC model (orders 1, ``C = τ/R``):
     where the fractional search starts, so it begins at the bar it has to clear.
 
