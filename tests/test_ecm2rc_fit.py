@@ -121,3 +121,29 @@ def test_fit_quality_rule(rmse, ecm, overpotential, bad):
             check_fit_quality(rep)
     else:
         check_fit_quality(rep)
+
+
+def test_two_rc_point_writes_the_textbook_model_in_the_fractional_form(tmp_path: Path):
+    """``research.two_rc_point`` replaces the fractional point by the stored 2-RC one (orders 1,
+    C = τ/R), so the fractional model simulates the 2-RC model's voltage; hysteresis goes off."""
+    from research.two_rc_point import main as two_rc_point
+    from service.cell.profile import HysteresisSpec, load_profile, save_profile
+    from service.cell.trajectory import simulate
+
+    grid = np.linspace(0, 1, 201)
+    ocv = OcvSpec(soc=grid.tolist(), ocv_v=[ocv_curve(grid).tolist()])
+    spec = Ecm2RcSpec(ocv=ocv, points=[Ecm2RcPoint(temp_c=25.0, **TRUE)])
+    wrong = ParameterPoint(temp_c=25.0, r_ohm=0.2, r_ct=0.1, c_dl=10.0, m=0.5, r_df=0.3, c_df=10.0, n=0.5)
+    src, out = tmp_path / "cell.toml", tmp_path / "cell_2rc.toml"
+    save_profile(CellProfile(capacity_ah=CAPACITY_AH, ocv=ocv, parameters=[wrong], ecm2rc=spec,
+                             hysteresis=HysteresisSpec(u_h_max_v=0.02, rate=30.0)), src)
+    assert two_rc_point([str(src), str(out)]) == 0
+    prof = load_profile(out)
+    (p,) = prof.parameters
+    assert (p.m, p.n, p.r_ohm, p.r_ct, p.r_df) == pytest.approx((1.0, 1.0, TRUE["r0"], TRUE["r1"], TRUE["r2"]))
+    assert prof.hysteresis.u_h_max_v == 0.0
+    seg = segment(3000, noise_v=0.0)
+    v_fo, _ = simulate(prof, seg.time_s, seg.current_a, seg.temperature_c, seg.soc0)
+    # the fractional form steps the branches by backward Euler, the 2-RC fit exactly: close, not equal
+    assert np.sqrt(np.mean((v_fo - seg.voltage_v) ** 2)) < 1e-3
+    assert two_rc_point([str(src), str(tmp_path / "x.toml"), "--temp", "5"]) == 2  # no point there
