@@ -14,7 +14,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from service.cell.profile import CellProfile, HysteresisSpec, ParameterPoint, ProfileError, load_profile, save_profile
+from service.cell.profile import (
+    CellProfile,
+    HysteresisSpec,
+    ParameterPoint,
+    ProfileError,
+    load_profile,
+    save_profile,
+)
 from service.characterisation.characterise import ecm_start_point
 
 #: temperatures closer than this [°C] are the same point

@@ -11,8 +11,14 @@ import pytest
 from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment
 from service.cell.profile import CellProfile, Ecm2RcPoint, Ecm2RcSpec, OcvSpec, ParameterPoint
-from service.characterisation.characterise import ECM_TOLERANCE, POOR_FIT_MV, FitQualityError, FitReport, \
-    TemperatureFit, check_fit_quality
+from service.characterisation.characterise import (
+    ECM_TOLERANCE,
+    POOR_FIT_MV,
+    FitQualityError,
+    FitReport,
+    TemperatureFit,
+    check_fit_quality,
+)
 from service.characterisation.ecm2rc_fit import TAU1_BOUNDS_S, fit_ecm2rc, simulate_ecm2rc
 from service.estimators.ecm2rc_ekf import Ecm2RcEkf, ecm_parameters
 from service.recording import Recording

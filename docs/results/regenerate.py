@@ -493,19 +493,19 @@ socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06
 socd evaluate --cell out/s25/pan_us06.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
     --estimator fomiukf -q --json out/s25/pan_us06_eval.json""",
           group_table("s25/pan_us06_eval.json", PAN_GROUPS), 60),
-    Table("fit_vs_2rc_point", "characterisation.md", REAL + f"""\
+    Table("fit_vs_2rc_point", "characterisation.md", REAL + """\
 A123_FIT="$A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv -q"
 socd fit $A123_FIT --hysteresis --no-kinetics -o out/s25/a123_hys_nokin.toml   # out/s25/a123.toml: char_a123
 socd fit $A123_FIT -o out/s25/a123_nohys.toml
 socd fit $A123_FIT --no-kinetics -o out/s25/a123_nohys_nokin.toml
 python -m research.two_rc_point out/s25/a123.toml out/s25/a123_2rc.toml
 for v in a123 a123_hys_nokin a123_nohys a123_nohys_nokin a123_2rc; do
-  socd evaluate --cell out/s25/$v.toml $A/calce_a123_20C_{{DST,FUDS,US06}}.csv --full-at 4815 --full-at 4478 --full-at 4436 \\
+  socd evaluate --cell out/s25/$v.toml $A/calce_a123_20C_{DST,FUDS,US06}.csv --full-at 4815 --full-at 4478 --full-at 4436 \\
       --estimator fomiukf --no-bar -q --json out/s25/pt_$v.json
 done
 python -m research.two_rc_point out/s25/pan_hppc.toml out/s25/pan_hppc_2rc.toml   # out/s25/pan_hppc.toml: char_pan_hppc
 for v in pan_hppc pan_hppc_2rc; do
-  socd evaluate --cell out/s25/$v.toml $(ls $P/pan18650pf_{{10C,m10C,m20C}}_*.csv | grep -v trise) \\
+  socd evaluate --cell out/s25/$v.toml $(ls $P/pan18650pf_{10C,m10C,m20C}_*.csv | grep -v trise) \\
       --estimator fomiukf --no-bar -q --json out/s25/pt_$v.json
 done""",
           lambda out: runs_table(
