@@ -32,13 +32,13 @@ def with_two_rc_points(profile: CellProfile, temps_c: list[float] | None = None)
     """``profile`` with the fractional point at each of ``temps_c`` (None: all) set to its 2-RC point."""
     if profile.ecm2rc is None:
         raise ValueError(f"profile '{profile.name}' has no 2-RC fit (fit it with a current `socd fit`)")
-    ecm_at = {p.temp_c: p for p in profile.ecm2rc.points}
-    wanted = sorted(ecm_at) if temps_c is None else temps_c
+    ecm_points = profile.ecm2rc.points
+    wanted = [e.temp_c for e in ecm_points] if temps_c is None else temps_c
     points: list[ParameterPoint] = []
     replaced = []
     for point in profile.parameters:
         if any(abs(point.temp_c - t) < SAME_TEMP_C for t in wanted):
-            ecm = next((e for t, e in ecm_at.items() if abs(t - point.temp_c) < SAME_TEMP_C), None)
+            ecm = next((e for e in ecm_points if abs(e.temp_c - point.temp_c) < SAME_TEMP_C), None)
             if ecm is None:
                 raise ValueError(f"profile '{profile.name}' has no 2-RC point at {point.temp_c:g} °C")
             point = ecm_start_point(ecm, point.temp_c, linear_kinetics=point.i0_a is not None)

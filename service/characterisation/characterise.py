@@ -98,6 +98,12 @@ COUNTED_SOC_MARGIN = 0.1
 ORDER_ONE_TOL = 0.02
 
 
+def worse_than(rmse_mv: float, reference_mv: float) -> bool:
+    """True when a fit's RMSE is worse than a reference fit's by more than :data:`ECM_TOLERANCE`."""
+    rel, abs_mv = ECM_TOLERANCE
+    return rmse_mv > reference_mv * (1.0 + rel) + abs_mv
+
+
 class FitQualityError(ValueError):
     """A fit that must not be written as a profile; the message names the temperature(s), what
     went wrong and what data would help."""
@@ -122,8 +128,7 @@ class TemperatureFit:
         if not np.isfinite(self.rmse_mv) or self.rmse_mv > bound:
             return (f"fit RMSE {self.rmse_mv:.1f} mV is above {bound:.0f} mV (the larger of {POOR_FIT_MV:g} mV and "
                     f"{POOR_FIT_SHARE:g} x the {self.overpotential_rms_mv:.0f} mV RMS overpotential)")
-        rel, abs_mv = ECM_TOLERANCE
-        if self.rmse_mv > self.ecm_rmse_mv * (1.0 + rel) + abs_mv:
+        if worse_than(self.rmse_mv, self.ecm_rmse_mv):
             return (f"fit RMSE {self.rmse_mv:.1f} mV is worse than the textbook 2-RC fit of the same data "
                     f"({self.ecm_rmse_mv:.1f} mV)")
         return None
@@ -384,7 +389,7 @@ def characterise(
             start_rmse = segments_rmse_mv(prof, start, hyst_t, segs, memory_length)
             if start_rmse < rmse:
                 pt, rmse, source = start, start_rmse, "2-RC start"
-            elif on_2rc_submodel(pt) and start_rmse <= rmse * (1.0 + ECM_TOLERANCE[0]) + ECM_TOLERANCE[1]:
+            elif on_2rc_submodel(pt) and not worse_than(start_rmse, rmse):
                 # the search ended on the 2-RC submodel, where the linear 2-RC fit's optimum
                 # is the global one over every sample: keep it
                 pt, rmse, source = start, start_rmse, "2-RC fit"
