@@ -271,3 +271,46 @@ def test_fit_result_says_whether_the_time_bound_cut_the_search():
     assert not done.time_bound and 0.0 < done.seconds < 600
     cut = fit_parameters(start, seg, max_seconds=1e-3, seed=0, de_maxiter=2)
     assert cut.time_bound
+
+
+def test_temperature_law_scales_the_resistances_as_arrhenius():
+    from service.cell.temperature_law import scaled_by_law, temperature_law_factor
+
+    f = temperature_law_factor(40e3, np.array([-10.0, 0.0, 10.0]), 0.0)
+    assert f[1] == pytest.approx(1.0) and f[0] > 1.0 > f[2]
+    assert math.log(f[0]) == pytest.approx(40e3 / GAS_CONSTANT * (1 / (KELVIN - 10) - 1 / KELVIN))
+    p = profile(TRUE.model_copy(update={"i0_a": 2.0})).parameters_at(0.0, n_cells=1)
+    s = scaled_by_law(p, np.array([2.0]))
+    assert s.r_ohm[0] == pytest.approx(2 * p.r_ohm[0]) and s.kinetics_i0_a[0] == pytest.approx(p.kinetics_i0_a[0] / 2)
+    np.testing.assert_allclose(s.r[0], 2 * p.r[0])
+    np.testing.assert_allclose(s.c, p.c)  # CPE coefficients kept: the time constants grow with R
+
+
+def test_fit_with_the_temperature_law_gives_the_point_at_the_groups_temperature():
+    """A drive that warms the cell from -10 to +8 °C (a cold drive cycle does): simulated with
+    resistances that follow Arrhenius at 40 kJ/mol, the law's fit recovers the activation energy and
+    the resistances at the group's temperature; one point for the whole span cannot fit the drive."""
+    ea, ref = 40e3, 0.0
+    temps = np.arange(-15.0, 16.0, 5.0)
+
+    def at(t: float) -> ParameterPoint:
+        f = math.exp(ea / GAS_CONSTANT * (1 / (t + KELVIN) - 1 / (ref + KELVIN)))
+        return TRUE.model_copy(update={"temp_c": t, "r_ohm": TRUE.r_ohm * f, "r_ct": TRUE.r_ct * f, "r_df": TRUE.r_df * f})
+
+    truth = profile(at(ref)).model_copy(update={"parameters": [at(t) for t in temps]})
+    n = 2400
+    t = np.arange(n, dtype=float)
+    i = pulse_current(n, 2.0, 11)
+    temp = np.linspace(-10.0, 8.0, n)
+    v, _ = simulate(truth, t, i, temp, 0.95)
+    v = v + np.random.default_rng(5).normal(0, 0.001, n)
+    seg = [FitSegment(t, i, v, temp, soc0=0.95)]
+    start = profile(at(ref))
+    law = fit_parameters(start, seg, max_seconds=120, seed=0, de_maxiter=20, x0=at(ref),
+                         temperature_law=True, law_ref_temp_c=ref)
+    assert law.ea_j_mol == pytest.approx(ea, rel=0.2) and law.point.temp_c == ref
+    assert law.point.r_ohm == pytest.approx(TRUE.r_ohm, rel=0.1)
+    assert law.point.r_ohm + law.point.r_ct == pytest.approx(TRUE.r_ohm + TRUE.r_ct, rel=0.1)
+    assert law.rmse_mv < 1.5  # the noise is 1 mV
+    one_point = fit_parameters(start, seg, max_seconds=120, seed=0, de_maxiter=20, x0=at(ref))
+    assert one_point.ea_j_mol is None and one_point.rmse_mv > 2 * law.rmse_mv

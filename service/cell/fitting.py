@@ -50,6 +50,7 @@ from service.cell.profile import (
     kinetic_floor_ohm,
     lift_to_kinetic_floor,
 )
+from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
 from service.cell.units import SECONDS_PER_HOUR
 
@@ -72,6 +73,11 @@ HYSTERESIS_BOUNDS: dict[str, tuple[float, float]] = {
 KINETICS_BOUNDS: dict[str, tuple[float, float]] = {"ln_i0_a": (math.log(0.05), math.log(500.0))}
 #: the exchange current of a point whose Butler-Volmer term is practically linear (the bound above)
 LINEAR_I0_A = math.exp(KINETICS_BOUNDS["ln_i0_a"][1])
+#: activation energy of the resistances within a fit (``temperature_law``), kJ/mol: none to
+#: well above what electrolyte conduction, charge transfer and solid diffusion show (20-80)
+TEMPERATURE_LAW_BOUNDS: dict[str, tuple[float, float]] = {"ea_kj_mol": (0.0, 120.0)}
+#: the fit re-reads a candidate's parameters when the temperature has moved this far [K]
+LAW_UPDATE_K = 0.5
 BASE_NAMES = tuple(BOUNDS)
 
 
@@ -119,6 +125,9 @@ class FitResult:
     #: depends on the machine's speed and load) rather than ending by its own criteria
     seconds: float = 0.0
     time_bound: bool = False
+    #: the resistances' activation energy [J/mol] the point was fitted with (``temperature_law``),
+    #: else None; the point is then the parameters at its own ``temp_c``
+    ea_j_mol: float | None = None
 
 
 # -- data helpers -------------------------------------------------------------------------
@@ -297,8 +306,11 @@ class _Objective:
     """Residuals of ``N`` candidates over all segments, one vectorised simulation each."""
 
     def __init__(self, profile, segments, memory_length, fit_hysteresis, temp_c, fit_kinetics=False,
-                 max_tau_df_s=None):
+                 max_tau_df_s=None, temperature_law=False):
         self.max_tau_df_s = max_tau_df_s
+        #: the last coordinate is the resistances' activation energy [kJ/mol]: each sample is
+        #: simulated with the candidate scaled from ``temp_c`` to its own temperature
+        self.temperature_law = temperature_law
         self.profile = profile
         self.segments = segments
         self.memory_length = memory_length
@@ -312,11 +324,18 @@ class _Objective:
         """``[N, samples]`` simulated minus measured voltage."""
         x = np.atleast_2d(x)
         params = decode(x, self.profile, self.temp_c, self.fit_hysteresis, self.fit_kinetics, self.max_tau_df_s)
+        law = None
+        if self.temperature_law:
+            ea = 1000.0 * x[:, -1]
+
+            def law(t: float) -> CellParameters:
+                return scaled_by_law(params, temperature_law_factor(ea, t, self.temp_c))
         out = []
         for s in self.segments:
             v, _ = simulate_batch(
                 self.profile, s.time_s, s.current_a, s.temperature_c, s.soc0, params,
                 memory_length=self.memory_length, u_h0=s.u_h0, u_h0_branch=s.u_h0_branch,
+                params_at=law, temp_update_k=LAW_UPDATE_K,
             )
             out.append(v.T - s.voltage_v[None, :])
         self.n_evaluations += x.shape[0]
@@ -345,6 +364,8 @@ def fit_parameters(
     colder: ParameterPoint | None = None,
     min_order: float | None = None,
     max_tau_df_s: float | None = None,
+    temperature_law: bool = False,
+    law_ref_temp_c: float | None = None,
 ) -> FitResult:
     """Fit R_ohm, R_ct, C_dl, m, R_df, C_df, n (and U_H, rate; and the Butler-Volmer i0) to ``segments``.
 
@@ -360,6 +381,14 @@ def fit_parameters(
 
     ``max_tau_df_s`` caps the diffusion branch's time constant (:func:`diffusion_tau`).
 
+    ``temperature_law``: also fit an activation energy ``Ea`` of the resistances
+    (:mod:`service.cell.temperature_law`), so each sample is simulated with the point scaled
+    from the point's temperature to its own; the point is then the parameters at that
+    temperature, not a compromise over the span (a drive cycle in the cold warms the cell
+    by 10-20 K, and the resistances halve on the way).  ``Ea`` is returned beside the point.
+    ``law_ref_temp_c``: the temperature the point is for (default, and always without the
+    law: the segments' mean).
+
     ``warmer`` / ``colder``: points already fitted at a warmer / colder temperature.  The
     three resistances are then bounded to be at least the warmer point's and at most the
     colder point's (electrolyte conduction, charge transfer and solid diffusion all slow
@@ -374,6 +403,8 @@ def fit_parameters(
     deadline = t_start + max_seconds
     total = sum(len(s) for s in segments)
     temp_c = float(np.average([np.mean(s.temperature_c) for s in segments], weights=[len(s) for s in segments]))
+    if temperature_law and law_ref_temp_c is not None:
+        temp_c = float(law_ref_temp_c)
 
     base_bounds = dict(BOUNDS)
     if min_order is not None:
@@ -390,8 +421,9 @@ def fit_parameters(
         if hi_b <= lo_b:
             hi_b = lo_b + 1e-6
         base_bounds[key] = (lo_b, hi_b)
-    bounds = (list(base_bounds.values()) + (list(HYSTERESIS_BOUNDS.values()) if fit_hysteresis else [])
-              + (list(KINETICS_BOUNDS.values()) if fit_kinetics else []))
+    extra_bounds = ((HYSTERESIS_BOUNDS if fit_hysteresis else {}) | (KINETICS_BOUNDS if fit_kinetics else {})
+                    | (TEMPERATURE_LAW_BOUNDS if temperature_law else {}))
+    bounds = list(base_bounds.values()) + list(extra_bounds.values())
     lo, hi = np.array(bounds).T
     p = len(bounds)
 
@@ -406,12 +438,15 @@ def fit_parameters(
     if fit_kinetics:
         i0_seed = x0.i0_a if x0 is not None and x0.i0_a is not None else 5.0
         guess = np.concatenate([guess, [math.log(i0_seed)]])
+    if temperature_law:  # the seed as it is: the same parameters at every temperature
+        guess = np.concatenate([guess, [0.0]])
     guess = np.clip(guess, lo + 1e-9, hi - 1e-9)
 
     # 1. global search on full-rate windows
     cap = profile.effective_capacity_ah
     coarse = [excited_window(s, max(200, int(global_points * len(s) / total)), cap) for s in segments]
-    obj_g = _Objective(profile, coarse, memory_length, fit_hysteresis, temp_c, fit_kinetics, max_tau_df_s)
+    obj_g = _Objective(profile, coarse, memory_length, fit_hysteresis, temp_c, fit_kinetics, max_tau_df_s,
+                       temperature_law)
     g_deadline = t_start + 0.6 * max_seconds
 
     def cost(xt: np.ndarray) -> np.ndarray:  # xt: [p, S] (vectorised DE)
@@ -433,7 +468,8 @@ def fit_parameters(
 
     # 2. local polish on (nearly) full-rate data
     fine = [excited_window(s, max(200, int(polish_points * len(s) / total)), cap) for s in segments]
-    obj = _Objective(profile, fine, memory_length, fit_hysteresis, temp_c, fit_kinetics, max_tau_df_s)
+    obj = _Objective(profile, fine, memory_length, fit_hysteresis, temp_c, fit_kinetics, max_tau_df_s,
+                     temperature_law)
     steps = np.full(p, 1e-4)
     best = {"x": x_best, "cost": np.inf}
     cache: dict[str, np.ndarray] = {}
@@ -474,18 +510,22 @@ def fit_parameters(
     if fit_hysteresis:
         hyst = profile.hysteresis.model_copy(update={"u_h_max_v": float(max(x_fin[7], 0.0)),
                                                      "rate": float(math.exp(x_fin[8]))})
-    i0 = float(math.exp(x_fin[-1])) if fit_kinetics else None
+    names = list(base_bounds) + list(extra_bounds)
+    i0 = float(math.exp(x_fin[names.index("ln_i0_a")])) if fit_kinetics else None
+    ea = 1000.0 * float(x_fin[names.index("ea_kj_mol")]) if temperature_law else None
     # R_ohm as decode() simulated it
     point = lift_to_kinetic_floor(point_from_x(x_fin, temp_c, i0, max_tau_df_s), i0, profile.min_r_ohm_scale(temp_c))
-    names = list(base_bounds) + (list(HYSTERESIS_BOUNDS) if fit_hysteresis else []) + (list(KINETICS_BOUNDS) if fit_kinetics else [])
     return FitResult(
         point=point,
         hysteresis=hyst,
         rmse_mv=rmse_mv,
         n_evaluations=obj_g.n_evaluations + obj.n_evaluations,
-        at_bounds=coordinates_at_bounds(x_fin, names, lo, hi),
+        # an activation energy of 0 is a finding (no measurable change), not a degenerate fit
+        at_bounds=[b for b in coordinates_at_bounds(x_fin, names, lo, hi)
+                   if not (b.startswith("ea_kj_mol") and b.endswith("(lower bound)"))],
         seconds=time.perf_counter() - t_start,
         time_bound=cut["global"] or cut["polish"],
+        ea_j_mol=ea,
     )
 
 
