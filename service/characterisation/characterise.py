@@ -41,10 +41,17 @@ from service.cell.current_steps import (
     steps_peak_c,
     steps_resolve_kinetics,
 )
-from service.cell.fitting import LINEAR_I0_A, FitSegment, fit_parameters, last_current_direction
+from service.cell.fitting import (
+    LAW_UPDATE_K,
+    LINEAR_I0_A,
+    FitSegment,
+    fit_parameters,
+    last_current_direction,
+)
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.profile import (
     BranchSpec,
+    CellParameters,
     CellProfile,
     Ecm2RcPoint,
     Ecm2RcSpec,
@@ -56,7 +63,8 @@ from service.cell.profile import (
     lift_to_kinetic_floor,
 )
 from service.cell.soc_dependence import pulse_resistances, scale_rows
-from service.cell.trajectory import simulate
+from service.cell.temperature_law import scaled_by_law, temperature_law_factor
+from service.cell.trajectory import simulate_batch
 from service.cell.truth import truth_and_start
 from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_sources import (
@@ -65,6 +73,7 @@ from service.characterisation.ocv_sources import (
     is_ocv_test,
     ocv_from_test,
     ocv_row_from_rests,
+    ocv_rows_by_temperature,
     rest_points,
     rest_spans,
 )
@@ -94,6 +103,10 @@ ECM_TOLERANCE = (0.05, 0.5)
 #: how far outside [0, 1] the SOC counted through a characterisation recording may go (a
 #: capacity a few percent off, a full point a little early) before the fit is refused
 COUNTED_SOC_MARGIN = 0.1
+#: a temperature group whose samples span this much [K] (10th-90th percentile) fits the
+#: resistances' activation energy too: over 3 K at 40 kJ/mol they change by about 15 %, well
+#: above what a fit resolves; a chamber-held pulse test spans about 1 K
+TEMPERATURE_LAW_SPAN_C = 3.0
 #: a fitted CPE order this close to 1 is a capacitor (the branch is an RC branch)
 ORDER_ONE_TOL = 0.02
 
@@ -259,13 +272,18 @@ def characterise(
     if not dynamic:
         raise ValueError("socd fit needs at least one dynamic recording (drive cycle or HPPC) to fit the model")
     grid = np.linspace(0.0, 1.0, GRID_POINTS)
-    base: np.ndarray | None = None
+    #: OCV rows by the temperature they were measured at (a given table: at every temperature)
+    test_rows: dict[float, np.ndarray] | None = None
     if ocv_table is not None:
-        base = make_monotone(np.interp(grid, *ocv_table))
+        test_rows = {25.0: make_monotone(np.interp(grid, *ocv_table))}
         rep.say("OCV: from the given table")
     elif ocv_tests:
-        base = np.mean([ocv_from_test(r, grid)[1] for r in ocv_tests], axis=0)
-        rep.say(f"OCV: from OCV test(s) {', '.join(r.name for r in ocv_tests)}")
+        by_t: dict[float, list[np.ndarray]] = defaultdict(list)
+        for r in ocv_tests:
+            by_t[temperature_group(r)].append(ocv_from_test(r, grid)[1])
+        test_rows = {t: np.mean(rows, axis=0) for t, rows in by_t.items()}
+        rep.say(f"OCV: from OCV test(s) {', '.join(r.name for r in ocv_tests)} at "
+                f"{', '.join(f'{t:g}' for t in sorted(test_rows))} °C")
 
     # dynamic recordings grouped by temperature, cut from their full-charge point
     groups: dict[float, list[tuple[Recording, np.ndarray]]] = defaultdict(list)
@@ -273,7 +291,7 @@ def characterise(
     for rec, fa in dynamic:
         part, soc = truth_and_start(rec, capacity_ah, fa)
         check_counted_soc(part, capacity_ah, float(soc[0]))
-        key = float(TEMP_GROUP_C * np.round(np.median(part.temperature_c) / TEMP_GROUP_C)) + 0.0  # no -0 °C
+        key = temperature_group(part)
         groups[key].append((part, soc))
         whole[key].append(rec)
     temps = sorted(groups)
@@ -307,9 +325,10 @@ def characterise(
     # rest points per group → OCV rows
     ocv_rows: dict[float, np.ndarray] = {}
     points_by_t = {t: [p for part, soc in groups[t] for p in rest_points(part, capacity_ah, float(soc[0]))] for t in temps}
-    if base is not None:
+    if test_rows is not None:
+        base_at = ocv_rows_by_temperature(test_rows, temps)
         for t in temps:
-            ocv_rows[t] = ocv_row_from_rests(grid, base, points_by_t[t])
+            ocv_rows[t] = ocv_row_from_rests(grid, base_at[t], points_by_t[t])
             if len(points_by_t[t]) >= 3:
                 rep.say(f"OCV at {t:g} °C: shifted to {len(points_by_t[t])} relaxed rest voltages")
     # the textbook 2-RC model on the same segments: the bar the fractional fit must clear, and
@@ -324,7 +343,7 @@ def characterise(
         if not segs:
             raise FitQualityError(f"no stretch of the recordings at {t:g} °C starts from a known state above SOC "
                                   f"{MIN_FIT_SOC:g} with current on it: nothing to fit there")
-        if base is not None:
+        if test_rows is not None:
             ecm[t] = fit_ecm2rc(segs, capacity_ah, ocv_soc=grid, ocv_v=ocv_rows[t])
         else:
             prior = None if t == ref_t else ecm[ref_t].ocv_v
@@ -332,10 +351,10 @@ def characterise(
         f = ecm[t]
         rep.say(f"textbook 2-RC at {t:g} °C: R0 {f.r0 * 1e3:.1f} mΩ, R1 {f.r1 * 1e3:.1f} mΩ / τ1 {f.tau1_s:.1f} s, "
                 f"R2 {f.r2 * 1e3:.1f} mΩ / τ2 {f.tau2_s:.0f} s; fit RMSE {f.rmse_mv:.1f} mV"
-                + (" (OCV fitted jointly)" if base is None else ""))
+                + (" (OCV fitted jointly)" if test_rows is None else ""))
     # the 2-RC model's own OCV: the given one, or its joint fit (before any --rest-anchor shift)
-    ecm_rows = {t: ocv_rows[t] if base is not None else make_monotone(ecm[t].ocv_on(grid)) for t in temps}
-    if base is None:
+    ecm_rows = {t: ocv_rows[t] if test_rows is not None else make_monotone(ecm[t].ocv_on(grid)) for t in temps}
+    if test_rows is None:
         rep.say("OCV: no table or OCV test given: the monotone OCV fitted jointly with the textbook 2-RC model "
                 "at each temperature")
         ocv_rows.update(ecm_rows)
@@ -373,14 +392,17 @@ def characterise(
         kinetics_t = (fit_kinetics if fit_kinetics is not None
                       else kinetics_resolvable([part for part, _ in groups[t]], capacity_ah, t, rep))
         start = ecm_start_point(ecm[t], t)
+        law_t = temperature_law_resolvable(segs, t, rep)
         res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis and t == ref_t,
                              fit_kinetics=kinetics_t, max_seconds=max_seconds, seed=seed, x0=start,
-                             warmer=warmer, colder=colder, min_order=min_order, max_tau_df_s=MAX_TAU_DF_S)
+                             warmer=warmer, colder=colder, min_order=min_order, max_tau_df_s=MAX_TAU_DF_S,
+                             temperature_law=law_t, law_ref_temp_c=t)
         # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
         pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": t}), res.point.i0_a,
                                    prof.min_r_ohm_scale(t))
         hyst_t = res.hysteresis or prof.hysteresis
-        rmse = segments_rmse_mv(prof, pt, hyst_t, segs, memory_length)
+        ea_t = res.ea_j_mol
+        rmse = segments_rmse_mv(prof, pt, hyst_t, segs, memory_length, ea_t)
         source = "fractional fit"
         if not (fit_hysteresis and t == ref_t):
             # the search may end worse than the point it started from (a time-bounded global
@@ -388,11 +410,11 @@ def characterise(
             start = ecm_start_point(ecm[t], t, linear_kinetics=kinetics_t)
             start_rmse = segments_rmse_mv(prof, start, hyst_t, segs, memory_length)
             if start_rmse < rmse:
-                pt, rmse, source = start, start_rmse, "2-RC start"
+                pt, rmse, source, ea_t = start, start_rmse, "2-RC start", None
             elif on_2rc_submodel(pt) and not worse_than(start_rmse, rmse):
                 # the search ended on the 2-RC submodel, where the linear 2-RC fit's optimum
                 # is the global one over every sample: keep it
-                pt, rmse, source = start, start_rmse, "2-RC fit"
+                pt, rmse, source, ea_t = start, start_rmse, "2-RC fit", None
         points[t] = pt
         if res.hysteresis is not None:
             hyst = res.hysteresis
@@ -403,6 +425,7 @@ def characterise(
         rep.say(f"  {t:g} °C: R_ohm {pt.r_ohm * 1e3:.1f} mΩ, R_ct {pt.r_ct * 1e3:.1f} mΩ, m {pt.m:.2f}, "
                 f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}"
                 + (f", i0 {pt.i0_a:.2f} A" if pt.i0_a is not None else "")
+                + (f", Ea {ea_t / 1000:.0f} kJ/mol over the group's temperatures" if ea_t is not None else "")
                 + f"; fit RMSE {rmse:.1f} mV (textbook 2-RC {ecm[t].rmse_mv:.1f} mV)"
                 + {"2-RC start": " from the 2-RC start point",
                    "2-RC fit": " (the search ended on the 2-RC submodel: orders 1, linear kinetics; the 2-RC "
@@ -420,6 +443,11 @@ def characterise(
     })
     rep.stage("done", n_stages, n_stages)
     return CellProfile.model_validate(profile.model_dump()), rep
+
+
+def temperature_group(rec: Recording) -> float:
+    """The temperature a recording is grouped at: its median, to :data:`TEMP_GROUP_C`."""
+    return float(TEMP_GROUP_C * np.round(np.median(rec.temperature_c) / TEMP_GROUP_C)) + 0.0  # no -0 °C
 
 
 def check_counted_soc(part: Recording, capacity_ah: float, soc0: float) -> None:
@@ -450,6 +478,20 @@ def kinetics_resolvable(recordings: list[Recording], capacity_ah: float, temp_c:
     rep.say(f"kinetics at {temp_c:g} °C: {n_steps} current steps reaching {peak:.2f}C: "
             + ("exchange current fitted" if resolved else
                f"not fitted (needs {STEP_MIN_STEPS} reaching {STEP_MIN_PEAK_C:g}C; --kinetics fits it anyway)"))
+    return resolved
+
+
+def temperature_law_resolvable(segments: list[FitSegment], temp_c: float, rep: FitReport) -> bool:
+    """Whether a temperature group's segments move enough in temperature (the 10th to 90th
+    percentile of their samples at least :data:`TEMPERATURE_LAW_SPAN_C`) to measure how the
+    resistances change with it; a drive cycle in the cold warms the cell by 10-20 K, a pulse test
+    in a chamber by about one."""
+    temps = np.concatenate([s.temperature_c for s in segments])
+    span = float(np.percentile(temps, 90) - np.percentile(temps, 10))
+    resolved = span >= TEMPERATURE_LAW_SPAN_C
+    if resolved:
+        rep.say(f"temperature at {temp_c:g} °C spans {span:.1f} K (10th-90th percentile): the resistances' "
+                "activation energy is fitted with the point")
     return resolved
 
 
@@ -485,16 +527,22 @@ def ecm_start_point(fit: Ecm2RcFit | Ecm2RcPoint, temp_c: float, linear_kinetics
 
 
 def segments_rmse_mv(template: CellProfile, point: ParameterPoint, hysteresis: HysteresisSpec,
-                     segments: list[FitSegment], memory_length: int) -> float:
-    """RMSE [mV] of the fractional model with ``point`` over whole ``segments``."""
+                     segments: list[FitSegment], memory_length: int, ea_j_mol: float | None = None) -> float:
+    """RMSE [mV] of the fractional model with ``point`` over whole ``segments``; with ``ea_j_mol``,
+    scaled from the point's temperature along the recorded one as it was fitted
+    (:mod:`service.cell.temperature_law`)."""
     prof = template.model_copy(update={"parameters": [point.model_copy(update={"temp_c": 25.0})],
                                        "hysteresis": hysteresis})
     sq, n = 0.0, 0
     for s in segments:
         u_h0 = s.u_h0 + s.u_h0_branch * hysteresis.u_h_max_v
         params = prof.parameters_at(float(s.temperature_c[0]), n_cells=1)
-        v, _ = simulate(prof, s.time_s, s.current_a, s.temperature_c, s.soc0, params=params,
-                        memory_length=memory_length, u_h0=u_h0)
+        law = None
+        if ea_j_mol is not None:
+            def law(t: float, params=params) -> CellParameters:
+                return scaled_by_law(params, temperature_law_factor(ea_j_mol, np.array([t]), point.temp_c))
+        v, _ = simulate_batch(prof, s.time_s, s.current_a, s.temperature_c, np.array([s.soc0]), params,
+                              memory_length=memory_length, u_h0=u_h0, params_at=law, temp_update_k=LAW_UPDATE_K)
         err = v[:, 0] - s.voltage_v
         sq += float(np.sum(np.where(np.isfinite(err), err, 10.0) ** 2))
         n += err.size

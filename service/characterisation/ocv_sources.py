@@ -45,6 +45,15 @@ def ocv_from_test(rec: Recording, grid: np.ndarray | None = None) -> tuple[np.nd
     return grid, make_monotone(np.mean(branches, axis=0))
 
 
+def ocv_rows_by_temperature(tests: dict[float, np.ndarray], temps: list[float]) -> dict[float, np.ndarray]:
+    """OCV rows at ``temps`` from OCV tests at their own temperatures (``tests``: temperature →
+    row on one SOC grid): linear in temperature between tests, the nearest test's row beyond
+    them."""
+    known = sorted(tests)
+    table = np.array([tests[t] for t in known])
+    return {t: np.array([np.interp(t, known, col) for col in table.T]) for t in temps}
+
+
 @dataclass
 class RestPoint:
     soc: float

@@ -21,10 +21,13 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         help="characterise a cell (OCV, parameters per temperature) and write a cell profile",
         description=(
             "Fit a cell profile from recordings whose SOC is known: an OCV test, HPPC tests or lab drive "
-            "cycles that start from a full charge. OCV comes from --ocv, else an OCV test among the "
-            "recordings, else a monotone OCV fitted jointly with a textbook 2-RC model; recordings at several "
-            "temperatures give OCV(SOC, T) and temperature-dependent parameters (scipy differential evolution + "
-            "least squares). The textbook 2-RC model (OCV, R0, R1/tau1, R2/tau2 per temperature) is fitted to the "
+            "cycles that start from a full charge. OCV comes from --ocv, else the OCV tests among the "
+            "recordings (each at its own temperature; between tests the OCV is interpolated, beyond them the "
+            "nearest test's holds), else a monotone OCV fitted jointly with a textbook 2-RC model; recordings "
+            "at several temperatures give OCV(SOC, T) and temperature-dependent parameters (scipy differential "
+            "evolution + least squares). Where a temperature's recordings warm or cool the cell by 3 K or more "
+            "(a drive cycle in the cold), the resistances' activation energy is fitted with the point, so the "
+            "point is the cell at that temperature rather than an average over the span. The textbook 2-RC model (OCV, R0, R1/tau1, R2/tau2 per temperature) is fitted to the "
             "same data and stored beside the fractional one: 'ecm2rc-ekf' runs on it, and a temperature whose "
             "fractional fit is poor or worse than it fails the command (exit 2, nothing written) unless --force. "
             "Where the fractional search ends on the 2-RC model itself (orders 1, no Butler-Volmer bend), the "

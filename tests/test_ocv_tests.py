@@ -1,0 +1,62 @@
+"""``socd fit`` with slow OCV tests at several temperatures: each temperature's OCV comes from
+its own test (or the tests either side of it), not from one average over every test."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from service.cell.profile import load_profile
+from service.characterisation.ocv_sources import ocv_from_test, ocv_rows_by_temperature
+from service.cli import main
+from service.recording import load_recording
+from tests.conftest import NMC_CAPACITY_AH, nmc_ocv_points, write_recording_csv
+
+#: the 0 °C test's OCV sits this far below the 25 °C one (an entropic shift, exaggerated)
+COLD_SHIFT_V = -0.030
+
+
+def write_ocv_test(path: Path, temp_c: float, shift_v: float, r_ohm: float = 0.05) -> Path:
+    """A C/20 discharge from full to empty, an hour's rest, a C/20 charge back to full (60 s
+    samples): the voltage is the synthetic cell's OCV plus ``shift_v`` minus the ohmic drop."""
+    soc_pts, ocv_pts = nmc_ocv_points()
+    amps = NMC_CAPACITY_AH / 20.0
+    n = 1200  # 20 h at 60 s
+    i = np.concatenate([np.zeros(60), np.full(n, amps), np.zeros(60), np.full(n, -amps), np.zeros(60)])
+    t = 60.0 * np.arange(i.size)
+    soc = 1.0 - np.cumsum(i * 60.0) / 3600.0 / NMC_CAPACITY_AH
+    v = np.interp(soc, soc_pts, ocv_pts) + shift_v - r_ohm * i
+    return write_recording_csv(path, t, i, v, np.full(i.size, temp_c))
+
+
+def test_an_ocv_test_gives_the_ocv_at_its_temperature(tmp_path: Path) -> None:
+    rec = load_recording(write_ocv_test(tmp_path / "ocv0.csv", 0.0, COLD_SHIFT_V))
+    grid, curve = ocv_from_test(rec)
+    soc_pts, ocv_pts = nmc_ocv_points()
+    inside = (grid > 0.05) & (grid < 0.95)  # the ends of a sampled branch are coarse
+    np.testing.assert_allclose(curve[inside], np.interp(grid, soc_pts, ocv_pts)[inside] + COLD_SHIFT_V, atol=2e-3)
+
+
+def test_rows_between_test_temperatures_are_interpolated_and_held_beyond() -> None:
+    rows = ocv_rows_by_temperature({0.0: np.array([3.0, 3.5]), 20.0: np.array([3.2, 3.9])}, [-10.0, 5.0, 30.0])
+    np.testing.assert_allclose(rows[-10.0], [3.0, 3.5])
+    np.testing.assert_allclose(rows[5.0], [3.05, 3.6])
+    np.testing.assert_allclose(rows[30.0], [3.2, 3.9])
+
+
+def test_fit_keeps_each_ocv_test_at_its_own_temperature(tmp_path: Path, nmc_recording, capsys) -> None:
+    """OCV tests at 0 and 25 °C and a drive at each: the profile's 0 °C row is the 0 °C test's
+    curve and its 25 °C row the 25 °C test's; averaging the two would put both 15 mV off."""
+    tests = [write_ocv_test(tmp_path / "ocv25.csv", 25.0, 0.0), write_ocv_test(tmp_path / "ocv0.csv", 0.0, COLD_SHIFT_V)]
+    drives = [nmc_recording(name=f"drive{t:g}", duration_s=1800, seed=5, soc0=0.95, temp_c=t) for t in (25.0, 0.0)]
+    out = tmp_path / "cell.toml"
+    rc = main(["fit", *map(str, tests), *(str(d.path) for d in drives), "--capacity-ah", str(NMC_CAPACITY_AH),
+               "--max-seconds", "5", "--force", "-q", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    table = load_profile(out).ocv_table()
+    soc_pts, ocv_pts = nmc_ocv_points()
+    mid = np.linspace(0.1, 0.9, 17)
+    for temp_c, shift in ((25.0, 0.0), (0.0, COLD_SHIFT_V)):
+        got = table.ocv(mid, np.full(mid.size, temp_c))
+        np.testing.assert_allclose(got, np.interp(mid, soc_pts, ocv_pts) + shift, atol=3e-3)
