@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from service.cell.profile import load_profile
-from service.characterisation.ocv_sources import ocv_from_test, ocv_rows_by_temperature
+from service.characterisation.ocv_sources import is_ocv_test, ocv_from_test, ocv_rows_by_temperature
 from service.cli import main
 from service.recording import load_recording
 from tests.conftest import NMC_CAPACITY_AH, nmc_ocv_points, write_recording_csv
@@ -17,25 +17,46 @@ from tests.conftest import NMC_CAPACITY_AH, nmc_ocv_points, write_recording_csv
 COLD_SHIFT_V = -0.030
 
 
-def write_ocv_test(path: Path, temp_c: float, shift_v: float, r_ohm: float = 0.05) -> Path:
+def write_ocv_test(path: Path, temp_c: float, shift_v: float, r_ohm: float = 0.05, charge_first: bool = False) -> Path:
     """A C/20 discharge from full to empty, an hour's rest, a C/20 charge back to full (60 s
-    samples): the voltage is the synthetic cell's OCV plus ``shift_v`` minus the ohmic drop."""
+    samples): the voltage is the synthetic cell's OCV plus ``shift_v`` minus the ohmic drop.
+    ``charge_first``: the file starts half full with a 1C charge to full and a rest (a tester's
+    OCV test usually does)."""
     soc_pts, ocv_pts = nmc_ocv_points()
     amps = NMC_CAPACITY_AH / 20.0
     n = 1200  # 20 h at 60 s
     i = np.concatenate([np.zeros(60), np.full(n, amps), np.zeros(60), np.full(n, -amps), np.zeros(60)])
+    start = 1.0
+    if charge_first:
+        i = np.concatenate([np.zeros(10), np.full(30, -NMC_CAPACITY_AH), i])  # 30 min at 1C from half full
+        start = 0.5
     t = 60.0 * np.arange(i.size)
-    soc = 1.0 - np.cumsum(i * 60.0) / 3600.0 / NMC_CAPACITY_AH
+    soc = start - np.cumsum(i * 60.0) / 3600.0 / NMC_CAPACITY_AH
     v = np.interp(soc, soc_pts, ocv_pts) + shift_v - r_ohm * i
     return write_recording_csv(path, t, i, v, np.full(i.size, temp_c))
 
 
 def test_an_ocv_test_gives_the_ocv_at_its_temperature(tmp_path: Path) -> None:
     rec = load_recording(write_ocv_test(tmp_path / "ocv0.csv", 0.0, COLD_SHIFT_V))
-    grid, curve = ocv_from_test(rec)
+    grid, curve = ocv_from_test(rec, NMC_CAPACITY_AH)
     soc_pts, ocv_pts = nmc_ocv_points()
     inside = (grid > 0.05) & (grid < 0.95)  # the ends of a sampled branch are coarse
     np.testing.assert_allclose(curve[inside], np.interp(grid, soc_pts, ocv_pts)[inside] + COLD_SHIFT_V, atol=2e-3)
+
+
+def test_an_ocv_test_that_starts_with_a_fast_charge_is_still_one(tmp_path: Path, nmc_recording) -> None:
+    """The slow branches make the test, not the file's peak current: a 1C charge before it is left out."""
+    rec = load_recording(write_ocv_test(tmp_path / "ocv_cc.csv", 25.0, 0.0, charge_first=True))
+    assert is_ocv_test(rec, NMC_CAPACITY_AH)
+    grid, curve = ocv_from_test(rec, NMC_CAPACITY_AH)
+    soc_pts, ocv_pts = nmc_ocv_points()
+    inside = (grid > 0.05) & (grid < 0.95)
+    np.testing.assert_allclose(curve[inside], np.interp(grid, soc_pts, ocv_pts)[inside], atol=2e-3)
+    # a drive cycle, and a C/20 discharge over only half the capacity, are not OCV tests
+    drive = nmc_recording(name="drive", duration_s=3600, seed=2, soc0=0.95)
+    assert not is_ocv_test(load_recording(drive.path), NMC_CAPACITY_AH)
+    half = rec.slice(0, 40 + 60 + 600)
+    assert not is_ocv_test(half, NMC_CAPACITY_AH)
 
 
 def test_rows_between_test_temperatures_are_interpolated_and_held_beyond() -> None:

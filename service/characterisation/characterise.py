@@ -280,7 +280,7 @@ def characterise(
     elif ocv_tests:
         by_t: dict[float, list[np.ndarray]] = defaultdict(list)
         for r in ocv_tests:
-            by_t[temperature_group(r)].append(ocv_from_test(r, grid)[1])
+            by_t[temperature_group(r)].append(ocv_from_test(r, capacity_ah, grid)[1])
         test_rows = {t: np.mean(rows, axis=0) for t, rows in by_t.items()}
         rep.say(f"OCV: from OCV test(s) {', '.join(r.name for r in ocv_tests)} at "
                 f"{', '.join(f'{t:g}' for t in sorted(test_rows))} °C")

@@ -14,16 +14,53 @@ from service.recording import Recording
 
 REST_CURRENT_C = 0.01  # |I| below this fraction of 1C counts as rest
 REST_MIN_S = 600.0
+#: an OCV test's branches run at or below this fraction of 1C (C/20 is usual)
 OCV_TEST_MAX_C = 0.1
+#: a slow branch is one uninterrupted charge or discharge at or below OCV_TEST_MAX_C that moves at
+#: least this fraction of the capacity (no drive cycle, HPPC or pulse test has one)
+OCV_BRANCH_MIN_SPAN = 0.7
+
+
+def slow_branches(rec: Recording, capacity_ah: float) -> list[tuple[float, np.ndarray]]:
+    """``(sign, mask)`` of the slow branches of ``rec`` (sign +1 discharge, −1 charge): the longest
+    uninterrupted run of same-sign current at or below :data:`OCV_TEST_MAX_C` for each sign, when it
+    moves :data:`OCV_BRANCH_MIN_SPAN` of the capacity.  Faster parts of the file (a CC-CV charge
+    before the test) and the tail of a constant-voltage phase (under a fifth of the branch's
+    current) are not part of it."""
+    dt = np.diff(rec.time_s, prepend=rec.time_s[0])
+    out = []
+    for sign in (1.0, -1.0):
+        i = sign * rec.current_a
+        slow = (i > REST_CURRENT_C * capacity_ah) & (i <= OCV_TEST_MAX_C * capacity_ah)
+        if not slow.any():
+            continue
+        slow &= i >= 0.2 * np.max(i[slow])
+        best, best_ah = None, 0.0
+        for a, b in _runs(slow):
+            ah = float(np.sum(i[a:b] * dt[a:b])) / SECONDS_PER_HOUR
+            if ah > best_ah:
+                best, best_ah = (a, b), ah
+        if best is not None and best_ah >= OCV_BRANCH_MIN_SPAN * capacity_ah:
+            mask = np.zeros(len(rec), dtype=bool)
+            mask[best[0]:best[1]] = True
+            out.append((sign, mask))
+    return out
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[start, stop)`` of every run of True in ``mask``."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    return list(zip(edges[::2], edges[1::2]))
 
 
 def is_ocv_test(rec: Recording, capacity_ah: float) -> bool:
-    """A slow (≤ C/10) full charge/discharge: a pseudo-OCV test."""
-    return bool(np.max(np.abs(rec.current_a)) <= OCV_TEST_MAX_C * capacity_ah and np.ptp(rec.voltage_v) > 0.3)
+    """A pseudo-OCV test: a slow (≤ C/10) charge or discharge over most of the capacity
+    (:func:`slow_branches`), whatever else the file holds."""
+    return bool(slow_branches(rec, capacity_ah)) and bool(np.ptp(rec.voltage_v) > 0.3)
 
 
-def ocv_from_test(rec: Recording, grid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Average of the discharge and charge branches of a slow OCV test.
+def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Average of the discharge and charge branches of a slow OCV test (:func:`slow_branches`).
 
     Each branch is coulomb counted and normalised by its own throughput (discharge:
     SOC = 1 − Q/Q_dis, charge: SOC = Q/Q_chg); a single branch is used as it is.
@@ -31,11 +68,8 @@ def ocv_from_test(rec: Recording, grid: np.ndarray | None = None) -> tuple[np.nd
     grid = np.linspace(0, 1, GRID_POINTS) if grid is None else grid
     dt = np.diff(rec.time_s, prepend=rec.time_s[0])
     branches = []
-    for sign in (1.0, -1.0):
-        mask = sign * rec.current_a > 0.2 * np.max(np.abs(rec.current_a))
-        if mask.sum() < 20:
-            continue
-        q = np.cumsum(np.where(mask, sign * rec.current_a * dt, 0.0))[mask] / SECONDS_PER_HOUR
+    for sign, mask in slow_branches(rec, capacity_ah):
+        q = np.cumsum(sign * rec.current_a[mask] * dt[mask]) / SECONDS_PER_HOUR
         v = rec.voltage_v[mask]
         soc = 1.0 - q / q[-1] if sign > 0 else q / q[-1]
         order = np.argsort(soc)
