@@ -378,6 +378,21 @@ def test_fit_writes_a_profile_that_reproduces_the_recording(tmp_path: Path, nmc_
     assert np.sqrt(np.mean((v - rec.voltage_v) ** 2)) < 0.010
 
 
+def test_fit_plots_show_both_models_along_each_recording(tmp_path: Path, nmc_recording, nmc_ocv_csv, capsys) -> None:
+    rec = nmc_recording(name="fitdrive", duration_s=1200, seed=4, soc0=0.95)
+    plots = tmp_path / "plots"
+    rc = main(["fit", str(rec.path), "--capacity-ah", "2.0", "--ocv", str(nmc_ocv_csv), "--max-seconds", "5",
+               "-o", str(tmp_path / "fitted.toml"), "--plots", str(plots), "-q"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert sorted(p.name for p in plots.iterdir()) == ["fitdrive_fit.png", "ocv.png"]
+    assert all(p.stat().st_size > 10_000 for p in plots.iterdir())
+    # the fractional model reproduces its own synthetic cell to within a few times the 2 mV noise
+    line = next(x for x in out.splitlines() if "fitdrive_fit.png" in x)
+    fractional = float(line.split("fractional ")[1].split(" mV")[0])
+    assert 1.0 < fractional < 10.0 and "textbook 2-RC" in line
+
+
 # -- metrics ---------------------------------------------------------------------------------------
 def test_convergence_time_hand_made_series() -> None:
     t = np.arange(0.0, 1000.0, 1.0)

@@ -80,6 +80,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", help="profile to write (.toml or .json)")
+    p.add_argument("--plots", metavar="DIR",
+                   help="write PNGs to DIR: each drive or pulse recording with the measured voltage, the fitted "
+                   "fractional model and the textbook 2-RC model along it (parameters following the recorded "
+                   "temperature) and their residuals, and the profile's OCV(SOC, T); written only when the "
+                   "profile is")
     add_common_arguments(p, progress=True, bounds=True)
     p.set_defaults(func=run)
 
@@ -118,4 +123,11 @@ def run(args: argparse.Namespace) -> int:
     save_profile(profile, out)
     print(f"wrote {out}: {len(profile.parameters)} temperature(s) "
           f"{', '.join(f'{p.temp_c:g} °C' for p in profile.parameters)}, capacity {profile.capacity_ah:g} Ah")
+    if args.plots:
+        from service.characterisation.fit_plots import plot_fit
+
+        for plot in plot_fit(profile, recs, full, Path(args.plots)):
+            two_rc = "" if plot.two_rc_rmse_mv is None else f", textbook 2-RC {plot.two_rc_rmse_mv:.1f} mV"
+            print(f"wrote {plot.path}: fractional {plot.fractional_rmse_mv:.1f} mV{two_rc} RMSE along "
+                  f"{plot.recording}")
     return 0
