@@ -74,10 +74,12 @@ def _first_unparsable(path: Path, text: str, idx: list[int], cols: list[str]) ->
 
 
 def save_recording(path: str | Path, columns: np.ndarray, fmt: str = "%.4f") -> Path:
-    """Write ``[T, 4]`` columns time_s, current_a, voltage_v, temperature_c as the CSV
-    :func:`load_recording` reads (simulated recordings: the validation grids, clean twins)."""
+    """Write ``[T, 4]`` columns time_s, current_a, voltage_v, temperature_c (``[T, 5]``: and
+    soc_true) as the CSV :func:`load_recording` reads (simulated recordings: the validation grids,
+    clean twins)."""
     path = Path(path)
-    np.savetxt(path, columns, delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt=fmt)
+    header = "time_s,current_a,voltage_v,temperature_c" + (",soc_true" if columns.shape[1] == 5 else "")
+    np.savetxt(path, columns, delimiter=",", header=header, comments="", fmt=fmt)
     return path
 
 

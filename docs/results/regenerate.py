@@ -543,10 +543,18 @@ socd demo --spread-capacity 0.05 --json out/demo8_cap5.json
 socd demo --spread-capacity 0.05 --freeze-capacity --json out/demo8_cap5_frozen.json
 SOCD_ESTIMATOR__CAPACITY_ESTIMATION=absolute socd demo --spread-capacity 0.05 --json out/demo8_cap5_absolute.json
 for seed in 1 2; do socd demo --spread-capacity 0.05 --seed $seed --json out/demo8_cap5_seed$seed.json; done
-socd demo --cells 96 --spread-capacity 0.05 --json out/demo96_cap5.json""",
+socd demo --cells 96 --spread-capacity 0.05 --json out/demo96_cap5.json
+# the same drive's current and temperature through the profile's own model (a recording consistent with it)
+python -m research.model_drive service/data/pan18650pf_25C_US06.csv -o out/model_us06.csv
+for n in 8 96; do
+  socd demo --recording out/model_us06.csv --soc0 1 --cells $n --spread-capacity 0.05 --json out/demo${n}_cap5_model.json
+  SOCD_ESTIMATOR__CAPACITY_ESTIMATION=absolute socd demo --recording out/model_us06.csv --soc0 1 --cells $n \\
+      --spread-capacity 0.05 --json out/demo${n}_cap5_model_absolute.json
+done""",
           demo_capacity_table("demo8_cap2.json", "demo8_cap5.json", "demo8_cap5_frozen.json", "demo8_cap5_absolute.json",
-                              "demo8_cap5_seed1.json",
-                              "demo8_cap5_seed2.json", "demo96_cap5.json"), 3),
+                              "demo8_cap5_seed1.json", "demo8_cap5_seed2.json", "demo96_cap5.json",
+                              "demo8_cap5_model.json", "demo8_cap5_model_absolute.json", "demo96_cap5_model.json",
+                              "demo96_cap5_model_absolute.json"), 5),
     Table("diag_labelled", "diagnose.md", """\
 S=../shared/data/synthetic
 for f in dst_s101_4e4041 hppc_s102_131537 bjdst_s103_55f05a randomwalk_s104_e90722 hppc_s105_437525 dst_s106_462959 randomwalk_s107_cac951; do
