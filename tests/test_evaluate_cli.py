@@ -510,6 +510,28 @@ def test_fit_refuses_a_recording_no_model_follows_and_writes_nothing(tmp_path: P
     assert out.exists()
 
 
+@pytest.mark.parametrize("what", ["few_seconds", "constant_current"])
+def test_fit_refuses_recordings_that_cannot_identify_the_dynamics(tmp_path: Path, nmc_recording, capsys,
+                                                                   what: str) -> None:
+    """A minute of a drive, or a constant-current discharge, fits anything: the command names the
+    file and what is missing, writes nothing, and --force does not change that."""
+    if what == "few_seconds":
+        rec = nmc_recording(name="short", duration_s=1800, seed=4, soc0=0.95)
+        keep = slice(0, 120)
+        t, i, v, c = rec.time_s[keep], rec.current_a[keep], rec.voltage_v[keep], rec.temperature_c[keep]
+    else:
+        t = np.arange(3600.0)
+        i = np.full(t.size, 1.0)
+        v, c = 4.1 - 0.25 * t / 3600.0, np.full(t.size, 25.0)
+    path = tmp_path / f"{what}.csv"
+    path.write_text(HEADER + "\n" + "".join(f"{a},{b},{x},{d}\n" for a, b, x, d in zip(t, i, v, c)))
+    out = tmp_path / "never.toml"
+    for force in ([], ["--force"]):
+        err = _fail(["fit", str(path), "--capacity-ah", "2.0", "--max-seconds", "3", "-o", str(out), *force], capsys)
+        assert path.name in err and "change(s) of the current" in err and "nothing written" in err
+    assert not out.exists()
+
+
 def test_fit_refuses_a_capacity_the_recording_contradicts(tmp_path: Path, nmc_recording, capsys) -> None:
     """With a capacity a tenth of the cell's, the counted SOC runs far outside [0, 1]: a fit would bend
     the OCV to match, so the command names the recording and writes nothing."""

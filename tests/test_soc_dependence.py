@@ -148,9 +148,9 @@ def test_estimators_use_the_table(tmp_path, name):
 def test_fit_cli_names_the_recording_without_pulses(tmp_path):
     n = 1200
     t = np.arange(n, dtype=float)
-    i = np.full(n, 1.0)
+    i = np.where((t // 100) % 2 == 0, 1.0, 0.5)  # steps, but none from rest
     i[:100] = 0.0
-    v = 4.1 - 0.05 * t / n
+    v = 4.1 - 0.05 * t / n - 0.02 * i
     path = tmp_path / "constant.csv"
     _write(path, t, i, v)
     out = subprocess.run([sys.executable, "-m", "service.cli", "fit", str(path), "--capacity-ah", "2.0",

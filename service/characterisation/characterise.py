@@ -107,6 +107,13 @@ COUNTED_SOC_MARGIN = 0.1
 #: resistances' activation energy too: over 3 K at 40 kJ/mol they change by about 15 %, well
 #: above what a fit resolves; a chamber-held pulse test spans about 1 K
 TEMPERATURE_LAW_SPAN_C = 3.0
+#: a temperature's recordings must change the current by CHANGE_MIN_C x 1C between samples at least
+#: MIN_CURRENT_CHANGES times (two pulses on and off) and carry current for MIN_LOADED_S seconds, or
+#: its dynamics are not identifiable (an HPPC test has over a hundred such changes, a drive cycle
+#: thousands)
+CHANGE_MIN_C = 0.2
+MIN_CURRENT_CHANGES = 4
+MIN_LOADED_S = 600.0
 #: a fitted CPE order this close to 1 is a capacitor (the branch is an RC branch)
 ORDER_ONE_TOL = 0.02
 
@@ -343,6 +350,7 @@ def characterise(
         if not segs:
             raise FitQualityError(f"no stretch of the recordings at {t:g} °C starts from a known state above SOC "
                                   f"{MIN_FIT_SOC:g} with current on it: nothing to fit there")
+        check_excitation(t, segs, groups[t], capacity_ah)
         if test_rows is not None:
             ecm[t] = fit_ecm2rc(segs, capacity_ah, ocv_soc=grid, ocv_v=ocv_rows[t])
         else:
@@ -448,6 +456,24 @@ def characterise(
 def temperature_group(rec: Recording) -> float:
     """The temperature a recording is grouped at: its median, to :data:`TEMP_GROUP_C`."""
     return float(TEMP_GROUP_C * np.round(np.median(rec.temperature_c) / TEMP_GROUP_C)) + 0.0  # no -0 °C
+
+
+def check_excitation(temp_c: float, segments: list[FitSegment], recordings: list[tuple[Recording, np.ndarray]],
+                     capacity_ah: float) -> None:
+    """Refuse a temperature whose recordings cannot identify the model: fewer than
+    :data:`MIN_CURRENT_CHANGES` changes of the current by :data:`CHANGE_MIN_C` × 1C between samples,
+    or under :data:`MIN_LOADED_S` seconds with current on.  A constant-current discharge or a few
+    seconds of a drive would otherwise give a profile whose resistances and time constants are
+    whatever the search started from."""
+    changes = sum(int(np.sum(np.abs(np.diff(s.current_a)) >= CHANGE_MIN_C * capacity_ah)) for s in segments)
+    loaded = sum(float(np.sum(np.diff(s.time_s)[np.abs(s.current_a[1:]) > REST_CURRENT_C * capacity_ah]))
+                 for s in segments)
+    if changes < MIN_CURRENT_CHANGES or loaded < MIN_LOADED_S:
+        names = ", ".join(part.path.name for part, _ in recordings)
+        raise FitQualityError(
+            f"{names}: at {temp_c:g} °C the recordings hold {changes} change(s) of the current by "
+            f"{CHANGE_MIN_C:g}C or more and {loaded:.0f} s under load; fitting the dynamics needs "
+            f"{MIN_CURRENT_CHANGES} and {MIN_LOADED_S:g} s (a drive cycle, an HPPC or a pulse test); nothing written")
 
 
 def check_counted_soc(part: Recording, capacity_ah: float, soc0: float) -> None:
