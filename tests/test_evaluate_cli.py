@@ -19,7 +19,7 @@ from service.evaluation.metrics import CONVERGENCE_HOLD_S, convergence_time, sco
 
 RESULT_KEYS = {
     "recording", "estimator", "soc_rmse_pct", "soc_mae_pct", "soc_max_pct",
-    "soc_rmse_after_600s_pct", "convergence_s", "v_rmse_mv", "us_per_step",
+    "soc_rmse_after_600s_pct", "soc_within_2sigma_pct", "convergence_s", "v_rmse_mv", "us_per_step",
 }
 HEADER = "time_s,current_a,voltage_v,temperature_c"
 
@@ -68,7 +68,8 @@ def test_evaluate_writes_json_table_and_plots(tmp_path: Path, nmc_recording, nmc
     # started 20 % wrong (truth 0.9 > 0.8: subtracted): coulomb counting keeps that error
     assert cc["soc_max_pct"] == pytest.approx(20.0, abs=1e-6)
     assert cc["soc_rmse_pct"] == pytest.approx(20.0, abs=1e-6)
-    assert cc["convergence_s"] is None and cc["v_rmse_mv"] is None
+    assert cc["convergence_s"] is None and cc["v_rmse_mv"] is None and cc["soc_within_2sigma_pct"] is None
+    assert 0.0 <= fo["soc_within_2sigma_pct"] <= 100.0 and 0.0 <= bar["soc_within_2sigma_pct"] <= 100.0
     # the model-based estimator corrects it
     assert fo["soc_max_pct"] > 5.0
     assert fo["soc_rmse_after_600s_pct"] < 3.0
@@ -443,6 +444,11 @@ def test_score_fields() -> None:
     assert s.v_rmse_mv == pytest.approx(2.0)
     short = score(t[:500], est[:500], truth[:500])
     assert short.soc_rmse_after_600s_pct is None and short.v_rmse_mv is None
+    assert s.soc_within_2sigma_pct is None  # no σ given
+    # after 600 s the error is 1 %: a σ of 0.6 % covers it (2σ = 1.2 %), half of the samples at 0.4 %
+    assert score(t, est, truth, soc_std=np.full(t.size, 0.006)).soc_within_2sigma_pct == pytest.approx(100.0)
+    half = np.where(t < 900, 0.006, 0.004)
+    assert score(t, est, truth, soc_std=half).soc_within_2sigma_pct == pytest.approx(50.0)
 
 
 @pytest.mark.research

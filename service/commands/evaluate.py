@@ -186,15 +186,18 @@ def write_traces(path: Path, time_s: np.ndarray, truth: np.ndarray, voltage_v: n
 
 
 def _fmt(v: float | None, spec: str) -> str:
-    return "-" if v is None else format(v, spec)
+    """``v`` formatted by ``spec``; ``-`` in the same width where there is no value."""
+    return format("-", f">{spec.split('.')[0]}") if v is None else format(v, spec)
 
 
 def print_table(results: list[EstimatorScore], out=None) -> None:
     out = out or sys.stdout
-    head = f"{'recording':34s} {'estimator':17s} {'RMSE%':>6s} {'MAE%':>6s} {'max%':>6s} {'RMSE>600s%':>10s} {'conv s':>7s} {'V mV':>6s} {'us/step':>8s}"
+    head = (f"{'recording':34s} {'estimator':17s} {'RMSE%':>6s} {'MAE%':>6s} {'max%':>6s} {'RMSE>600s%':>10s} "
+            f"{'in 2σ%':>6s} {'conv s':>7s} {'V mV':>6s} {'us/step':>8s}")
     print(head, file=out)
     print("-" * len(head), file=out)
     for r in results:
         print(f"{r.recording[:34]:34s} {r.estimator:17s} {r.soc_rmse_pct:6.2f} {r.soc_mae_pct:6.2f} "
-              f"{r.soc_max_pct:6.2f} {_fmt(r.soc_rmse_after_600s_pct, '10.2f')} {_fmt(r.convergence_s, '7.0f')} "
+              f"{r.soc_max_pct:6.2f} {_fmt(r.soc_rmse_after_600s_pct, '10.2f')} {_fmt(r.soc_within_2sigma_pct, '6.0f')} "
+              f"{_fmt(r.convergence_s, '7.0f')} "
               f"{_fmt(r.v_rmse_mv, '6.1f')} {r.us_per_step:8.1f}", file=out)

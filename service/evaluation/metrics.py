@@ -19,6 +19,9 @@ class Scores:
     soc_rmse_after_600s_pct: float | None
     convergence_s: float | None
     v_rmse_mv: float | None
+    #: share of the samples after the first 600 s whose error is within twice the estimator's own
+    #: SOC σ (95 % for an honest Gaussian σ); None for an estimator that reports no σ
+    soc_within_2sigma_pct: float | None
 
 
 def convergence_time(time_s: np.ndarray, err_pct: np.ndarray, band: float = CONVERGENCE_BAND_PCT,
@@ -45,12 +48,16 @@ def convergence_time(time_s: np.ndarray, err_pct: np.ndarray, band: float = CONV
 
 
 def score(time_s: np.ndarray, soc_est: np.ndarray, soc_true: np.ndarray,
-          v_pred: np.ndarray | None = None, v_meas: np.ndarray | None = None) -> Scores:
+          v_pred: np.ndarray | None = None, v_meas: np.ndarray | None = None,
+          soc_std: np.ndarray | None = None) -> Scores:
     err = 100.0 * (soc_est - soc_true)
     after = (time_s - time_s[0]) >= SETTLE_S
     v_rmse = None
     if v_pred is not None and v_meas is not None:
         v_rmse = float(1000.0 * np.sqrt(np.mean((v_pred - v_meas) ** 2)))
+    within = None
+    if soc_std is not None and after.any():
+        within = float(100.0 * np.mean(np.abs(err[after]) <= 200.0 * soc_std[after]))
     return Scores(
         soc_rmse_pct=float(np.sqrt(np.mean(err**2))),
         soc_mae_pct=float(np.mean(np.abs(err))),
@@ -58,4 +65,5 @@ def score(time_s: np.ndarray, soc_est: np.ndarray, soc_true: np.ndarray,
         soc_rmse_after_600s_pct=float(np.sqrt(np.mean(err[after] ** 2))) if after.any() else None,
         convergence_s=convergence_time(time_s, err),
         v_rmse_mv=v_rmse,
+        soc_within_2sigma_pct=within,
     )

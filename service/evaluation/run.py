@@ -93,6 +93,6 @@ def evaluate_recordings(
             trace = est.run(part_seen, profile, soc0, history=history)
             us = 1e6 * (time.perf_counter() - t0) / len(part)
             traces[est.name] = trace
-            s = score(part.time_s, trace.soc, truth, trace.v_pred, part.voltage_v)
+            s = score(part.time_s, trace.soc, truth, trace.v_pred, part.voltage_v, trace.soc_std)
             scores.append(EstimatorScore(recording=rec.name, estimator=est.name, us_per_step=us, **asdict(s)))
         yield RecordingEvaluation(recording=rec, part=part, truth=truth, traces=traces, scores=scores)
