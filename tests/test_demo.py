@@ -53,6 +53,21 @@ def test_demo_with_a_given_recording(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert data["recording"] == rec.name and data["seconds_replayed"] == pytest.approx(300, abs=2)
 
 
+def test_demo_estimates_with_the_given_cell_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--cell`` replaces the bundled profile (the service estimates with it, the pack is built
+    from it): another profile gives other estimates on the same drive; a missing one is named."""
+    runs = {}
+    for cell in (None, "panasonic_18650pf_nokinetics"):
+        out = tmp_path / f"demo_{cell}.json"
+        extra = [] if cell is None else ["--cell", cell]
+        assert main(["demo", "--cells", "2", "--seconds", "300", "--json", str(out), *extra]) == 0
+        runs[cell] = _check(out, 2)
+    assert runs[None]["final_soc_pct"] != runs["panasonic_18650pf_nokinetics"]["final_soc_pct"]
+    capsys.readouterr()
+    assert main(["demo", "--cell", str(tmp_path / "none.toml")]) == 2
+    assert "none.toml" in capsys.readouterr().err
+
+
 def test_demo_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["demo", "--cells", "0"]) == 2
     assert "--cells" in capsys.readouterr().err

@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from service.cli import UserError
-from service.commands.common_args import (add_common_arguments, add_soc0_argument, int_range, non_negative_float,
-                                          positive_float, setup_logging, text_stream, write_json)
+from service.commands.common_args import (add_cell_argument, add_common_arguments, add_soc0_argument, int_range,
+                                          non_negative_float, positive_float, setup_logging, text_stream, write_json)
 
 MAX_DEMO_CELLS = 256  # the output DBC's cell index is 8 bits; above 96 an input DBC is generated
 DEFAULT_PLOT = Path("socd-demo.png")
@@ -32,6 +32,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     add_soc0_argument(parser, old_start_soc_alias=True,
                       help="true SOC at the recording's first sample, 0-1 (default: 1.0 for the bundled "
                            "drive, which starts fully charged; else estimated from the first rest voltage)")
+    add_cell_argument(parser, help="cell profile the service estimates with and the pack is built from "
+                      "(default: the bundled Panasonic 18650PF profile)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the per-cell spread (default 0)")
     parser.add_argument("--spread-capacity", type=non_negative_float, default=0.02, metavar="SIGMA",
                         help="σ of the cells' relative capacity, clipped at 3σ (default 0.02 = 2 %%)")
@@ -69,7 +71,8 @@ def _demo(args: argparse.Namespace) -> int:
         plot = DEFAULT_PLOT
     try:
         result, traces = run_demo(args.cells, args.speed, args.seconds, recording_path=args.recording,
-                                  start_soc=args.soc0, seed=args.seed, capacity_spread=args.spread_capacity,
+                                  start_soc=args.soc0, profile_path=args.cell, seed=args.seed,
+                                  capacity_spread=args.spread_capacity,
                                   capacity_estimation="off" if args.freeze_capacity else None)
     except (FileNotFoundError, ProfileError) as exc:
         raise UserError(str(exc)) from None
