@@ -367,6 +367,7 @@ def test_fit_writes_a_profile_that_reproduces_the_recording(tmp_path: Path, nmc_
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     assert str(out) in captured.out
+    assert "[fit] fitting parameters at 25 °C" in captured.err
     prof = load_profile(out)
     assert prof.name == "fitted"
     assert prof.capacity_ah == 2.0
@@ -384,8 +385,12 @@ def test_fit_plots_show_both_models_along_each_recording(tmp_path: Path, nmc_rec
     plots = tmp_path / "plots"
     rc = main(["fit", str(rec.path), "--capacity-ah", "2.0", "--ocv", str(nmc_ocv_csv), "--max-seconds", "5",
                "-o", str(tmp_path / "fitted.toml"), "--plots", str(plots), "-q"])
-    out = capsys.readouterr().out
+    captured = capsys.readouterr()
+    out = captured.out
     assert rc == 0
+    # -q: the fit log is not said (the run without -q above says it), only its notices
+    said = [x for x in captured.err.splitlines() if x.startswith("[fit]")]
+    assert all("at a bound of the search" in x for x in said), said
     assert sorted(p.name for p in plots.iterdir()) == ["fitdrive_fit.png", "ocv.png"]
     assert all(p.stat().st_size > 10_000 for p in plots.iterdir())
     # the fractional model reproduces its own synthetic cell to within a few times the 2 mV noise

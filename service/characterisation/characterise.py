@@ -162,9 +162,15 @@ class FitReport:
     echo: Callable[[str], None] | None = None
     #: told ``(stage, done, total)`` as each fitting stage starts (a progress bar)
     progress: Callable[[str, int, int], None] | None = None
+    #: ``socd fit -q``: only notices (parameters at a bound of the search) are said; every line
+    #: is still kept in ``lines``
+    quiet: bool = False
 
-    def say(self, msg: str) -> None:
+    def say(self, msg: str, notice: bool = False) -> None:
+        """Keep ``msg`` and say it (unless quiet and not a ``notice``)."""
         self.lines.append(msg)
+        if self.quiet and not notice:
+            return
         if self.echo is not None:
             self.echo(f"[fit] {msg}")
         else:
@@ -441,7 +447,7 @@ def characterise(
                 + (f"; search stopped at its {max_seconds:g} s bound (--max-seconds)" if res.time_bound
                    else f"; search finished in {res.seconds:.0f} s"))
         if outcome.at_bounds:
-            rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}")
+            rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}", notice=True)
     profile = prof.model_copy(update={
         "parameters": with_linear_kinetics_where_unfitted([points[t] for t in sorted(points)]),
         "hysteresis": hyst or HysteresisSpec(table_branch=ocv_branch),

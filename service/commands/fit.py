@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(str(exc)) from exc
     out = Path(args.output)
     bar = open_progress(progress_enabled(args), "fit", None, unit="stages")
-    report = FitReport(echo=bar.log if bar.enabled else None,
+    report = FitReport(echo=bar.log if bar.enabled else None, quiet=args.quiet,
                        progress=lambda what, done, total: bar.update(completed=done, total=total, description=what))
     try:
         profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
