@@ -13,8 +13,8 @@ import os
 import sys
 
 from service import __version__
-from service.extras import missing_extra
 from service.errors import UserError
+from service.extras import missing_extra
 from service.validation import use_bounds
 
 __all__ = ["SUBCOMMANDS", "UserError", "build_parser", "main"]

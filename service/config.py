@@ -88,7 +88,7 @@ class BusConfig(_Section):
     )
 
     @model_validator(mode="after")
-    def _backoff(self) -> "BusConfig":
+    def _backoff(self) -> BusConfig:
         if self.reconnect_max_s < self.reconnect_initial_s:
             raise ValueError(
                 f"reconnect_max_s ({self.reconnect_max_s}) < reconnect_initial_s ({self.reconnect_initial_s})"
@@ -376,7 +376,7 @@ class SocdConfig(BaseSettings):
         return (env_settings, init_settings)
 
     @model_validator(mode="after")
-    def _consistent(self) -> "SocdConfig":
+    def _consistent(self) -> SocdConfig:
         m = self.mapping
         explicit_n = "n_cells" in self.pack.model_fields_set
         if not explicit_n and (m.cell_voltage_signals or m.cells):
@@ -486,8 +486,7 @@ def format_validation_error(exc: ValidationError, source: str) -> str:
     lines = []
     for err in exc.errors():
         msg = err["msg"]
-        if msg.startswith("Value error, "):
-            msg = msg[len("Value error, "):]
+        msg = msg.removeprefix("Value error, ")
         loc = format_loc(tuple(err["loc"]))
         # cross-field checks name their own field at the start of the message
         lines.append(f"{source}: {loc}: {msg}" if loc else f"{source}: {msg}")

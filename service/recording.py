@@ -15,7 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from service.errors import UserError
-from service.validation import InputFileError, RecordingBounds, check_increasing, check_values, read_text
+from service.validation import (
+    InputFileError,
+    RecordingBounds,
+    check_increasing,
+    check_values,
+    read_text,
+)
 
 REQUIRED_COLUMNS = ("time_s", "current_a", "voltage_v", "temperature_c")
 
@@ -42,7 +48,7 @@ class Recording:
         """Interval before each sample (first one 0): the estimator's actual step."""
         return np.diff(self.time_s, prepend=self.time_s[0])
 
-    def slice(self, start: int, stop: int | None = None) -> "Recording":
+    def slice(self, start: int, stop: int | None = None) -> Recording:
         sl = slice(start, stop)
         return Recording(
             self.path,

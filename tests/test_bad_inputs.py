@@ -168,7 +168,7 @@ def test_evaluate_and_fit_refuse_bad_recordings(tmp_path: Path, capsys, name: st
 def test_bounds_flag_narrows_the_plausible_range(tmp_path: Path, capsys, monkeypatch) -> None:
     """``--bounds`` replaces a column's range for every loader of the command: a recording inside
     the default range but outside the user's is refused with its row and field."""
-    import service.validation as validation
+    from service import validation
 
     monkeypatch.setattr(validation, "DEFAULT_BOUNDS", validation.DEFAULT_BOUNDS)  # restored after the test
     path = _recording(tmp_path, "ok.csv", GOOD_ROWS)

@@ -136,6 +136,6 @@ def test_docs_examples_are_what_socd_schema_writes(tmp_path: Path) -> None:
     out = tmp_path / "schema"
     assert main(["schema", "-o", str(out)]) == 0
     doc = (ROOT / "docs" / "zenoh.md").read_text()
-    blocks = [json.loads(b) for b in re.findall(r"```json\n(.*?)```", doc, re.S)]
+    blocks = [json.loads(b) for b in re.findall(r"```json\n(.*?)```", doc, re.DOTALL)]
     assert blocks[0] == json.loads((out / "cell_soc.example.json").read_text())
     assert blocks[1] == json.loads((out / "summary.example.json").read_text())

@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 
 pytest.importorskip("prometheus_client")
-from prometheus_client.parser import text_string_to_metric_families  # noqa: E402
+from prometheus_client.parser import text_string_to_metric_families
 
-from replay.pack import SpreadSpec, pack_frames  # noqa: E402
-from replay.player import play  # noqa: E402
-from service.cell.profile import load_profile  # noqa: E402
-from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config  # noqa: E402
-from service.daemon.daemon import Daemon  # noqa: E402
-from service.daemon.health import HealthMonitor  # noqa: E402
-from service.daemon.metrics import MetricsError, MetricsServer  # noqa: E402
-from service.recording import load_recording  # noqa: E402
+from replay.pack import SpreadSpec, pack_frames
+from replay.player import play
+from service.cell.profile import load_profile
+from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config
+from service.daemon.daemon import Daemon
+from service.daemon.health import HealthMonitor
+from service.daemon.metrics import MetricsError, MetricsServer
+from service.recording import load_recording
 
 RECORDING = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "panasonic_18650pf" / \
     "pan18650pf_25C_US06.csv"

@@ -173,9 +173,9 @@ def test_demo_without_matplotlib_says_which_extra(monkeypatch, capsys):
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
 def test_systemd_unit_verifies(tmp_path):
     unit = (ROOT / "deploy" / "socd.service").read_text()
-    assert re.search(r"^DynamicUser=yes$", unit, re.M) and re.search(r"^StateDirectory=socd$", unit, re.M)
-    assert not re.search(r"^(User|Group)=", unit, re.M)
-    exec_start = re.search(r"^ExecStart=(\S+) run --config /etc/socd/socd.toml$", unit, re.M)
+    assert re.search(r"^DynamicUser=yes$", unit, re.MULTILINE) and re.search(r"^StateDirectory=socd$", unit, re.MULTILINE)
+    assert not re.search(r"^(User|Group)=", unit, re.MULTILINE)
+    exec_start = re.search(r"^ExecStart=(\S+) run --config /etc/socd/socd.toml$", unit, re.MULTILINE)
     assert exec_start
     # verify checks that ExecStart's program exists: point it at this environment's socd
     socd = Path(sys.executable).parent / "socd"
@@ -204,7 +204,7 @@ def test_dockerfile_runs_socd_as_a_non_root_user_with_a_state_volume():
 
 def test_docker_health_check_is_the_checkpoint_age(tmp_path):
     text = (ROOT / "Dockerfile").read_text()
-    health = re.search(r"^HEALTHCHECK .*\\\n\s+CMD (\[.*\])$", text, re.M)
+    health = re.search(r"^HEALTHCHECK .*\\\n\s+CMD (\[.*\])$", text, re.MULTILINE)
     assert health, "HEALTHCHECK ... CMD [exec form] not found"
     argv = json.loads(health.group(1))
     checkpoint = tmp_path / "socd-state.npz"

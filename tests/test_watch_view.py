@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from rich.console import Console
 
+from service.cell.ocv import OcvTable
 from service.commands.watch import PackView, watch
 from service.daemon.health import HealthMonitor
 from service.daemon.payloads import CellSoc, Health, Summary
-from service.cell.ocv import OcvTable
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
 from service.estimators.pack_view import OcvEnergy, pack_view
 

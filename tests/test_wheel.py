@@ -41,7 +41,7 @@ def test_wheel_installed_in_a_fresh_venv_runs_the_demo(tmp_path: Path) -> None:
 
     # the demo, from a directory that has nothing of the checkout
     done = _run([str(socd), "demo", "--seconds", DEMO_SECONDS, "--cells", "100"], cwd=work, timeout=300)
-    rmse = re.search(r"^SOC error vs truth: RMSE (\d+\.\d+) %", done.stdout, re.M)
+    rmse = re.search(r"^SOC error vs truth: RMSE (\d+\.\d+) %", done.stdout, re.MULTILINE)
     assert rmse and float(rmse.group(1)) < 10.0, done.stdout
     assert "plot: not written (needs matplotlib, which is not installed: pip install 'socd[fit]')" in done.stdout
 

@@ -99,7 +99,7 @@ def test_docs_python_subscriber_runs_against_a_real_publisher() -> None:
     from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
 
     doc = (Path(__file__).resolve().parent.parent / "docs" / "zenoh.md").read_text()
-    code = re.search(r"```python\n(.*?)```", doc, re.S).group(1)
+    code = re.search(r"```python\n(.*?)```", doc, re.DOTALL).group(1)
     port = _port()
     assert 'ENDPOINT = "tcp/127.0.0.1:7447"' in code and "time.sleep(30)" in code
     code = code.replace('ENDPOINT = "tcp/127.0.0.1:7447"', f'ENDPOINT = "tcp/127.0.0.1:{port}"')

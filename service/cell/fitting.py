@@ -455,7 +455,7 @@ def fit_parameters(
 
     cut = {"global": False, "polish": False}
 
-    def stop(intermediate_result) -> bool:  # noqa: ARG001 - scipy matches the name
+    def stop(intermediate_result) -> bool:  # scipy passes the result by this name
         cut["global"] = time.perf_counter() > g_deadline
         return cut["global"]
 

@@ -53,7 +53,7 @@ class OcvTable:
     @classmethod
     def from_points(
         cls, soc: np.ndarray, ocv_v: np.ndarray, temps_c: np.ndarray | None = None
-    ) -> "OcvTable":
+    ) -> OcvTable:
         """Build from points; ``ocv_v`` is ``[S]`` or ``[K, S]``.  Enforces monotone rows."""
         soc = np.asarray(soc, dtype=float)
         ocv = np.atleast_2d(np.asarray(ocv_v, dtype=float))

@@ -45,7 +45,7 @@ class OcvSpec(_Strict):
     ocv_v: list[list[float]]
 
     @model_validator(mode="after")
-    def _shape(self) -> "OcvSpec":
+    def _shape(self) -> OcvSpec:
         if len(self.ocv_v) != len(self.temps_c):
             raise ValueError(f"ocv_v has {len(self.ocv_v)} rows but temps_c has {len(self.temps_c)}")
         for k, row in enumerate(self.ocv_v):
@@ -148,7 +148,7 @@ class SocResistanceSpec(_Strict):
     r_pol_scale: list[list[float]]
 
     @model_validator(mode="after")
-    def _shape(self) -> "SocResistanceSpec":
+    def _shape(self) -> SocResistanceSpec:
         if len(self.soc) < 2 or any(b <= a for a, b in pairwise(self.soc)):
             raise ValueError("soc must be strictly increasing with at least 2 points")
         if len(set(self.temps_c)) != len(self.temps_c):
@@ -305,7 +305,7 @@ class CellProfile(_Strict):
             return None
         return SocScaleTable.from_points(spec.soc, spec.temps_c, spec.r_ohm_scale, spec.r_pol_scale)
 
-    def parameters_at(self, temp_c: np.ndarray | float, n_cells: int | None = None) -> "CellParameters":
+    def parameters_at(self, temp_c: np.ndarray | float, n_cells: int | None = None) -> CellParameters:
         """Parameters for each cell at its temperature (log-linear in T between grid points)."""
         temp = np.atleast_1d(np.asarray(temp_c, dtype=float))
         if n_cells is not None and temp.size == 1:
@@ -431,10 +431,10 @@ class CellParameters:
     current_bias_a: np.ndarray
     kinetics_i0_a: np.ndarray
 
-    def copy(self) -> "CellParameters":
+    def copy(self) -> CellParameters:
         return CellParameters(**{k: np.array(v, copy=True) for k, v in self.__dict__.items()})
 
-    def take(self, idx: np.ndarray | slice) -> "CellParameters":
+    def take(self, idx: np.ndarray | slice) -> CellParameters:
         return CellParameters(**{k: np.array(v[idx], copy=True) for k, v in self.__dict__.items()})
 
 

@@ -19,7 +19,7 @@ stepping :class:`MtsFom` is checked in the tests.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg.lapack import dtbtrs

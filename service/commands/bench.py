@@ -13,8 +13,16 @@ import numpy as np
 
 from service.cli import UserError
 from service.commands.bench_drive import pack_drive
-from service.commands.common_args import (add_cell_argument, add_common_arguments, int_range, positive_float,
-                                          positive_int, setup_logging, text_stream, write_json)
+from service.commands.common_args import (
+    add_cell_argument,
+    add_common_arguments,
+    int_range,
+    positive_float,
+    positive_int,
+    setup_logging,
+    text_stream,
+    write_json,
+)
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:

@@ -6,8 +6,17 @@ import argparse
 from pathlib import Path
 
 from service.cli import UserError
-from service.commands.common_args import (add_cell_argument, add_common_arguments, add_soc0_argument, int_range,
-                                          non_negative_float, positive_float, setup_logging, text_stream, write_json)
+from service.commands.common_args import (
+    add_cell_argument,
+    add_common_arguments,
+    add_soc0_argument,
+    int_range,
+    non_negative_float,
+    positive_float,
+    setup_logging,
+    text_stream,
+    write_json,
+)
 
 MAX_DEMO_CELLS = 256  # the output DBC's cell index is 8 bits; above 96 an input DBC is generated
 DEFAULT_PLOT = Path("socd-demo.png")

@@ -20,8 +20,17 @@ import sys
 from pathlib import Path
 
 from service.cli import UserError
-from service.commands.common_args import (add_cell_argument, add_common_arguments, add_soc0_argument, json_to_stdout,
-                                          float_in, positive_float, progress_enabled, setup_logging, write_json)
+from service.commands.common_args import (
+    add_cell_argument,
+    add_common_arguments,
+    add_soc0_argument,
+    float_in,
+    json_to_stdout,
+    positive_float,
+    progress_enabled,
+    setup_logging,
+    write_json,
+)
 from service.commands.progress import open_progress
 
 

@@ -13,8 +13,16 @@ import numpy as np
 from service.cell.profile import ProfileError, load_profile
 from service.cell.truth import per_recording
 from service.cli import UserError
-from service.commands.common_args import (add_cell_argument, add_common_arguments, finite_float, full_at,
-                                          progress_enabled, setup_logging, text_stream, write_json)
+from service.commands.common_args import (
+    add_cell_argument,
+    add_common_arguments,
+    finite_float,
+    full_at,
+    progress_enabled,
+    setup_logging,
+    text_stream,
+    write_json,
+)
 from service.commands.progress import open_progress
 from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
 from service.estimators.settings import EstimatorSettings
@@ -93,7 +101,6 @@ def load_settings(path: str | None) -> tuple[EstimatorSettings, dict]:
     from pydantic import ValidationError
 
     from service.estimators.ecm2rc_ekf import EkfTuning
-
     from service.validation import InputFileError, read_text
 
     try:

@@ -9,8 +9,14 @@ from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
 from service.cli import UserError
-from service.commands.common_args import (add_common_arguments, full_at, positive_float, positive_int,
-                                          progress_enabled, setup_logging)
+from service.commands.common_args import (
+    add_common_arguments,
+    full_at,
+    positive_float,
+    positive_int,
+    progress_enabled,
+    setup_logging,
+)
 from service.commands.progress import open_progress
 from service.recording import load_recording
 

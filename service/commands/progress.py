@@ -59,8 +59,14 @@ def open_progress(enabled: bool, description: str, total: float | None, *, unit:
     if not enabled:
         return Bar(None, None)
     from rich.console import Console
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     stream = stream or sys.stderr
     # forced on a non-terminal (--progress into a log): still draw it

@@ -31,6 +31,7 @@ from service.cell.ocv import OcvTable
 from service.cell.profile import GAS_CONSTANT, KELVIN, CellParameters, CellProfile
 from service.cell.trajectory import simulate_batch
 
+
 @dataclass
 class Mods:
     """Per-candidate model parts on top of the base parameters (``N`` candidates)."""

@@ -18,7 +18,7 @@ import numpy as np
 
 from service.cell.profile import CellProfile
 from service.cell.truth import truth_and_start
-from service.estimators.base import Estimator, EstimateTrace
+from service.estimators.base import EstimateTrace, Estimator
 from service.evaluation.metrics import Scores, score
 from service.recording import Recording
 
