@@ -16,6 +16,8 @@ from service.cell.trajectory import simulate
 from service.cli import main
 from service.estimators.registry import ESTIMATORS
 from service.evaluation.metrics import CONVERGENCE_HOLD_S, convergence_time, score
+from service.evaluation.run import EstimatorScore
+from service.evaluation.summary import summarise, summary_lines
 
 RESULT_KEYS = {
     "recording", "estimator", "soc_rmse_pct", "soc_mae_pct", "soc_max_pct",
@@ -397,6 +399,49 @@ def test_fit_plots_show_both_models_along_each_recording(tmp_path: Path, nmc_rec
     line = next(x for x in out.splitlines() if "fitdrive_fit.png" in x)
     fractional = float(line.split("fractional ")[1].split(" mV")[0])
     assert 1.0 < fractional < 10.0 and "textbook 2-RC" in line
+
+
+# -- the summary under the table ------------------------------------------------------------------
+def _score(recording: str, estimator: str, late: float | None) -> EstimatorScore:
+    return EstimatorScore(recording=recording, estimator=estimator, us_per_step=1.0, soc_rmse_pct=1.0,
+                          soc_mae_pct=1.0, soc_max_pct=1.0, soc_rmse_after_600s_pct=late, convergence_s=None,
+                          v_rmse_mv=None, soc_within_2sigma_pct=None)
+
+
+def test_summary_mean_worst_and_recordings_below_the_bar() -> None:
+    results = [_score("a", "fomiukf", 1.0), _score("a", "ecm2rc-ekf", 2.0),
+               _score("b", "fomiukf", 3.0), _score("b", "ecm2rc-ekf", 0.5),
+               _score("c", "fomiukf", None), _score("c", "ecm2rc-ekf", 0.7)]  # c: shorter than 600 s
+    fo, bar = summarise(results, "ecm2rc-ekf")
+    assert (fo.estimator, fo.recordings, fo.scored) == ("fomiukf", 3, 2)
+    assert fo.mean_rmse_after_600s_pct == pytest.approx(2.0) and fo.worst_rmse_after_600s_pct == 3.0
+    assert fo.worst_recording == "b" and (fo.below_bar, fo.compared) == (1, 2)
+    assert bar.mean_rmse_after_600s_pct == pytest.approx(3.2 / 3) and bar.worst_recording == "a"
+    assert bar.below_bar is None
+    lines = summary_lines([fo, bar], "ecm2rc-ekf")
+    assert "2.00 / 3.00 % over 2 (worst: b); below the ecm2rc-ekf bar on 1 of 2" in lines[1]
+    # without a bar nothing is compared; an estimator with no recording past 600 s has no mean
+    (only,) = summarise([_score("c", "coulomb", None)], None)
+    assert only.mean_rmse_after_600s_pct is None and only.below_bar is None
+    assert "no recording runs past 600 s" in summary_lines([only], None)[1]
+
+
+def test_evaluate_prints_and_writes_the_summary_over_recordings(tmp_path: Path, nmc_recording, nmc_profile_file,
+                                                                 capsys) -> None:
+    recs = [nmc_recording(name=f"drive{k}", duration_s=700, seed=k, soc0=0.9) for k in (5, 6)]
+    out = tmp_path / "r.json"
+    rc = main(["evaluate", *(str(r.path) for r in recs), "--cell", str(nmc_profile_file), "--estimator", "fomiukf",
+               "--json", str(out), "-q"])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    doc = json.loads(out.read_text())
+    fo, bar = doc["summary"]
+    late = [r["soc_rmse_after_600s_pct"] for r in doc["results"] if r["estimator"] == "fomiukf"]
+    assert fo["estimator"] == "fomiukf" and fo["scored"] == 2
+    assert fo["mean_rmse_after_600s_pct"] == pytest.approx(np.mean(late))
+    assert fo["worst_rmse_after_600s_pct"] == pytest.approx(max(late)) and fo["compared"] == 2
+    assert bar["estimator"] == "ecm2rc-ekf" and bar["below_bar"] is None
+    assert "mean / worst" in captured.out and f"{fo['mean_rmse_after_600s_pct']:.2f} / " in captured.out
 
 
 # -- metrics ---------------------------------------------------------------------------------------

@@ -27,6 +27,7 @@ from service.commands.progress import open_progress
 from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
 from service.estimators.settings import EstimatorSettings
 from service.evaluation.run import EstimatorScore, evaluate_recordings
+from service.evaluation.summary import summarise, summary_lines
 from service.recording import load_recording
 
 DEFAULT_ESTIMATORS = list(ESTIMATORS)
@@ -166,8 +167,13 @@ def run(args: argparse.Namespace) -> int:
             plot_recording(Path(args.plots), name, part.time_s, ev.truth, part.voltage_v, ev.traces)
     bar.advance(pending[0])
     bar.close()
-    print_table(results, text_stream(args))
-    write_json(args.json, {"results": [asdict(r) for r in results], "cell": str(args.cell),
+    summaries = summarise(results, BAR_ESTIMATOR if BAR_ESTIMATOR in names else None)
+    out = text_stream(args)
+    print_table(results, out)
+    if len(recordings) > 1:
+        print("\n".join(summary_lines(summaries, BAR_ESTIMATOR)), file=out)
+    write_json(args.json, {"results": [asdict(r) for r in results],
+                           "summary": [asdict(s) for s in summaries], "cell": str(args.cell),
                            "init_soc_error": args.init_soc_error, "warm_start": bool(args.warm_start),
                            "current_bias_c": args.current_bias_c, "settings": args.settings})
     return 0
