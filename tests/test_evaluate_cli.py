@@ -15,9 +15,9 @@ from service.cell.profile import load_profile
 from service.cell.trajectory import simulate
 from service.cli import main
 from service.estimators.registry import ESTIMATORS
+from service.evaluation.aggregate import summarise, summary_lines
 from service.evaluation.metrics import CONVERGENCE_HOLD_S, convergence_time, score
 from service.evaluation.run import EstimatorScore
-from service.evaluation.summary import summarise, summary_lines
 
 RESULT_KEYS = {
     "recording", "estimator", "soc_rmse_pct", "soc_mae_pct", "soc_max_pct",

@@ -26,8 +26,8 @@ from service.commands.common_args import (
 from service.commands.progress import open_progress
 from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
 from service.estimators.settings import EstimatorSettings
+from service.evaluation.aggregate import summarise, summary_lines
 from service.evaluation.run import EstimatorScore, evaluate_recordings
-from service.evaluation.summary import summarise, summary_lines
 from service.recording import load_recording
 
 DEFAULT_ESTIMATORS = list(ESTIMATORS)
