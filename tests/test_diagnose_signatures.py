@@ -206,6 +206,7 @@ def test_a_cold_start_that_warms_smoothly_is_nominated_by_its_opening_temperatur
     assert sig["nominated"]
     assert sig["opening_temp_c"] == pytest.approx(10.0, abs=0.3)
     assert "opens" in sig["why"]
+    assert sig["direct"], "an ambient measured away from the nominal one is the departure itself"
     # without a nominal ambient only the misfit counts
     assert not signatures(t, i, temp, CAP, nominal_ambient_c=None)["temperature"]["nominated"]
 
@@ -219,8 +220,21 @@ def test_a_warm_start_that_cools_smoothly_is_nominated_by_its_coldest_temperatur
     sig = signatures(t, i, temp, CAP)["temperature"]
     assert sig["rms_k"] < 0.5 and sig["opening_temp_c"] == pytest.approx(25.0, abs=0.5)
     assert sig["nominated"] and "cools" in sig["why"], sig
+    assert sig["direct"]
     assert sig["coldest_temp_c"] < 20.0
     assert not signatures(t, i, temp, CAP, nominal_ambient_c=None)["temperature"]["nominated"]
+
+
+def test_a_warm_spell_from_the_nominal_ambient_nominates_but_does_not_measure():
+    """The ambient steps from the nominal 25 °C to 35 °C and back: the constant-ambient model
+    misfits it (nominated), but the recording neither opens away from the nominal ambient nor
+    cools below it, so nothing measured says the cell ran at another temperature than the base
+    model's (a cell that heats differently, e.g. slow kinetics, reads the same): not direct."""
+    t, i = drive(3, hours=2.0)
+    t_amb = np.where((t > 2000) & (t < 5000), 35.0, 25.0)
+    sig = signatures(t, i, _thermal(t, i, 25.0, t_amb), CAP)["temperature"]
+    assert sig["nominated"] and "constant ambient" in sig["why"], sig
+    assert not sig["direct"]
 
 
 @pytest.mark.parametrize(("t_start", "t_amb_c", "heat_k"), [(25.0, 25.0, 2.0), (0.0, 0.0, 0.2), (27.0, 25.0, 2.0)])

@@ -28,7 +28,8 @@ Protocol (stated in every report and JSON):
   generic mismatch between the equivalent circuit and a real cell, so without a signature
   the full ``min_rel_gain`` applies.  A signature that *measures* the departure directly
   (``current_bias``: the mean measured current in rests, where the true current is zero;
-  ``capacity``: the two-point check; ``hysteresis``: the branch offset at the ends of long rests)
+  ``capacity``: the two-point check; ``hysteresis``: the branch offset at the ends of long rests;
+  ``temperature``: an ambient measured 5 K or more away from the nominal one)
   makes its effect significant when the held-out RMSE does not rise by more than the
   larger of ``direct_max_rise_noise`` × the voltage noise (the margin of the other tests)
   and ``direct_max_rise_rel`` × the base's held-out RMSE (the nominated bar mirrored); the
@@ -125,9 +126,9 @@ class DiagnoseOptions:
     nominal_ambient_c: float | None = NOMINAL_AMBIENT_C
     # significance thresholds (see module docstring), chosen leave-one-cell-out on the development
     # set (research.devset; docs/results/diagnose.md)
-    min_rel_gain: float = 0.30
+    min_rel_gain: float = 0.25
     # an effect nominated by its own signature (service.cell.diagnosis.signatures) needs less
-    min_rel_gain_nominated: float = 0.10
+    min_rel_gain_nominated: float = 0.05
     # an effect whose signature is a direct measurement (current_bias: the rest current) needs
     # only that the held-out RMSE does not rise by more than this many x the voltage noise
     direct_max_rise_noise: float = 0.5
@@ -137,7 +138,7 @@ class DiagnoseOptions:
     # ΔBIC on the fit part: a held-out gain may come with a slightly worse fit-part BIC (an extension
     # that extrapolates well but adds parameters the fit part barely needs)
     min_delta_bic: float = -10.0
-    min_abs_gain_noise: float = 0.5
+    min_abs_gain_noise: float = 1.0
     # a none verdict with an effect nominated (not measured) by its signature whose extension
     # misses its bar on the chronological split: that effect alone is refitted and scored again
     # on this split (interpolation in SOC and time instead of extrapolation); None = off

@@ -575,7 +575,11 @@ def temperature_signature(time_s: np.ndarray, current_a: np.ndarray, temperature
            f"moves {amb['range_k']:.1f} K" if opens_off else
            f"it cools to {t_cold:.1f} °C, {nominal_ambient_c - t_cold:.1f} K below the nominal {nominal_ambient_c:g} °C "
            f"ambient, which self-heating cannot do" if cools_below else "")
-    return {"nominated": bool(drift or opens_off or cools_below), "statistic": round(amb["rms_k"], 3),
+    # an ambient measured away from the nominal one is a direct measurement of the departure (the
+    # cell ran at another temperature than the base model's); a self-heating misfit alone is not:
+    # slow kinetics or a larger resistance heat the cell differently too
+    return {"nominated": bool(drift or opens_off or cools_below), "direct": bool(opens_off or cools_below),
+            "statistic": round(amb["rms_k"], 3),
             "what": "RMS misfit (K) of a constant-ambient self-heating model to the temperature; opening and coldest "
                     "temperature against the nominal ambient",
             "threshold": AMBIENT_DRIFT_K, **{k: round(v, 3) for k, v in amb.items()},
