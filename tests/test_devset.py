@@ -92,8 +92,10 @@ def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     evs = []
     for cell in ("A", "B", "C"):
         evs.append(_ev(cell, "kinetics", [_cand("kinetics", 0.2)], stem=f"{cell}_kinetics"))
-        evs.append(_ev(cell, "none", [_cand("ocv", 0.12)], stem=f"{cell}_none_clean_dst", before=6.0))
-    evs.append(_ev("C", "capacity", [_cand("capacity", 0.11)], stem="C_capacity"))
+        # 20 mV before: the drops (2.4, 2.2 mV) clear the absolute bar (1 x the 1.5 mV noise), so
+        # only the relative bar under test decides
+        evs.append(_ev(cell, "none", [_cand("ocv", 0.12, before=20.0)], stem=f"{cell}_none_clean_dst", before=6.0))
+    evs.append(_ev("C", "capacity", [_cand("capacity", 0.11, before=20.0)], stem="C_capacity"))
     grid = [{"min_rel_gain": g} for g in (0.10, 0.15, 0.30)]
     rule, t = choose_rule(evs, grid)
     assert rule == {"min_rel_gain": 0.15} and t.false_alarms == 0 and t.right == 6
@@ -137,7 +139,8 @@ def test_signature_levels_move_nomination_and_plausibility():
     """A kinetics bound raised from 0.10 C to 0.15 C: the step fit (upper bound 0.13 C) now nominates
     kinetics, and the extension's fitted 0.11 C is no longer a healthy cell's, so a 12 % gain names it;
     a cached candidate gets its fitted size back from the reason that printed it."""
-    kin = _cand("kinetics", 0.12, fixed=["fitted exchange current 0.11 C >= 0.1 C: kinetics of a healthy cell"])
+    kin = _cand("kinetics", 0.12, before=20.0,  # a 2.4 mV drop clears the absolute bar
+                fixed=["fitted exchange current 0.11 C >= 0.1 C: kinetics of a healthy cell"])
     doc = {k: v for k, v in kin.__dict__.items() if k != "size"}
     from research.devset import _candidate_from_json
 
