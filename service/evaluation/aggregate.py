@@ -44,8 +44,8 @@ def summarise(results: Sequence[EstimatorScore], bar: str | None) -> list[Estima
         worst = max(late, key=lambda r: r.soc_rmse_after_600s_pct, default=None)
         below = compared = None
         if bar in names and name != bar:
-            pairs = [(r.soc_rmse_after_600s_pct, bar_rmse.get(r.recording)) for r in late]
-            pairs = [(a, b) for a, b in pairs if b is not None]
+            pairs = [(r.soc_rmse_after_600s_pct, bar_rmse[r.recording]) for r in late
+                     if bar_rmse.get(r.recording) is not None]
             compared = len(pairs)
             below = sum(a < b for a, b in pairs)
         out.append(EstimatorSummary(
