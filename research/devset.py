@@ -246,8 +246,10 @@ def _candidates(dg, opt) -> list[Candidate]:
 
 def evidence_of(spec: Spec, dg, sub, opt) -> Evidence:
     """The rule-independent figures of ``dg`` (the chronological diagnosis) and ``sub`` (its
-    nominated effects on the confirmation split, or ``None``) under the options ``opt`` they ran with."""
-    retried = dg.verdict == "none" and any(not e.significant for e in dg.effects if e.evidence == "nominated")
+    nominated and directly measured effects on the confirmation split, or ``None``) under the options ``opt`` they ran with."""
+    from service.diagnosis.pipeline import retry_candidates
+
+    retried = dg.verdict == "none" and bool(retry_candidates(dg.effects))
     return Evidence(stem=spec.stem, cell=spec.cell, effect=spec.effect, level=spec.level, drive=spec.drive,
                     noise_mv=dg.thresholds["noise_sigma_mv"], base_rmse_heldout_mv=float(dg.base["rmse_heldout_mv"]),
                     candidates=_candidates(dg, opt),
@@ -262,16 +264,16 @@ def evidence_of(spec: Spec, dg, sub, opt) -> Evidence:
 
 
 def diagnose_for_evidence(spec: Spec, rec, profile, opt) -> Evidence:
-    """Diagnose ``rec`` on ``opt.split``, then every effect its signature nominated on
+    """Diagnose ``rec`` on ``opt.split``, then every effect its signature nominated or measured on
     ``opt.confirm_split`` whatever the verdict, so :func:`decide` can retry under any rule."""
     from service.diagnosis.pipeline import _diagnose_on_split
 
     quiet = lambda _msg: None
     dg = _diagnose_on_split(rec, profile, opt, quiet)
-    nominated = tuple(e.name for e in dg.effects if e.evidence == "nominated")
+    signed = tuple(e.name for e in dg.effects if e.evidence in ("nominated", "direct"))
     sub = None
-    if nominated and opt.confirm_split and opt.confirm_split != opt.split:
-        sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=nominated), quiet)
+    if signed and opt.confirm_split and opt.confirm_split != opt.split:
+        sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=signed), quiet)
     return evidence_of(spec, dg, sub, opt)
 
 
@@ -397,21 +399,22 @@ def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]
     rule ``rule`` (significance thresholds and signature levels; a key left out keeps the value the
     diagnosis ran with), and the named candidate (with the figures of the split it was named on).
     A retry on the confirmation split is possible only for effects the diagnosis itself nominated
-    (their figures are the only ones there)."""
+    or measured directly (their figures are the only ones there)."""
     from service.diagnosis.pipeline import SIGNATURE_REQUIRED, DiagnoseOptions
 
     opt = replace(DiagnoseOptions(), **{k: v for k, v in rule.items() if k not in SIGNATURE_RULES})
     ranked = _judge(_with_signature_rules(ev.candidates, ev, rule), ev.noise_mv, opt)
     if ranked and ranked[0].significant:
         return ranked[0].name, ranked[0]
-    retry = {c.name for c in ranked if c.evidence == "nominated" and not c.significant}
+    retry = {c.name for c in ranked if c.evidence in ("nominated", "direct") and not c.significant}
     if retry and ev.confirm_noise_mv is not None:
         # a fit-part signature with nothing to read on the confirmation split keeps the first split's
-        # nomination (service.diagnosis.pipeline.confirm_nominated)
+        # nomination, and a direct effect needs the nominated bar there
+        # (service.diagnosis.pipeline.confirm_nominated)
         unread = set(ev.signatures.get("confirm_unread", []))
         again = [replace(c, evidence="nominated", fixed_reasons=[r for r in c.fixed_reasons
                                                                  if not r.startswith(SIGNATURE_REQUIRED)])
-                 if c.name in unread else c
+                 if c.name in unread or c.evidence == "direct" else c
                  for c in _with_signature_rules([c for c in ev.confirm_candidates if c.name in retry], ev, rule)]
         confirmed = [c for c in _judge(again, ev.confirm_noise_mv, opt) if c.significant and c.evidence == "nominated"]
         if confirmed:

@@ -85,6 +85,24 @@ def test_decide_names_the_best_significant_and_retries_a_nominated_one():
     assert decide(moved, {})[0] == "none"
 
 
+def test_decide_retries_a_direct_effect_that_made_the_held_out_part_worse_under_the_nominated_bar():
+    """A measured effect (the ambient opened away from nominal) whose extension raised the
+    chronological held-out RMSE beyond its margin is retried on the confirmation split, and
+    there it needs a real gain: a 12 % gain names it, a 3 % one (which the direct rule, not
+    worse, would pass) does not."""
+    worse = _cand("temperature", -0.5, "direct")
+    # 20 mV before: the 2.4 mV drop clears the absolute bar (1 x the 1.5 mV noise)
+    warm = _ev("A", "temperature", [worse], confirm=[_cand("temperature", 0.12, "direct", before=20.0)])
+    verdict, named = decide(warm, {})
+    assert verdict == "temperature" and named.score == pytest.approx(0.12)
+    flat = _ev("A", "temperature", [worse], confirm=[_cand("temperature", 0.03, "direct", before=20.0)])
+    assert decide(flat, {})[0] == "none"
+    # a direct effect the first split already named is not retried: its first figures stand
+    ok = _ev("A", "temperature", [_cand("temperature", 0.01, "direct")], confirm=[_cand("temperature", 0.5, "direct")])
+    verdict, named = decide(ok, {})
+    assert verdict == "temperature" and named.score == pytest.approx(0.01)
+
+
 def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     """Effects at a gain of 0.2 and clean recordings whose best candidate gains 0.12: 0.15 is the
     bar that names every effect and no clean one; 0.10 names more effects on cell C only at the

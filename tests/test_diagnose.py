@@ -407,6 +407,23 @@ def test_a_retried_effect_is_judged_as_nominated_on_the_confirmation_split():
     assert not e.significant and "gain" in e.reasons[0]
 
 
+def test_the_retry_covers_nominated_and_direct_effects_short_of_their_bar():
+    """pipeline.retry_candidates: a nominated or directly measured effect that missed its bar is
+    retried; a significant one, or one no signature backs, is not."""
+    from service.diagnosis.pipeline import EffectOutcome, retry_candidates
+
+    def outcome(name, evidence, significant):
+        return EffectOutcome(name=name, title=name, score=0.0, significant=significant, rmse_before_mv=1.0,
+                             rmse_after_mv=1.0, params={}, params_std={}, delta_bic=0.0, detection=0.0,
+                             whiteness_before=0.0, whiteness_after=0.0, rmse_fit_after_mv=0.0, fit_seconds=0.0,
+                             profile=base_profile(), v_sim=np.zeros(1), reasons=[], evidence=evidence)
+
+    effects = [outcome("temperature", "direct", False), outcome("diffusion", "nominated", False),
+               outcome("kinetics", "fit", False), outcome("current_bias", "direct", True),
+               outcome("hysteresis", "nominated", True)]
+    assert retry_candidates(effects) == ("temperature", "diffusion")
+
+
 def test_only_a_fit_part_signature_with_nothing_to_read_keeps_the_nomination():
     """On the confirmation split a relaxation or step signature that found no rest or step in its fit
     part says nothing; one that read rests and did not fire withdraws the nomination."""

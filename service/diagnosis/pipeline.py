@@ -37,10 +37,11 @@ Protocol (stated in every report and JSON):
   through a slow SOC drift, and a change smaller than the noise, or inside the base model's
   own misfit, is no disagreement.
 * **Confirmation** (:func:`confirm_nominated`): when the verdict is ``none`` and a signature
-  nominated an effect whose extension missed its bar, that effect alone is refitted with a
-  fresh base on ``confirm_split`` (default ``interleaved``: blocks spread over the whole
-  recording, so the held-out part asks the extension to interpolate, not to extrapolate into a
-  SOC range the fit part never reached) and named if it clears its bar there.  The JSON says
+  nominated (or measured directly) an effect whose extension missed its bar, that effect alone
+  is refitted with a fresh base on ``confirm_split`` (default ``interleaved``: blocks spread
+  over the whole recording, so the held-out part asks the extension to interpolate, not to
+  extrapolate into a SOC range or a temperature the fit part never reached) and named if it
+  clears the nominated bar there.  The JSON says
   which split each effect's figures come from (``split``) and ``protocol.confirmation`` what was
   retried.
 * **Significant** when the held-out gain is at least ``min_rel_gain``, the held-out RMSE
@@ -509,17 +510,19 @@ def confirm_nominated(dg: Diagnosis, rec: Recording, profile: CellProfile, opt: 
     fit part never was (an HPPC's last 40 % is its lowest SOC, where slow diffusion is largest).
     Such an effect, and only it, is refitted with a fresh base on ``opt.confirm_split``, whose fit
     and held-out blocks both span the recording; if it clears its bar there it becomes the verdict,
-    its outcome carrying that split's RMSEs (``split`` in the JSON).  Effects a signature measures
-    directly are not retried: they already needed only to not make the held-out part worse."""
+    its outcome carrying that split's RMSEs (``split`` in the JSON).  An effect a signature
+    measures directly that made the held-out part worse (a warming cell whose last part lies
+    beyond the temperatures the fit part saw) is retried too, and there it needs the nominated
+    bar, a real gain: not making the held-out part worse is no longer enough once it did."""
     if dg.verdict != "none" or not opt.confirm_split or opt.confirm_split == opt.split:
         return dg
-    names = tuple(e.name for e in dg.effects if e.evidence == "nominated" and not e.significant)
+    names = retry_candidates(dg.effects)
     if not names:
         return dg
     say(f"confirming {', '.join(names)} on the {opt.confirm_split} split")
     sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=names), say)
     for e in sub.effects:
-        if e.evidence == "fit" and signature_unread(sub.signatures, e.name):
+        if e.evidence == "direct" or (e.evidence == "fit" and signature_unread(sub.signatures, e.name)):
             rejudge(e, "nominated", sub.thresholds["noise_sigma_mv"], opt)
     confirmed = rank([e for e in sub.effects if e.significant and e.evidence == "nominated"],
                      opt.min_abs_gain_noise * sub.thresholds["noise_sigma_mv"])
@@ -538,7 +541,8 @@ def confirm_nominated(dg: Diagnosis, rec: Recording, profile: CellProfile, opt: 
     dg.verdict = confirmed[0].name
     dg.assessment["state"] = "named"
     dg.assessment["text"] = (
-        f"{dg.verdict} is named on the {opt.confirm_split} split: nominated by its signature, its extension "
+        f"{dg.verdict} is named on the {opt.confirm_split} split: "
+        f"{'measured' if first.evidence == 'direct' else 'nominated'} by its signature, its extension "
         f"missed its bar on the {opt.split} split (held out {first.rmse_before_mv:.2f} -> {first.rmse_after_mv:.2f} mV, "
         f"{100 * first.score:+.1f} %) and clears it on the {opt.confirm_split} one ({confirmed[0].rmse_before_mv:.2f} -> "
         f"{confirmed[0].rmse_after_mv:.2f} mV, {100 * confirmed[0].score:+.1f} %)")
@@ -552,6 +556,12 @@ def confirm_nominated(dg: Diagnosis, rec: Recording, profile: CellProfile, opt: 
             if lead["name"] in confirmed_names:
                 lead["confirmed_on"] = opt.confirm_split
     return dg
+
+
+def retry_candidates(effects: list[EffectOutcome]) -> tuple[str, ...]:
+    """The effects a signature nominated or measured directly whose extension missed its bar on
+    the first split: the ones :func:`confirm_nominated` scores again on the confirmation split."""
+    return tuple(e.name for e in effects if e.evidence in ("nominated", "direct") and not e.significant)
 
 
 def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOptions, say) -> Diagnosis:
