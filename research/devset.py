@@ -337,25 +337,32 @@ RULE_GRID: dict[str, tuple[float, ...]] = {
 #: signature levels: the kinetics bound (service.diagnosis.effects.KINETICS_MAX_I0_C: the step fit
 #: nominates kinetics below it and the extension's fitted exchange current must lie below it) and
 #: the relaxation signature's ratio and z (service.diagnosis.signatures.RELAX_MIN_RATIO, RELAX_MIN_Z)
-SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z")
+SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "diffusion_signature")
+#: a structural rule the search leaves alone unless asked (``rules --search-requirement``): whether a
+#: fit-only diffusion is refused never (0), where its relaxation signature read rests and did not
+#: fire (1, the product: Effect.needs_signature_where_read), or always (2)
+REQUIREMENT_GRID: dict[str, tuple[float, ...]] = {"diffusion_signature": (0.0, 1.0, 2.0)}
 
 
 def current_rule() -> dict[str, float]:
     """The product's current value of every rule of :data:`RULE_GRID`."""
     from service.diagnosis import signatures
-    from service.diagnosis.effects import KINETICS_MAX_I0_C
+    from service.diagnosis.effects import EFFECTS, KINETICS_MAX_I0_C
     from service.diagnosis.pipeline import DiagnoseOptions
 
     opt = DiagnoseOptions()
     now = {k: getattr(opt, k) for k in RULE_GRID if k not in SIGNATURE_RULES}
     now.update(kinetics_max_i0_c=KINETICS_MAX_I0_C, relax_min_ratio=signatures.RELAX_MIN_RATIO,
-               relax_min_z=signatures.RELAX_MIN_Z)
+               relax_min_z=signatures.RELAX_MIN_Z,
+               diffusion_signature=_requirement_level(EFFECTS["diffusion"]))
     return now
 
 
-def rule_grid() -> list[dict[str, float]]:
-    keys = list(RULE_GRID)
-    return [dict(zip(keys, values)) for values in itertools.product(*(RULE_GRID[k] for k in keys))]
+def rule_grid(with_requirement: bool = False) -> list[dict[str, float]]:
+    """Every rule of :data:`RULE_GRID` (and of :data:`REQUIREMENT_GRID` with ``with_requirement``)."""
+    axes = {**RULE_GRID, **(REQUIREMENT_GRID if with_requirement else {})}
+    keys = list(axes)
+    return [dict(zip(keys, values)) for values in itertools.product(*(axes[k] for k in keys))]
 
 
 def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[str, float]) -> list[Candidate]:
@@ -371,15 +378,36 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
             if c.size is not None and c.size >= k:
                 fixed.append(f"{KINETICS_SIZE_REASON}{c.size:.2f} C >= {k:g} C")
             c = replace(c, evidence="nominated" if nominated else "fit", fixed_reasons=fixed)
-        elif c.name == "diffusion" and ("relax_min_ratio" in rule or "relax_min_z" in rule):
+        elif c.name == "diffusion" and {"relax_min_ratio", "relax_min_z", "diffusion_signature"} & rule.keys():
             from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_MIN_Z
 
             sig = ev.signatures["diffusion"]
             nominated = (sig["statistic"] is not None and sig["statistic"] >= rule.get("relax_min_ratio", RELAX_MIN_RATIO)
                          and sig["z"] >= rule.get("relax_min_z", RELAX_MIN_Z))
-            c = replace(c, evidence="nominated" if nominated else "fit")
+            c = replace(c, evidence="nominated" if nominated else "fit",
+                        fixed_reasons=_signature_requirement(c, nominated, sig["statistic"] is not None, rule))
         out.append(c)
     return out
+
+
+def _requirement_level(effect) -> float:
+    """An effect's signature requirement as a :data:`REQUIREMENT_GRID` level: 0 none, 1 where its
+    signature read the recording, 2 always."""
+    return 2.0 if effect.needs_signature else 1.0 if effect.needs_signature_where_read else 0.0
+
+
+def _signature_requirement(c: Candidate, nominated: bool, read: bool, rule: dict[str, float]) -> list[str]:
+    """``c``'s fixed reasons with the pipeline's refusal of an effect that needs its signature
+    (the effect's own requirement, or ``rule``'s ``<effect>_signature`` level) set by whether the
+    signature read anything and, at the rule's levels, nominated it."""
+    from service.diagnosis.effects import EFFECTS
+    from service.diagnosis.pipeline import SIGNATURE_REQUIRED
+
+    fixed = [r for r in c.fixed_reasons if not r.startswith(SIGNATURE_REQUIRED)]
+    level = rule.get(f"{c.name}_signature", _requirement_level(EFFECTS[c.name]))
+    if not nominated and (level >= 2 or (level >= 1 and read)):
+        fixed.append(f"{SIGNATURE_REQUIRED}not nominated at this rule's signature levels")
+    return fixed
 
 
 def _judge(cands: Iterable[Candidate], noise_mv: float, opt) -> list[Candidate]:
@@ -646,6 +674,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="their evidence (default: %(default)s)")
     ap.add_argument("--json", type=Path, help="rules: write the rows and chosen rules as JSON")
     ap.add_argument("--markdown", type=Path, help="rules: write the report as Markdown")
+    ap.add_argument("--search-requirement", action="store_true",
+                    help="rules: search also whether diffusion needs its relaxation signature (a structural rule "
+                         "the product fixes; this asks what the search itself would choose per held-out cell)")
     args = ap.parse_args(argv)
     cells = [c for c in args.cells.split(",") if c]
     specs = plan(cells)
@@ -683,7 +714,7 @@ def main(argv: list[str] | None = None) -> int:
         _complete(ev, args.labelled / f"{ev.stem}.csv",
                   json.loads((args.labelled / f"{ev.stem}.meta.json").read_text())["capacity_ah"])
         ev.cell = set_cell(labels.get(ev.stem, {}).get("cell", ev.cell), cells)
-    doc = search([*evs, *labelled], progress=lambda msg: print(msg, file=sys.stderr))
+    doc = search([*evs, *labelled], rule_grid(args.search_requirement), progress=lambda msg: print(msg, file=sys.stderr))
     held_out = {r["stem"]: r["verdict"] for r in doc["rows"]}
     doc["labelled"] = [{"stem": ev.stem, "cell": ev.cell, "truth": ev.effect, "verdict": held_out[ev.stem],
                         "verdict_before": decide(ev, {})[0]} for ev in labelled]

@@ -23,6 +23,7 @@ from research.devset import (
     leave_one_cell_out,
     markdown,
     plan,
+    rule_grid,
     search,
 )
 from research.validate import user_profile, write_case
@@ -101,6 +102,23 @@ def test_decide_retries_a_direct_effect_that_made_the_held_out_part_worse_under_
     ok = _ev("A", "temperature", [_cand("temperature", 0.01, "direct")], confirm=[_cand("temperature", 0.5, "direct")])
     verdict, named = decide(ok, {})
     assert verdict == "temperature" and named.score == pytest.approx(0.01)
+
+
+def test_decide_refuses_diffusion_whose_signature_read_rests_and_did_not_fire():
+    """Effect.needs_signature_where_read: a large fit-only diffusion gain is refused when the
+    relaxation signature read rests without nominating it at the rule's levels, named when those
+    levels nominate it, and named on the fit alone when there were no rests to read."""
+    diff = _ev("A", "diffusion", [_cand("diffusion", 0.6, "fit")])
+    diff.signatures = {"diffusion": {"statistic": 0.2, "z": 8.0}}
+    assert decide(diff, {"relax_min_ratio": 0.3})[0] == "none"
+    assert decide(diff, {"relax_min_ratio": 0.15})[0] == "diffusion"
+    diff.signatures = {"diffusion": {"statistic": None, "z": None}}
+    assert decide(diff, {"relax_min_ratio": 0.3})[0] == "diffusion"
+    # the requirement's level itself, searched with rules --search-requirement: 2 refuses it unread too
+    assert decide(diff, {"relax_min_ratio": 0.3, "diffusion_signature": 2.0})[0] == "none"
+    diff.signatures = {"diffusion": {"statistic": 0.2, "z": 8.0}}
+    assert decide(diff, {"relax_min_ratio": 0.3, "diffusion_signature": 0.0})[0] == "diffusion"
+    assert len(rule_grid(True)) == 3 * len(rule_grid()) and all("diffusion_signature" in r for r in rule_grid(True))
 
 
 def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():

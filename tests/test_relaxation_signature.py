@@ -113,3 +113,32 @@ def test_a_nominated_effect_confirmed_on_the_interleaved_split(tmp_path, capsys)
     leads = dg["assessment"]["signature_without_extension"]
     assert leads and all(d["split"] == "chronological" for d in leads)
     assert next(d for d in leads if d["name"] == "diffusion")["confirmed_on"] == "interleaved"
+
+
+def _diagnose_diffusion(tmp_path, case: dict, rest_s: float):
+    from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
+    from service.recording import load_recording
+
+    cols, _ = va.simulate_cell(case, hppc_current(rest_s), 0)
+    path = tmp_path / f"hppc_{rest_s:.0f}.csv"
+    np.savetxt(path, cols, delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.5f")
+    quick = {"base_seconds": 8.0, "base_de_maxiter": 8, "effect_seconds": 6.0, "effects": ("diffusion",)}
+    return run_diagnosis(load_recording(path), va.user_profile(), DiagnoseOptions(**quick))
+
+
+def test_diffusion_is_refused_where_its_signature_read_rests_and_did_not_fire(tmp_path):
+    """Effect.needs_signature_where_read: on a cell whose long rests relax within minutes the
+    relaxation signature reads them and does not fire, so the surface lag is refused whatever it
+    gains (it also fits slow dynamics a clean cell's base circuit lacks: an LFP cell's
+    end-of-discharge knee, docs/results/diagnose.md); with no long rest in the fit part there is
+    nothing to read, and the voltage fit alone decides."""
+    from service.diagnosis.pipeline import SIGNATURE_REQUIRED
+
+    read = _diagnose_diffusion(tmp_path, va.CASES["none"]["clear"], 1200.0)
+    sig = read.signatures["diffusion"]
+    assert "skipped" not in sig and not sig["nominated"], sig
+    reasons = read.outcome("diffusion").reasons
+    assert any(r.startswith(SIGNATURE_REQUIRED) for r in reasons) and not read.outcome("diffusion").significant, reasons
+    unread = _diagnose_diffusion(tmp_path, SLOW, RELAX_REST_MIN_S / 2)
+    assert "skipped" in unread.signatures["diffusion"], unread.signatures["diffusion"]
+    assert not any(r.startswith(SIGNATURE_REQUIRED) for r in unread.outcome("diffusion").reasons)

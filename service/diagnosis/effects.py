@@ -91,6 +91,11 @@ class Effect:
     # an Arrhenius law's gain is the cell's resistance following its own heating, which every
     # cell does, so it is not a moved ambient (docs/results/diagnose.md, the clean twins)
     needs_signature: bool = False
+    # the effect is refused when its signature read the recording and did not fire; with nothing
+    # to read (no long rest) the voltage fit alone decides.  ``diffusion``: a surface lag also
+    # fits slow dynamics a clean cell's equivalent circuit lacks (an LFP cell's end-of-discharge
+    # knee), and rests that relax within minutes say the solid diffusion is not slow
+    needs_signature_where_read: bool = False
 
     @property
     def k(self) -> int:
@@ -242,6 +247,7 @@ DIFFUSION = Effect(
     feature=_diff_feature,
     base_variants=_diff_base_variants,
     implausible=_diff_implausible,
+    needs_signature_where_read=True,
 )
 
 

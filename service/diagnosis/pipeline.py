@@ -329,7 +329,8 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
         text += ("; " + ", ".join(f"{e.name} (held out {100 * e.score:+.0f} %)" for e in refused)
                  + " would generalise but its signature did not fire: the input it is about does not show the "
                    "effect, and the gain is physics every cell has (temperature: the resistance following the "
-                   "cell's own self-heating); `--save-effect` keeps it in the profile if you want it modelled")
+                   "cell's own self-heating; diffusion: slow dynamics the base circuit lacks, while the rests "
+                   "relax within minutes); `--save-effect` keeps it in the profile if you want it modelled")
     return {"state": state, "text": text, "heldout_rmse_over_noise": round(ratio, 2),
             "signature_without_extension": signed,
             "refused_without_signature": [{"name": e.name, "heldout_gain": round(e.score, 4)} for e in refused],
@@ -704,10 +705,11 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
         why = eff.implausible(phys, problem.ctx) if eff.implausible else None
         if why:
             reasons.append(why)
-        if eff.needs_signature and not nominated:
-            own = sig.get(name, {})
+        own = sig.get(name, {})
+        if not nominated and (eff.needs_signature or (eff.needs_signature_where_read and not own.get("skipped"))):
             reasons.append(f"{SIGNATURE_REQUIRED}the input it is about does not show it ({own.get('what', 'signature')}: "
-                           f"{own.get('statistic', float('nan')):.3g} < {own.get('threshold', float('nan')):.3g}); "
+                           f"{own.get('statistic', float('nan')):.3g}, nominated at {own.get('threshold', float('nan')):.3g}"
+                           f"{' and z ' + format(own['min_z'], 'g') if 'min_z' in own else ''}); "
                            "the voltage gain is physics every cell has, not this effect")
         outcomes.append(EffectOutcome(
             name=name, title=eff.title, score=score, significant=not reasons, rmse_before_mv=rmse_before,

@@ -193,7 +193,7 @@ RELAX_REST_MIN_S = 500.0
 #: ... after a load step of at least this C-rate (so the ohmic step is measured well)
 RELAX_MIN_STEP_C = 0.2
 #: relaxation still to come at the rest end over the ohmic step: nominates diffusion above this
-RELAX_MIN_RATIO = 0.3
+RELAX_MIN_RATIO = 0.15
 #: pooled z of the remaining relaxation needed besides
 RELAX_MIN_Z = 5.0
 #: the opening point must be a rest at least this long (a recording that opens under load has
