@@ -26,7 +26,9 @@ Protocol (stated in every report and JSON):
   fit part's current steps curves with the current as a slow Butler–Volmer term does).  A nominated
   effect needs only ``min_rel_gain_nominated``; flexible extensions also absorb the
   generic mismatch between the equivalent circuit and a real cell, so without a signature
-  the full ``min_rel_gain`` applies.  A signature that *measures* the departure directly
+  the full ``min_rel_gain`` applies.  Temperature is never named without its signature, and
+  diffusion not where its signature read long rests that relax within minutes
+  (``Effect.needs_signature``, ``needs_signature_where_read``).  A signature that *measures* the departure directly
   (``current_bias``: the mean measured current in rests, where the true current is zero;
   ``capacity``: the two-point check; ``hysteresis``: the branch offset at the ends of long rests;
   ``temperature``: an ambient measured 5 K or more away from the nominal one)
