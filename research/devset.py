@@ -379,15 +379,21 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
                 fixed.append(f"{KINETICS_SIZE_REASON}{c.size:.2f} C >= {k:g} C")
             c = replace(c, evidence="nominated" if nominated else "fit", fixed_reasons=fixed)
         elif c.name == "diffusion" and {"relax_min_ratio", "relax_min_z", "diffusion_signature"} & rule.keys():
-            from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_MIN_Z
-
-            sig = ev.signatures["diffusion"]
-            nominated = (sig["statistic"] is not None and sig["statistic"] >= rule.get("relax_min_ratio", RELAX_MIN_RATIO)
-                         and sig["z"] >= rule.get("relax_min_z", RELAX_MIN_Z))
+            nominated = _diffusion_nominated(ev, rule)
             c = replace(c, evidence="nominated" if nominated else "fit",
-                        fixed_reasons=_signature_requirement(c, nominated, sig["statistic"] is not None, rule))
+                        fixed_reasons=_signature_requirement(c, nominated, ev.signatures["diffusion"]["statistic"]
+                                                             is not None, rule))
         out.append(c)
     return out
+
+
+def _diffusion_nominated(ev: Evidence, rule: dict[str, float]) -> bool:
+    """Whether the relaxation signature nominates diffusion at ``rule``'s levels."""
+    from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_MIN_Z
+
+    sig = ev.signatures["diffusion"]
+    return (sig["statistic"] is not None and sig["statistic"] >= rule.get("relax_min_ratio", RELAX_MIN_RATIO)
+            and sig["z"] >= rule.get("relax_min_z", RELAX_MIN_Z))
 
 
 def _requirement_level(effect) -> float:
@@ -677,6 +683,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-requirement", action="store_true",
                     help="rules: search also whether diffusion needs its relaxation signature (a structural rule "
                          "the product fixes; this asks what the search itself would choose per held-out cell)")
+    ap.add_argument("--diffusion-signature", type=float, choices=REQUIREMENT_GRID["diffusion_signature"],
+                    help="rules: hold the requirement at this level (0 never, 1 where read, 2 always) instead of "
+                         "the product's, to compare the levels")
     args = ap.parse_args(argv)
     cells = [c for c in args.cells.split(",") if c]
     specs = plan(cells)
@@ -714,7 +723,10 @@ def main(argv: list[str] | None = None) -> int:
         _complete(ev, args.labelled / f"{ev.stem}.csv",
                   json.loads((args.labelled / f"{ev.stem}.meta.json").read_text())["capacity_ah"])
         ev.cell = set_cell(labels.get(ev.stem, {}).get("cell", ev.cell), cells)
-    doc = search([*evs, *labelled], rule_grid(args.search_requirement), progress=lambda msg: print(msg, file=sys.stderr))
+    grid = rule_grid(args.search_requirement)
+    if args.diffusion_signature is not None and not args.search_requirement:
+        grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
+    doc = search([*evs, *labelled], grid, progress=lambda msg: print(msg, file=sys.stderr))
     held_out = {r["stem"]: r["verdict"] for r in doc["rows"]}
     doc["labelled"] = [{"stem": ev.stem, "cell": ev.cell, "truth": ev.effect, "verdict": held_out[ev.stem],
                         "verdict_before": decide(ev, {})[0]} for ev in labelled]
