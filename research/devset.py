@@ -340,21 +340,21 @@ RULE_GRID: dict[str, tuple[float, ...]] = {
 SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "diffusion_signature")
 #: a structural rule the search leaves alone unless asked (``rules --search-requirement``): whether a
 #: fit-only diffusion is refused never (0), where its relaxation signature read rests and did not
-#: fire (1, the product: Effect.needs_signature_where_read), or always (2)
+#: fire (1, the product), or always (2): the index into service.diagnosis.effects.SIGNATURE_NEEDED
 REQUIREMENT_GRID: dict[str, tuple[float, ...]] = {"diffusion_signature": (0.0, 1.0, 2.0)}
 
 
 def current_rule() -> dict[str, float]:
     """The product's current value of every rule of :data:`RULE_GRID`."""
     from service.diagnosis import signatures
-    from service.diagnosis.effects import EFFECTS, KINETICS_MAX_I0_C
+    from service.diagnosis.effects import EFFECTS, KINETICS_MAX_I0_C, SIGNATURE_NEEDED
     from service.diagnosis.pipeline import DiagnoseOptions
 
     opt = DiagnoseOptions()
     now = {k: getattr(opt, k) for k in RULE_GRID if k not in SIGNATURE_RULES}
     now.update(kinetics_max_i0_c=KINETICS_MAX_I0_C, relax_min_ratio=signatures.RELAX_MIN_RATIO,
                relax_min_z=signatures.RELAX_MIN_Z,
-               diffusion_signature=_requirement_level(EFFECTS["diffusion"]))
+               diffusion_signature=float(SIGNATURE_NEEDED.index(EFFECTS["diffusion"].needs_signature)))
     return now
 
 
@@ -379,39 +379,30 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
                 fixed.append(f"{KINETICS_SIZE_REASON}{c.size:.2f} C >= {k:g} C")
             c = replace(c, evidence="nominated" if nominated else "fit", fixed_reasons=fixed)
         elif c.name == "diffusion" and {"relax_min_ratio", "relax_min_z", "diffusion_signature"} & rule.keys():
-            nominated = _diffusion_nominated(ev, rule)
+            from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_MIN_Z
+
+            sig = ev.signatures["diffusion"]
+            read = sig["statistic"] is not None
+            nominated = (read and sig["statistic"] >= rule.get("relax_min_ratio", RELAX_MIN_RATIO)
+                         and sig["z"] >= rule.get("relax_min_z", RELAX_MIN_Z))
             c = replace(c, evidence="nominated" if nominated else "fit",
-                        fixed_reasons=_signature_requirement(c, nominated, ev.signatures["diffusion"]["statistic"]
-                                                             is not None, rule))
+                        fixed_reasons=_signature_requirement(c, nominated, read, rule))
         out.append(c)
     return out
 
 
-def _diffusion_nominated(ev: Evidence, rule: dict[str, float]) -> bool:
-    """Whether the relaxation signature nominates diffusion at ``rule``'s levels."""
-    from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_MIN_Z
-
-    sig = ev.signatures["diffusion"]
-    return (sig["statistic"] is not None and sig["statistic"] >= rule.get("relax_min_ratio", RELAX_MIN_RATIO)
-            and sig["z"] >= rule.get("relax_min_z", RELAX_MIN_Z))
-
-
-def _requirement_level(effect) -> float:
-    """An effect's signature requirement as a :data:`REQUIREMENT_GRID` level: 0 none, 1 where its
-    signature read the recording, 2 always."""
-    return 2.0 if effect.needs_signature else 1.0 if effect.needs_signature_where_read else 0.0
-
-
 def _signature_requirement(c: Candidate, nominated: bool, read: bool, rule: dict[str, float]) -> list[str]:
     """``c``'s fixed reasons with the pipeline's refusal of an effect that needs its signature
-    (the effect's own requirement, or ``rule``'s ``<effect>_signature`` level) set by whether the
-    signature read anything and, at the rule's levels, nominated it."""
-    from service.diagnosis.effects import EFFECTS
+    (:func:`~service.diagnosis.effects.signature_refuses` at the effect's own requirement, or at
+    ``rule``'s ``<effect>_signature`` level) set by whether the signature read anything and, at
+    the rule's levels, nominated it."""
+    from service.diagnosis.effects import EFFECTS, SIGNATURE_NEEDED, signature_refuses
     from service.diagnosis.pipeline import SIGNATURE_REQUIRED
 
     fixed = [r for r in c.fixed_reasons if not r.startswith(SIGNATURE_REQUIRED)]
-    level = rule.get(f"{c.name}_signature", _requirement_level(EFFECTS[c.name]))
-    if not nominated and (level >= 2 or (level >= 1 and read)):
+    level = rule.get(f"{c.name}_signature")
+    needed = EFFECTS[c.name].needs_signature if level is None else SIGNATURE_NEEDED[int(level)]
+    if signature_refuses(needed, nominated, read):
         fixed.append(f"{SIGNATURE_REQUIRED}not nominated at this rule's signature levels")
     return fixed
 
@@ -434,13 +425,13 @@ def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]
     diagnosis ran with), and the named candidate (with the figures of the split it was named on).
     A retry on the confirmation split is possible only for effects the diagnosis itself nominated
     or measured directly (their figures are the only ones there)."""
-    from service.diagnosis.pipeline import SIGNATURE_REQUIRED, DiagnoseOptions
+    from service.diagnosis.pipeline import SIGNATURE_REQUIRED, DiagnoseOptions, retry_candidates
 
     opt = replace(DiagnoseOptions(), **{k: v for k, v in rule.items() if k not in SIGNATURE_RULES})
     ranked = _judge(_with_signature_rules(ev.candidates, ev, rule), ev.noise_mv, opt)
     if ranked and ranked[0].significant:
         return ranked[0].name, ranked[0]
-    retry = {c.name for c in ranked if c.evidence in ("nominated", "direct") and not c.significant}
+    retry = set(retry_candidates(ranked))
     if retry and ev.confirm_noise_mv is not None:
         # a fit-part signature with nothing to read on the confirmation split keeps the first split's
         # nomination, and a direct effect needs the nominated bar there

@@ -105,7 +105,7 @@ def test_decide_retries_a_direct_effect_that_made_the_held_out_part_worse_under_
 
 
 def test_decide_refuses_diffusion_whose_signature_read_rests_and_did_not_fire():
-    """Effect.needs_signature_where_read: a large fit-only diffusion gain is refused when the
+    """Effect.needs_signature "where_read": a large fit-only diffusion gain is refused when the
     relaxation signature read rests without nominating it at the rule's levels, named when those
     levels nominate it, and named on the fit alone when there were no rests to read."""
     diff = _ev("A", "diffusion", [_cand("diffusion", 0.6, "fit")])

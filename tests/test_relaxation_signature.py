@@ -127,7 +127,7 @@ def _diagnose_diffusion(tmp_path, case: dict, rest_s: float):
 
 
 def test_diffusion_is_refused_where_its_signature_read_rests_and_did_not_fire(tmp_path):
-    """Effect.needs_signature_where_read: on a cell whose long rests relax within minutes the
+    """Effect.needs_signature "where_read": on a cell whose long rests relax within minutes the
     relaxation signature reads them and does not fire, so the surface lag is refused whatever it
     gains (it also fits slow dynamics a clean cell's base circuit lacks: an LFP cell's
     end-of-discharge knee, docs/results/diagnose.md); with no long rest in the fit part there is

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -64,6 +65,19 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
     return 0.0 if den == 0 else float(a @ b) / den
 
 
+
+#: the levels of Effect.needs_signature, in order of strictness
+SignatureNeeded = Literal["never", "where_read", "always"]
+SIGNATURE_NEEDED: tuple[SignatureNeeded, ...] = ("never", "where_read", "always")
+
+
+def signature_refuses(needed: SignatureNeeded, nominated: bool, read: bool) -> bool:
+    """Whether an extension is refused for its signature (Effect.needs_signature): it did not
+    nominate the effect, and the effect needs it always, or where it read the recording (a
+    signature with nothing to read, such as the relaxation one without a long rest, says nothing)."""
+    return not nominated and (needed == "always" or (needed == "where_read" and read))
+
+
 @dataclass(frozen=True)
 class Effect:
     """One candidate extension (see module docstring)."""
@@ -85,17 +99,16 @@ class Effect:
     # not significant), or None.  For terms every cell has to some degree (Butler-Volmer
     # kinetics), which a flexible fit also bends to absorb model-form error
     implausible: Callable[[dict[str, float], Context], str | None] | None = None
-    # the effect is a statement about an input its signature reads directly, so without the
-    # signature it is not named, whatever the voltage gain: ``temperature`` means the ambient
-    # moved, and when the measured temperature is a constant nominal ambient plus self-heating
-    # an Arrhenius law's gain is the cell's resistance following its own heating, which every
-    # cell does, so it is not a moved ambient (docs/results/diagnose.md, the clean twins)
-    needs_signature: bool = False
-    # the effect is refused when its signature read the recording and did not fire; with nothing
-    # to read (no long rest) the voltage fit alone decides.  ``diffusion``: a surface lag also
-    # fits slow dynamics a clean cell's equivalent circuit lacks (an LFP cell's end-of-discharge
-    # knee), and rests that relax within minutes say the solid diffusion is not slow
-    needs_signature_where_read: bool = False
+    # when the effect is named only with its signature (one of SIGNATURE_NEEDED; see
+    # signature_refuses).  ``always`` for ``temperature``: the effect is a statement about an
+    # input its signature reads directly; when the measured temperature is a constant nominal
+    # ambient plus self-heating an Arrhenius law's gain is the cell's resistance following its own
+    # heating, which every cell does, so it is not a moved ambient (docs/results/diagnose.md, the
+    # clean twins).  ``where_read`` for ``diffusion``: a surface lag also fits slow dynamics a
+    # clean cell's equivalent circuit lacks (an LFP cell's end-of-discharge knee), and rests that
+    # relax within minutes say the solid diffusion is not slow; with no long rest to read the
+    # voltage fit alone decides
+    needs_signature: SignatureNeeded = "never"
 
     @property
     def k(self) -> int:
@@ -181,7 +194,7 @@ TEMPERATURE = Effect(
     to_profile=_temp_profile,
     detect=_temp_detect,
     feature=_temp_feature,
-    needs_signature=True,
+    needs_signature="always",
 )
 
 
@@ -247,7 +260,7 @@ DIFFUSION = Effect(
     feature=_diff_feature,
     base_variants=_diff_base_variants,
     implausible=_diff_implausible,
-    needs_signature_where_read=True,
+    needs_signature="where_read",
 )
 
 

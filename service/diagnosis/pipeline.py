@@ -28,7 +28,7 @@ Protocol (stated in every report and JSON):
   generic mismatch between the equivalent circuit and a real cell, so without a signature
   the full ``min_rel_gain`` applies.  Temperature is never named without its signature, and
   diffusion not where its signature read long rests that relax within minutes
-  (``Effect.needs_signature``, ``needs_signature_where_read``).  A signature that *measures* the departure directly
+  (``Effect.needs_signature``).  A signature that *measures* the departure directly
   (``current_bias``: the mean measured current in rests, where the true current is zero;
   ``capacity``: the two-point check; ``hysteresis``: the branch offset at the ends of long rests;
   ``temperature``: an ambient measured 5 K or more away from the nominal one)
@@ -64,7 +64,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
 
@@ -77,6 +79,7 @@ from service.diagnosis.effects import (
     KINETICS_MAX_I0_C,
     Context,
     Effect,
+    signature_refuses,
 )
 from service.diagnosis.locate import locate
 from service.diagnosis.refit import Problem, parameter_std, refit
@@ -142,9 +145,9 @@ class DiagnoseOptions:
     # that extrapolates well but adds parameters the fit part barely needs)
     min_delta_bic: float = -10.0
     min_abs_gain_noise: float = 1.0
-    # a none verdict with an effect nominated (not measured) by its signature whose extension
-    # misses its bar on the chronological split: that effect alone is refitted and scored again
-    # on this split (interpolation in SOC and time instead of extrapolation); None = off
+    # a none verdict with an effect its signature nominated or measured whose extension misses
+    # its bar on the chronological split: that effect alone is refitted and scored again on this
+    # split (interpolation in SOC and time instead of extrapolation); None = off
     confirm_split: str | None = "interleaved"
 
 
@@ -496,8 +499,8 @@ def _score_profile(profile: CellProfile, rec: Recording, v_rest0: float, u_h0: f
 def run_diagnosis(rec: Recording, profile: CellProfile, options: DiagnoseOptions | None = None,
                   progress=None) -> Diagnosis:
     """Diagnose ``rec`` on the held-out protocol ``options.split``; then, if the verdict is
-    ``none`` while a signature nominated an effect whose extension missed its bar, score that
-    effect again on ``options.confirm_split`` (:func:`confirm_nominated`)."""
+    ``none`` while a signature nominated or measured an effect whose extension missed its bar,
+    score that effect again on ``options.confirm_split`` (:func:`confirm_nominated`)."""
     opt = options or DiagnoseOptions()
     say = progress or (lambda _msg: None)
     dg = _diagnose_on_split(rec, profile, opt, say)
@@ -561,9 +564,18 @@ def confirm_nominated(dg: Diagnosis, rec: Recording, profile: CellProfile, opt: 
     return dg
 
 
-def retry_candidates(effects: list[EffectOutcome]) -> tuple[str, ...]:
+class Judged(Protocol):
+    """What the retry reads of an effect's outcome (EffectOutcome, or a cached devset candidate)."""
+
+    name: str
+    evidence: str
+    significant: bool
+
+
+def retry_candidates(effects: Iterable[Judged]) -> tuple[str, ...]:
     """The effects a signature nominated or measured directly whose extension missed its bar on
-    the first split: the ones :func:`confirm_nominated` scores again on the confirmation split."""
+    the first split: the ones :func:`confirm_nominated` scores again on the confirmation split
+    (``research.devset.decide`` replays it on cached candidates)."""
     return tuple(e.name for e in effects if e.evidence in ("nominated", "direct") and not e.significant)
 
 
@@ -708,7 +720,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
         if why:
             reasons.append(why)
         own = sig.get(name, {})
-        if not nominated and (eff.needs_signature or (eff.needs_signature_where_read and not own.get("skipped"))):
+        if signature_refuses(eff.needs_signature, nominated, read=not own.get("skipped")):
             reasons.append(f"{SIGNATURE_REQUIRED}the input it is about does not show it ({own.get('what', 'signature')}: "
                            f"{own.get('statistic', float('nan')):.3g}, nominated at {own.get('threshold', float('nan')):.3g}"
                            f"{' and z ' + format(own['min_z'], 'g') if 'min_z' in own else ''}); "
