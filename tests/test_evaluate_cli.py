@@ -662,3 +662,23 @@ def test_a_search_that_ends_on_the_2rc_submodel_keeps_the_2rc_fits_point(nmc_rec
     assert (kept.r_ohm, kept.r_ct, kept.r_df) == pytest.approx((ecm.r0, ecm.r1, ecm.r2))
     assert (kept.m, kept.n) == (1.0, 1.0)
     assert any("2-RC" in line for line in report.lines)
+
+
+def test_with_a_measured_ocv_a_search_on_the_2rc_submodel_keeps_its_own_better_point(nmc_recording, monkeypatch) -> None:
+    """The 2-RC fit's point is kept over the search's only when the OCV is the one that fit chose
+    jointly with it. Given the cell's OCV table, the same search (held to the submodel) keeps the
+    point it found when that fits the segments better."""
+    import service.characterisation.characterise as ch
+    from service.recording import load_recording
+    from tests.conftest import nmc_ocv_points
+
+    real_fit = ch.fit_parameters
+    monkeypatch.setattr(ch, "fit_parameters",
+                        lambda prof, segs, **kw: real_fit(prof, segs, **(kw | {"min_order": 0.999, "fit_kinetics": False})))
+    rec = nmc_recording(name="submodel_table", duration_s=2400, seed=4, soc0=0.95)
+    profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=False, max_seconds=5,
+                                      ocv_table=nmc_ocv_points())
+    (t,) = report.temperatures
+    assert ch.on_2rc_submodel(profile.parameters[0])
+    assert t.source == "fractional fit", t.source
+    assert t.rmse_mv <= t.ecm_rmse_mv

@@ -8,7 +8,14 @@ from pathlib import Path
 import numpy as np
 
 from service.cell.profile import load_profile
-from service.characterisation.ocv_sources import is_ocv_test, ocv_from_test, ocv_rows_by_temperature
+from service.characterisation.ocv_sources import (
+    RestPoint,
+    is_ocv_test,
+    ocv_from_test,
+    ocv_row_from_rests,
+    ocv_rows_by_temperature,
+    soc_alignment,
+)
 from service.cli import main
 from service.recording import load_recording
 from tests.conftest import NMC_CAPACITY_AH, nmc_ocv_points, write_recording_csv
@@ -81,3 +88,34 @@ def test_fit_keeps_each_ocv_test_at_its_own_temperature(tmp_path: Path, nmc_reco
     for temp_c, shift in ((25.0, 0.0), (0.0, COLD_SHIFT_V)):
         got = table.ocv(mid, np.full(mid.size, temp_c))
         np.testing.assert_allclose(got, np.interp(mid, soc_pts, ocv_pts) + shift, atol=3e-3)
+
+
+def _panasonic_like_curve() -> tuple[np.ndarray, np.ndarray]:
+    """An OCV test's curve on the 201-point grid: steep below 10 % SOC, as a real NMC cell's is."""
+    soc = np.linspace(0.0, 1.0, 201)
+    return soc, 3.45 + 0.7 * (soc - 0.2) - 0.45 * np.exp(-soc / 0.04)
+
+
+def test_rests_counted_on_another_scale_align_the_curve_instead_of_bending_it_flat() -> None:
+    """An HPPC test counts SOC with the profile's capacity from its own full point; its cell holds
+    3 % less charge than the OCV test's throughput says. The rest voltages then sit on the test curve
+    at SOC_test = 1 + 0.97 (SOC_counted - 1), which near empty is far up the steep part: as a voltage
+    offset that is 0.4 V, and the running max after it makes the row flat over the lowest 10 %."""
+    soc, curve = _panasonic_like_curve()
+    counted = np.concatenate([np.linspace(1.0, 0.1, 19), [0.05, 0.005]])
+    rests = [RestPoint(float(s), float(np.interp(1.0 + 0.97 * (s - 1.0), soc, curve)) - 0.005, 25.0) for s in counted]
+    shift, scale = soc_alignment(soc, curve, counted, np.array([p.ocv_v for p in rests]))
+    assert abs(shift) < 2e-3 and abs(scale - 0.97) < 2e-3
+    row = ocv_row_from_rests(soc, curve, rests)
+    assert np.all(np.diff(row) > 1e-4)  # no flat stretch: SOC stays observable near empty
+    truth = np.interp(1.0 + 0.97 * (soc - 1.0), soc, curve) - 0.005
+    low = soc <= 0.1
+    assert np.max(np.abs(row - truth)[low]) < 2e-3
+    assert np.max(np.abs(row - truth)) < 2e-3
+
+
+def test_rests_over_a_narrow_span_only_shift_the_curve() -> None:
+    """Three rests within 0.2 SOC cannot fix a scale: the curve is shifted by their offset as before."""
+    soc, curve = _panasonic_like_curve()
+    rests = [RestPoint(s, float(np.interp(s, soc, curve)) + 0.01, 25.0) for s in (0.5, 0.6, 0.7)]
+    np.testing.assert_allclose(ocv_row_from_rests(soc, curve, rests), curve + 0.01 + 1e-6 * np.arange(soc.size), atol=1e-9)

@@ -3,12 +3,14 @@
 1. The textbook 2-RC model per temperature group (:mod:`service.characterisation.ecm2rc_fit`):
    the bar the fractional model must clear, stored in the profile for ``ecm2rc-ekf``.
 2. OCV(SOC): an OCV table (``--ocv``), else a slow OCV test among the recordings, both
-   shifted at other temperatures to the relaxed voltages at the end of long rests (HPPC
-   tests); else, at each temperature, the monotone OCV fitted jointly with the 2-RC model
+   aligned to the relaxed voltages at the end of long rests (HPPC tests): first their SOC
+   scale, where the rests span enough SOC (:func:`~service.characterisation.ocv_sources.soc_alignment`),
+   then a voltage offset; else, at each temperature, the monotone OCV fitted jointly with the 2-RC model
    in step 1 (a linear problem for each pair of time constants, so it cannot diverge).
 3. MTS-FOM parameters per temperature group with :func:`service.cell.fitting.fit_parameters`
    (scipy differential evolution, then least squares), started from the 2-RC model's
-   point and kept only where they fit better than it.  Long tests are cut into segments
+   point and kept only where they fit better than it (with a jointly fitted OCV, a search
+   that ends on the 2-RC submodel keeps the 2-RC fit's point, which belongs with that OCV).  Long tests are cut into segments
    that start at the end of a rest (relaxed branches, SOC known by coulomb counting) so
    pulses are fitted at full time resolution.  A temperature whose fit is poor or worse
    than the 2-RC fit is reported (:func:`check_fit_quality`), and ``socd fit`` refuses it.
@@ -425,9 +427,11 @@ def characterise(
             start_rmse = segments_rmse_mv(prof, start, hyst_t, segs, memory_length)
             if start_rmse < rmse:
                 pt, rmse, source, ea_t = start, start_rmse, "2-RC start", None
-            elif on_2rc_submodel(pt) and not worse_than(start_rmse, rmse):
-                # the search ended on the 2-RC submodel, where the linear 2-RC fit's optimum
-                # is the global one over every sample: keep it
+            elif test_rows is None and on_2rc_submodel(pt) and not worse_than(start_rmse, rmse):
+                # the search ended on the 2-RC submodel with the OCV the 2-RC fit chose jointly
+                # with its own point: the two belong together (the linear fit's optimum is the
+                # global one over every sample), so keep that point. With a measured OCV there
+                # is no such bond, and the better fit stands.
                 pt, rmse, source, ea_t = start, start_rmse, "2-RC fit", None
         points[t] = pt
         if res.hysteresis is not None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from service.cell.coulomb import coulomb_soc
 from service.cell.ocv import GRID_POINTS, make_monotone
@@ -124,13 +125,53 @@ def rest_spans(rec: Recording, capacity_ah: float, min_rest_s: float) -> list[tu
     return spans
 
 
+#: rests spanning at least this much counted SOC fix the OCV curve's SOC scale (:func:`soc_alignment`)
+ALIGN_MIN_SPAN = 0.5
+#: the alignment's bounds: the recording's counted charge within ±10 % of the OCV curve's scale, and
+#: its full point within 0.1 of the curve's
+ALIGN_SCALE_BOUNDS = (0.9, 1.1)
+ALIGN_SHIFT_BOUND = 0.1
+
+
+def curve_at(base_soc: np.ndarray, base_ocv: np.ndarray, soc: np.ndarray) -> np.ndarray:
+    """The OCV curve at ``soc``, extended beyond its ends along its end slopes (no flat ends)."""
+    v = np.interp(soc, base_soc, base_ocv)
+    lo_slope = (base_ocv[1] - base_ocv[0]) / (base_soc[1] - base_soc[0])
+    hi_slope = (base_ocv[-1] - base_ocv[-2]) / (base_soc[-1] - base_soc[-2])
+    v = np.where(soc < base_soc[0], base_ocv[0] + lo_slope * (soc - base_soc[0]), v)
+    return np.where(soc > base_soc[-1], base_ocv[-1] + hi_slope * (soc - base_soc[-1]), v)
+
+
+def soc_alignment(base_soc: np.ndarray, base_ocv: np.ndarray, soc: np.ndarray, ocv_v: np.ndarray) -> tuple[float, float]:
+    """``(shift, scale)`` of the map SOC_curve = shift + scale · (SOC_counted − 1) + 1 that puts relaxed
+    rest voltages (at coulomb-counted ``soc``) best on the OCV curve, with a free common voltage offset.
+
+    An OCV test normalises SOC by its own throughput down to its cut-off; a recording counts with the
+    profile's capacity from its own full point. Where the two scales differ by a few per cent, a
+    voltage offset between them grows without bound towards empty (the curve is steep there), so the
+    scale is aligned first and only what is left is treated as an offset."""
+    def residual(x: np.ndarray) -> np.ndarray:
+        mapped = x[0] + x[1] * (soc - 1.0) + 1.0
+        r = ocv_v - curve_at(base_soc, base_ocv, mapped)
+        return r - np.mean(r)
+    lo, hi = ALIGN_SCALE_BOUNDS
+    fit = least_squares(residual, [0.0, 1.0], bounds=([-ALIGN_SHIFT_BOUND, lo], [ALIGN_SHIFT_BOUND, hi]))
+    return float(fit.x[0]), float(fit.x[1])
+
+
 def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[RestPoint],
                        min_points: int = 3) -> np.ndarray:
-    """Base curve shifted by the (smoothly interpolated) offset of the rest points; beyond the
-    outermost points the outermost offset holds.  Fewer than ``min_points``: unchanged."""
+    """Base curve, its SOC scale aligned to the rest points where they span
+    :data:`ALIGN_MIN_SPAN` (:func:`soc_alignment`), then shifted by the (smoothly interpolated)
+    voltage offset of the rest points; beyond the outermost points the outermost offset holds.
+    Fewer than ``min_points``: unchanged."""
     pts = sorted((p for p in points if -0.02 <= p.soc <= 1.02), key=lambda p: p.soc)
     if len(pts) < max(min_points, 1):
         return base_ocv
     s = np.array([p.soc for p in pts])
-    off = np.array([p.ocv_v for p in pts]) - np.interp(s, base_soc, base_ocv)
+    v = np.array([p.ocv_v for p in pts])
+    if np.ptp(s) >= ALIGN_MIN_SPAN:
+        shift, scale = soc_alignment(base_soc, base_ocv, s, v)
+        base_ocv = curve_at(base_soc, base_ocv, shift + scale * (base_soc - 1.0) + 1.0)
+    off = v - np.interp(s, base_soc, base_ocv)
     return make_monotone(base_ocv + np.interp(base_soc, s, off))
