@@ -311,6 +311,12 @@ socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteres
     --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --max-seconds 90 --no-kinetics -o configs/cells/calce_a123.toml
 {CALCE_FIT} --slow-branch -o configs/cells/calce_inr18650_20r_slow.toml
 {CALCE_FIT} --rest-anchor -o configs/cells/calce_inr18650_20r_anchored.toml""", None, 20),
+    Table("profiles_refit", "soc_accuracy.md", REAL + f"""\
+mkdir -p out/refit
+{PAN_FIT} --kinetics -q -o out/refit/panasonic_18650pf.toml
+socd evaluate --cell out/refit/panasonic_18650pf.toml {PAN25} \\
+    --estimator fomiukf --estimator ecm2rc-ekf --json out/refit/eval_pan25.json""",
+          evaluate_table("refit/eval_pan25.json"), 8),
     Table("eval_pan25", "soc_accuracy.md", REAL + f"""\
 socd evaluate --cell configs/cells/panasonic_18650pf.toml {PAN25} --json out/eval_pan25.json
 socd evaluate --cell configs/cells/panasonic_18650pf_nokinetics.toml {PAN25} \\
