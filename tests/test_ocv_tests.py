@@ -9,6 +9,7 @@ import numpy as np
 
 from service.cell.profile import load_profile
 from service.characterisation.ocv_sources import (
+    ALIGN_SCALE_BOUNDS,
     RestPoint,
     is_ocv_test,
     ocv_from_test,
@@ -119,3 +120,19 @@ def test_rests_over_a_narrow_span_only_shift_the_curve() -> None:
     soc, curve = _panasonic_like_curve()
     rests = [RestPoint(s, float(np.interp(s, soc, curve)) + 0.01, 25.0) for s in (0.5, 0.6, 0.7)]
     np.testing.assert_allclose(ocv_row_from_rests(soc, curve, rests), curve + 0.01 + 1e-6 * np.arange(soc.size), atol=1e-9)
+
+
+def test_fit_reports_the_alignment_and_flags_one_at_its_bound() -> None:
+    """The fit log says what capacity the OCV curve's SOC implies between the rests; rests counted
+    with a capacity 20 % off (a wrong --capacity-ah) end on the alignment's bound and get a notice."""
+    from service.characterisation.characterise import FitReport, say_rest_alignment
+
+    soc, curve = _panasonic_like_curve()
+    counted = np.linspace(1.0, 0.1, 19)
+    for true_scale, flagged in ((0.97, False), (0.8, True)):
+        rests = [RestPoint(float(s), float(np.interp(1.0 + true_scale * (s - 1.0), soc, curve)), 25.0) for s in counted]
+        rep = FitReport(echo=lambda line: None)
+        say_rest_alignment(rep, 25.0, soc, curve, rests, capacity_ah=2.0)
+        held_at = max(true_scale, ALIGN_SCALE_BOUNDS[0])  # the bound holds a scale beyond it
+        assert f"{2.0 / held_at:.3f} Ah" in rep.lines[0]
+        assert any("at its bound" in line for line in rep.lines) == flagged

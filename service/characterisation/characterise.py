@@ -72,10 +72,13 @@ from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ec
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
     REST_MIN_S,
+    RestPoint,
+    alignment_at_bound,
     is_ocv_test,
     ocv_from_test,
     ocv_row_from_rests,
     ocv_rows_by_temperature,
+    rest_alignment,
     rest_points,
     rest_spans,
 )
@@ -345,7 +348,7 @@ def characterise(
         for t in temps:
             ocv_rows[t] = ocv_row_from_rests(grid, base_at[t], points_by_t[t])
             if len(points_by_t[t]) >= 3:
-                rep.say(f"OCV at {t:g} °C: shifted to {len(points_by_t[t])} relaxed rest voltages")
+                say_rest_alignment(rep, t, grid, base_at[t], points_by_t[t], capacity_ah)
     # the textbook 2-RC model on the same segments: the bar the fractional fit must clear, and
     # (with no OCV table or test) the monotone joint OCV the fractional fit starts from
     ecm: dict[float, Ecm2RcFit] = {}
@@ -596,6 +599,23 @@ def overpotential_rms_mv(profile: CellProfile, segments: list[FitSegment]) -> fl
         sq += float(np.sum(eta**2))
         n += eta.size
     return 1000.0 * float(np.sqrt(sq / max(n, 1)))
+
+
+def say_rest_alignment(rep: FitReport, temp_c: float, grid: np.ndarray, base_ocv: np.ndarray,
+                       points: list[RestPoint], capacity_ah: float) -> None:
+    """Report how an OCV table or test was put through a temperature's relaxed rest voltages; a
+    notice where the SOC alignment ended on its bound."""
+    alignment = rest_alignment(grid, base_ocv, points)
+    if alignment is None:
+        rep.say(f"OCV at {temp_c:g} °C: shifted to {len(points)} relaxed rest voltages")
+        return
+    shift, scale = alignment
+    rep.say(f"OCV at {temp_c:g} °C: SOC scale aligned to {len(points)} relaxed rest voltages (between them the "
+            f"OCV curve's SOC moves as if the cell held {capacity_ah / scale:.3f} Ah, against --capacity-ah "
+            f"{capacity_ah:g}; its full point {shift:+.3f}), then shifted to them")
+    if alignment_at_bound(alignment):
+        rep.say(f"  {temp_c:g} °C: the alignment is at its bound: check --capacity-ah and the full-charge point",
+                notice=True)
 
 
 def check_fit_quality(report: FitReport) -> None:

@@ -159,19 +159,43 @@ def soc_alignment(base_soc: np.ndarray, base_ocv: np.ndarray, soc: np.ndarray, o
     return float(fit.x[0]), float(fit.x[1])
 
 
+def usable_rests(points: list[RestPoint]) -> list[RestPoint]:
+    """Rest points at a plausible counted SOC, in SOC order."""
+    return sorted((p for p in points if -0.02 <= p.soc <= 1.02), key=lambda p: p.soc)
+
+
+def rest_alignment(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[RestPoint]) -> tuple[float, float] | None:
+    """:func:`soc_alignment` of the usable rest points, or ``None`` where they span less than
+    :data:`ALIGN_MIN_SPAN` (too little SOC to fix a scale)."""
+    pts = usable_rests(points)
+    s = np.array([p.soc for p in pts])
+    if s.size < 2 or np.ptp(s) < ALIGN_MIN_SPAN:
+        return None
+    return soc_alignment(base_soc, base_ocv, s, np.array([p.ocv_v for p in pts]))
+
+
+def alignment_at_bound(alignment: tuple[float, float]) -> bool:
+    """True when :func:`soc_alignment` ended on one of its bounds (a capacity or a full point far
+    from the OCV curve's: a wrong ``--capacity-ah`` or full-charge point, more often than a cell)."""
+    shift, scale = alignment
+    lo, hi = ALIGN_SCALE_BOUNDS
+    return abs(shift) >= 0.999 * ALIGN_SHIFT_BOUND or scale <= lo * 1.001 or scale >= hi * 0.999
+
+
 def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[RestPoint],
                        min_points: int = 3) -> np.ndarray:
     """Base curve, its SOC scale aligned to the rest points where they span
-    :data:`ALIGN_MIN_SPAN` (:func:`soc_alignment`), then shifted by the (smoothly interpolated)
+    :data:`ALIGN_MIN_SPAN` (:func:`rest_alignment`), then shifted by the (smoothly interpolated)
     voltage offset of the rest points; beyond the outermost points the outermost offset holds.
     Fewer than ``min_points``: unchanged."""
-    pts = sorted((p for p in points if -0.02 <= p.soc <= 1.02), key=lambda p: p.soc)
+    pts = usable_rests(points)
     if len(pts) < max(min_points, 1):
         return base_ocv
     s = np.array([p.soc for p in pts])
     v = np.array([p.ocv_v for p in pts])
-    if np.ptp(s) >= ALIGN_MIN_SPAN:
-        shift, scale = soc_alignment(base_soc, base_ocv, s, v)
+    alignment = rest_alignment(base_soc, base_ocv, pts)
+    if alignment is not None:
+        shift, scale = alignment
         base_ocv = curve_at(base_soc, base_ocv, shift + scale * (base_soc - 1.0) + 1.0)
     off = v - np.interp(s, base_soc, base_ocv)
     return make_monotone(base_ocv + np.interp(base_soc, s, off))
