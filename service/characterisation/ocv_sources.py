@@ -9,7 +9,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from service.cell.coulomb import coulomb_soc
-from service.cell.ocv import GRID_POINTS, make_monotone
+from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.units import SECONDS_PER_HOUR
 from service.recording import Recording
 
@@ -133,15 +133,6 @@ ALIGN_SCALE_BOUNDS = (0.9, 1.1)
 ALIGN_SHIFT_BOUND = 0.1
 
 
-def curve_at(base_soc: np.ndarray, base_ocv: np.ndarray, soc: np.ndarray) -> np.ndarray:
-    """The OCV curve at ``soc``, extended beyond its ends along its end slopes (no flat ends)."""
-    v = np.interp(soc, base_soc, base_ocv)
-    lo_slope = (base_ocv[1] - base_ocv[0]) / (base_soc[1] - base_soc[0])
-    hi_slope = (base_ocv[-1] - base_ocv[-2]) / (base_soc[-1] - base_soc[-2])
-    v = np.where(soc < base_soc[0], base_ocv[0] + lo_slope * (soc - base_soc[0]), v)
-    return np.where(soc > base_soc[-1], base_ocv[-1] + hi_slope * (soc - base_soc[-1]), v)
-
-
 def soc_alignment(base_soc: np.ndarray, base_ocv: np.ndarray, soc: np.ndarray, ocv_v: np.ndarray) -> tuple[float, float]:
     """``(shift, scale)`` of the map SOC_curve = shift + scale · (SOC_counted − 1) + 1 that puts relaxed
     rest voltages (at coulomb-counted ``soc``) best on the OCV curve, with a free common voltage offset.
@@ -149,10 +140,12 @@ def soc_alignment(base_soc: np.ndarray, base_ocv: np.ndarray, soc: np.ndarray, o
     An OCV test normalises SOC by its own throughput down to its cut-off; a recording counts with the
     profile's capacity from its own full point. Where the two scales differ by a few per cent, a
     voltage offset between them grows without bound towards empty (the curve is steep there), so the
-    scale is aligned first and only what is left is treated as an offset."""
+    scale is aligned first and only what is left is treated as an offset. Beyond [0, 1] the curve is
+    read as a stored table is (:meth:`service.cell.ocv.OcvTable.ocv`)."""
+    table = OcvTable.from_points(base_soc, base_ocv)
+
     def residual(x: np.ndarray) -> np.ndarray:
-        mapped = x[0] + x[1] * (soc - 1.0) + 1.0
-        r = ocv_v - curve_at(base_soc, base_ocv, mapped)
+        r = ocv_v - table.ocv(x[0] + x[1] * (soc - 1.0) + 1.0)
         return r - np.mean(r)
     lo, hi = ALIGN_SCALE_BOUNDS
     fit = least_squares(residual, [0.0, 1.0], bounds=([-ALIGN_SHIFT_BOUND, lo], [ALIGN_SHIFT_BOUND, hi]))
@@ -196,6 +189,6 @@ def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[
     alignment = rest_alignment(base_soc, base_ocv, pts)
     if alignment is not None:
         shift, scale = alignment
-        base_ocv = curve_at(base_soc, base_ocv, shift + scale * (base_soc - 1.0) + 1.0)
+        base_ocv = OcvTable.from_points(base_soc, base_ocv).ocv(shift + scale * (base_soc - 1.0) + 1.0)
     off = v - np.interp(s, base_soc, base_ocv)
     return make_monotone(base_ocv + np.interp(base_soc, s, off))
