@@ -266,11 +266,11 @@ def evidence_of(spec: Spec, dg, sub, opt) -> Evidence:
 def diagnose_for_evidence(spec: Spec, rec, profile, opt) -> Evidence:
     """Diagnose ``rec`` on ``opt.split``, then every effect its signature nominated or measured on
     ``opt.confirm_split`` whatever the verdict, so :func:`decide` can retry under any rule."""
-    from service.diagnosis.pipeline import _diagnose_on_split
+    from service.diagnosis.pipeline import _diagnose_on_split, signature_backed
 
     quiet = lambda _msg: None
     dg = _diagnose_on_split(rec, profile, opt, quiet)
-    signed = tuple(e.name for e in dg.effects if e.evidence in ("nominated", "direct"))
+    signed = signature_backed(dg.effects)
     sub = None
     if signed and opt.confirm_split and opt.confirm_split != opt.split:
         sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=signed), quiet)

@@ -65,7 +65,6 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
     return 0.0 if den == 0 else float(a @ b) / den
 
 
-
 #: the levels of Effect.needs_signature, in order of strictness
 SignatureNeeded = Literal["never", "where_read", "always"]
 SIGNATURE_NEEDED: tuple[SignatureNeeded, ...] = ("never", "where_read", "always")

@@ -572,11 +572,21 @@ class Judged(Protocol):
     significant: bool
 
 
+#: evidence classes a signature backs (it nominated the effect, or measured it directly): the ones a
+#: none verdict retries on the confirmation split
+SIGNATURE_BACKED = ("nominated", "direct")
+
+
+def signature_backed(effects: Iterable[Judged]) -> tuple[str, ...]:
+    """The effects whose evidence a signature backs (:data:`SIGNATURE_BACKED`), significant or not."""
+    return tuple(e.name for e in effects if e.evidence in SIGNATURE_BACKED)
+
+
 def retry_candidates(effects: Iterable[Judged]) -> tuple[str, ...]:
     """The effects a signature nominated or measured directly whose extension missed its bar on
     the first split: the ones :func:`confirm_nominated` scores again on the confirmation split
     (``research.devset.decide`` replays it on cached candidates)."""
-    return tuple(e.name for e in effects if e.evidence in ("nominated", "direct") and not e.significant)
+    return signature_backed(e for e in effects if not e.significant)
 
 
 def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOptions, say) -> Diagnosis:
