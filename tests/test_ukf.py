@@ -32,15 +32,14 @@ def _linear_setup(n_cells: int) -> tuple[OcvTable, CellParameters, EstimatorSett
     params = prof.parameters_at(25.0, n_cells=n_cells)
     params.r_ohm = params.r_ohm * np.linspace(0.8, 1.2, n_cells)
     params.capacity_ah = params.capacity_ah * np.linspace(0.9, 1.1, n_cells)
-    fields = EstimatorSettings.model_fields
-    extra = {"voltage_noise_per_amp_v": 0.003} if "voltage_noise_per_amp_v" in fields else {}
-    settings = EstimatorSettings(memory_length=1, innovation_length=1, voltage_noise_v=0.005, **extra)
+    settings = EstimatorSettings(memory_length=1, innovation_length=1, voltage_noise_v=0.005,
+                                 voltage_noise_per_c_v=0.006, current_noise_c=0.01)
     return ocv, params, settings
 
 
-def _measurement_variance(settings: EstimatorSettings, i: np.ndarray) -> np.ndarray:
-    per_amp = getattr(settings, "voltage_noise_per_amp_v", 0.0)
-    return settings.voltage_noise_v**2 + (per_amp * i) ** 2
+def _measurement_variance(settings: EstimatorSettings, i: float, capacity_ah: float) -> float:
+    """Both noise terms are per C-rate: each cell's own capacity sets its σ in V per A."""
+    return settings.voltage_noise_v**2 + (settings.voltage_noise_per_c_v * i / capacity_ah) ** 2
 
 
 def test_ukf_on_linear_model_equals_kalman_filter() -> None:
@@ -81,13 +80,13 @@ def test_ukf_on_linear_model_equals_kalman_filter() -> None:
             q = np.array([
                 (1e-4 * np.sqrt(dt)) ** 2,
                 (1e-4 * np.sqrt(dt)) ** 2,
-                (s.current_noise_a * dt / (3600 * p.capacity_ah[n])) ** 2,
+                (s.current_noise_c * p.capacity_ah[n] * dt / (3600 * p.capacity_ah[n])) ** 2,
                 (1e-4 * (1 - a_h[n]) + 1e-6) ** 2,
             ])
             x[n] = F @ x[n] + u
             P[n] = F @ P[n] @ F.T + np.diag(q)
             y = offset + H @ x[n] - p.r_ohm[n] * i[n]
-            S = H @ P[n] @ H + _measurement_variance(s, i[n])
+            S = H @ P[n] @ H + _measurement_variance(s, i[n], p.capacity_ah[n])
             e = v[n] - y
             if s.adaptive_noise_samples:
                 # covariance matching with the Huber clip, written out (the adaptive UKF)

@@ -30,7 +30,7 @@ surface lag are not part of a 2-RC EKF and are ignored (the pipeline reads all f
 
 Noise model (all keyword arguments of the constructors):
 
-* process: a current-sensor error of ``current_noise_a`` (1σ, held over a step) enters
+* process: a current-sensor error of ``current_noise_c`` × 1C (1σ, held over a step) enters
   SOC and both RC voltages through the input column ``G = [-dt/3600Q, R_1(1-a_1),
   R_2(1-a_2)]`` (``Q_k = σ_I² G Gᵀ``), plus random walks of ``soc_noise_per_sqrt_s``
   and ``u_noise_v_per_sqrt_s`` per √s for what the model leaves out;
@@ -72,7 +72,10 @@ class EkfTuning:
     """
 
     voltage_noise_v: float = 0.01
-    current_noise_a: float = 0.05
+    #: current-sensor σ as a fraction of 1C (scale-free, as the pipeline's ``current_noise_c``)
+    current_noise_c: float = 0.01805
+    #: the same σ in A, overriding ``current_noise_c`` when set
+    current_noise_a: float | None = None
     soc_noise_per_sqrt_s: float = 1e-5
     u_noise_v_per_sqrt_s: float = 2e-4
     soc0_std: float = 0.2
@@ -223,7 +226,8 @@ class Ecm2RcEkfBank:
         f[:, 1:] = a
         P = f[:, :, None] * self.P * f[:, None, :]
         g = np.concatenate([g_soc[:, None], b], axis=1)  # input column [N, 3]
-        P += t.current_noise_a**2 * g[:, :, None] * g[:, None, :]
+        sigma_i = t.current_noise_a if t.current_noise_a is not None else t.current_noise_c * par["capacity"]
+        P += (np.asarray(sigma_i) ** 2)[..., None, None] * g[:, :, None] * g[:, None, :]
         q_diag = np.array(
             [t.soc_noise_per_sqrt_s**2, t.u_noise_v_per_sqrt_s**2, t.u_noise_v_per_sqrt_s**2]
         )

@@ -147,7 +147,8 @@ class FoMiUkf:
         # process noise: SOC from the current sensor, small for the branches and U_h
         q = np.zeros((self.n, self.nx))
         q[:, :b] = (self.settings.branch_noise_v_per_sqrt_s * np.sqrt(max(dt_s, 1e-3))) ** 2
-        q[:, self.i_soc] = (self.settings.current_noise_a * dt_s / (SECONDS_PER_HOUR * params.capacity_ah)) ** 2
+        sigma_i = self.settings.current_noise_sigma_a(params.capacity_ah)
+        q[:, self.i_soc] = (sigma_i * dt_s / (SECONDS_PER_HOUR * params.capacity_ah)) ** 2
         q[:, self.i_uh] = (1e-4 * (1.0 - a_h) + 1e-6) ** 2 + ((1.0 - a_h) * params.u_h_max) ** 2 * 0.01
         # fractional memory covariance (Table 3 step 5): Σ_{j≥2} (w_j/d)^2 P_{k-j}
         q[:, :b] += (mem_w * mem_w * self.var_hist[..., 1:]).sum(axis=-1)
@@ -194,7 +195,7 @@ class FoMiUkf:
         y_hat = y @ self.wm
         dy = y - y_hat[:, None]
         st = self.settings
-        model_err = st.voltage_noise_per_amp_v * i
+        model_err = st.voltage_noise_per_amp(params.capacity_ah) * i
         overpotential = i * (params.r_ohm + params.r.sum(axis=1))
         if st.voltage_noise_rel_overpotential:
             model_err = np.hypot(model_err, st.voltage_noise_rel_overpotential * overpotential)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import Literal
 
+import numpy as np
+
 from pydantic import BaseModel, ConfigDict, Field
 
 
@@ -50,8 +52,12 @@ class EstimatorSettings(BaseModel):
     )
     slow_soc_delta: float = Field(0.005, gt=0, le=0.5, description="SOC movement that triggers a slow update")
     voltage_noise_v: float = Field(0.01, gt=0, description="measurement noise σ of the SOC filter: sensor noise plus model error")
-    voltage_noise_per_amp_v: float = Field(
-        0.02, ge=0, description="model error that grows with current: σ_v² = σ² + (k·|I|)²"
+    voltage_noise_per_c_v: float = Field(
+        0.0554, ge=0, description="model error that grows with the C-rate: σ_v² = σ² + (k·|I|/Q)², Q the cell's "
+        "capacity in Ah; per C-rate, not per amp, so a cell of any size (or cells in parallel) gets the same filter"
+    )
+    voltage_noise_per_amp_v: float | None = Field(
+        None, ge=0, description="the same model error per amp (σ_v² = σ² + (k·|I|)²); overrides voltage_noise_per_c_v"
     )
     voltage_noise_rel_overpotential: float = Field(
         0.0, ge=0, description="model error as a fraction of the modelled overpotential "
@@ -67,7 +73,14 @@ class EstimatorSettings(BaseModel):
         "uniform", description="'uniform': one adapted variance for every sample; 'load': a + c·(|I|·R_total)², "
         "so the model error learned under load does not drown the rests (service.estimators.adaptive_noise)",
     )
-    current_noise_a: float = Field(0.02, ge=0, description="current-sensor noise σ driving SOC process noise")
+    current_noise_c: float = Field(
+        0.00722, ge=0, description="current-sensor noise σ driving SOC process noise, as a fraction of 1C (the "
+        "cell's capacity in A): scale-free, like voltage_noise_per_c_v"
+    )
+    current_noise_a: float | None = Field(
+        None, ge=0, description="the current-sensor noise σ in A (e.g. from the sensor's datasheet); overrides "
+        "current_noise_c"
+    )
     branch_noise_v_per_sqrt_s: float = Field(
         1e-4, ge=0, description="random walk of the CPE branch voltages U_cd, U_df in the SOC filter (V/√s): "
         "how much model error the polarisation states may take up instead of SOC"
@@ -107,3 +120,15 @@ class EstimatorSettings(BaseModel):
     capacity_walk_rel_per_sqrt_s: float = Field(1e-6, ge=0, description="random walk of the relative "
                                                 "capacity, per √s (fade)")
     divergence_sigma: float = Field(8.0, gt=1, description="normalised innovation that counts as divergence")
+
+    def current_noise_sigma_a(self, capacity_ah: np.ndarray) -> np.ndarray:
+        """σ of the current sensor [A] for cells of ``capacity_ah``."""
+        if self.current_noise_a is not None:
+            return np.full_like(np.asarray(capacity_ah, dtype=float), self.current_noise_a)
+        return self.current_noise_c * np.asarray(capacity_ah, dtype=float)
+
+    def voltage_noise_per_amp(self, capacity_ah: np.ndarray) -> np.ndarray:
+        """The current-dependent model error's slope [V/A] for cells of ``capacity_ah``."""
+        if self.voltage_noise_per_amp_v is not None:
+            return np.full_like(np.asarray(capacity_ah, dtype=float), self.voltage_noise_per_amp_v)
+        return self.voltage_noise_per_c_v / np.asarray(capacity_ah, dtype=float)
