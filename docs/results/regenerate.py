@@ -436,7 +436,7 @@ mkdir -p out/loco   # the profiles are the char_* tables' (out/s25/)
 printf "slow_identifier = true\\n" > out/loco/both_ids.toml
 printf "fast_identifier = false\\nslow_identifier = false\\n" > out/loco/noid.toml
 printf "slow_identifier = false\\n" > out/loco/noslow.toml
-printf "slow_identifier = true\\nvoltage_noise_per_amp_v = 0.0\\ncurrent_noise_a = 0.05\\nbranch_noise_v_per_sqrt_s = 2e-4\\n" > out/loco/ekfnoise.toml
+printf "slow_identifier = true\\nvoltage_noise_per_c_v = 0.0\\ncurrent_noise_c = 0.01805\\nbranch_noise_v_per_sqrt_s = 2e-4\\n" > out/loco/ekfnoise.toml
 (cat out/loco/noid.toml; grep -v slow_identifier out/loco/ekfnoise.toml) > out/loco/noid_ekfnoise.toml
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
 for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
