@@ -452,6 +452,24 @@ G=""; for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; 
 python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_defaults.json""",
           nested_table("loco_defaults.json"), 240, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
                                                      "needs:char_pan_us06")),
+    Table("loco_current_noise", "tuning.md", REAL + f"""\
+mkdir -p out/cn   # the default (0.00722) is loco_defaults' noslow run
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+for c in 0.0036 0.0144 0.0288; do printf "current_noise_c = $c\\n" > out/cn/cn$c.toml; for b in 0 0.01; do
+  E="--estimator fomiukf --no-bar --settings out/cn/cn$c.toml --current-bias-c $b -q"
+  socd evaluate --cell out/s25/calce.toml {CALCE} $E --json out/cn/calce_cn${{c}}_b$b.json
+  socd evaluate --cell out/s25/a123.toml {A123} $E --json out/cn/a123_cn${{c}}_b$b.json
+  socd evaluate --cell out/s25/pan_hppc.toml $PANX $E --json out/cn/panhppc_cn${{c}}_b$b.json
+  socd evaluate --cell out/s25/pan_us06.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json out/cn/panus06_cn${{c}}_b$b.json
+done; done
+G=""; for b in 0 0.01; do
+  G="$G cn0.00722=out/loco/calce_noslow_b$b.json cn0.00722=out/loco/a123_noslow_b$b.json"
+  G="$G cn0.00722=out/loco/panhppc_noslow_b$b.json@panasonic cn0.00722=out/loco/panus06_noslow_b$b.json@panasonic"
+  for c in 0.0036 0.0144 0.0288; do
+    G="$G cn$c=out/cn/calce_cn${{c}}_b$b.json cn$c=out/cn/a123_cn${{c}}_b$b.json"
+    G="$G cn$c=out/cn/panhppc_cn${{c}}_b$b.json@panasonic cn$c=out/cn/panus06_cn${{c}}_b$b.json@panasonic"; done; done
+python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_current_noise.json""",
+          nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
     Table("loco_fit_options", "tuning.md", REAL + f"""\
 mkdir -p out/fitopt
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
