@@ -470,6 +470,21 @@ G=""; for b in 0 0.01; do
     G="$G cn$c=out/cn/panhppc_cn${{c}}_b$b.json@panasonic cn$c=out/cn/panus06_cn${{c}}_b$b.json@panasonic"; done; done
 python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_current_noise.json""",
           nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
+    Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
+mkdir -p out/cn
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+for c in 0.009 0.01805 0.036 0.072; do printf "[ecm2rc_ekf]\\ncurrent_noise_c = $c\\n" > out/cn/ekf$c.toml; for b in 0 0.01; do
+  E="--estimator ecm2rc-ekf --settings out/cn/ekf$c.toml --current-bias-c $b -q"
+  socd evaluate --cell out/s25/calce.toml {CALCE} $E --json out/cn/calce_ekf${{c}}_b$b.json
+  socd evaluate --cell out/s25/a123.toml {A123} $E --json out/cn/a123_ekf${{c}}_b$b.json
+  socd evaluate --cell out/s25/pan_hppc.toml $PANX $E --json out/cn/panhppc_ekf${{c}}_b$b.json
+  socd evaluate --cell out/s25/pan_us06.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json out/cn/panus06_ekf${{c}}_b$b.json
+done; done
+G=""; for c in 0.009 0.01805 0.036 0.072; do for b in 0 0.01; do
+  G="$G ekf$c=out/cn/calce_ekf${{c}}_b$b.json ekf$c=out/cn/a123_ekf${{c}}_b$b.json"
+  G="$G ekf$c=out/cn/panhppc_ekf${{c}}_b$b.json@panasonic ekf$c=out/cn/panus06_ekf${{c}}_b$b.json@panasonic"; done; done
+python -m research.nested_tuning --by cell --estimator ecm2rc-ekf $G --json out/loco_ekf_current_noise.json""",
+          nested_table("loco_ekf_current_noise.json"), 40, ("needs:char_calce", "needs:char_a123")),
     Table("loco_fit_options", "tuning.md", REAL + f"""\
 mkdir -p out/fitopt
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
