@@ -279,6 +279,17 @@ PANCOLD = "$(ls $P/pan18650pf_{10C,0C,m10C,m20C}_*.csv | grep -v HPPC)"
 CALCE = ("$C/calce20r_25C_{DST_50soc,FUDS_80soc,FUDS_50soc,US06_50soc,US06_80soc}.csv \\\n"
          "    --full-at 10015 --full-at 9999 --full-at 5080 --full-at 10160 --full-at 9984")
 A123 = "$A/calce_a123_20C_{FUDS,US06}.csv --full-at 4478 --full-at 4436"
+#: the four characterisations the leave-one-cell-out tables score (profile, JSON tag, recordings); the
+#: shell variable PANX holds the Panasonic drive cycles
+LOCO_CELLS = (("calce", "calce", CALCE), ("a123", "a123", A123), ("pan_hppc", "panhppc", "$PANX"),
+              ("pan_us06", "panus06", "$(echo $PANX | tr ' ' '\\n' | grep -v US06)"))
+
+
+def loco_evaluations(json_pattern: str) -> str:
+    """The scoring runs of a leave-one-cell-out table, one per characterisation, with the evaluate
+    options in ``$E``; ``json_pattern`` names each JSON with ``{cell}`` for its tag."""
+    return "\n".join(f"  socd evaluate --cell out/s25/{profile}.toml {files} $E --json {json_pattern.format(cell=tag)}"
+                     for profile, tag, files in LOCO_CELLS)
 PAN_FIT = ("socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv \\\n"
            "    --capacity-ah 2.77 --min-order 0.5 --max-seconds 150")
 CALCE_FIT = "socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --max-seconds 90 --no-kinetics"
@@ -441,10 +452,7 @@ printf "slow_identifier = true\\nvoltage_noise_per_c_v = 0.0\\ncurrent_noise_c =
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
 for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
   E="--estimator fomiukf --no-bar --settings out/loco/$o.toml --current-bias-c $b -q"
-  socd evaluate --cell out/s25/calce.toml {CALCE} $E --json out/loco/calce_${{o}}_b$b.json
-  socd evaluate --cell out/s25/a123.toml {A123} $E --json out/loco/a123_${{o}}_b$b.json
-  socd evaluate --cell out/s25/pan_hppc.toml $PANX $E --json out/loco/panhppc_${{o}}_b$b.json
-  socd evaluate --cell out/s25/pan_us06.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json out/loco/panus06_${{o}}_b$b.json
+{loco_evaluations("out/loco/{cell}_${{o}}_b$b.json")}
 done; done
 G=""; for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
   G="$G $o=out/loco/calce_${{o}}_b$b.json $o=out/loco/a123_${{o}}_b$b.json"
@@ -457,10 +465,7 @@ mkdir -p out/cn   # the default (0.00722) is loco_defaults' noslow run
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
 for c in 0.0036 0.0144 0.0288; do printf "current_noise_c = $c\\n" > out/cn/cn$c.toml; for b in 0 0.01; do
   E="--estimator fomiukf --no-bar --settings out/cn/cn$c.toml --current-bias-c $b -q"
-  socd evaluate --cell out/s25/calce.toml {CALCE} $E --json out/cn/calce_cn${{c}}_b$b.json
-  socd evaluate --cell out/s25/a123.toml {A123} $E --json out/cn/a123_cn${{c}}_b$b.json
-  socd evaluate --cell out/s25/pan_hppc.toml $PANX $E --json out/cn/panhppc_cn${{c}}_b$b.json
-  socd evaluate --cell out/s25/pan_us06.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json out/cn/panus06_cn${{c}}_b$b.json
+{loco_evaluations("out/cn/{cell}_cn${{c}}_b$b.json")}
 done; done
 G=""; for b in 0 0.01; do
   G="$G cn0.00722=out/loco/calce_noslow_b$b.json cn0.00722=out/loco/a123_noslow_b$b.json"
@@ -475,10 +480,7 @@ mkdir -p out/cn
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
 for c in 0.009 0.01805 0.036 0.072; do printf "[ecm2rc_ekf]\\ncurrent_noise_c = $c\\n" > out/cn/ekf$c.toml; for b in 0 0.01; do
   E="--estimator ecm2rc-ekf --settings out/cn/ekf$c.toml --current-bias-c $b -q"
-  socd evaluate --cell out/s25/calce.toml {CALCE} $E --json out/cn/calce_ekf${{c}}_b$b.json
-  socd evaluate --cell out/s25/a123.toml {A123} $E --json out/cn/a123_ekf${{c}}_b$b.json
-  socd evaluate --cell out/s25/pan_hppc.toml $PANX $E --json out/cn/panhppc_ekf${{c}}_b$b.json
-  socd evaluate --cell out/s25/pan_us06.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json out/cn/panus06_ekf${{c}}_b$b.json
+{loco_evaluations("out/cn/{cell}_ekf${{c}}_b$b.json")}
 done; done
 G=""; for c in 0.009 0.01805 0.036 0.072; do for b in 0 0.01; do
   G="$G ekf$c=out/cn/calce_ekf${{c}}_b$b.json ekf$c=out/cn/a123_ekf${{c}}_b$b.json"
