@@ -129,6 +129,23 @@ def test_fit_quality_rule(rmse, ecm, overpotential, bad):
         check_fit_quality(rep)
 
 
+@pytest.mark.parametrize(("rmse", "simulated", "bad"), [
+    (9.6, 9.9, False),   # 11 % above the 2-RC fit's own 8.6 mV, but better than its point as this model reads it
+    (11.0, 9.9, True),   # worse than the 2-RC point read the same way
+])
+def test_fit_quality_holds_the_fit_to_the_2rc_point_simulated_as_it_is(rmse, simulated, bad):
+    """The bar is the 2-RC fit's point run through the fractional model's own simulation (the stored
+    OCV table, its time step): what the 2-RC fit's own RMSE would be in that simulation. Both fits are
+    then read the same way, so a representation loss both suffer does not refuse the fractional one."""
+    rep = FitReport(temperatures=[TemperatureFit(temp_c=25.0, rmse_mv=rmse, ecm_rmse_mv=8.6, ecm_simulated_mv=simulated,
+                                                 at_bounds=[], source="fractional fit", overpotential_rms_mv=100.0)])
+    if bad:
+        with pytest.raises(FitQualityError, match=r"9\.9 mV as this model simulates its point; 8\.6 mV its own fit"):
+            check_fit_quality(rep)
+    else:
+        check_fit_quality(rep)
+
+
 def test_two_rc_point_writes_the_textbook_model_in_the_fractional_form(tmp_path: Path):
     """``research.two_rc_point`` replaces the fractional point by the stored 2-RC one (orders 1,
     C = τ/R), so the fractional model simulates the 2-RC model's voltage; hysteresis goes off."""

@@ -147,15 +147,19 @@ class TemperatureFit:
     source: str
     #: RMS of the measured voltage minus the OCV at the counted SOC: what the dynamics must explain
     overpotential_rms_mv: float = 0.0
+    #: the 2-RC fit's point simulated as the fractional model is (the OCV as stored, the fractional
+    #: time step): the bar of :meth:`problem`, so both fits are read the same way; None: ``ecm_rmse_mv``
+    ecm_simulated_mv: float | None = None
 
     def problem(self) -> str | None:
         bound = max(POOR_FIT_MV, POOR_FIT_SHARE * self.overpotential_rms_mv)
         if not np.isfinite(self.rmse_mv) or self.rmse_mv > bound:
             return (f"fit RMSE {self.rmse_mv:.1f} mV is above {bound:.0f} mV (the larger of {POOR_FIT_MV:g} mV and "
                     f"{POOR_FIT_SHARE:g} x the {self.overpotential_rms_mv:.0f} mV RMS overpotential)")
-        if worse_than(self.rmse_mv, self.ecm_rmse_mv):
+        bar = self.ecm_rmse_mv if self.ecm_simulated_mv is None else self.ecm_simulated_mv
+        if worse_than(self.rmse_mv, bar):
             return (f"fit RMSE {self.rmse_mv:.1f} mV is worse than the textbook 2-RC fit of the same data "
-                    f"({self.ecm_rmse_mv:.1f} mV)")
+                    f"({bar:.1f} mV as this model simulates its point; {self.ecm_rmse_mv:.1f} mV its own fit)")
         return None
 
 
@@ -422,12 +426,18 @@ def characterise(
         hyst_t = res.hysteresis or prof.hysteresis
         ea_t = res.ea_j_mol
         rmse = segments_rmse_mv(prof, pt, hyst_t, segs, memory_length, ea_t)
+        # the 2-RC fit's point read as this model reads a point (the OCV as stored, the fractional
+        # time step, no hysteresis): the bar the fit is held to, both read the same way
+        start = ecm_start_point(ecm[t], t, linear_kinetics=kinetics_t)
+        start_rmse = segments_rmse_mv(prof, start, prof.hysteresis, segs, memory_length)
+        if worse_than(start_rmse, ecm[t].rmse_mv):
+            rep.say(f"  {t:g} °C: the 2-RC point reads {start_rmse:.1f} mV as this model simulates it, against "
+                    f"{ecm[t].rmse_mv:.1f} mV in its own fit: the stored OCV table and the fractional time step "
+                    "lose that much; the fit is held to the simulated figure")
         source = "fractional fit"
         if not (fit_hysteresis and t == ref_t):
             # the search may end worse than the point it started from (a time-bounded global
             # stage on windows): keep whichever fits the whole segments better
-            start = ecm_start_point(ecm[t], t, linear_kinetics=kinetics_t)
-            start_rmse = segments_rmse_mv(prof, start, hyst_t, segs, memory_length)
             if start_rmse < rmse:
                 pt, rmse, source, ea_t = start, start_rmse, "2-RC start", None
             elif test_rows is None and on_2rc_submodel(pt) and not worse_than(start_rmse, rmse):
@@ -439,7 +449,7 @@ def characterise(
         points[t] = pt
         if res.hysteresis is not None:
             hyst = res.hysteresis
-        outcome = TemperatureFit(temp_c=t, rmse_mv=rmse, ecm_rmse_mv=ecm[t].rmse_mv,
+        outcome = TemperatureFit(temp_c=t, rmse_mv=rmse, ecm_rmse_mv=ecm[t].rmse_mv, ecm_simulated_mv=start_rmse,
                                  at_bounds=res.at_bounds if source == "fractional fit" else [], source=source,
                                  overpotential_rms_mv=overpotential_rms_mv(prof, segs))
         rep.temperatures.append(outcome)
@@ -447,7 +457,8 @@ def characterise(
                 f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}"
                 + (f", i0 {pt.i0_a:.2f} A" if pt.i0_a is not None else "")
                 + (f", Ea {ea_t / 1000:.0f} kJ/mol over the group's temperatures" if ea_t is not None else "")
-                + f"; fit RMSE {rmse:.1f} mV (textbook 2-RC {ecm[t].rmse_mv:.1f} mV)"
+                + f"; fit RMSE {rmse:.1f} mV (textbook 2-RC {ecm[t].rmse_mv:.1f} mV, {start_rmse:.1f} mV as this "
+                  "model simulates its point)"
                 + {"2-RC start": " from the 2-RC start point",
                    "2-RC fit": " (the search ended on the 2-RC submodel: orders 1, linear kinetics; the 2-RC "
                                "fit's own point is kept)"}.get(source, "")
