@@ -285,6 +285,28 @@ LOCO_CELLS = (("calce", "calce", CALCE), ("a123", "a123", A123), ("pan_hppc", "p
               ("pan_us06", "panus06", "$(echo $PANX | tr ' ' '\\n' | grep -v US06)"))
 
 
+def loco_sweep(field: str, tag: str, values: tuple[str, ...], default: str) -> str:
+    """A pipeline setting swept leave-one-cell-out as ``loco_defaults`` scores (the default's runs
+    are its ``noslow`` ones); the table is ``out/loco_<field's table name>.json``."""
+    name = {"cn": "current_noise", "vn": "voltage_noise"}[tag]
+    vals = " ".join(values)
+    json_pattern = "out/cn/{cell}_" + tag + "${{c}}_b$b.json"
+    return REAL + f"""\
+mkdir -p out/cn   # the default ({default}) is loco_defaults' noslow run
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+for c in {vals}; do printf "{field} = $c\\n" > out/cn/{tag}$c.toml; for b in 0 0.01; do
+  E="--estimator fomiukf --no-bar --settings out/cn/{tag}$c.toml --current-bias-c $b -q"
+{loco_evaluations(json_pattern)}
+done; done
+G=""; for b in 0 0.01; do
+  G="$G {tag}{default}=out/loco/calce_noslow_b$b.json {tag}{default}=out/loco/a123_noslow_b$b.json"
+  G="$G {tag}{default}=out/loco/panhppc_noslow_b$b.json@panasonic {tag}{default}=out/loco/panus06_noslow_b$b.json@panasonic"
+  for c in {vals}; do
+    G="$G {tag}$c=out/cn/calce_{tag}${{c}}_b$b.json {tag}$c=out/cn/a123_{tag}${{c}}_b$b.json"
+    G="$G {tag}$c=out/cn/panhppc_{tag}${{c}}_b$b.json@panasonic {tag}$c=out/cn/panus06_{tag}${{c}}_b$b.json@panasonic"; done; done
+python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_{name}.json"""
+
+
 def loco_evaluations(json_pattern: str) -> str:
     """The scoring runs of a leave-one-cell-out table, one per characterisation, with the evaluate
     options in ``$E``; ``json_pattern`` names each JSON with ``{cell}`` for its tag."""
@@ -460,21 +482,12 @@ G=""; for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; 
 python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_defaults.json""",
           nested_table("loco_defaults.json"), 240, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
                                                      "needs:char_pan_us06")),
-    Table("loco_current_noise", "tuning.md", REAL + f"""\
-mkdir -p out/cn   # the default (0.00722) is loco_defaults' noslow run
-PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
-for c in 0.0036 0.0144 0.0288; do printf "current_noise_c = $c\\n" > out/cn/cn$c.toml; for b in 0 0.01; do
-  E="--estimator fomiukf --no-bar --settings out/cn/cn$c.toml --current-bias-c $b -q"
-{loco_evaluations("out/cn/{cell}_cn${{c}}_b$b.json")}
-done; done
-G=""; for b in 0 0.01; do
-  G="$G cn0.00722=out/loco/calce_noslow_b$b.json cn0.00722=out/loco/a123_noslow_b$b.json"
-  G="$G cn0.00722=out/loco/panhppc_noslow_b$b.json@panasonic cn0.00722=out/loco/panus06_noslow_b$b.json@panasonic"
-  for c in 0.0036 0.0144 0.0288; do
-    G="$G cn$c=out/cn/calce_cn${{c}}_b$b.json cn$c=out/cn/a123_cn${{c}}_b$b.json"
-    G="$G cn$c=out/cn/panhppc_cn${{c}}_b$b.json@panasonic cn$c=out/cn/panus06_cn${{c}}_b$b.json@panasonic"; done; done
-python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_current_noise.json""",
+    Table("loco_current_noise", "tuning.md",
+          loco_sweep("current_noise_c", "cn", ("0.0036", "0.0144", "0.0288"), "0.00722"),
           nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
+    Table("loco_voltage_noise", "tuning.md",
+          loco_sweep("voltage_noise_per_c_v", "vn", ("0.0277", "0.111", "0.222"), "0.0554"),
+          nested_table("loco_voltage_noise.json"), 50, ("needs:loco_defaults",)),
     Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
 mkdir -p out/cn
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
