@@ -55,6 +55,7 @@ from service.cell.profile import CellProfile
 from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.adaptive_noise import AdaptiveNoise
 from service.estimators.base import EstimateTrace
+from service.estimators.settings import current_sigma_a
 from service.recording import Recording
 
 N_STATES = 3
@@ -226,8 +227,8 @@ class Ecm2RcEkfBank:
         f[:, 1:] = a
         P = f[:, :, None] * self.P * f[:, None, :]
         g = np.concatenate([g_soc[:, None], b], axis=1)  # input column [N, 3]
-        sigma_i = t.current_noise_a if t.current_noise_a is not None else t.current_noise_c * par["capacity"]
-        P += (np.asarray(sigma_i) ** 2)[..., None, None] * g[:, :, None] * g[:, None, :]
+        sigma_i = current_sigma_a(t.current_noise_a, t.current_noise_c, par["capacity"])
+        P += (sigma_i**2)[:, None, None] * g[:, :, None] * g[:, None, :]
         q_diag = np.array(
             [t.soc_noise_per_sqrt_s**2, t.u_noise_v_per_sqrt_s**2, t.u_noise_v_per_sqrt_s**2]
         )

@@ -12,6 +12,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 
+def current_sigma_a(noise_a: float | None, noise_c: float, capacity_ah: np.ndarray) -> np.ndarray:
+    """A current sensor's σ [A] for cells of ``capacity_ah``: ``noise_a`` where it is set (a value in
+    A, e.g. from the sensor's datasheet), else ``noise_c`` × 1C. The one rule both filters use."""
+    capacity = np.asarray(capacity_ah, dtype=float)
+    return np.full_like(capacity, noise_a) if noise_a is not None else noise_c * capacity
+
+
 class EstimatorSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -121,10 +128,8 @@ class EstimatorSettings(BaseModel):
     divergence_sigma: float = Field(8.0, gt=1, description="normalised innovation that counts as divergence")
 
     def current_noise_sigma_a(self, capacity_ah: np.ndarray) -> np.ndarray:
-        """σ of the current sensor [A] for cells of ``capacity_ah``."""
-        if self.current_noise_a is not None:
-            return np.full_like(np.asarray(capacity_ah, dtype=float), self.current_noise_a)
-        return self.current_noise_c * np.asarray(capacity_ah, dtype=float)
+        """σ of the current sensor [A] for cells of ``capacity_ah`` (:func:`current_sigma_a`)."""
+        return current_sigma_a(self.current_noise_a, self.current_noise_c, capacity_ah)
 
     def voltage_noise_per_amp(self, capacity_ah: np.ndarray) -> np.ndarray:
         """The current-dependent model error's slope [V/A] for cells of ``capacity_ah``."""
