@@ -428,8 +428,8 @@ def characterise(
         rmse = segments_rmse_mv(prof, pt, hyst_t, segs, memory_length, ea_t)
         # the 2-RC fit's point read as this model reads a point (the OCV as stored, the fractional
         # time step, no hysteresis): the bar the fit is held to, both read the same way
-        start = ecm_start_point(ecm[t], t, linear_kinetics=kinetics_t)
-        start_rmse = segments_rmse_mv(prof, start, prof.hysteresis, segs, memory_length)
+        ecm_point = ecm_start_point(ecm[t], t, linear_kinetics=kinetics_t)
+        start_rmse = segments_rmse_mv(prof, ecm_point, prof.hysteresis, segs, memory_length)
         if worse_than(start_rmse, ecm[t].rmse_mv):
             rep.say(f"  {t:g} °C: the 2-RC point reads {start_rmse:.1f} mV as this model simulates it, against "
                     f"{ecm[t].rmse_mv:.1f} mV in its own fit: the stored OCV table and the fractional time step "
@@ -439,13 +439,13 @@ def characterise(
             # the search may end worse than the point it started from (a time-bounded global
             # stage on windows): keep whichever fits the whole segments better
             if start_rmse < rmse:
-                pt, rmse, source, ea_t = start, start_rmse, "2-RC start", None
+                pt, rmse, source, ea_t = ecm_point, start_rmse, "2-RC start", None
             elif test_rows is None and on_2rc_submodel(pt) and not worse_than(start_rmse, rmse):
                 # the search ended on the 2-RC submodel with the OCV the 2-RC fit chose jointly
                 # with its own point: the two belong together (the linear fit's optimum is the
                 # global one over every sample), so keep that point. With a measured OCV there
                 # is no such bond, and the better fit stands.
-                pt, rmse, source, ea_t = start, start_rmse, "2-RC fit", None
+                pt, rmse, source, ea_t = ecm_point, start_rmse, "2-RC fit", None
         points[t] = pt
         if res.hysteresis is not None:
             hyst = res.hysteresis
