@@ -299,12 +299,18 @@ for c in {vals}; do printf "{field} = $c\\n" > out/cn/{tag}$c.toml; for b in 0 0
 {loco_evaluations(json_pattern)}
 done; done
 G=""; for b in 0 0.01; do
-  G="$G {tag}{default}=out/loco/calce_noslow_b$b.json {tag}{default}=out/loco/a123_noslow_b$b.json"
-  G="$G {tag}{default}=out/loco/panhppc_noslow_b$b.json@panasonic {tag}{default}=out/loco/panus06_noslow_b$b.json@panasonic"
+{loco_inputs(tag + default, "out/loco/{cell}_noslow_b$b.json")}
   for c in {vals}; do
-    G="$G {tag}$c=out/cn/calce_{tag}${{c}}_b$b.json {tag}$c=out/cn/a123_{tag}${{c}}_b$b.json"
-    G="$G {tag}$c=out/cn/panhppc_{tag}${{c}}_b$b.json@panasonic {tag}$c=out/cn/panus06_{tag}${{c}}_b$b.json@panasonic"; done; done
+{loco_inputs(tag + "$c", json_pattern, indent="    ")}; done; done
 python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_{name}.json"""
+
+
+def loco_inputs(label: str, json_pattern: str, indent: str = "  ") -> str:
+    """The two lines that add one setting's four JSON (``json_pattern`` with ``{cell}`` for each
+    characterisation's tag) to ``$G`` under ``label``, the two Panasonic profiles as one cell."""
+    calce, a123, hppc, us06 = (json_pattern.format(cell=tag) for _, tag, _ in LOCO_CELLS)
+    return (f'{indent}G="$G {label}={calce} {label}={a123}"\n'
+            f'{indent}G="$G {label}={hppc}@panasonic {label}={us06}@panasonic"')
 
 
 def loco_evaluations(json_pattern: str) -> str:
@@ -477,8 +483,7 @@ for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
 {loco_evaluations("out/loco/{cell}_${{o}}_b$b.json")}
 done; done
 G=""; for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
-  G="$G $o=out/loco/calce_${{o}}_b$b.json $o=out/loco/a123_${{o}}_b$b.json"
-  G="$G $o=out/loco/panhppc_${{o}}_b$b.json@panasonic $o=out/loco/panus06_${{o}}_b$b.json@panasonic"; done; done
+{loco_inputs("$o", "out/loco/{cell}_${{o}}_b$b.json")}; done; done
 python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_defaults.json""",
           nested_table("loco_defaults.json"), 240, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
                                                      "needs:char_pan_us06")),
@@ -496,8 +501,7 @@ for c in 0.009 0.01805 0.036 0.072; do printf "[ecm2rc_ekf]\\ncurrent_noise_c = 
 {loco_evaluations("out/cn/{cell}_ekf${{c}}_b$b.json")}
 done; done
 G=""; for c in 0.009 0.01805 0.036 0.072; do for b in 0 0.01; do
-  G="$G ekf$c=out/cn/calce_ekf${{c}}_b$b.json ekf$c=out/cn/a123_ekf${{c}}_b$b.json"
-  G="$G ekf$c=out/cn/panhppc_ekf${{c}}_b$b.json@panasonic ekf$c=out/cn/panus06_ekf${{c}}_b$b.json@panasonic"; done; done
+{loco_inputs("ekf$c", "out/cn/{cell}_ekf${{c}}_b$b.json")}; done; done
 python -m research.nested_tuning --by cell --estimator ecm2rc-ekf $G --json out/loco_ekf_current_noise.json""",
           nested_table("loco_ekf_current_noise.json"), 40, ("needs:char_calce", "needs:char_a123")),
     Table("loco_fit_options", "tuning.md", REAL + f"""\
