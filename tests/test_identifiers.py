@@ -101,6 +101,40 @@ def test_pipeline_fast_identifier_stays_near_truth(nmc_recording, nmc_profile, t
     assert _rel(p["r_ct"], true_r_ct) < 0.25
 
 
+def _identified_spread(rec, profile, settings: EstimatorSettings, noise_v: float) -> tuple[float, PackEstimator]:
+    """RMS over the drive's second half of the identified R_ohm and R_ct's relative departure from the
+    profile (the truth here), with white noise of σ ``noise_v`` on the voltage the estimator reads."""
+    est = PackEstimator(profile, 1, settings)
+    est.start(np.array([rec.soc_true[0]]))
+    v = rec.voltage_v + np.random.default_rng(7).normal(0.0, noise_v, len(rec))
+    dt = np.diff(rec.time_s, prepend=rec.time_s[0])
+    dev = []
+    for k in range(len(rec)):
+        est.step(dt[k], rec.current_a[k], v[k : k + 1], rec.temperature_c[k : k + 1])
+        if k >= len(rec) // 2:
+            z = est.fast.z[0]
+            dev.append([z[est.fast.names.index("r_ohm")] - 1.0, z[est.fast.names.index("r_ct")] - 1.0])
+    return float(np.sqrt(np.mean(np.square(dev)))), est
+
+
+def test_identifier_matches_its_noise_and_then_moves_less_on_it(nmc_recording, nmc_profile) -> None:
+    """Voltage error far beyond the identifier's fixed R (30 mV against 10 mV): the matched
+    variance learns it and the identified resistances wander less than with the fixed R; on the
+    clean recording it learns little and stays near the truth."""
+    rec = nmc_recording(duration_s=1500, seed=2, soc0=0.9)
+    matched = EstimatorSettings(adaptive_noise_samples=300)
+    fixed = EstimatorSettings(adaptive_noise_samples=0)
+    noisy_matched, est = _identified_spread(rec, nmc_profile, matched, 0.03)
+    noisy_fixed, est_fixed = _identified_spread(rec, nmc_profile, fixed, 0.03)
+    assert est_fixed.fast.noise is None
+    learned = est.fast.noise.extra(np.zeros(1))[0]
+    assert learned > (0.01) ** 2
+    assert noisy_matched < 0.7 * noisy_fixed
+    clean_matched, est_clean = _identified_spread(rec, nmc_profile, matched, 0.0)
+    assert est_clean.fast.noise.extra(np.zeros(1))[0] < 0.1 * learned
+    assert clean_matched < 0.05
+
+
 # -- slow identifier (Zeng Eqs. 14-16, Table 2) -----------------------------------------------
 def _diffusion_voltage(profile, current: np.ndarray, memory_length: int) -> np.ndarray:
     n = current.size

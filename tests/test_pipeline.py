@@ -209,6 +209,12 @@ def test_adaptive_noise_state_round_trips_and_legacy_states_load(nmc_profile, sh
     restored = PackEstimator(nmc_profile, est.n, s, "multi")
     restored.set_state(state)
     np.testing.assert_array_equal(restored.ukf.noise.moments, est.ukf.noise.moments)
+    # the fast identifier matches its own innovations the same way
+    assert np.any(state["fast_noise_moments"] != 0.0)
+    np.testing.assert_array_equal(restored.fast.noise.moments, est.fast.noise.moments)
+    older = {k: v for k, v in state.items() if k != "fast_noise_moments"}  # written before it existed
+    restored.set_state(older)
+    np.testing.assert_array_equal(restored.fast.noise.moments, np.zeros_like(est.fast.noise.moments))
     # a state written before the moments existed kept one variance per cell
     legacy = {k: v for k, v in state.items() if k != "ukf_noise_moments"}
     legacy["ukf_r_adapt"] = np.full(est.n, 4e-6)
@@ -260,6 +266,8 @@ def _corrupt(state: dict, key: str, how: str) -> dict:
         ("fast_D", "missing"),
         ("ukf_noise_moments", "nan"),
         ("ukf_noise_moments", "shape"),
+        ("fast_noise_moments", "nan"),
+        ("fast_noise_moments", "shape"),
     ],
 )
 def test_set_state_rejects_bad_state(nmc_profile, key: str, how: str) -> None:

@@ -1,4 +1,5 @@
-"""Adaptive measurement noise by covariance matching, shared by every SOC filter.
+"""Adaptive measurement noise by covariance matching, shared by every SOC filter and the fast
+identifier (:class:`service.estimators.parameter_ekf.ParameterEkf`).
 
 Mehra (1972), the Sage-Husa family of adaptive Kalman filters: the innovation ``e``
 has variance ``S + R_extra``, so the excess of ``e²`` over the predicted spread ``S``,

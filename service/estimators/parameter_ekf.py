@@ -18,6 +18,13 @@ the SOC filter's gain.  Table 1 lists the explicit branch derivative both in its
 part (1) and inside part (3); here it is counted once (in ``∂h/∂θ``), and the state
 path carries only the dependence through earlier steps.  The correction uses the
 innovation of the current sample (Zeng Eq. 13 mixes indices).
+
+Zeng Eq. 13 takes a fixed measurement variance ``R``.  With ``adaptive_samples`` the
+variance is matched to the identifier's own innovations (Mehra's covariance matching,
+:mod:`service.estimators.adaptive_noise`, as the SOC filter does): where the profile's
+model form is wrong (the cold, a profile fitted from one drive) the innovations exceed
+what ``R`` predicts, and the identifier then moves its parameters by less, instead of
+taking every sample of model error as information about them.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import numpy as np
 
 from service.cell.fractional import gl_weights
 from service.cell.profile import CellParameters
+from service.estimators.adaptive_noise import AdaptiveNoise
 
 #: name -> (branch index or None, kind) ; kind: "mul" multiplicative, "add" additive, "volt"
 PARAMETERS: dict[str, tuple[int | None, str]] = {
@@ -95,6 +103,7 @@ class ParameterEkf:
         process_rel: float,
         voltage_noise_v: float,
         init_rel: float = 0.1,
+        adaptive_samples: int = 0,
     ) -> None:
         unknown = [n for n in names if n not in PARAMETERS]
         if unknown:
@@ -120,10 +129,16 @@ class ParameterEkf:
         self._hi = np.tile(bounds[:, 1], (n_cells, 1))
         self._order_cols = [(c, PARAMETERS[k][0]) for c, k in enumerate(names) if PARAMETERS[k][1] == "add"]
         self._identifies_df_voltage = bool(self._volt)
+        #: covariance matching of the identifier's own innovations (``adaptive_samples`` > 0), as the
+        #: SOC filter matches its own: model-form error the fixed ``R`` does not describe (the cold, a
+        #: fit from one drive) then slows the identifier instead of moving the parameters by it
+        self.noise = AdaptiveNoise(n_cells, adaptive_samples) if adaptive_samples else None
 
     def reset(self, cells: np.ndarray) -> None:
         self.z[cells] = np.array([0.0 if PARAMETERS[k][1] != "mul" else 1.0 for k in self.names])
         self.D[cells] = 0.0
+        if self.noise is not None:
+            self.noise.reset(cells)
         if self._prev is not None:
             self._prev[3][cells] = False  # no voltage difference across a restart
 
@@ -239,6 +254,8 @@ class ParameterEkf:
                 active = active & prev[3]
         pc = np.einsum("nij,nj->ni", self.P, c_row)
         s = np.einsum("ni,ni->n", c_row, pc) + self.R
+        if self.noise is not None:  # one matched variance per cell (the 'uniform' shape)
+            s = self.noise.match(np.where(active, e, 0.0), s, np.zeros_like(s), active)
         k = pc / s[:, None]
         e = np.where(active, e, 0.0)
         k = np.where(active[:, None], k, 0.0)

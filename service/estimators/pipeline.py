@@ -79,9 +79,11 @@ class PackEstimator:
         self.fast: ParameterEkf | None = None
         self.slow: SlowIdentifier | None = None
         if identification == "multi" and s.fast_identifier:
-            self.fast = ParameterEkf(FAST_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v)
+            self.fast = ParameterEkf(FAST_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v,
+                                     adaptive_samples=s.adaptive_noise_samples)
         elif identification == "single" and s.fast_identifier:
-            self.fast = ParameterEkf(list(PARAMETER_NAMES), self.n, nx, s.param_process_rel, s.voltage_noise_v)
+            self.fast = ParameterEkf(list(PARAMETER_NAMES), self.n, nx, s.param_process_rel, s.voltage_noise_v,
+                                     adaptive_samples=s.adaptive_noise_samples)
         if self.fast is not None:
             self.fast.measurement = s.fast_identifier_input
         if identification == "multi" and s.slow_identifier:
@@ -390,6 +392,8 @@ class PackEstimator:
         }
         if self.fast is not None:
             st.update(fast_z=self.fast.z, fast_P=self.fast.P, fast_D=self.fast.D)
+            if self.fast.noise is not None:
+                st.update(fast_noise_moments=self.fast.noise.moments)
             st.update(self.fast.difference_state(self.n))
         if self.slow is not None:
             st.update(slow_z=self.slow.z, slow_P=self.slow.P, slow_ring=self.slow.ring, slow_moved=self.slow.moved)
@@ -434,6 +438,9 @@ class PackEstimator:
                      need("fast_prev_c", self.fast.D.shape[:1] + self.fast.D.shape[2:]),
                      need("fast_prev_active", (self.n,)))
                     if "fast_prev_v" in state else None)
+            # the identifier's matched noise (states written before it existed, or without it: none learned)
+            fast_noise = (need("fast_noise_moments", self.fast.noise.moments.shape)
+                          if self.fast.noise is not None and "fast_noise_moments" in state else None)
         if self.slow is not None:
             slow = (need("slow_z", self.slow.z.shape), need("slow_P", self.slow.P.shape),
                     need("slow_ring", self.slow.ring.shape), need("slow_moved", self.slow.moved.shape))
@@ -452,6 +459,9 @@ class PackEstimator:
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast
             self.fast.set_difference_state(prev)
+            if self.fast.noise is not None:
+                self.fast.noise.set_moments(fast_noise if fast_noise is not None
+                                            else np.zeros_like(self.fast.noise.moments))
         if slow is not None:
             self.slow.z, self.slow.P, self.slow.ring, self.slow.moved = slow
             self.slow.hist0 = self.slow.ring.copy()

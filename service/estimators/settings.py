@@ -73,7 +73,9 @@ class EstimatorSettings(BaseModel):
         300, ge=0, le=100000,
         description="covariance matching of the measurement noise (adaptive UKF): the variance the innovations "
         "show beyond what the filter predicts is averaged over about this many samples and added to σ_v²; the "
-        "filter then leans on the current integral where the model is poor (cold, near empty). 0 = off",
+        "filter then leans on the current integral where the model is poor (cold, near empty). The fast "
+        "identifier matches its own innovations over the same window, so it moves its parameters less on "
+        "model error than on information. 0 = off (both)",
     )
     adaptive_noise_shape: Literal["uniform", "load"] = Field(
         "uniform", description="'uniform': one adapted variance for every sample; 'load': a + c·(|I|·R_total)², "
