@@ -488,7 +488,7 @@ python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loc
           nested_table("loco_defaults.json"), 240, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
                                                      "needs:char_pan_us06")),
     Table("loco_current_noise", "tuning.md",
-          loco_sweep("current_noise_c", "cn", ("0.0036", "0.0144", "0.0288"), "0.00722"),
+          loco_sweep("current_noise_c", "cn", ("0.0036", "0.0144", "0.0288", "0.0576"), "0.00722"),
           nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
     Table("loco_voltage_noise", "tuning.md",
           loco_sweep("voltage_noise_per_c_v", "vn", ("0.0277", "0.111", "0.222"), "0.0554"),
