@@ -252,12 +252,12 @@ class ParameterEkf:
                 e = e - (prev[0] - prev[1])
                 c_row = c_row - prev[2]
                 active = active & prev[3]
+        e = np.where(active, e, 0.0)
         pc = np.einsum("nij,nj->ni", self.P, c_row)
         s = np.einsum("ni,ni->n", c_row, pc) + self.R
         if self.noise is not None:  # one matched variance per cell (the 'uniform' shape)
-            s = self.noise.match(np.where(active, e, 0.0), s, np.zeros_like(s), active)
+            s = self.noise.match(e, s, np.zeros_like(s), active)
         k = pc / s[:, None]
-        e = np.where(active, e, 0.0)
         k = np.where(active[:, None], k, 0.0)
         self.z = self.z + k * e[:, None]
         self.P = self.P - s[:, None, None] * k[:, :, None] * k[:, None, :]
