@@ -80,10 +80,10 @@ class PackEstimator:
         self.slow: SlowIdentifier | None = None
         if identification == "multi" and s.fast_identifier:
             self.fast = ParameterEkf(FAST_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v,
-                                     adaptive_samples=s.adaptive_noise_samples)
+                                     init_rel=s.param_init_std_rel, adaptive_samples=s.adaptive_noise_samples)
         elif identification == "single" and s.fast_identifier:
             self.fast = ParameterEkf(list(PARAMETER_NAMES), self.n, nx, s.param_process_rel, s.voltage_noise_v,
-                                     adaptive_samples=s.adaptive_noise_samples)
+                                     init_rel=s.param_init_std_rel, adaptive_samples=s.adaptive_noise_samples)
         if self.fast is not None:
             self.fast.measurement = s.fast_identifier_input
         if identification == "multi" and s.slow_identifier:

@@ -110,6 +110,9 @@ class EstimatorSettings(BaseModel):
     ukf_beta: float = Field(2.0, ge=0)
     ukf_kappa: float = Field(0.0)
     param_process_rel: float = Field(1e-4, ge=0, description="relative σ per step of parameter random walk (fast)")
+    param_init_std_rel: float = Field(
+        0.1, gt=0, le=1, description="the fast identifier's prior σ of the resistances and C_dl, relative to the profile's: how far it may move them in its first minutes; the random walk above then allows a slow drift"
+    )
     slow_param_process_rel: float = Field(2e-2, ge=0, description="relative σ per slow update (slow)")
     capacity_estimation: Literal["off", "pack-relative", "absolute"] = Field(
         "pack-relative",
