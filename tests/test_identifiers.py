@@ -277,3 +277,24 @@ def test_slow_identifier_bounds_with_garbage_measurements() -> None:
         a = nom[2] + slow.z[:, 2]
         assert np.all((a >= ORDER_LIMITS[0] - 1e-12) & (a <= ORDER_LIMITS[1] + 1e-12)), k
     assert slow.updates > 50
+
+
+def test_identifier_prior_is_the_setting_and_a_restart_returns_to_it(nmc_recording, nmc_profile) -> None:
+    """`param_init_std_rel` is the resistances' prior σ; after identifying, a restarted cell is back
+    at the profile's parameters with that prior, and the other cell keeps what it learned."""
+    rec = nmc_recording(duration_s=600, seed=3, soc0=0.9)
+    s = EstimatorSettings(param_init_std_rel=0.04)
+    est = PackEstimator(nmc_profile, 2, s)
+    fast = est.fast
+    r = fast.names.index("r_ohm")
+    np.testing.assert_allclose(fast.P[:, r, r], 0.04**2)
+    est.start(np.full(2, rec.soc_true[0]))
+    dt = np.diff(rec.time_s, prepend=rec.time_s[0])
+    for k in range(len(rec)):
+        est.step(dt[k], rec.current_a[k], np.full(2, rec.voltage_v[k]), np.full(2, rec.temperature_c[k]))
+    assert fast.P[0, r, r] < 0.8 * 0.04**2  # it learned
+    learned = fast.P[1].copy()
+    est.start(np.full(2, rec.soc_true[-1]), cells=np.array([True, False]))
+    np.testing.assert_allclose(fast.P[0], fast.P0)
+    assert fast.z[0, r] == 1.0
+    np.testing.assert_allclose(fast.P[1], learned)

@@ -113,7 +113,9 @@ class ParameterEkf:
         self.np = len(names)
         self.z = np.array([[0.0 if PARAMETERS[k][1] != "mul" else 1.0 for k in names]] * n_cells)
         sig = np.array([init_rel if PARAMETERS[k][1] == "mul" else (0.05 if PARAMETERS[k][1] == "add" else 0.02) for k in names])
-        self.P = np.tile(np.diag(sig**2), (n_cells, 1, 1))
+        #: the prior a (re)started cell's parameters carry: back at the profile's values, as unsure as at first
+        self.P0 = np.diag(sig**2)
+        self.P = np.tile(self.P0, (n_cells, 1, 1))
         q = np.array([process_rel if PARAMETERS[k][1] != "volt" else 1e-3 for k in names])
         self.Q = np.diag(q**2)
         self.R = voltage_noise_v**2
@@ -135,7 +137,10 @@ class ParameterEkf:
         self.noise = AdaptiveNoise(n_cells, adaptive_samples) if adaptive_samples else None
 
     def reset(self, cells: np.ndarray) -> None:
+        """Restart ``cells``: parameters back at the profile's with the prior's spread, so a cell
+        restarted after a divergence identifies afresh instead of keeping a shrunk covariance."""
         self.z[cells] = np.array([0.0 if PARAMETERS[k][1] != "mul" else 1.0 for k in self.names])
+        self.P[cells] = self.P0
         self.D[cells] = 0.0
         if self.noise is not None:
             self.noise.reset(cells)
@@ -275,4 +280,3 @@ class ParameterEkf:
         bad = ~np.isfinite(self.z).all(axis=1) | ~np.isfinite(self.P).all(axis=(1, 2))
         if bad.any():
             self.reset(bad)
-            self.P[bad] = np.diag(np.diag(self.Q) * 100)
