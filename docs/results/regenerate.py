@@ -288,7 +288,7 @@ LOCO_CELLS = (("calce", "calce", CALCE), ("a123", "a123", A123), ("pan_hppc", "p
 def loco_sweep(field: str, tag: str, values: tuple[str, ...], default: str) -> str:
     """A pipeline setting swept leave-one-cell-out as ``loco_defaults`` scores (the default's runs
     are its ``noslow`` ones); the table is ``out/loco_<field's table name>.json``."""
-    name = {"cn": "current_noise", "vn": "voltage_noise"}[tag]
+    name = {"cn": "current_noise", "vn": "voltage_noise", "ip": "identifier_prior"}[tag]
     vals = " ".join(values)
     json_pattern = "out/cn/{cell}_" + tag + "${{c}}_b$b.json"
     return REAL + f"""\
@@ -488,11 +488,14 @@ python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loc
           nested_table("loco_defaults.json"), 240, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
                                                      "needs:char_pan_us06")),
     Table("loco_current_noise", "tuning.md",
-          loco_sweep("current_noise_c", "cn", ("0.0036", "0.0144", "0.0288", "0.0576"), "0.00722"),
+          loco_sweep("current_noise_c", "cn", ("0.0036", "0.00722", "0.0144", "0.0576"), "0.0288"),
           nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
     Table("loco_voltage_noise", "tuning.md",
           loco_sweep("voltage_noise_per_c_v", "vn", ("0.0277", "0.111", "0.222"), "0.0554"),
           nested_table("loco_voltage_noise.json"), 50, ("needs:loco_defaults",)),
+    Table("loco_identifier_prior", "tuning.md",
+          loco_sweep("param_init_std_rel", "ip", ("0.01", "0.02", "0.05", "0.1", "0.2"), "0.03"),
+          nested_table("loco_identifier_prior.json"), 60, ("needs:loco_defaults",)),
     Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
 mkdir -p out/cn
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"

@@ -82,8 +82,10 @@ class EstimatorSettings(BaseModel):
         "so the model error learned under load does not drown the rests (service.estimators.adaptive_noise)",
     )
     current_noise_c: float = Field(
-        0.00722, ge=0, description="current-sensor noise σ driving SOC process noise, as a fraction of 1C (the "
-        "cell's capacity in A): scale-free, like voltage_noise_per_c_v"
+        0.0288, ge=0, description="current-sensor noise σ driving SOC process noise, as a fraction of 1C (the "
+        "cell's capacity in A): scale-free, like voltage_noise_per_c_v. It stands for every error of the "
+        "current integral (sensor, capacity, self-discharge), so it is larger than a sensor's datasheet σ; "
+        "chosen leave-one-cell-out with param_init_std_rel (docs/results/tuning.md)"
     )
     current_noise_a: float | None = Field(
         None, ge=0, description="the current-sensor noise σ in A (e.g. from the sensor's datasheet); overrides "
@@ -111,7 +113,9 @@ class EstimatorSettings(BaseModel):
     ukf_kappa: float = Field(0.0)
     param_process_rel: float = Field(1e-4, ge=0, description="relative σ per step of parameter random walk (fast)")
     param_init_std_rel: float = Field(
-        0.1, gt=0, le=1, description="the fast identifier's prior σ of the resistances and C_dl, relative to the profile's: how far it may move them in its first minutes; the random walk above then allows a slow drift"
+        0.03, gt=0, le=1, description="the fast identifier's prior σ of the resistances and C_dl, relative to "
+        "the profile's: how far it may move them in its first minutes; the random walk above then allows a slow "
+        "drift. Chosen leave-one-cell-out with current_noise_c (docs/results/tuning.md)"
     )
     slow_param_process_rel: float = Field(2e-2, ge=0, description="relative σ per slow update (slow)")
     capacity_estimation: Literal["off", "pack-relative", "absolute"] = Field(
