@@ -82,9 +82,9 @@ class EstimatorSettings(BaseModel):
         "so the model error learned under load does not drown the rests (service.estimators.adaptive_noise)",
     )
     current_noise_c: float = Field(
-        0.0288, ge=0, description="current-sensor noise σ driving SOC process noise, as a fraction of 1C (the "
-        "cell's capacity in A): scale-free, like voltage_noise_per_c_v. It stands for every error of the "
-        "current integral (sensor, capacity, self-discharge), so it is larger than a sensor's datasheet σ; "
+        0.0288, ge=0, description="σ of the current integral's error driving SOC process noise, as a fraction "
+        "of 1C (the cell's capacity in A): scale-free, like voltage_noise_per_c_v. It stands for the sensor's "
+        "noise and offset and the capacity's error together, so it is larger than a sensor's datasheet σ; "
         "chosen leave-one-cell-out with param_init_std_rel (docs/results/tuning.md)"
     )
     current_noise_a: float | None = Field(
