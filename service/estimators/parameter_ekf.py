@@ -111,7 +111,9 @@ class ParameterEkf:
         self.names = list(names)
         self.n = n_cells
         self.np = len(names)
-        self.z = np.array([[0.0 if PARAMETERS[k][1] != "mul" else 1.0 for k in names]] * n_cells)
+        #: the profile's values: relative factors 1, order and voltage offsets 0
+        self.z0 = np.array([0.0 if PARAMETERS[k][1] != "mul" else 1.0 for k in names])
+        self.z = np.tile(self.z0, (n_cells, 1))
         sig = np.array([init_rel if PARAMETERS[k][1] == "mul" else (0.05 if PARAMETERS[k][1] == "add" else 0.02) for k in names])
         #: the prior a (re)started cell's parameters carry: back at the profile's values, as unsure as at first
         self.P0 = np.diag(sig**2)
@@ -139,7 +141,7 @@ class ParameterEkf:
     def reset(self, cells: np.ndarray) -> None:
         """Restart ``cells``: parameters back at the profile's with the prior's spread, so a cell
         restarted after a divergence identifies afresh instead of keeping a shrunk covariance."""
-        self.z[cells] = np.array([0.0 if PARAMETERS[k][1] != "mul" else 1.0 for k in self.names])
+        self.z[cells] = self.z0
         self.P[cells] = self.P0
         self.D[cells] = 0.0
         if self.noise is not None:

@@ -78,13 +78,11 @@ class PackEstimator:
         nx = self.ukf.nx
         self.fast: ParameterEkf | None = None
         self.slow: SlowIdentifier | None = None
-        if identification == "multi" and s.fast_identifier:
-            self.fast = ParameterEkf(FAST_NAMES, self.n, nx, s.param_process_rel, s.voltage_noise_v,
+        # multi-time-scale: the fast rate identifies the fast parameters; single: all of them at once
+        fast_names = {"multi": FAST_NAMES, "single": list(PARAMETER_NAMES)}.get(identification)
+        if fast_names is not None and s.fast_identifier:
+            self.fast = ParameterEkf(fast_names, self.n, nx, s.param_process_rel, s.voltage_noise_v,
                                      init_rel=s.param_init_std_rel, adaptive_samples=s.adaptive_noise_samples)
-        elif identification == "single" and s.fast_identifier:
-            self.fast = ParameterEkf(list(PARAMETER_NAMES), self.n, nx, s.param_process_rel, s.voltage_noise_v,
-                                     init_rel=s.param_init_std_rel, adaptive_samples=s.adaptive_noise_samples)
-        if self.fast is not None:
             self.fast.measurement = s.fast_identifier_input
         if identification == "multi" and s.slow_identifier:
             self.slow = SlowIdentifier(self.n, s.memory_length, s.slow_soc_delta, s.slow_param_process_rel)
