@@ -491,7 +491,7 @@ python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loc
           loco_sweep("current_noise_c", "cn", ("0.0036", "0.00722", "0.0144", "0.0576"), "0.0288"),
           nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
     Table("loco_voltage_noise", "tuning.md",
-          loco_sweep("voltage_noise_per_c_v", "vn", ("0.0277", "0.111", "0.222"), "0.0554"),
+          loco_sweep("voltage_noise_per_c_v", "vn", ("0.0277", "0.0554", "0.111", "0.444"), "0.222"),
           nested_table("loco_voltage_noise.json"), 50, ("needs:loco_defaults",)),
     Table("loco_identifier_prior", "tuning.md",
           loco_sweep("param_init_std_rel", "ip", ("0.01", "0.02", "0.05", "0.1", "0.2"), "0.03"),

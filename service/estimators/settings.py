@@ -59,8 +59,9 @@ class EstimatorSettings(BaseModel):
     slow_soc_delta: float = Field(0.005, gt=0, le=0.5, description="SOC movement that triggers a slow update")
     voltage_noise_v: float = Field(0.01, gt=0, description="measurement noise σ of the SOC filter: sensor noise plus model error")
     voltage_noise_per_c_v: float = Field(
-        0.0554, ge=0, description="model error that grows with the C-rate: σ_v² = σ² + (k·|I|/Q)², Q the cell's "
-        "capacity in Ah; per C-rate, not per amp, so a cell of any size (or cells in parallel) gets the same filter"
+        0.222, ge=0, description="model error that grows with the C-rate: σ_v² = σ² + (k·|I|/Q)², Q the cell's "
+        "capacity in Ah; per C-rate, not per amp, so a cell of any size (or cells in parallel) gets the same filter; "
+        "chosen leave-one-cell-out (docs/results/tuning.md)"
     )
     voltage_noise_per_amp_v: float | None = Field(
         None, ge=0, description="the same model error per amp (σ_v² = σ² + (k·|I|)²); overrides voltage_noise_per_c_v"
