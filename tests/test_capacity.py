@@ -4,6 +4,9 @@
   default mode runs exactly as frozen (single-cell evaluation is unchanged);
 - on a demo-like pack (the bundled drive, 5 % capacity spread) the learned capacities track
   the cells' spread and the SOC error of the worst cell falls against the frozen run;
+- the pack-relative mode weighs its measurement by the innovation variance without the SOC
+  filter's model-error terms (that error is common to the pack and cancels), the absolute mode
+  by the whole innovation variance;
 - the state survives a round trip, and a state written without it still restores;
 - SOCD_CellHealth and the schema-2 CellParams carry it.
 """
@@ -94,6 +97,26 @@ def test_no_update_from_a_poorly_observed_or_stale_cell() -> None:
     phi = cap.state.phi
     assert phi[0] != 1.0 and np.all(phi[1:] == 1.0)
     assert cap.bounds[0] <= phi[0] <= cap.bounds[1]
+
+
+def _learned_phi(mode: str, innovation_var: float, innovation_var_own: float | None) -> np.ndarray:
+    """φ after a few samples of a discharge in which cell 0 reads 5 mV above the others."""
+    cap = CapacityEstimator(3, 3.0, mode, 0.05, 0.3, 10.0, 0.0)
+    innovation = np.array([0.005, 0.0, 0.0])
+    own = None if innovation_var_own is None else np.full(3, innovation_var_own)
+    for _ in range(50):
+        cap.update(np.full(3, 3.0), 1.0, innovation, np.full(3, innovation_var), np.full(3, 0.8),
+                   np.zeros(3), np.ones(3, dtype=bool), own)
+    return cap.state.phi
+
+
+def test_pack_relative_measurement_noise_leaves_out_the_common_model_error() -> None:
+    small, large = 1e-5, 1e-2  # V²: state spread and sensor; with a large model-error term
+    relative = _learned_phi("pack-relative", large, small)
+    assert np.array_equal(relative, _learned_phi("pack-relative", small, None))
+    assert abs(relative[0] - 1.0) > 10 * abs(_learned_phi("pack-relative", large, None)[0] - 1.0)
+    absolute = _learned_phi("absolute", large, small)
+    assert np.array_equal(absolute, _learned_phi("absolute", large, None))
 
 
 def test_state_round_trip_and_old_state_without_capacity(learned_and_frozen) -> None:

@@ -28,8 +28,10 @@ so the SOC σ includes what the capacity is not sure of.
   common to them; measured on the demo pack, that error alone drifts a cell of nominal
   capacity by 1.5-2 % SOC over one drive, which the absolute mode reads as a 2-3 %
   capacity error in every cell.  Relative to the pack median that drift cancels, and
-  the capacities are learned relative to the median cell (0.4-1.4 % on the demo packs),
-  whose own capacity stays at the profile's.  A one-cell pack learns nothing in this mode.
+  the capacities are learned relative to the median cell, whose own capacity stays at the
+  profile's.  For the same reason ``σ²_e`` is then the innovation variance without the SOC
+  filter's model-error terms (its state spread and the sensor noise only): the model error
+  those terms stand for is the part that cancels.  A one-cell pack learns nothing in this mode.
 - ``"absolute"``: each cell's own innovation.
 - ``"off"``: frozen at the profile's capacity (the filter then runs exactly as before).
 
@@ -96,20 +98,28 @@ class CapacityEstimator:
 
     # -- one sample --------------------------------------------------------------------------
     def update(self, current_a: np.ndarray, dt_s: float, innovation: np.ndarray, innovation_var: np.ndarray,
-               ocv_slope: np.ndarray, soc_gain: np.ndarray, usable: np.ndarray) -> np.ndarray:
+               ocv_slope: np.ndarray, soc_gain: np.ndarray, usable: np.ndarray,
+               innovation_var_own: np.ndarray | None = None) -> np.ndarray:
         """Advance with this sample's SOC-filter outputs; returns the SOC shift ``s⁺ δφ`` to
-        apply to the filter's posterior (zeros where nothing was learned)."""
+        apply to the filter's posterior (zeros where nothing was learned).
+
+        ``innovation_var_own``: the innovation variance without the filter's model-error terms
+        (state spread and sensor noise).  The pack-relative mode uses it, since the model error
+        common to the pack cancels in its measurement; without it, ``innovation_var``."""
         st = self.state
         s_minus = st.sens - current_a * dt_s / (SECONDS_PER_HOUR * self.nominal_ah)
         h = ocv_slope * s_minus
         e = np.where(usable, innovation, 0.0)
+        var_e = innovation_var
         if self.mode == "pack-relative":
             if usable.sum() >= 2:
                 e = np.where(usable, e - np.median(innovation[usable]), 0.0)
             else:
                 usable = np.zeros_like(usable)
+            if innovation_var_own is not None:
+                var_e = innovation_var_own
         p = st.var + self.walk * self.walk * max(dt_s, 0.0)
-        s = h * h * p + self.inflation * innovation_var
+        s = h * h * p + self.inflation * var_e
         k = np.where(usable, p * h / s, 0.0)
         phi = np.clip(st.phi + k * e, *self.bounds)
         d_phi = phi - st.phi

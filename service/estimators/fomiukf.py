@@ -74,6 +74,7 @@ class FoMiUkf:
         self.transition = np.ones((n_cells, self.nx))
         self.innovation = np.zeros(n_cells)
         self.innovation_var = np.ones(n_cells)
+        self.innovation_var_own = np.ones(n_cells)
         self.v_pred = np.zeros(n_cells)
         self.kinetic_v: np.ndarray | None = None
         #: this sample's single-innovation posterior ``x- + K e`` (the multi-innovation one is ``x``):
@@ -199,7 +200,8 @@ class FoMiUkf:
         overpotential = i * (params.r_ohm + params.r.sum(axis=1))
         if st.voltage_noise_rel_overpotential:
             model_err = np.hypot(model_err, st.voltage_noise_rel_overpotential * overpotential)
-        p_yy = (dy * dy) @ self.wc + st.voltage_noise_v**2 + model_err**2
+        p_own = (dy * dy) @ self.wc + st.voltage_noise_v**2
+        p_yy = p_own + model_err**2
         e = np.where(active, voltage_v - y_hat, 0.0)
         if st.adaptive_noise_samples:
             p_yy = self.noise.match(e, p_yy, overpotential * overpotential, active)
@@ -208,6 +210,9 @@ class FoMiUkf:
         k = np.where(active[:, None], k, 0.0)
         self.v_pred = y_hat
         self.innovation, self.innovation_var, self.gain = e, p_yy, k
+        # the part of the innovation variance that is not model error (state spread and sensor):
+        # what is left of it where the model error is common to the cells and cancels
+        self.innovation_var_own = p_own
 
         # multi-innovation window (Eq. 18-19): newest first
         self.innovations[:, 1:] = self.innovations[:, :-1]

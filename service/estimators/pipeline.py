@@ -315,7 +315,8 @@ class PackEstimator:
             soc_now = ukf.soc if surface is None else ukf.soc - surface
             usable = act & (ukf.soc_std < self.settings.identify_below_soc_std)
             shift = self.capacity.update(i - params.current_bias_a, dt, ukf.innovation, ukf.innovation_var,
-                                         self.cell_ocv.slope(soc_now), ukf.gain[:, ukf.i_soc], usable)
+                                         self.cell_ocv.slope(soc_now), ukf.gain[:, ukf.i_soc], usable,
+                                         ukf.innovation_var_own)
             ukf.x[:, ukf.i_soc] = np.clip(ukf.x[:, ukf.i_soc] + shift, 0.0, 1.0)
         if self.fast is not None:
             x_id = ukf.x_single if self.settings.identifier_sees == "single" else ukf.x
