@@ -212,8 +212,9 @@ def test_daemon_restores_valid_checkpoint(tmp_path: Path) -> None:
     bus = can.Bus(interface="virtual", channel=config.bus.channel)
     try:
         d = Daemon(config, bus)
-        for k in range(20):
+        for k in range(60):  # long enough for the SOC filter to converge from its OCV start
             d.on_sample(_sample(8, 0.1 * k, 3.6 - 0.0005 * k))
+        assert not d.status_flags()["ocv_init"]
         assert d.save_checkpoint()
         d2 = Daemon(config, bus)
         assert d2.restore() == "restored"

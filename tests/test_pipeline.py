@@ -311,10 +311,14 @@ def test_divergence_is_detected_and_cell_reinitialised(nmc_profile) -> None:
     for k in range(200):
         est.step(1.0 if k else 0.0, current[k], voltage[k], temp)
     assert not est.reset_count.any()
-    for k in range(200, 203):
+    # the divergence statistic is an EMA (2 % a sample) of the normalised innovation squared, and
+    # under load the current-dependent model error widens the predicted spread: a few samples
+    for k in range(200, 210):
         v = voltage[k].copy()
         v[2] = 9.0  # absurd
         est.step(1.0, current[k], v, temp)
+        if est.reset_count[2]:
+            break
     assert est.reset_count[2] >= 1
     assert est.reset_count[0] == est.reset_count[1] == 0
     assert est.ocv_initialised[2] and not est.ocv_initialised[:2].any()
@@ -322,9 +326,9 @@ def test_divergence_is_detected_and_cell_reinitialised(nmc_profile) -> None:
     assert 0.0 <= est.soc[2] <= 1.0
     assert est.soc_std[2] > 0.05
     assert np.all(np.isfinite(est.ukf.x)) and np.all(np.isfinite(est.ukf.P))
-    count = est.reset_count[2]
+    count, first_sane = est.reset_count[2], k + 1
     # sane data again: no further resets, the cell re-converges
-    for k in range(203, 400):
+    for k in range(first_sane, 400):
         est.step(1.0, current[k], voltage[k], temp)
     assert est.reset_count[2] == count
     assert est.soc_std[2] < 0.05

@@ -210,8 +210,9 @@ class FoMiUkf:
         k = np.where(active[:, None], k, 0.0)
         self.v_pred = y_hat
         self.innovation, self.innovation_var, self.gain = e, p_yy, k
-        # the part of the innovation variance that is not model error (state spread and sensor):
-        # what is left of it where the model error is common to the cells and cancels
+        # the innovation variance without the current-dependent and learned model-error terms (the
+        # state spread and the constant voltage noise): what is left where those are common to the
+        # cells of a pack and cancel (the pack-relative capacity estimate)
         self.innovation_var_own = p_own
 
         # multi-innovation window (Eq. 18-19): newest first
