@@ -31,7 +31,8 @@ so the SOC σ includes what the capacity is not sure of.
   the capacities are learned relative to the median cell, whose own capacity stays at the
   profile's.  For the same reason ``σ²_e`` is then the innovation variance without the SOC
   filter's current-dependent and learned model-error terms (its state spread and the constant
-  voltage noise only): the model error those terms stand for is the part that cancels.  A one-cell pack learns nothing in this mode.
+  voltage noise only): the model error those terms stand for is the part that cancels.  A
+  one-cell pack learns nothing in this mode.
 - ``"absolute"``: each cell's own innovation.
 - ``"off"``: frozen at the profile's capacity (the filter then runs exactly as before).
 
@@ -104,8 +105,9 @@ class CapacityEstimator:
         apply to the filter's posterior (zeros where nothing was learned).
 
         ``innovation_var_own``: the innovation variance without the filter's current-dependent and
-        learned model-error terms (state spread and the constant voltage noise).  The pack-relative mode uses it, since the model error
-        common to the pack cancels in its measurement; without it, ``innovation_var``."""
+        learned model-error terms (state spread and the constant voltage noise).  The pack-relative
+        mode uses it, since the model error common to the pack cancels in its measurement; without
+        it, ``innovation_var``."""
         st = self.state
         s_minus = st.sens - current_a * dt_s / (SECONDS_PER_HOUR * self.nominal_ah)
         h = ocv_slope * s_minus
