@@ -16,11 +16,17 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import math
+import statistics
 import sys
 from collections import defaultdict
 from pathlib import Path
 
 METRIC = "soc_rmse_after_600s_pct"
+#: a default moves only when the pooled gain of the new value over it is larger than this many
+#: standard errors of the paired difference (:func:`paired_difference`); a smaller gain is a tie,
+#: and a tie keeps the current default (as the diagnosis rules' search does, ``research.devset``)
+MOVE_MARGIN_SE = 2.0
 
 
 class GridError(ValueError):
@@ -132,7 +138,46 @@ def leave_one_cell_out(values: list[str], conditions: list[str], grid: dict) -> 
     return rows
 
 
-def markdown(values: list[str], conditions: list[str], tuned: dict[str, list[dict]]) -> str:
+def paired_difference(values: list[str], conditions: list[str], grid: dict, reference: str) -> dict[str, dict]:
+    """Each value's pooled score minus ``reference``'s, with its standard error, paired by recording.
+
+    Pooled as :func:`leave_one_cell_out` pools: per cell the mean over its recordings (each
+    recording's mean over the conditions), then the mean over cells.  The standard error is that
+    of the cell means of the per-recording differences (``sd / sqrt(n)``), combined over cells
+    as independent.  ``{value: {"diff": Δ, "se": SE, "moves": Δ < -MOVE_MARGIN_SE·SE}}``."""
+    if reference not in values:
+        raise GridError(f"reference value '{reference}' is not in the grid ({', '.join(values)})")
+    out: dict[str, dict] = {}
+    for v in values:
+        if v == reference:
+            continue
+        diffs, variances = [], []
+        for recs in grid.values():
+            d = [(sum(bv[v].values()) - sum(bv[reference].values())) / len(conditions) for bv in recs.values()]
+            diffs.append(statistics.fmean(d))
+            variances.append(statistics.variance(d) / len(d) if len(d) > 1 else 0.0)
+        diff = statistics.fmean(diffs)
+        se = math.sqrt(sum(variances)) / len(diffs)
+        out[v] = {"diff": diff, "se": se, "moves": diff < -MOVE_MARGIN_SE * se}
+    return out
+
+
+def paired_row(paired: dict[str, dict], values: list[str], reference: str, n_before: int) -> str:
+    """The table row of :func:`paired_difference` under the ``mean at`` columns (``n_before``
+    empty cells first): Δ ± SE per value, the reference marked, a value that clears the margin bold."""
+    cells = []
+    for v in values:
+        if v == reference:
+            cells.append("(reference)")
+            continue
+        p = paired[v]
+        text = f"{p['diff']:+.3f} ± {p['se']:.3f}"
+        cells.append(f"**{text}**" if p["moves"] else text)
+    return (f"| **Δ vs {reference} ± SE** |" + " |" * n_before + " " + " | ".join(cells) + " |")
+
+
+def markdown(values: list[str], conditions: list[str], tuned: dict[str, list[dict]],
+             paired: dict[str, dict] | None = None, reference: str | None = None) -> str:
     """One table: per estimator the value chosen for each recording and its scores at it; with a
     single estimator also every recording's mean score at each value of the grid."""
     one = len(tuned) == 1
@@ -158,6 +203,8 @@ def markdown(values: list[str], conditions: list[str], tuned: dict[str, list[dic
     rows0 = per_est[0]
     at = (" | " + " | ".join(f"{sum(r['mean_by_value'][v] for r in rows0) / len(rows0):.2f}" for v in values)) if one else ""
     out.append("| **mean** | " + " | ".join(cells) + at + " |")
+    if one and paired and reference:
+        out.append(paired_row(paired, values, reference, 1 + len(conditions)))
     return "\n".join(out)
 
 
@@ -177,14 +224,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--by", choices=("recording", "cell"), default="recording",
                    help="leave one recording out within its cell (default), or one whole cell out: the value "
                         "chosen on the other cells is scored on the held-out cell (how defaults are chosen)")
+    p.add_argument("--reference", metavar="VALUE",
+                   help="the current default: add each value's pooled score minus it, with the standard error "
+                        f"of that paired difference; a value moves the default only when it is lower by more "
+                        f"than {MOVE_MARGIN_SE:g} standard errors (bold). One estimator only")
     p.add_argument("--json", metavar="OUT", help="write the rows as JSON")
     args = p.parse_args(argv)
+    if args.reference and len(args.estimator) > 1:
+        p.error("--reference compares the values of one estimator; give one --estimator")
     tuned: dict[str, list[dict]] = {}
+    paired: dict[str, dict] | None = None
     try:
         for est in args.estimator:
             values, conditions, grid = load_grid(args.pairs, est, args.metric)
             choose = leave_one_cell_out if args.by == "cell" else leave_one_out
             tuned[est] = choose(values, conditions, grid)
+            if args.reference:
+                paired = paired_difference(values, conditions, grid, args.reference)
     except GridError as exc:
         print(f"nested_tuning: error: {exc}", file=sys.stderr)
         return 2
@@ -192,10 +248,12 @@ def main(argv: list[str] | None = None) -> int:
     if any(r != recs[0] for r in recs):
         print("nested_tuning: error: the estimators were not run on the same recordings", file=sys.stderr)
         return 2
-    print(markdown(values, conditions, tuned))
+    print(markdown(values, conditions, tuned, paired, args.reference))
     if args.json:
-        Path(args.json).write_text(json.dumps({"metric": args.metric, "values": values, "conditions": conditions,
-                                               "estimators": tuned}, indent=1))
+        doc = {"metric": args.metric, "values": values, "conditions": conditions, "estimators": tuned}
+        if paired is not None:
+            doc.update(reference=args.reference, paired=paired, move_margin_se=MOVE_MARGIN_SE)
+        Path(args.json).write_text(json.dumps(doc, indent=1))
     return 0
 
 

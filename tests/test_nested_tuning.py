@@ -7,7 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from research.nested_tuning import GridError, leave_one_cell_out, leave_one_out, load_grid, main
+from research.nested_tuning import (
+    GridError,
+    leave_one_cell_out,
+    leave_one_out,
+    load_grid,
+    main,
+    paired_difference,
+)
 
 pytestmark = pytest.mark.research
 
@@ -122,3 +129,37 @@ def test_at_cell_joins_two_profiles_of_one_cell(tmp_path: Path) -> None:
     assert grid["pan"]["pan#2/r1"]["w"]["bias +0C"] == pytest.approx(0.9)
     with pytest.raises(GridError):
         load_grid(["v="], "ecm2rc-ekf")
+
+
+def test_paired_difference_separates_a_consistent_gain_from_a_noisy_one(tmp_path: Path) -> None:
+    """A value better on every recording by 0.1 clears the margin; one with the same mean gain made of
+    large swings either way is a tie, and the default stays."""
+    ref = {"a": 1.0, "b": 1.0, "c": 1.0, "d": 1.0}
+    steady = {k: v - 0.1 for k, v in ref.items()}
+    noisy = {"a": 0.2, "b": 1.8, "c": 0.4, "d": 1.2}  # mean 0.9, the same pooled gain
+    paths = {name: _results(tmp_path / f"{name}.json", "cellA", s)
+             for name, s in (("ref", ref), ("steady", steady), ("noisy", noisy))}
+    values, conds, grid = load_grid([f"{n}={p}" for n, p in paths.items()], "ecm2rc-ekf")
+    paired = paired_difference(values, conds, grid, "ref")
+    assert paired["steady"]["diff"] == pytest.approx(-0.1) and paired["steady"]["se"] == pytest.approx(0.0, abs=1e-12)
+    assert paired["steady"]["moves"]
+    assert paired["noisy"]["diff"] == pytest.approx(-0.1) and paired["noisy"]["se"] > 0.1
+    assert not paired["noisy"]["moves"]
+    with pytest.raises(GridError, match="reference value 'x' is not in the grid"):
+        paired_difference(values, conds, grid, "x")
+
+
+def test_reference_row_in_the_table_and_json(tmp_path: Path, capsys) -> None:
+    lo = _results(tmp_path / "lo.json", "c1", {"a": 0.5, "b": 0.6})
+    hi = _results(tmp_path / "hi.json", "c1", {"a": 0.4, "b": 0.5})
+    lo2 = _results(tmp_path / "lo2.json", "c2", {"z": 0.5, "y": 0.7})
+    hi2 = _results(tmp_path / "hi2.json", "c2", {"z": 0.4, "y": 0.6})
+    out = tmp_path / "t.json"
+    assert main(["--by", "cell", "--estimator", "ecm2rc-ekf", "--reference", "lo", f"lo={lo}", f"hi={hi}",
+                 f"lo={lo2}", f"hi={hi2}", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| **Δ vs lo ± SE** |" in text and "(reference)" in text and "**-0.100 ± 0.000**" in text
+    doc = json.loads(out.read_text())
+    assert doc["reference"] == "lo" and doc["paired"]["hi"]["moves"] is True
+    assert main(["--estimator", "ecm2rc-ekf", "--reference", "nope", f"lo={lo}", f"hi={hi}"]) == 2
+    assert "reference value 'nope'" in capsys.readouterr().err

@@ -188,7 +188,8 @@ def nested_table(name: str) -> Callable[[Path], str]:
     """``nested_tuning``'s own table from its ``--json``."""
     def render(out: Path) -> str:
         d = _read(out, name)
-        return tool("nested_tuning").markdown(d["values"], d["conditions"], d["estimators"])
+        return tool("nested_tuning").markdown(d["values"], d["conditions"], d["estimators"], d.get("paired"),
+                                              d.get("reference"))
     return render
 
 
@@ -302,7 +303,7 @@ G=""; for b in 0 0.01; do
 {loco_inputs(tag + default, "out/loco/{cell}_noslow_b$b.json")}
   for c in {vals}; do
 {loco_inputs(tag + "$c", json_pattern, indent="    ")}; done; done
-python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_{name}.json"""
+python -m research.nested_tuning --by cell --estimator fomiukf --reference {tag}{default} $G --json out/loco_{name}.json"""
 
 
 def loco_inputs(label: str, json_pattern: str, indent: str = "  ") -> str:
@@ -484,7 +485,7 @@ for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
 done; done
 G=""; for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
 {loco_inputs("$o", "out/loco/{cell}_${{o}}_b$b.json")}; done; done
-python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loco_defaults.json""",
+python -m research.nested_tuning --by cell --estimator fomiukf --reference noslow $G --json out/loco_defaults.json""",
           nested_table("loco_defaults.json"), 240, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
                                                      "needs:char_pan_us06")),
     Table("loco_current_noise", "tuning.md",
@@ -494,8 +495,22 @@ python -m research.nested_tuning --by cell --estimator fomiukf $G --json out/loc
           loco_sweep("voltage_noise_per_c_v", "vn", ("0.0277", "0.0554", "0.111", "0.444"), "0.222"),
           nested_table("loco_voltage_noise.json"), 50, ("needs:loco_defaults",)),
     Table("loco_identifier_prior", "tuning.md",
-          loco_sweep("param_init_std_rel", "ip", ("0.01", "0.02", "0.05", "0.1", "0.2"), "0.03"),
+          loco_sweep("param_init_std_rel", "ip", ("0.01", "0.03", "0.05", "0.1", "0.2"), "0.02"),
           nested_table("loco_identifier_prior.json"), 60, ("needs:loco_defaults",)),
+    Table("loco_model_error_shape", "tuning.md", REAL + f"""\
+mkdir -p out/cn   # the default (0.222 V per C-rate, no overpotential term) is loco_defaults' noslow run
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+for r in 0.1 0.25; do printf "voltage_noise_per_c_v = 0.0554\nvoltage_noise_rel_overpotential = $r\n" > out/cn/ro$r.toml
+  for b in 0 0.01; do
+  E="--estimator fomiukf --no-bar --settings out/cn/ro$r.toml --current-bias-c $b -q"
+{loco_evaluations("out/cn/{cell}_ro${{r}}_b$b.json")}
+done; done
+G=""; for b in 0 0.01; do
+{loco_inputs("vn0.222", "out/loco/{cell}_noslow_b$b.json")}
+  for r in 0.1 0.25; do
+{loco_inputs("ro$r", "out/cn/{cell}_ro${{r}}_b$b.json", indent="    ")}; done; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference vn0.222 $G --json out/loco_model_error_shape.json""",
+          nested_table("loco_model_error_shape.json"), 30, ("needs:loco_defaults",)),
     Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
 mkdir -p out/cn
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"

@@ -114,7 +114,7 @@ class EstimatorSettings(BaseModel):
     ukf_kappa: float = Field(0.0)
     param_process_rel: float = Field(1e-4, ge=0, description="relative σ per step of parameter random walk (fast)")
     param_init_std_rel: float = Field(
-        0.03, gt=0, le=1, description="the fast identifier's prior σ of the resistances and C_dl, relative to "
+        0.02, gt=0, le=1, description="the fast identifier's prior σ of the resistances and C_dl, relative to "
         "the profile's: how far it may move them in its first minutes; the random walk above then allows a slow "
         "drift. Chosen leave-one-cell-out with current_noise_c (docs/results/tuning.md)"
     )
