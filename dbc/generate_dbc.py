@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 import sys
 from pathlib import Path
 
@@ -206,7 +205,6 @@ HEALTH_FRAME_ID = 0x18FF55E5  # 0x18FF54E5 is SOCD_PackUsable's
 
 
 def output_database(max_cells: int = MAX_OUTPUT_CELLS) -> Database:
-    rx = ["Vector__XXX"]
     ids = list(range(max_cells))
     soc = Message(
         frame_id=SOC_FRAME_ID, name="SOCD_CellSoc", length=8, cycle_time=1000, senders=["SOCD"],

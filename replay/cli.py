@@ -28,10 +28,20 @@ from replay.faults import FaultSpec
 from replay.pack import SpreadSpec, pack_frames
 from replay.player import LOG_SUFFIXES, log_format, play, read_log
 from service.bus.cli_args import BusConfigError, add_bus_arguments, bus_flags_given, resolve_bus
+from service.commands.common_args import (
+    add_cell_argument,
+    add_common_arguments,
+    add_soc0_argument,
+    bus_gap,
+    finite_float,
+    non_negative_float,
+    positive_int,
+    probability,
+    progress_enabled,
+    setup_logging,
+    stuck_cell,
+)
 from service.errors import UserError
-from service.commands.common_args import (add_cell_argument, add_common_arguments, add_soc0_argument, bus_gap,
-                                          finite_float, non_negative_float, positive_int, probability,
-                                          progress_enabled, setup_logging, stuck_cell)
 from service.extras import install_hint, installed
 
 

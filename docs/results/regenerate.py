@@ -500,7 +500,7 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference noslo
     Table("loco_model_error_shape", "tuning.md", REAL + f"""\
 mkdir -p out/cn   # the default (0.222 V per C-rate, no overpotential term) is loco_defaults' noslow run
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
-for r in 0.1 0.25; do printf "voltage_noise_per_c_v = 0.0554\nvoltage_noise_rel_overpotential = $r\n" > out/cn/ro$r.toml
+for r in 0.1 0.25; do printf "voltage_noise_per_c_v = 0.0554\\nvoltage_noise_rel_overpotential = $r\\n" > out/cn/ro$r.toml
   for b in 0 0.01; do
   E="--estimator fomiukf --no-bar --settings out/cn/ro$r.toml --current-bias-c $b -q"
 {loco_evaluations("out/cn/{cell}_ro${{r}}_b$b.json")}
