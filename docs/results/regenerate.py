@@ -286,24 +286,28 @@ LOCO_CELLS = (("calce", "calce", CALCE), ("a123", "a123", A123), ("pan_hppc", "p
               ("pan_us06", "panus06", "$(echo $PANX | tr ' ' '\\n' | grep -v US06)"))
 
 
-def loco_sweep(field: str, tag: str, values: tuple[str, ...], default: str) -> str:
+def loco_sweep(field: str, tag: str, values: tuple[str, ...], default: str, *, fixed: str = "",
+               reference: str | None = None) -> str:
     """A pipeline setting swept leave-one-cell-out as ``loco_defaults`` scores (the default's runs
-    are its ``noslow`` ones); the table is ``out/loco_<field's table name>.json``."""
-    name = {"cn": "current_noise", "vn": "voltage_noise", "ip": "identifier_prior"}[tag]
+    are its ``noslow`` ones); the table is ``out/loco_<field's table name>.json``.  ``fixed``: settings
+    lines written before the swept one in every settings file; ``reference``: the default's column
+    label (``tag + default`` unless given)."""
+    name = {"cn": "current_noise", "vn": "voltage_noise", "ip": "identifier_prior", "ro": "model_error_shape"}[tag]
+    reference = reference or tag + default
     vals = " ".join(values)
     json_pattern = "out/cn/{cell}_" + tag + "${{c}}_b$b.json"
     return REAL + f"""\
 mkdir -p out/cn   # the default ({default}) is loco_defaults' noslow run
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
-for c in {vals}; do printf "{field} = $c\\n" > out/cn/{tag}$c.toml; for b in 0 0.01; do
+for c in {vals}; do printf "{fixed}{field} = $c\\n" > out/cn/{tag}$c.toml; for b in 0 0.01; do
   E="--estimator fomiukf --no-bar --settings out/cn/{tag}$c.toml --current-bias-c $b -q"
 {loco_evaluations(json_pattern)}
 done; done
 G=""; for b in 0 0.01; do
-{loco_inputs(tag + default, "out/loco/{cell}_noslow_b$b.json")}
+{loco_inputs(reference, "out/loco/{cell}_noslow_b$b.json")}
   for c in {vals}; do
 {loco_inputs(tag + "$c", json_pattern, indent="    ")}; done; done
-python -m research.nested_tuning --by cell --estimator fomiukf --reference {tag}{default} $G --json out/loco_{name}.json"""
+python -m research.nested_tuning --by cell --estimator fomiukf --reference {reference} $G --json out/loco_{name}.json"""
 
 
 def loco_inputs(label: str, json_pattern: str, indent: str = "  ") -> str:
@@ -497,19 +501,10 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference noslo
     Table("loco_identifier_prior", "tuning.md",
           loco_sweep("param_init_std_rel", "ip", ("0.01", "0.03", "0.05", "0.1", "0.2"), "0.02"),
           nested_table("loco_identifier_prior.json"), 60, ("needs:loco_defaults",)),
-    Table("loco_model_error_shape", "tuning.md", REAL + f"""\
-mkdir -p out/cn   # the default (0.222 V per C-rate, no overpotential term) is loco_defaults' noslow run
-PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
-for r in 0.1 0.25; do printf "voltage_noise_per_c_v = 0.0554\\nvoltage_noise_rel_overpotential = $r\\n" > out/cn/ro$r.toml
-  for b in 0 0.01; do
-  E="--estimator fomiukf --no-bar --settings out/cn/ro$r.toml --current-bias-c $b -q"
-{loco_evaluations("out/cn/{cell}_ro${{r}}_b$b.json")}
-done; done
-G=""; for b in 0 0.01; do
-{loco_inputs("vn0.222", "out/loco/{cell}_noslow_b$b.json")}
-  for r in 0.1 0.25; do
-{loco_inputs("ro$r", "out/cn/{cell}_ro${{r}}_b$b.json", indent="    ")}; done; done
-python -m research.nested_tuning --by cell --estimator fomiukf --reference vn0.222 $G --json out/loco_model_error_shape.json""",
+    Table("loco_model_error_shape", "tuning.md",
+          loco_sweep("voltage_noise_rel_overpotential", "ro", ("0.1", "0.25"),
+                     "0.222 V per C-rate, no overpotential term", fixed="voltage_noise_per_c_v = 0.0554\\n",
+                     reference="vn0.222"),
           nested_table("loco_model_error_shape.json"), 30, ("needs:loco_defaults",)),
     Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
 mkdir -p out/cn
