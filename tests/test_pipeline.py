@@ -428,3 +428,52 @@ def test_current_offset_state_keeps_covariance_spd_and_batch_equal_to_single(nmc
     for c, one in zip(cells, singles):
         assert pack.soc[c] == pytest.approx(one.soc[0], rel=1e-9, abs=1e-10), c
         assert pack.ukf.current_bias_a[c] == pytest.approx(one.ukf.current_bias_a[0], rel=1e-7, abs=1e-12), c
+
+
+# -- model error from the fit's residual ---------------------------------------------------------
+def _with_fit_rmse(profile, rmse_mv: dict[float, float | None]):
+    """``profile`` with a 2-RC section whose points carry these fit RMSEs (mV) per temperature."""
+    from service.cell.profile import Ecm2RcPoint, Ecm2RcSpec
+
+    points = [Ecm2RcPoint(temp_c=t, r0=0.02, r1=0.01, tau1_s=10.0, r2=0.01, tau2_s=100.0, fit_rmse_mv=r)
+              for t, r in rmse_mv.items()]
+    return profile.model_copy(update={"ecm2rc": Ecm2RcSpec(ocv=profile.ocv, points=points)})
+
+
+def test_fit_rmse_is_linear_in_temperature_and_held_beyond(nmc_profile) -> None:
+    spec = _with_fit_rmse(nmc_profile, {0.0: 30.0, 25.0: 10.0}).ecm2rc
+    assert spec.fit_rmse_v_at(np.array([-20.0, 0.0, 12.5, 25.0, 40.0])) == pytest.approx(
+        [0.030, 0.030, 0.020, 0.010, 0.010])
+    assert _with_fit_rmse(nmc_profile, {0.0: 30.0, 25.0: None}).ecm2rc.fit_rmse_v_at(np.array([10.0])) is None
+
+
+def test_model_error_follows_the_fit_rmse_at_each_cells_temperature(nmc_profile) -> None:
+    profile = _with_fit_rmse(nmc_profile, {0.0: 30.0, 25.0: 10.0})
+    pack = PackEstimator(profile, 2, EstimatorSettings(voltage_noise_per_fit_rmse=8.0))
+    pack.start(np.array([0.5, 0.5]))
+    pack.step(0.0, np.zeros(2), np.full(2, 3.7), np.array([25.0, 0.0]))
+    assert pack.ukf.model_error_per_c_v == pytest.approx([0.08, 0.24])
+    pack.step(1.0, np.zeros(2), np.full(2, 3.7), np.array([12.5, 0.0]))  # the first cell cools to 12.5 °C
+    assert pack.ukf.model_error_per_c_v == pytest.approx([0.16, 0.24])
+    # off by default, and without fit RMSEs the constant stands
+    assert PackEstimator(profile, 2).ukf.model_error_per_c_v is None
+    bare = PackEstimator(nmc_profile, 2, EstimatorSettings(voltage_noise_per_fit_rmse=8.0))
+    assert bare.ukf.model_error_per_c_v is None
+
+
+def test_fit_rmse_model_error_equal_to_the_constant_gives_the_same_estimate(nmc_profile) -> None:
+    """k × RMSE equal to voltage_noise_per_c_v is the same filter: the per-C-rate error is applied
+    at the cell's capacity either way."""
+    profile = _with_fit_rmse(nmc_profile, {25.0: 20.0})
+    base = EstimatorSettings(capacity_estimation="absolute")
+    current, voltage, temp, start, _ = _pack_data(profile, 3, 200, seed=3)
+    runs = []
+    for settings in (base, base.model_copy(update={"voltage_noise_per_fit_rmse": base.voltage_noise_per_c_v / 0.020}),
+                     base.model_copy(update={"voltage_noise_per_fit_rmse": 2 * base.voltage_noise_per_c_v / 0.020})):
+        pack = PackEstimator(profile, 3, settings)
+        pack.start(start)
+        for k in range(200):
+            pack.step(1.0 if k else 0.0, current[k], voltage[k], temp)
+        runs.append(pack.soc.copy())
+    assert runs[1] == pytest.approx(runs[0], rel=1e-12, abs=1e-12)
+    assert not np.allclose(runs[2], runs[0], rtol=0, atol=1e-6)

@@ -216,6 +216,15 @@ class Ecm2RcSpec(_Strict):
     def ocv_table(self) -> OcvTable:
         return OcvTable.from_points(np.array(self.ocv.soc), np.array(self.ocv.ocv_v), np.array(self.ocv.temps_c))
 
+    def fit_rmse_v_at(self, temp_c: np.ndarray) -> np.ndarray | None:
+        """The fit RMSE (V) at ``temp_c [N]``, linear in T between the fitted temperatures and held
+        beyond them; None when a point has none (a profile written by hand or before it was stored)."""
+        if any(p.fit_rmse_mv is None for p in self.points):
+            return None
+        grid = np.array([p.temp_c for p in self.points])
+        rmse = np.array([p.fit_rmse_mv for p in self.points]) / 1000.0
+        return np.interp(np.atleast_1d(np.asarray(temp_c, dtype=float)), grid, rmse)
+
     def at(self, temp_c: np.ndarray) -> dict[str, np.ndarray]:
         """``r0 [N]``, ``r [N, 2]``, ``tau [N, 2]`` at ``temp_c [N]``: log-linear in 1/T between
         the fitted temperatures (:func:`arrhenius_interp`), like the fractional parameters."""

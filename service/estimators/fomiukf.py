@@ -77,6 +77,9 @@ class FoMiUkf:
         self.innovation_var_own = np.ones(n_cells)
         self.v_pred = np.zeros(n_cells)
         self.kinetic_v: np.ndarray | None = None
+        #: per-cell model error per C-rate (V) set by the pipeline from the profile's fit RMSE at each
+        #: cell's temperature (``voltage_noise_per_fit_rmse``); None: the settings' constant
+        self.model_error_per_c_v: np.ndarray | None = None
         #: this sample's single-innovation posterior ``x- + K e`` (the multi-innovation one is ``x``):
         #: what the fast identifier's Table-1 sensitivity assumes the filter did with this sample
         self.x_single = self.x
@@ -196,7 +199,10 @@ class FoMiUkf:
         y_hat = y @ self.wm
         dy = y - y_hat[:, None]
         st = self.settings
-        model_err = st.voltage_noise_per_amp(params.capacity_ah) * i
+        if self.model_error_per_c_v is None:
+            model_err = st.voltage_noise_per_amp(params.capacity_ah) * i
+        else:
+            model_err = self.model_error_per_c_v / params.capacity_ah * i
         overpotential = i * (params.r_ohm + params.r.sum(axis=1))
         if st.voltage_noise_rel_overpotential:
             model_err = np.hypot(model_err, st.voltage_noise_rel_overpotential * overpotential)

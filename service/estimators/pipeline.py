@@ -67,6 +67,7 @@ class PackEstimator:
         arr = profile.extensions.arrhenius
         self._entropic = (arr.entropic_v_per_k, arr.ref_temp_c) if arr is not None and arr.entropic_v_per_k else None
         self.cell_ocv = self._cell_ocv()
+        self._refresh_model_error()
         #: the solid-diffusion extension (``Extensions.diffusion_surface``) or None, and its
         #: state: bulk − surface SOC per cell, a first-order lag of the measured current
         self.surface = profile.extensions.diffusion_surface
@@ -112,6 +113,15 @@ class PackEstimator:
             self.nominal = self.profile.parameters_at(np.where(moved, temp_c, self._temp_used))
             self._temp_used = np.where(moved, temp_c, self._temp_used)
             self.cell_ocv = self._cell_ocv()
+            self._refresh_model_error()
+
+    def _refresh_model_error(self) -> None:
+        """The SOC filter's model error per C-rate at each cell's temperature, from the profile's
+        fit RMSE there (``voltage_noise_per_fit_rmse``; unset: the settings' constant)."""
+        k = self.settings.voltage_noise_per_fit_rmse
+        ecm = self.profile.ecm2rc
+        rmse = ecm.fit_rmse_v_at(self._temp_used) if k > 0 and ecm is not None else None
+        self.ukf.model_error_per_c_v = None if rmse is None else k * rmse
 
     def _surface_step(self, dt_s: float, current_a: np.ndarray, params: CellParameters) -> None:
         """Advance bulk − surface SOC ``x`` as the model does (:func:`service.cell.model.surface_deficit_step`).

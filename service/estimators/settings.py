@@ -66,6 +66,13 @@ class EstimatorSettings(BaseModel):
     voltage_noise_per_amp_v: float | None = Field(
         None, ge=0, description="the same model error per amp (σ_v² = σ² + (k·|I|)²); overrides voltage_noise_per_c_v"
     )
+    voltage_noise_per_fit_rmse: float = Field(
+        0.0, ge=0, description="model error per C-rate as this multiple of the profile's 2-RC fit RMSE at the "
+        "cell's temperature (σ per C-rate = k·RMSE_fit(T), V): a temperature the model fits poorly is trusted less "
+        "under load; overrides voltage_noise_per_c_v and voltage_noise_per_amp_v when > 0 and the profile stores the "
+        "2-RC fit's RMSEs ('socd fit' does); 0: those constants at every temperature. Swept leave-one-cell-out in "
+        "docs/results/tuning.md, where it ties with the constant"
+    )
     voltage_noise_rel_overpotential: float = Field(
         0.0, ge=0, description="model error as a fraction of the modelled overpotential "
         "|I|·(R_ohm + ΣR_b): scales with the cell's resistance at its temperature"
