@@ -17,6 +17,7 @@ import argparse
 import functools
 import json
 import math
+import re
 import statistics
 import sys
 from collections import defaultdict
@@ -47,7 +48,8 @@ def _condition(doc: dict) -> str:
     return f"bias {float(doc.get('current_bias_c') or 0.0):+g}C"
 
 
-def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[list[str], list[str], dict]:
+def load_grid(pairs: list[str], estimator: str, metric: str = METRIC,
+              exclude: str | None = None) -> tuple[list[str], list[str], dict]:
     """``VALUE=JSON[@CELL]`` pairs -> (values, conditions, {cell: {recording: {value: {condition: score}}}}).
 
     The cell is the profile named in the JSON unless ``@CELL`` names it (two profiles of one
@@ -56,7 +58,8 @@ def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[l
     value, so each value may have its own profiles (e.g. fitted with other ``socd fit`` options).
 
     A condition is what a file was run under (``socd evaluate --current-bias-c``); the same
-    recording under several conditions is scored by its mean over them."""
+    recording under several conditions is scored by its mean over them.  Recordings whose name
+    matches the regular expression ``exclude`` are left out (scored elsewhere, not tuned for)."""
     values: list[str] = []
     conditions: list[str] = []
     grid: dict = defaultdict(lambda: defaultdict(lambda: defaultdict(dict)))
@@ -67,7 +70,8 @@ def load_grid(pairs: list[str], estimator: str, metric: str = METRIC) -> tuple[l
         if not sep or not value or not path:
             raise GridError(f"'{pair}': expected VALUE=RESULTS.json[@CELL]")
         doc = _read(path)
-        rows = [r for r in doc.get("results", []) if r.get("estimator") == estimator]
+        rows = [r for r in doc.get("results", []) if r.get("estimator") == estimator
+                and not (exclude and re.search(exclude, str(r.get("recording", ""))))]
         if not rows:
             raise GridError(f"{path}: no results for estimator '{estimator}'")
         cond = _condition(doc)
@@ -228,15 +232,23 @@ def main(argv: list[str] | None = None) -> int:
                    help="the current default: add each value's pooled score minus it, with the standard error "
                         f"of that paired difference; a value moves the default only when it is lower by more "
                         f"than {MOVE_MARGIN_SE:g} standard errors (bold). One estimator only")
+    p.add_argument("--exclude", metavar="REGEX",
+                   help="leave out the recordings whose name matches (e.g. '_10C_trise': DESIGN §7 scores the "
+                        "Panasonic 10 °C trise files in their own row and tunes nothing for them)")
     p.add_argument("--json", metavar="OUT", help="write the rows as JSON")
     args = p.parse_args(argv)
+    if args.exclude:
+        try:
+            re.compile(args.exclude)
+        except re.error as exc:
+            p.error(f"--exclude {args.exclude!r}: not a regular expression ({exc})")
     if args.reference and len(args.estimator) > 1:
         p.error("--reference compares the values of one estimator; give one --estimator")
     tuned: dict[str, list[dict]] = {}
     paired: dict[str, dict] | None = None
     try:
         for est in args.estimator:
-            values, conditions, grid = load_grid(args.pairs, est, args.metric)
+            values, conditions, grid = load_grid(args.pairs, est, args.metric, args.exclude)
             choose = leave_one_cell_out if args.by == "cell" else leave_one_out
             tuned[est] = choose(values, conditions, grid)
             if args.reference:
@@ -250,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(markdown(values, conditions, tuned, paired, args.reference))
     if args.json:
-        doc = {"metric": args.metric, "values": values, "conditions": conditions, "estimators": tuned}
+        doc = {"metric": args.metric, "values": values, "conditions": conditions, "estimators": tuned,
+               "excluded": args.exclude}
         if paired is not None:
             doc.update(reference=args.reference, paired=paired, move_margin_se=MOVE_MARGIN_SE)
         Path(args.json).write_text(json.dumps(doc, indent=1))

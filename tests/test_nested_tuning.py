@@ -163,3 +163,24 @@ def test_reference_row_in_the_table_and_json(tmp_path: Path, capsys) -> None:
     assert doc["reference"] == "lo" and doc["paired"]["hi"]["moves"] is True
     assert main(["--estimator", "ecm2rc-ekf", "--reference", "nope", f"lo={lo}", f"hi={hi}"]) == 2
     assert "reference value 'nope'" in capsys.readouterr().err
+
+
+def test_excluded_recordings_take_no_part_in_the_choice(tmp_path: Path, capsys) -> None:
+    """``--exclude``: a recording scored elsewhere (the Panasonic 10 °C trise files, DESIGN §7)
+    neither votes nor is scored; a pattern that is not a regular expression is refused."""
+    lo = _results(tmp_path / "lo.json", "cellA", {"a": 0.3, "b": 0.3, "x_10C_trise_1": 5.0})
+    hi = _results(tmp_path / "hi.json", "cellA", {"a": 0.4, "b": 0.4, "x_10C_trise_1": 0.1})
+    values, conds, grid = load_grid([f"lo={lo}", f"hi={hi}"], "ecm2rc-ekf")
+    chosen = {r["recording"]: r["chosen"] for r in leave_one_out(values, conds, grid)}
+    assert chosen["a"] == chosen["b"] == "hi"  # the trise file outvotes the others
+    values, conds, grid = load_grid([f"lo={lo}", f"hi={hi}"], "ecm2rc-ekf", exclude="_10C_trise")
+    rows = leave_one_out(values, conds, grid)
+    assert [r["recording"] for r in rows] == ["a", "b"] and {r["chosen"] for r in rows} == {"lo"}
+    out = tmp_path / "t.json"
+    assert main(["--estimator", "ecm2rc-ekf", "--exclude", "_10C_trise", f"lo={lo}", f"hi={hi}",
+                 "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["excluded"] == "_10C_trise"
+    assert "x_10C_trise_1" not in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["--estimator", "ecm2rc-ekf", "--exclude", "(", f"lo={lo}"])
+    assert "not a regular expression" in capsys.readouterr().err
