@@ -85,12 +85,12 @@ def test_profile_carries_the_measured_branch():
     assert prof.n_branches == 3
 
 
-def _table_error_at_rests_mv(prof: CellProfile, rec: Recording) -> list[float]:
-    """Fitted table minus the relaxed voltage at the end of each long rest after the load."""
+def _table_error_at_rests_mv(prof: CellProfile, rec: Recording, temp_c: float = 25.0) -> list[float]:
+    """Fitted table at ``temp_c`` minus the relaxed voltage at the end of each long rest after the load."""
     from service.characterisation.ocv_sources import rest_points
 
     table = prof.ocv_table()
-    return [1000 * float(table.ocv(np.array([p.soc]), 25.0)[0] - p.ocv_v) for p in rest_points(rec, 2.0, 1.0)[1:]]
+    return [1000 * float(table.ocv(np.array([p.soc]), temp_c)[0] - p.ocv_v) for p in rest_points(rec, 2.0, 1.0)[1:]]
 
 
 def test_rest_anchor_puts_the_joint_table_through_the_relaxed_rest_voltages():
@@ -105,6 +105,19 @@ def test_rest_anchor_puts_the_joint_table_through_the_relaxed_rest_voltages():
     assert max(abs(e) for e in err_anchored) < 0.5, err_anchored
     assert max(abs(e) for e in err_anchored) < max(abs(e) for e in err_free), (err_anchored, err_free)
     assert any("anchored at the relaxed rest voltage" in line for line in report.lines)
+
+
+def test_rest_anchor_anchors_every_temperature_at_its_own_rests():
+    """Two temperatures, each with its own rests (the same test 15 mV lower at 10 °C): each row of
+    the table goes through its own temperature's relaxed voltages, not the reference's."""
+    warm = _lab_test(True)
+    cold = Recording(Path("lab_cold.csv"), warm.time_s, warm.current_a, warm.voltage_v - 0.015,
+                     np.full(warm.time_s.size, 10.0))
+    prof, report = characterise([warm, cold], 2.0, [None, None], rest_anchor=True, max_seconds=4)
+    for rec, temp in ((warm, 25.0), (cold, 10.0)):
+        err = _table_error_at_rests_mv(prof, rec, temp)
+        assert len(err) == 2 and max(abs(e) for e in err) < 0.5, (temp, err)
+    assert sum("anchored at the relaxed rest voltage" in line for line in report.lines) == 2
 
 
 def test_rest_anchor_needs_a_jointly_fitted_table_and_a_long_rest():

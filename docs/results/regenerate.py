@@ -515,7 +515,12 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference noslo
     Table("loco_model_error_fit", "tuning.md",
           loco_sweep("voltage_noise_per_fit_rmse", "fr", ("4", "8", "12"), "0: 0.222 V per C-rate at every temperature",
                      reference="vn0.222"),
-          nested_table("loco_model_error_fit.json"), 30, ("needs:loco_defaults",)),
+          lambda out: nested_table("loco_model_error_fit.json")(out)
+          + "\n\nThe Panasonic HPPC profile per temperature, without the offset (mean SOC RMSE after 600 s, %, of "
+          "`fomiukf`):\n\n" + runs_table((("default (0.222 V per C-rate)", "loco/panhppc_noslow_b0.json"),)
+                                          + tuple((f"k = {k}", f"cn/panhppc_fr{k}_b0.json") for k in (4, 8, 12)),
+                                          PAN_GROUPS)(out),
+          30, ("needs:loco_defaults",)),
     Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
 mkdir -p out/cn
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
@@ -574,6 +579,15 @@ socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full
 socd evaluate --cell out/s25/pan_hppc.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC) \\
     --estimator fomiukf -q --json out/s25/pan_hppc_eval.json""",
           group_table("s25/pan_hppc_eval.json", PAN_GROUPS), 60),
+    Table("char_rest_anchor", "characterisation.md", REAL + f"""\
+socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --rest-anchor -q -o out/s25/calce_anchored.toml
+socd evaluate --cell out/s25/calce_anchored.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_anchored_eval.json
+socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 --rest-anchor -q \\
+    -o out/s25/pan_hppc_anchored.toml
+socd evaluate --cell out/s25/pan_hppc_anchored.toml $(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC) \\
+    --estimator fomiukf -q --json out/s25/pan_hppc_anchored_eval.json""",
+          lambda out: evaluate_table("s25/calce_anchored_eval.json")(out) + "\n\n"
+          + group_table("s25/pan_hppc_anchored_eval.json", PAN_GROUPS)(out), 20),
     Table("char_pan_us06", "characterisation.md", REAL + """\
 socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q \\
     -o out/s25/pan_us06.toml

@@ -279,8 +279,8 @@ def characterise(
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
     table or test is (:class:`HysteresisSpec` ``table_branch``; needs ``fit_hysteresis``
     unless ``mean``).  ``rest_anchor``: a jointly fitted OCV table (no table, no OCV test) is
-    shifted to pass through the relaxed voltages at the ends of the recordings' long rests
-    (one or more) before the parameters are fitted on it.  ``fit_kinetics``: fit the Butler-Volmer
+    shifted at each temperature to pass through the relaxed voltages at the ends of that
+    temperature's long rests (one or more) before the parameters are fitted on it.  ``fit_kinetics``: fit the Butler-Volmer
     exchange current at every temperature (True), at none (False), or (None, the default) at each
     temperature whose recordings have the current steps that resolve it (:func:`kinetics_resolvable`)."""
     if ocv_branch != "mean" and not fit_hysteresis:
@@ -382,13 +382,7 @@ def characterise(
                 "at each temperature")
         ocv_rows.update(ecm_rows)
         if rest_anchor:
-            anchors = points_by_t[ref_t]
-            if not anchors:
-                raise ValueError(f"--rest-anchor: no rest of {REST_MIN_S:g} s or more in the recordings at "
-                                 f"{ref_t:g} °C to anchor the OCV table on")
-            rep.say("joint OCV anchored at the relaxed rest voltage(s): " + ", ".join(
-                f"SOC {a.soc:.3f} {1000 * (a.ocv_v - np.interp(a.soc, grid, ocv_rows[ref_t])):+.1f} mV" for a in anchors))
-            ocv_rows[ref_t] = ocv_row_from_rests(grid, ocv_rows[ref_t], anchors, min_points=1)
+            anchor_rows_at_rests(rep, grid, ocv_rows, points_by_t)
     ecm_spec = Ecm2RcSpec(
         ocv=OcvSpec(soc=grid.tolist(), temps_c=temps,
                     ocv_v=[ecm_rows[t].tolist() for t in temps]),
@@ -551,6 +545,26 @@ def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[Pa
     if all(p.i0_a is None for p in points) or all(p.i0_a is not None for p in points):
         return points
     return [p if p.i0_a is not None else p.model_copy(update={"i0_a": LINEAR_I0_A}) for p in points]
+
+
+def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],
+                         points_by_t: dict[float, list]) -> None:
+    """``--rest-anchor``: each temperature's jointly fitted OCV row shifted through the relaxed voltages
+    at the ends of that temperature's long rests (:func:`ocv_row_from_rests`, one rest is enough); a
+    temperature without one keeps its row.  No rest at any temperature is an error."""
+    if not any(points_by_t.values()):
+        raise ValueError(f"--rest-anchor: no rest of {REST_MIN_S:g} s or more in the recordings at any temperature "
+                         f"({', '.join(f'{t:g} °C' for t in sorted(points_by_t))}) to anchor the OCV table on")
+    for t in sorted(points_by_t):
+        anchors = points_by_t[t]
+        if not anchors:
+            rep.say(f"{t:g} °C: no rest of {REST_MIN_S:g} s or more; its jointly fitted OCV is kept")
+            continue
+        off = [1000 * (a.ocv_v - np.interp(a.soc, grid, ocv_rows[t])) for a in anchors]
+        rep.say(f"joint OCV at {t:g} °C anchored at the relaxed rest voltage(s) of {len(anchors)} rest(s) from SOC "
+                f"{min(a.soc for a in anchors):.3f} to {max(a.soc for a in anchors):.3f}: the table moved "
+                f"{min(off):+.1f} to {max(off):+.1f} mV there")
+        ocv_rows[t] = ocv_row_from_rests(grid, ocv_rows[t], anchors, min_points=1)
 
 
 def on_2rc_submodel(point: ParameterPoint) -> bool:
