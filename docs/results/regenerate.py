@@ -521,6 +521,22 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference noslo
                                           + tuple((f"k = {k}", f"cn/panhppc_fr{k}_b0.json") for k in (4, 8, 12)),
                                           PAN_GROUPS)(out),
           30, ("needs:loco_defaults",)),
+    Table("loco_rest_anchor", "tuning.md", REAL + f"""\
+mkdir -p out/loco   # the anchored profiles are char_rest_anchor's, the others and the default's runs loco_defaults'
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+for b in 0 0.01; do
+  E="--estimator fomiukf --no-bar --settings out/loco/noslow.toml --current-bias-c $b -q"
+  socd evaluate --cell out/s25/calce_anchored.toml {CALCE} $E --json out/loco/calce_anchored_b$b.json
+  socd evaluate --cell out/s25/pan_hppc_anchored.toml $PANX $E --json out/loco/panhppc_anchored_b$b.json
+done
+G=""; for b in 0 0.01; do for v in joint anchored; do
+  if [ $v = joint ]; then c=out/loco/calce_noslow_b$b.json; h=out/loco/panhppc_noslow_b$b.json
+  else c=out/loco/calce_anchored_b$b.json; h=out/loco/panhppc_anchored_b$b.json; fi
+  G="$G $v=$c@calce $v=out/loco/a123_noslow_b$b.json@a123"
+  G="$G $v=$h@panasonic $v=out/loco/panus06_noslow_b$b.json@panasonic"; done; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference joint --exclude {TUNING_EXCLUDE} $G \\
+    --json out/loco_rest_anchor.json""",
+          nested_table("loco_rest_anchor.json"), 15, ("needs:loco_defaults", "needs:char_rest_anchor")),
     Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
 mkdir -p out/cn
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
