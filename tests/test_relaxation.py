@@ -97,8 +97,11 @@ def test_rest_anchor_puts_the_joint_table_through_the_relaxed_rest_voltages():
     """A cell with a slow branch, fitted without one: --rest-anchor shifts the jointly fitted OCV
     onto the voltages the rests relaxed to, closer than the free joint fit passes them."""
     rec = _lab_test(True)
-    free, _ = characterise([rec], 2.0, [None], max_seconds=4)
+    free, free_report = characterise([rec], 2.0, [None], max_seconds=4)
     anchored, report = characterise([rec], 2.0, [None], rest_anchor=True, max_seconds=4)
+    # without the flag the log says how far the joint table sits from the rests, and what would move it
+    (said,) = [line for line in free_report.lines if "relaxed voltage minus the joint OCV" in line]
+    assert "3 rest(s)" in said and "--rest-anchor" in said
     err_free = _table_error_at_rests_mv(free, rec)
     err_anchored = _table_error_at_rests_mv(anchored, rec)
     assert len(err_anchored) == 2

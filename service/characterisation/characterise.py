@@ -383,6 +383,8 @@ def characterise(
         ocv_rows.update(ecm_rows)
         if rest_anchor:
             anchor_rows_at_rests(rep, grid, ocv_rows, points_by_t)
+        else:
+            say_joint_ocv_at_rests(rep, grid, ocv_rows, points_by_t)
     ecm_spec = Ecm2RcSpec(
         ocv=OcvSpec(soc=grid.tolist(), temps_c=temps,
                     ocv_v=[ecm_rows[t].tolist() for t in temps]),
@@ -560,11 +562,29 @@ def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float,
         if not anchors:
             rep.say(f"{t:g} °C: no rest of {REST_MIN_S:g} s or more; its jointly fitted OCV is kept")
             continue
-        off = [1000 * (a.ocv_v - np.interp(a.soc, grid, ocv_rows[t])) for a in anchors]
-        rep.say(f"joint OCV at {t:g} °C anchored at the relaxed rest voltage(s) of {len(anchors)} rest(s) from SOC "
-                f"{min(a.soc for a in anchors):.3f} to {max(a.soc for a in anchors):.3f}: the table moved "
-                f"{min(off):+.1f} to {max(off):+.1f} mV there")
+        rep.say(f"joint OCV at {t:g} °C anchored at the relaxed rest voltage(s) of "
+                + rest_offsets_text(grid, ocv_rows[t], anchors, "the table moved"))
         ocv_rows[t] = ocv_row_from_rests(grid, ocv_rows[t], anchors, min_points=1)
+
+
+def say_joint_ocv_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],
+                           points_by_t: dict[float, list]) -> None:
+    """Without ``--rest-anchor``: how far each temperature's jointly fitted OCV row sits from the
+    relaxed voltages of that temperature's long rests, so a user sees what the flag would move
+    (below the lowest fitted stretch the joint row is extrapolated)."""
+    for t in sorted(points_by_t):
+        if points_by_t[t]:
+            rep.say(f"{t:g} °C: relaxed voltage minus the joint OCV at the end of "
+                    + rest_offsets_text(grid, ocv_rows[t], points_by_t[t], "")
+                    + " (--rest-anchor puts the table through them)")
+
+
+def rest_offsets_text(grid: np.ndarray, row: np.ndarray, anchors: list, lead: str) -> str:
+    """``n rest(s) from SOC a to b: <lead> x to y mV``: each rest's relaxed voltage minus ``row``."""
+    off = [1000 * (a.ocv_v - np.interp(a.soc, grid, row)) for a in anchors]
+    socs = [a.soc for a in anchors]
+    return (f"{len(anchors)} rest(s) from SOC {min(socs):.3f} to {max(socs):.3f}: "
+            f"{(lead + ' ') if lead else ''}{min(off):+.1f} to {max(off):+.1f} mV")
 
 
 def on_2rc_submodel(point: ParameterPoint) -> bool:
