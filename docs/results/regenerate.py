@@ -540,11 +540,11 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference joint
     Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
 mkdir -p out/cn
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
-for c in 0.009 0.01805 0.036 0.072; do printf "[ecm2rc_ekf]\\ncurrent_noise_c = $c\\n" > out/cn/ekf$c.toml; for b in 0 0.01; do
+for c in 0.00225 0.0045 0.009 0.01805 0.036 0.072; do printf "[ecm2rc_ekf]\\ncurrent_noise_c = $c\\n" > out/cn/ekf$c.toml; for b in 0 0.01; do
   E="--estimator ecm2rc-ekf --settings out/cn/ekf$c.toml --current-bias-c $b -q"
 {loco_evaluations("out/cn/{cell}_ekf${{c}}_b$b.json")}
 done; done
-G=""; for c in 0.009 0.01805 0.036 0.072; do for b in 0 0.01; do
+G=""; for c in 0.00225 0.0045 0.009 0.01805 0.036 0.072; do for b in 0 0.01; do
 {loco_inputs("ekf$c", "out/cn/{cell}_ekf${{c}}_b$b.json")}; done; done
 python -m research.nested_tuning --by cell --estimator ecm2rc-ekf --reference ekf0.01805 --exclude {TUNING_EXCLUDE} $G \\
     --json out/loco_ekf_current_noise.json""",
