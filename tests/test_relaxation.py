@@ -86,11 +86,13 @@ def test_profile_carries_the_measured_branch():
 
 
 def _table_error_at_rests_mv(prof: CellProfile, rec: Recording, temp_c: float = 25.0) -> list[float]:
-    """Fitted table at ``temp_c`` minus the relaxed voltage at the end of each long rest after the load."""
+    """Fitted table at ``temp_c`` minus the voltage each long rest after the load relaxes towards
+    (its relaxation limit, what ``--rest-anchor`` puts the table through)."""
     from service.characterisation.ocv_sources import rest_points
 
     table = prof.ocv_table()
-    return [1000 * float(table.ocv(np.array([p.soc]), temp_c)[0] - p.ocv_v) for p in rest_points(rec, 2.0, 1.0)[1:]]
+    return [1000 * float(table.ocv(np.array([p.soc]), temp_c)[0] - p.ocv_v)
+            for p in rest_points(rec, 2.0, 1.0, extrapolate=True)[1:]]
 
 
 def test_rest_anchor_puts_the_joint_table_through_the_relaxed_rest_voltages():
@@ -132,3 +134,19 @@ def test_rest_anchor_needs_a_jointly_fitted_table_and_a_long_rest():
         short = _lab_test(True, rest_s=300.0)
         characterise([short.slice(int(np.searchsorted(short.time_s, 600.0)))], 2.0, [None], rest_anchor=True,
                      max_seconds=2)
+
+
+def test_relaxation_limit_extrapolates_a_first_order_decay_and_keeps_a_settled_rest():
+    """A 20-min rest still relaxing (τ 10 min) ends 2.7 mV short of where it is going; the limit
+    is recovered from the rest alone.  A settled rest, and a rest whose steps do not shrink, keep
+    their end voltage."""
+    from service.characterisation.ocv_sources import relaxation_limit
+
+    t = np.arange(0.0, 1200.0, 1.0)
+    relaxing = 3.7 - 0.02 * np.exp(-t / 600.0)
+    assert 3.7 - relaxing[-1] > 2.5e-3
+    assert relaxation_limit(t, relaxing) == pytest.approx(3.7, abs=0.2e-3)
+    settled = 3.7 - 0.02 * np.exp(-t / 30.0)
+    assert relaxation_limit(t, settled) == settled[-1]
+    drifting = 3.7 + 1e-6 * t  # a straight line: equal steps, no decay to extrapolate
+    assert relaxation_limit(t, drifting) == drifting[-1]

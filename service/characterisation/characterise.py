@@ -382,7 +382,10 @@ def characterise(
                 "at each temperature")
         ocv_rows.update(ecm_rows)
         if rest_anchor:
-            anchor_rows_at_rests(rep, grid, ocv_rows, points_by_t)
+            # the voltage each rest relaxes towards, not where it stopped (cold rests end unrelaxed)
+            limits_by_t = {t: [p for part, soc in groups[t]
+                               for p in rest_points(part, capacity_ah, float(soc[0]), extrapolate=True)] for t in temps}
+            anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t)
         else:
             say_joint_ocv_at_rests(rep, grid, ocv_rows, points_by_t)
     ecm_spec = Ecm2RcSpec(
@@ -552,8 +555,8 @@ def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[Pa
 def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],
                          points_by_t: dict[float, list]) -> None:
     """``--rest-anchor``: each temperature's jointly fitted OCV row shifted through the relaxed voltages
-    at the ends of that temperature's long rests (:func:`ocv_row_from_rests`, one rest is enough); a
-    temperature without one keeps its row.  No rest at any temperature is an error."""
+    of that temperature's long rests (``points_by_t``; :func:`ocv_row_from_rests`, one rest is enough);
+    a temperature without one keeps its row.  No rest at any temperature is an error."""
     if not any(points_by_t.values()):
         raise ValueError(f"--rest-anchor: no rest of {REST_MIN_S:g} s or more in the recordings at any temperature "
                          f"({', '.join(f'{t:g} °C' for t in sorted(points_by_t))}) to anchor the OCV table on")

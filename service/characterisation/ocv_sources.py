@@ -96,15 +96,49 @@ class RestPoint:
     temp_c: float
 
 
-def rest_points(rec: Recording, capacity_ah: float, soc0: float = 1.0, min_rest_s: float = REST_MIN_S) -> list[RestPoint]:
-    """Relaxed voltages at the end of every rest of at least ``min_rest_s``.
+#: :func:`relaxation_limit`: voltage means over this long a window at 1/3, 2/3 and the end of a rest
+RELAX_WINDOW_S = 30.0
+#: a last step below this is a settled rest (the end voltage is the limit)
+RELAX_SETTLED_V = 0.3e-3
+#: a step ratio at or above this (or not positive) is no clean first-order decay: the end voltage stands
+RELAX_MAX_RATIO = 0.9
+
+
+def rest_points(rec: Recording, capacity_ah: float, soc0: float = 1.0, min_rest_s: float = REST_MIN_S,
+                extrapolate: bool = False) -> list[RestPoint]:
+    """Relaxed voltages at the end of every rest of at least ``min_rest_s``; with ``extrapolate``,
+    each rest's :func:`relaxation_limit` instead (a rest in the cold ends before it has relaxed).
 
     SOC at each rest from coulomb counting from ``soc0`` at the recording's first
     sample (backward zero-order hold, which matches the testers' Ah counters).
     """
     soc = coulomb_soc(rec.time_s, rec.current_a, capacity_ah, soc0)
-    return [RestPoint(float(soc[j]), float(rec.voltage_v[j]), float(rec.temperature_c[j]))
-            for _, j in rest_spans(rec, capacity_ah, min_rest_s)]
+    return [RestPoint(float(soc[j]),
+                      relaxation_limit(rec.time_s[k:j + 1], rec.voltage_v[k:j + 1]) if extrapolate
+                      else float(rec.voltage_v[j]), float(rec.temperature_c[j]))
+            for k, j in rest_spans(rec, capacity_ah, min_rest_s)]
+
+
+def relaxation_limit(time_s: np.ndarray, voltage_v: np.ndarray) -> float:
+    """The voltage a rest relaxes towards, by Aitken's Δ² on a first-order decay
+    ``v(t) = v∞ + a·exp(-t/τ)``: at three equally spaced times the steps ``d1, d2`` shrink by
+    ``r = d2/d1 = exp(-Δt/τ)``, so ``v∞ = v3 + d2·r/(1-r)``.  The three voltages are window means
+    (:data:`RELAX_WINDOW_S`) at a third, two thirds and the end of the rest.  A settled rest
+    (:data:`RELAX_SETTLED_V`) or steps that do not shrink geometrically (:data:`RELAX_MAX_RATIO`)
+    give the end voltage."""
+    t, v = np.asarray(time_s, dtype=float), np.asarray(voltage_v, dtype=float)
+    means = []
+    for frac in (1.0 / 3.0, 2.0 / 3.0, 1.0):
+        tc = t[0] + frac * (t[-1] - t[0])
+        window = (t >= tc - RELAX_WINDOW_S) & (t <= tc)
+        means.append(float(v[window].mean()) if window.any() else float(np.interp(tc, t, v)))
+    d1, d2 = means[1] - means[0], means[2] - means[1]
+    if abs(d2) < RELAX_SETTLED_V or d1 == 0.0:
+        return float(v[-1])
+    ratio = d2 / d1
+    if not 0.0 < ratio < RELAX_MAX_RATIO:
+        return float(v[-1])
+    return float(v[-1] + d2 * ratio / (1.0 - ratio))
 
 
 def rest_spans(rec: Recording, capacity_ah: float, min_rest_s: float) -> list[tuple[int, int]]:
