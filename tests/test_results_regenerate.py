@@ -130,3 +130,17 @@ def test_every_table_has_its_markers_in_its_results_file(regen):
             assert text.count(f"<!-- BEGIN {kind}:{t.name} -->") == 1, (t.doc, kind, t.name)
             assert text.count(f"<!-- END {kind}:{t.name} -->") == 1, (t.doc, kind, t.name)
         assert f"```sh\n{t.script}\n```" in text, f"{t.doc}: the command block of {t.name} is not the script's"
+
+
+def test_a_table_waits_for_the_tables_it_needs(regen):
+    """``--jobs 2`` must not start a table while a table it reads is still writing: each runs in a
+    wave after its selected needs; needs outside the selection do not hold a table back."""
+    by_name = {t.name: t for t in regen.TABLES}
+    chosen = [by_name[n] for n in ("loco_rest_anchor", "char_rest_anchor", "loco_defaults", "char_calce")]
+    waves = [[t.name for t in wave] for wave in regen.waves(chosen)]
+    assert waves == [["char_rest_anchor", "char_calce"], ["loco_defaults"], ["loco_rest_anchor"]]
+    assert [[t.name for t in w] for w in regen.waves([by_name["loco_rest_anchor"]])] == [["loco_rest_anchor"]]
+    a = regen.Table("a", "x.md", "true", None, 1, ("needs:b",))
+    b = regen.Table("b", "x.md", "true", None, 1, ("needs:a",))
+    with pytest.raises(regen.RegenerateError, match="cycle"):
+        regen.waves([a, b])

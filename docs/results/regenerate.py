@@ -779,10 +779,35 @@ def select(names: list[str] | None) -> list[Table]:
     return [known[n] for n in names]
 
 
+def waves(tables: list[Table]) -> list[list[Table]]:
+    """``tables`` in the order they may run: each wave after every table its ``needs:`` tags name
+    among ``tables`` (a table that reads another's files must not start while that one writes
+    them).  A need that is not a selected table (one left out of ``--only``, or a package such as
+    ``pybamm``) holds nothing back.  A cycle is an error."""
+    names = {t.name for t in tables}
+    done: set[str] = set()
+    left = list(tables)
+    out: list[list[Table]] = []
+    while left:
+        ready = [t for t in left if all(n in done for n in needs(t) if n in names)]
+        if not ready:
+            raise RegenerateError(f"needs: tags form a cycle among {', '.join(t.name for t in left)}")
+        out.append(ready)
+        done |= {t.name for t in ready}
+        left = [t for t in left if t.name not in done]
+    return out
+
+
+def needs(table: Table) -> list[str]:
+    """What ``table``'s ``needs:`` tags name: tables whose files it reads, or packages."""
+    return [tag.removeprefix("needs:") for tag in table.tags if tag.startswith("needs:")]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python docs/results/regenerate.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--only", action="append", metavar="NAME", help="a table to regenerate (repeatable; see --list)")
-    ap.add_argument("--jobs", type=int, default=1, help="tables whose commands run at once (default 1)")
+    ap.add_argument("--jobs", type=int, default=1, help="tables whose commands run at once (default 1); a table "
+                    "waits for the selected tables it needs (the needs: column of --list)")
     ap.add_argument("--list", action="store_true", help="list the tables and stop")
     ap.add_argument("--commands-only", action="store_true", help="rewrite the command blocks only; run nothing")
     ap.add_argument("--render-only", action="store_true", help="render from the JSON already in out/; run nothing")
@@ -808,8 +833,9 @@ def main(argv: list[str] | None = None) -> int:
             log_dir = ROOT / OUT / "regenerate_logs"
             log_dir.mkdir(parents=True, exist_ok=True)
             with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-                for t, _ in zip(tables, pool.map(lambda t: run_commands(t, log_dir), tables)):
-                    print(f"ran {t.name}", file=sys.stderr)
+                for wave in waves(tables):
+                    for t, _ in zip(wave, pool.map(lambda t: run_commands(t, log_dir), wave)):
+                        print(f"ran {t.name}", file=sys.stderr)
         when, commit = dt.datetime.now(dt.UTC), _commit()
         blocks: dict[str, list[tuple[str, str, str]]] = {}  # every table rendered before any file is written
         for t in tables:
