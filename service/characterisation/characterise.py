@@ -346,7 +346,12 @@ def characterise(
 
     # rest points per group → OCV rows
     ocv_rows: dict[float, np.ndarray] = {}
-    points_by_t = {t: [p for part, soc in groups[t] for p in rest_points(part, capacity_ah, float(soc[0]))] for t in temps}
+    def rests_by_t(extrapolate: bool = False) -> dict[float, list]:
+        """Each temperature's long rests: where they stopped, or (``extrapolate``) their relaxation limits."""
+        return {t: [p for part, soc in groups[t]
+                    for p in rest_points(part, capacity_ah, float(soc[0]), extrapolate=extrapolate)] for t in temps}
+
+    points_by_t = rests_by_t()
     if test_rows is not None:
         base_at = ocv_rows_by_temperature(test_rows, temps)
         for t in temps:
@@ -383,9 +388,7 @@ def characterise(
         ocv_rows.update(ecm_rows)
         if rest_anchor:
             # the voltage each rest relaxes towards, not where it stopped (cold rests end unrelaxed)
-            limits_by_t = {t: [p for part, soc in groups[t]
-                               for p in rest_points(part, capacity_ah, float(soc[0]), extrapolate=True)] for t in temps}
-            anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t)
+            anchor_rows_at_rests(rep, grid, ocv_rows, rests_by_t(extrapolate=True))
         else:
             say_joint_ocv_at_rests(rep, grid, ocv_rows, points_by_t)
     ecm_spec = Ecm2RcSpec(
