@@ -279,8 +279,8 @@ def characterise(
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
     table or test is (:class:`HysteresisSpec` ``table_branch``; needs ``fit_hysteresis``
     unless ``mean``).  ``rest_anchor``: a jointly fitted OCV table (no table, no OCV test) is
-    shifted at each temperature to pass through the relaxed voltages at the ends of that
-    temperature's long rests (one or more) before the parameters are fitted on it.  ``fit_kinetics``: fit the Butler-Volmer
+    shifted at each temperature to pass through the voltages that temperature's long rests (one
+    or more) relax towards, before the parameters are fitted on it.  ``fit_kinetics``: fit the Butler-Volmer
     exchange current at every temperature (True), at none (False), or (None, the default) at each
     temperature whose recordings have the current steps that resolve it (:func:`kinetics_resolvable`)."""
     if ocv_branch != "mean" and not fit_hysteresis:
@@ -386,11 +386,12 @@ def characterise(
         rep.say("OCV: no table or OCV test given: the monotone OCV fitted jointly with the textbook 2-RC model "
                 "at each temperature")
         ocv_rows.update(ecm_rows)
+        # the voltage each rest relaxes towards, not where it stopped (cold rests end unrelaxed)
+        limits_by_t = rests_by_t(extrapolate=True)
         if rest_anchor:
-            # the voltage each rest relaxes towards, not where it stopped (cold rests end unrelaxed)
-            anchor_rows_at_rests(rep, grid, ocv_rows, rests_by_t(extrapolate=True))
+            anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t)
         else:
-            say_joint_ocv_at_rests(rep, grid, ocv_rows, points_by_t)
+            say_joint_ocv_at_rests(rep, grid, ocv_rows, limits_by_t)
     ecm_spec = Ecm2RcSpec(
         ocv=OcvSpec(soc=grid.tolist(), temps_c=temps,
                     ocv_v=[ecm_rows[t].tolist() for t in temps]),
@@ -576,13 +577,14 @@ def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float,
 def say_joint_ocv_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],
                            points_by_t: dict[float, list]) -> None:
     """Without ``--rest-anchor``: how far each temperature's jointly fitted OCV row sits from the
-    relaxed voltages of that temperature's long rests, so a user sees what the flag would move
-    (below the lowest fitted stretch the joint row is extrapolated)."""
+    relaxed voltages of that temperature's long rests (``points_by_t``, the same points the flag
+    would anchor at), so a user sees what the flag would move (below the lowest fitted stretch
+    the joint row is extrapolated)."""
     for t in sorted(points_by_t):
         if points_by_t[t]:
-            rep.say(f"{t:g} °C: relaxed voltage minus the joint OCV at the end of "
+            rep.say(f"{t:g} °C: relaxed voltage minus the joint OCV over "
                     + rest_offsets_text(grid, ocv_rows[t], points_by_t[t], "")
-                    + " (--rest-anchor puts the table through them)")
+                    + " (each rest's relaxation limit; --rest-anchor puts the table through them)")
 
 
 def rest_offsets_text(grid: np.ndarray, row: np.ndarray, anchors: list, lead: str) -> str:
