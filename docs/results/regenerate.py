@@ -546,7 +546,7 @@ for c in 0.00225 0.0045 0.009 0.01805 0.036 0.072; do printf "[ecm2rc_ekf]\\ncur
 done; done
 G=""; for c in 0.00225 0.0045 0.009 0.01805 0.036 0.072; do for b in 0 0.01; do
 {loco_inputs("ekf$c", "out/cn/{cell}_ekf${{c}}_b$b.json")}; done; done
-python -m research.nested_tuning --by cell --estimator ecm2rc-ekf --reference ekf0.01805 --exclude {TUNING_EXCLUDE} $G \\
+python -m research.nested_tuning --by cell --estimator ecm2rc-ekf --reference ekf0.009 --exclude {TUNING_EXCLUDE} $G \\
     --json out/loco_ekf_current_noise.json""",
           nested_table("loco_ekf_current_noise.json"), 40, ("needs:char_calce", "needs:char_a123")),
     Table("loco_fit_options", "tuning.md", REAL + f"""\

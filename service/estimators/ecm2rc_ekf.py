@@ -65,16 +65,17 @@ N_STATES = 3
 class EkfTuning:
     """Noise constants and guards of the 2-RC EKF.
 
-    One set of defaults serves every cell; they were tuned on Panasonic NCR18650PF 25 °C drive
-    cycles, where the optimum is flat.  The 10 mV voltage noise stands mostly for OCV-table and
-    model error, not for the sensor.  The RC-state walk ``u_noise_v_per_sqrt_s`` is swept beside
+    One set of defaults serves every cell.  The current-sensor σ is chosen as the pipeline's
+    settings are, leave-one-cell-out over the shared cells pooled with and without a 1 % current
+    offset (``loco_ekf_current_noise`` in docs/results/tuning.md).  The 10 mV voltage noise stands
+    mostly for OCV-table and model error, not for the sensor.  The RC-state walk ``u_noise_v_per_sqrt_s`` is swept beside
     the pipeline's branch walk in docs/results/tuning.md (``research.nested_tuning``); pooled over
     the scored files the default is as good as the per-cell choices.
     """
 
     voltage_noise_v: float = 0.01
     #: current-sensor σ as a fraction of 1C (scale-free, as the pipeline's ``current_noise_c``)
-    current_noise_c: float = 0.01805
+    current_noise_c: float = 0.009
     #: the same σ in A, overriding ``current_noise_c`` when set
     current_noise_a: float | None = None
     soc_noise_per_sqrt_s: float = 1e-5
