@@ -5,7 +5,8 @@
     python -m research.summary --only fomiukf,ecm2rc-ekf out/eval_calce_slow.json+out/eval_calce.json
 
 One row per recording, one column per estimator: SOC RMSE after 600 s in percent (the
-figure of DESIGN §7), then a row of means, then voltage RMSE means.  ``A.json+B.json``
+figure of DESIGN §7), then a row of means, each estimator's mean difference from the bar
+(``ecm2rc-ekf``) with its standard error, paired by recording, and voltage RMSE means.  ``A.json+B.json``
 puts B's estimators beside A's in one table, each labelled with B's cell profile (the
 same estimator scored with another profile).  ``--only A,B`` keeps those estimators' columns
 (from every file).
@@ -14,11 +15,31 @@ same estimator scored with another profile).  ``--only A,B`` keeps those estimat
 from __future__ import annotations
 
 import json
+import math
+import statistics
 import sys
 from collections import defaultdict
 from pathlib import Path
 
 ORDER = ["fomiukf", "foukf", "fom-single-scale", "ecm2rc-ekf", "huwang-rls", "coulomb"]
+#: the estimator every other is compared with (``socd evaluate``'s bar)
+BAR = "ecm2rc-ekf"
+
+
+def paired_difference(pairs: list[tuple[float, float]]) -> tuple[float, float]:
+    """Mean of ``a - b`` over ``(a, b)`` pairs (one per recording) and its standard error
+    ``sd / sqrt(n)`` (0 for a single pair)."""
+    d = [a - b for a, b in pairs]
+    se = statistics.stdev(d) / math.sqrt(len(d)) if len(d) > 1 else 0.0
+    return statistics.fmean(d), se
+
+
+def paired_cell(pairs: list[tuple[float, float]]) -> str:
+    """``+0.04 ± 0.03`` for :func:`paired_difference` of ``pairs``; ``-`` without a pair."""
+    if not pairs:
+        return "-"
+    diff, se = paired_difference(pairs)
+    return f"{diff:+.2f} ± {se:.2f}"
 
 
 def _results(path: Path, label: bool, only: set[str] | None = None) -> list[dict]:
@@ -54,8 +75,31 @@ def table(spec: str, only: set[str] | None = None) -> str:
                 vs[e].append(mv)
         lines.append(f"| {rec} | " + " | ".join(cells) + " |")
     lines.append("| **mean** | " + " | ".join(f"**{sum(sums[e]) / len(sums[e]):.2f}**" if sums[e] else "-" for e in ests) + " |")
+    bars = {e: _bar_of(e, ests) for e in ests}
+    if any(b is not None for b in bars.values()):
+        lines.append(f"| Δ vs {BAR} ± SE | " + " | ".join(
+            "-" if bars[e] is None else paired_cell(_pairs(by, e, bars[e])) for e in ests) + " |")
     lines.append("| V RMSE mean [mV] | " + " | ".join(f"{sum(vs[e]) / len(vs[e]):.1f}" if vs[e] else "-" for e in ests) + " |")
     return "\n".join(lines)
+
+
+def _bar_of(estimator: str, ests: list[str]) -> str | None:
+    """The bar column an estimator's column is compared with: the bar scored with the same
+    profile (``X (tag)`` against ``ecm2rc-ekf (tag)``); None for the bar itself or without one."""
+    tag = estimator[estimator.index(" ("):] if " (" in estimator else ""
+    bar = BAR + tag
+    return bar if bar in ests and bar != estimator else None
+
+
+def _pairs(by: dict[str, dict[str, dict]], a: str, b: str) -> list[tuple[float, float]]:
+    """``(a, b)`` SOC RMSE after 600 s per recording where both were scored."""
+    out = []
+    for row in by.values():
+        va = row.get(a, {}).get("soc_rmse_after_600s_pct")
+        vb = row.get(b, {}).get("soc_rmse_after_600s_pct")
+        if va is not None and vb is not None:
+            out.append((va, vb))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

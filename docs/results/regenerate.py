@@ -75,21 +75,29 @@ def evaluate_table(*specs: str, only: str | None = None) -> Callable[[Path], str
 
 def group_table(name: str, groups: tuple[tuple[str, str], ...]) -> Callable[[Path], str]:
     """Mean and worst SOC RMSE after 600 s per estimator for each group of recordings (a regular
-    expression on the recording's name), from one ``socd evaluate --json``."""
+    expression on the recording's name), from one ``socd evaluate --json``; where the bar ran, each
+    other estimator's mean difference from it with its standard error, paired by recording."""
     def render(out: Path) -> str:
+        summary = tool("summary")
         rows = _read(out, name)["results"]
         estimators = list(dict.fromkeys(r["estimator"] for r in rows))
-        head = "| recordings | files | " + " | ".join(f"`{e}` mean / worst" for e in estimators) + " |"
-        lines = [head, "|" + "---|" * (2 + len(estimators))]
+        compared = [e for e in estimators if e != summary.BAR] if summary.BAR in estimators else []
+        head = ("| recordings | files | " + " | ".join(f"`{e}` mean / worst" for e in estimators)
+                + "".join(f" | `{e}` − `{summary.BAR}` ± SE" for e in compared) + " |")
+        lines = [head, "|" + "---|" * (2 + len(estimators) + len(compared))]
         for label, pattern in groups:
-            chosen = [r for r in rows if re.search(pattern, r["recording"])]
+            chosen = [r for r in rows if re.search(pattern, r["recording"])
+                      and r["soc_rmse_after_600s_pct"] is not None]
             if not chosen:
                 continue
+            score = {(r["recording"], r["estimator"]): r["soc_rmse_after_600s_pct"] for r in chosen}
             cells = []
             for e in estimators:
-                vals = [r["soc_rmse_after_600s_pct"] for r in chosen
-                        if r["estimator"] == e and r["soc_rmse_after_600s_pct"] is not None]
+                vals = [v for (_, est), v in score.items() if est == e]
                 cells.append(f"{sum(vals) / len(vals):.2f} / {max(vals):.2f}" if vals else "-")
+            for e in compared:
+                cells.append(summary.paired_cell([(v, score[rec, summary.BAR]) for (rec, est), v in score.items()
+                                                  if est == e and (rec, summary.BAR) in score]))
             files = len({r["recording"] for r in chosen})
             lines.append(f"| {label} | {files} | " + " | ".join(cells) + " |")
         return "\n".join(lines)
