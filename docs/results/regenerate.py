@@ -529,6 +529,22 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference noslo
                                           + tuple((f"k = {k}", f"cn/panhppc_fr{k}_b0.json") for k in (4, 8, 12)),
                                           PAN_GROUPS)(out),
           30, ("needs:loco_defaults",)),
+    Table("loco_noise_joint", "tuning.md", REAL + f"""\
+mkdir -p out/cn   # the default (0.0288 C, 0.222 V per C-rate) is loco_defaults' noslow run
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+PAIRS="0.0072:0.0554 0.0072:0.111 0.0144:0.0554 0.0144:0.111"   # current_noise_c:voltage_noise_per_c_v
+for cv in $PAIRS; do c=${{cv%:*}}; v=${{cv#*:}}
+  printf "current_noise_c = $c\\nvoltage_noise_per_c_v = $v\\n" > out/cn/cv$c-$v.toml; for b in 0 0.01; do
+  E="--estimator fomiukf --no-bar --settings out/cn/cv$c-$v.toml --current-bias-c $b -q"
+{loco_evaluations("out/cn/{cell}_cv$c-${{v}}_b$b.json")}
+done; done
+G=""; for b in 0 0.01; do
+{loco_inputs("default", "out/loco/{cell}_noslow_b$b.json")}
+  for cv in $PAIRS; do c=${{cv%:*}}; v=${{cv#*:}}
+{loco_inputs("cv$c-$v", "out/cn/{cell}_cv$c-${{v}}_b$b.json", indent="    ")}; done; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference default --exclude {TUNING_EXCLUDE} $G \\
+    --json out/loco_noise_joint.json""",
+          nested_table("loco_noise_joint.json"), 60, ("needs:loco_defaults",)),
     Table("loco_rest_anchor", "tuning.md", REAL + f"""\
 mkdir -p out/loco   # the anchored profiles are char_rest_anchor's, the others and the default's runs loco_defaults'
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
