@@ -96,14 +96,14 @@ def _table_error_at_rests_mv(prof: CellProfile, rec: Recording, temp_c: float = 
 
 
 def test_rest_anchor_puts_the_joint_table_through_the_relaxed_rest_voltages():
-    """A cell with a slow branch, fitted without one: --rest-anchor shifts the jointly fitted OCV
-    onto the voltages the rests relaxed to, closer than the free joint fit passes them."""
+    """A cell with a slow branch, fitted without one: the rest anchor (the default) shifts the jointly
+    fitted OCV onto the voltages the rests relaxed to, closer than the free joint fit passes them."""
     rec = _lab_test(True)
-    free, free_report = characterise([rec], 2.0, [None], max_seconds=4)
-    anchored, report = characterise([rec], 2.0, [None], rest_anchor=True, max_seconds=4)
-    # without the flag the log says how far the joint table sits from the rests, and what would move it
+    free, free_report = characterise([rec], 2.0, [None], rest_anchor=False, max_seconds=4)
+    anchored, report = characterise([rec], 2.0, [None], max_seconds=4)
+    # with --no-rest-anchor the log says how far the joint table sits from the rests
     (said,) = [line for line in free_report.lines if "relaxed voltage minus the joint OCV" in line]
-    assert "3 rest(s)" in said and "--rest-anchor" in said
+    assert "3 rest(s)" in said and "--no-rest-anchor" in said
     err_free = _table_error_at_rests_mv(free, rec)
     err_anchored = _table_error_at_rests_mv(anchored, rec)
     assert len(err_anchored) == 2
@@ -123,6 +123,22 @@ def test_rest_anchor_anchors_every_temperature_at_its_own_rests():
         err = _table_error_at_rests_mv(prof, rec, temp)
         assert len(err) == 2 and max(abs(e) for e in err) < 0.5, (temp, err)
     assert sum("anchored at the relaxed rest voltage" in line for line in report.lines) == 2
+
+
+def test_default_anchors_where_a_long_rest_exists_and_keeps_the_joint_table_where_none_does():
+    rec = _lab_test(True)
+    default, _ = characterise([rec], 2.0, [None], max_seconds=4)
+    required, _ = characterise([rec], 2.0, [None], rest_anchor=True, max_seconds=4)
+    assert default.ocv.ocv_v == required.ocv.ocv_v
+    short = _lab_test(True, rest_s=300.0)
+    short = short.slice(int(np.searchsorted(short.time_s, 600.0)))
+    kept, report = characterise([short], 2.0, [None], max_seconds=2)
+    free, _ = characterise([short], 2.0, [None], rest_anchor=False, max_seconds=2)
+    assert kept.ocv.ocv_v == free.ocv.ocv_v
+    assert any("no rest of 600 s or more to anchor" in line for line in report.lines)
+    # an OCV table given: nothing to anchor, and no error without the flag
+    table = (np.array(nmc_like_ocv().soc), np.array(nmc_like_ocv().ocv_v[0]))
+    characterise([rec], 2.0, [None], ocv_table=table, max_seconds=2)
 
 
 def test_rest_anchor_needs_a_jointly_fitted_table_and_a_long_rest():

@@ -363,10 +363,10 @@ TABLES: tuple[Table, ...] = (
     Table("profiles", "soc_accuracy.md", REAL + f"""\
 {PAN_FIT} --kinetics -o configs/cells/panasonic_18650pf.toml
 {PAN_FIT} --no-kinetics -o configs/cells/panasonic_18650pf_nokinetics.toml
-{CALCE_FIT} -o configs/cells/calce_inr18650_20r.toml   # no OCV test: joint OCV fit
+{CALCE_FIT} --no-rest-anchor -o configs/cells/calce_inr18650_20r.toml   # no OCV test: joint OCV fit
 socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
     --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --max-seconds 90 --no-kinetics -o configs/cells/calce_a123.toml
-{CALCE_FIT} --slow-branch -o configs/cells/calce_inr18650_20r_slow.toml
+{CALCE_FIT} --no-rest-anchor --slow-branch -o configs/cells/calce_inr18650_20r_slow.toml
 {CALCE_FIT} --rest-anchor -o configs/cells/calce_inr18650_20r_anchored.toml""", None, 20),
     Table("profiles_refit", "soc_accuracy.md", REAL + f"""\
 mkdir -p out/refit
@@ -546,21 +546,21 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference defau
     --json out/loco_noise_joint.json""",
           nested_table("loco_noise_joint.json"), 60, ("needs:loco_defaults",)),
     Table("loco_rest_anchor", "tuning.md", REAL + f"""\
-mkdir -p out/loco   # the anchored profiles are char_rest_anchor's, the others and the default's runs loco_defaults'
-PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
-for b in 0 0.01; do
+mkdir -p out/loco   # anchored: char_calce's and char_pan_hppc's profiles; joint: char_joint_ocv's; A123 and the
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"   # OCV-test profile: loco_defaults' runs
+for b in 0 0.01; do for v in anchored joint; do
+  if [ $v = anchored ]; then c=calce; h=pan_hppc; else c=calce_joint; h=pan_hppc_joint; fi
   E="--estimator fomiukf --no-bar --settings out/loco/noslow.toml --current-bias-c $b -q"
-  socd evaluate --cell out/s25/calce_anchored.toml {CALCE} $E --json out/loco/calce_anchored_b$b.json
-  socd evaluate --cell out/s25/pan_hppc_anchored.toml $PANX $E --json out/loco/panhppc_anchored_b$b.json
-done
-G=""; for b in 0 0.01; do for v in joint anchored; do
-  if [ $v = joint ]; then c=out/loco/calce_noslow_b$b.json; h=out/loco/panhppc_noslow_b$b.json
-  else c=out/loco/calce_anchored_b$b.json; h=out/loco/panhppc_anchored_b$b.json; fi
-  G="$G $v=$c@calce $v=out/loco/a123_noslow_b$b.json@a123"
-  G="$G $v=$h@panasonic $v=out/loco/panus06_noslow_b$b.json@panasonic"; done; done
-python -m research.nested_tuning --by cell --estimator fomiukf --reference joint --exclude {TUNING_EXCLUDE} $G \\
+  socd evaluate --cell out/s25/$c.toml {CALCE} $E --json out/loco/calce_${{v}}_b$b.json
+  socd evaluate --cell out/s25/$h.toml $PANX $E --json out/loco/panhppc_${{v}}_b$b.json
+done; done
+G=""; for b in 0 0.01; do for v in anchored joint; do
+  G="$G $v=out/loco/calce_${{v}}_b$b.json@calce $v=out/loco/a123_noslow_b$b.json@a123"
+  G="$G $v=out/loco/panhppc_${{v}}_b$b.json@panasonic $v=out/loco/panus06_noslow_b$b.json@panasonic"; done; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference anchored --exclude {TUNING_EXCLUDE} $G \\
     --json out/loco_rest_anchor.json""",
-          nested_table("loco_rest_anchor.json"), 15, ("needs:loco_defaults", "needs:char_rest_anchor")),
+          nested_table("loco_rest_anchor.json"), 30,
+          ("needs:loco_defaults", "needs:char_calce", "needs:char_pan_hppc", "needs:char_joint_ocv")),
     Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
 mkdir -p out/cn
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
@@ -619,15 +619,15 @@ socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full
 socd evaluate --cell out/s25/pan_hppc.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC) \\
     --estimator fomiukf -q --json out/s25/pan_hppc_eval.json""",
           group_table("s25/pan_hppc_eval.json", PAN_GROUPS), 60),
-    Table("char_rest_anchor", "characterisation.md", REAL + f"""\
-socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --rest-anchor -q -o out/s25/calce_anchored.toml
-socd evaluate --cell out/s25/calce_anchored.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_anchored_eval.json
-socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 --rest-anchor -q \\
-    -o out/s25/pan_hppc_anchored.toml
-socd evaluate --cell out/s25/pan_hppc_anchored.toml $(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC) \\
-    --estimator fomiukf -q --json out/s25/pan_hppc_anchored_eval.json""",
-          lambda out: evaluate_table("s25/calce_anchored_eval.json")(out) + "\n\n"
-          + group_table("s25/pan_hppc_anchored_eval.json", PAN_GROUPS)(out), 20),
+    Table("char_joint_ocv", "characterisation.md", REAL + f"""\
+socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
+socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json
+socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 --no-rest-anchor -q \\
+    -o out/s25/pan_hppc_joint.toml
+socd evaluate --cell out/s25/pan_hppc_joint.toml $(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC) \\
+    --estimator fomiukf -q --json out/s25/pan_hppc_joint_eval.json""",
+          lambda out: evaluate_table("s25/calce_joint_eval.json")(out) + "\n\n"
+          + group_table("s25/pan_hppc_joint_eval.json", PAN_GROUPS)(out), 20),
     Table("char_pan_us06", "characterisation.md", REAL + """\
 socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q \\
     -o out/s25/pan_us06.toml

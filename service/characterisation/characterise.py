@@ -273,21 +273,24 @@ def characterise(
     seed: int = 0,
     slow_branch: bool = False,
     ocv_branch: str = "mean",
-    rest_anchor: bool = False,
+    rest_anchor: bool | None = None,
     report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
     table or test is (:class:`HysteresisSpec` ``table_branch``; needs ``fit_hysteresis``
     unless ``mean``).  ``rest_anchor``: a jointly fitted OCV table (no table, no OCV test) is
     shifted at each temperature to pass through the voltages that temperature's long rests (one
-    or more) relax towards, before the parameters are fitted on it.  ``fit_kinetics``: fit the Butler-Volmer
+    or more) relax towards, before the parameters are fitted on it (the issue's order of OCV
+    sources: an OCV test, else the rests, else the joint fit).  ``None`` (the default) anchors where
+    the table is fitted jointly and a long rest exists; ``True`` requires both; ``False`` keeps the
+    joint table and only reports its offsets from the rests.  ``fit_kinetics``: fit the Butler-Volmer
     exchange current at every temperature (True), at none (False), or (None, the default) at each
     temperature whose recordings have the current steps that resolve it (:func:`kinetics_resolvable`)."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
     rep = report if report is not None else FitReport()
     ocv_tests = [r for r in recordings if is_ocv_test(r, capacity_ah)]
-    if rest_anchor and (ocv_table is not None or ocv_tests):
+    if rest_anchor is True and (ocv_table is not None or ocv_tests):
         raise ValueError("--rest-anchor anchors a jointly fitted OCV table; with an OCV table or test given, "
                          "the table is already shifted to the rests of each temperature")
     dynamic = [(r, fa) for r, fa in zip(recordings, full_at) if not is_ocv_test(r, capacity_ah)]
@@ -388,8 +391,10 @@ def characterise(
         ocv_rows.update(ecm_rows)
         # the voltage each rest relaxes towards, not where it stopped (cold rests end unrelaxed)
         limits_by_t = rests_by_t(extrapolate=True)
-        if rest_anchor:
+        if rest_anchor is True or (rest_anchor is None and any(limits_by_t.values())):
             anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t)
+        elif rest_anchor is None:
+            rep.say(f"OCV: no rest of {REST_MIN_S:g} s or more to anchor the joint table at; it stands as fitted")
         else:
             say_joint_ocv_at_rests(rep, grid, ocv_rows, limits_by_t)
     ecm_spec = Ecm2RcSpec(
@@ -558,9 +563,10 @@ def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[Pa
 
 def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],
                          points_by_t: dict[float, list]) -> None:
-    """``--rest-anchor``: each temperature's jointly fitted OCV row shifted through the relaxed voltages
-    of that temperature's long rests (``points_by_t``; :func:`ocv_row_from_rests`, one rest is enough);
-    a temperature without one keeps its row.  No rest at any temperature is an error."""
+    """The rest anchor (``socd fit``'s default, ``--rest-anchor``): each temperature's jointly
+    fitted OCV row shifted through the relaxed voltages of that temperature's long rests
+    (``points_by_t``; :func:`ocv_row_from_rests`, one rest is enough); a temperature without one
+    keeps its row.  No rest at any temperature is an error."""
     if not any(points_by_t.values()):
         raise ValueError(f"--rest-anchor: no rest of {REST_MIN_S:g} s or more in the recordings at any temperature "
                          f"({', '.join(f'{t:g} °C' for t in sorted(points_by_t))}) to anchor the OCV table on")
@@ -576,7 +582,7 @@ def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float,
 
 def say_joint_ocv_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],
                            points_by_t: dict[float, list]) -> None:
-    """Without ``--rest-anchor``: how far each temperature's jointly fitted OCV row sits from the
+    """With ``--no-rest-anchor``: how far each temperature's jointly fitted OCV row sits from the
     relaxed voltages of that temperature's long rests (``points_by_t``, the same points the flag
     would anchor at), so a user sees what the flag would move (below the lowest fitted stretch
     the joint row is extrapolated)."""
@@ -584,7 +590,7 @@ def say_joint_ocv_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[floa
         if points_by_t[t]:
             rep.say(f"{t:g} °C: relaxed voltage minus the joint OCV over "
                     + rest_offsets_text(grid, ocv_rows[t], points_by_t[t], "")
-                    + " (each rest's relaxation limit; --rest-anchor puts the table through them)")
+                    + " (each rest's relaxation limit; without --no-rest-anchor the table goes through them)")
 
 
 def rest_offsets_text(grid: np.ndarray, row: np.ndarray, anchors: list, lead: str) -> str:

@@ -72,11 +72,12 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "in rests of 30 min or more at the reference temperature, then fit the rest of the model with it; "
                    "for cells characterised without an OCV test, whose jointly fitted OCV otherwise absorbs the slow "
                    "polarisation (docs/results/cell_options.md: CALCE INR18650-20R)")
-    p.add_argument("--rest-anchor", action="store_true",
+    p.add_argument("--rest-anchor", action=argparse.BooleanOptionalAction, default=None,
                    help="with no OCV table or test (the OCV fitted jointly with the model): shift the fitted table at "
                    "each temperature to pass through the voltages that temperature's rests of 600 s or more relax "
                    "towards (each rest's decay extrapolated; the outermost offset holds beyond them; a temperature "
-                   "without one keeps its table); off by default (docs/results/cell_options.md, characterisation.md)")
+                   "without one keeps its table). Default: on where such a rest exists; --rest-anchor requires one, "
+                   "--no-rest-anchor keeps the joint table (docs/results/characterisation.md, tuning.md)")
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
                         "says whether the bound cut one (its end point then depends on the machine's load)")
     p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
