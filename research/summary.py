@@ -6,9 +6,10 @@
 
 One row per recording, one column per estimator: SOC RMSE after 600 s in percent (the
 figure of DESIGN §7), then a row of means, each estimator's mean difference from the bar
-(``ecm2rc-ekf``) with its standard error, paired by recording, and voltage RMSE means.  ``A.json+B.json``
-puts B's estimators beside A's in one table, each labelled with B's cell profile (the
-same estimator scored with another profile).  ``--only A,B`` keeps those estimators' columns
+(``ecm2rc-ekf``) with its standard error, paired by recording, and voltage RMSE means.
+``A.json+B.json`` puts B's estimators beside A's in one table, each labelled with B's cell
+profile (the same estimator scored with another profile); each is compared with the bar
+scored with its own profile.  ``--only A,B`` keeps those estimators' columns
 (from every file).
 """
 

@@ -280,8 +280,8 @@ def characterise(
     table or test is (:class:`HysteresisSpec` ``table_branch``; needs ``fit_hysteresis``
     unless ``mean``).  ``rest_anchor``: a jointly fitted OCV table (no table, no OCV test) is
     shifted at each temperature to pass through the voltages that temperature's long rests (one
-    or more) relax towards, before the parameters are fitted on it (the issue's order of OCV
-    sources: an OCV test, else the rests, else the joint fit).  ``None`` (the default) anchors where
+    or more) relax towards, before the parameters are fitted on it (the order of OCV sources: an
+    OCV test, else the rests, else the joint fit).  ``None`` (the default) anchors where
     the table is fitted jointly and a long rest exists; ``True`` requires both; ``False`` keeps the
     joint table and only reports its offsets from the rests.  ``fit_kinetics``: fit the Butler-Volmer
     exchange current at every temperature (True), at none (False), or (None, the default) at each
