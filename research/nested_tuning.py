@@ -23,6 +23,8 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+from research.summary import paired_difference as paired_difference_of
+
 METRIC = "soc_rmse_after_600s_pct"
 #: a default moves only when the pooled gain of the new value over it is larger than this many
 #: standard errors of the paired difference (:func:`paired_difference`); a smaller gain is a tie,
@@ -157,9 +159,11 @@ def paired_difference(values: list[str], conditions: list[str], grid: dict, refe
             continue
         diffs, variances = [], []
         for recs in grid.values():
-            d = [(sum(bv[v].values()) - sum(bv[reference].values())) / len(conditions) for bv in recs.values()]
-            diffs.append(statistics.fmean(d))
-            variances.append(statistics.variance(d) / len(d) if len(d) > 1 else 0.0)
+            cell_diff, cell_se = paired_difference_of([(sum(bv[v].values()) / len(conditions),
+                                                        sum(bv[reference].values()) / len(conditions))
+                                                       for bv in recs.values()])
+            diffs.append(cell_diff)
+            variances.append(cell_se * cell_se)
         diff = statistics.fmean(diffs)
         se = math.sqrt(sum(variances)) / len(diffs)
         out[v] = {"diff": diff, "se": se, "moves": diff < -MOVE_MARGIN_SE * se}

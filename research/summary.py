@@ -79,7 +79,7 @@ def table(spec: str, only: set[str] | None = None) -> str:
     bars = {e: _bar_of(e, ests) for e in ests}
     if any(b is not None for b in bars.values()):
         lines.append(f"| Δ vs {BAR} ± SE | " + " | ".join(
-            "-" if bars[e] is None else paired_cell(_pairs(by, e, bars[e])) for e in ests) + " |")
+            "-" if bars[e] is None else paired_cell(bar_pairs(by, e, bars[e])) for e in ests) + " |")
     lines.append("| V RMSE mean [mV] | " + " | ".join(f"{sum(vs[e]) / len(vs[e]):.1f}" if vs[e] else "-" for e in ests) + " |")
     return "\n".join(lines)
 
@@ -92,8 +92,9 @@ def _bar_of(estimator: str, ests: list[str]) -> str | None:
     return bar if bar in ests and bar != estimator else None
 
 
-def _pairs(by: dict[str, dict[str, dict]], a: str, b: str) -> list[tuple[float, float]]:
-    """``(a, b)`` SOC RMSE after 600 s per recording where both were scored."""
+def bar_pairs(by: dict[str, dict[str, dict]], a: str, b: str) -> list[tuple[float, float]]:
+    """``(a, b)`` SOC RMSE after 600 s per recording where both were scored (``by``: recording →
+    estimator → result row)."""
     out = []
     for row in by.values():
         va = row.get(a, {}).get("soc_rmse_after_600s_pct")

@@ -90,14 +90,14 @@ def group_table(name: str, groups: tuple[tuple[str, str], ...]) -> Callable[[Pat
                       and r["soc_rmse_after_600s_pct"] is not None]
             if not chosen:
                 continue
-            score = {(r["recording"], r["estimator"]): r["soc_rmse_after_600s_pct"] for r in chosen}
+            by: dict[str, dict[str, dict]] = {}
+            for r in chosen:
+                by.setdefault(r["recording"], {})[r["estimator"]] = r
             cells = []
             for e in estimators:
-                vals = [v for (_, est), v in score.items() if est == e]
+                vals = [r["soc_rmse_after_600s_pct"] for r in chosen if r["estimator"] == e]
                 cells.append(f"{sum(vals) / len(vals):.2f} / {max(vals):.2f}" if vals else "-")
-            for e in compared:
-                cells.append(summary.paired_cell([(v, score[rec, summary.BAR]) for (rec, est), v in score.items()
-                                                  if est == e and (rec, summary.BAR) in score]))
+            cells += [summary.paired_cell(summary.bar_pairs(by, e, summary.BAR)) for e in compared]
             files = len({r["recording"] for r in chosen})
             lines.append(f"| {label} | {files} | " + " | ".join(cells) + " |")
         return "\n".join(lines)

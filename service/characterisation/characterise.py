@@ -354,8 +354,8 @@ def characterise(
         return {t: [p for part, soc in groups[t]
                     for p in rest_points(part, capacity_ah, float(soc[0]), extrapolate=extrapolate)] for t in temps}
 
-    points_by_t = rests_by_t()
     if test_rows is not None:
+        points_by_t = rests_by_t()
         base_at = ocv_rows_by_temperature(test_rows, temps)
         for t in temps:
             ocv_rows[t] = ocv_row_from_rests(grid, base_at[t], points_by_t[t])
