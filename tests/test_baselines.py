@@ -225,6 +225,22 @@ def test_vectorised_ekf_equals_single_cell_runs():
         np.testing.assert_allclose(single.v_pred, vps[:, c], rtol=0, atol=1e-12)
 
 
+def test_ekf_ocv_slope_span_reads_across_a_flat_step():
+    """A fitted table's flat step (a monotone fit's active constraint) gives the point Jacobian no slope:
+    at rest, started on the step, the EKF stays on it (it drifts only through the RC states' correlation
+    with SOC).  The secant over ± a span reads the rise past the step's end and reaches the true SOC."""
+    ocv = np.where(SOC_PTS < 0.4, 3.3 + 0.8 * SOC_PTS, np.where(SOC_PTS <= 0.5, 3.62, 3.62 + 0.8 * (SOC_PTS - 0.5)))
+    profile = make_profile(0.02, 0.01, 5.0, 0.01, 100.0).model_copy(
+        update={"ocv": OcvSpec(soc=list(SOC_PTS), ocv_v=[list(ocv)])})
+    t = np.arange(0.0, 600.0, 1.0)
+    v = np.full(t.size, 3.62 + 0.8 * 0.04)  # relaxed at SOC 0.54
+    rec = Recording(Path("x.csv"), t, np.zeros(t.size), v, np.full(t.size, 25.0))
+    point = Ecm2RcEkf(soc0_std=0.05).run(rec, profile, 0.47)
+    secant = Ecm2RcEkf(soc0_std=0.05, ocv_slope_span_soc=0.05).run(rec, profile, 0.47)
+    assert point.soc[-1] < 0.5
+    assert abs(secant.soc[-1] - 0.54) < 0.005
+
+
 def test_ekf_rejects_unknown_tuning():
     with pytest.raises(TypeError, match="voltage_noise"):
         Ecm2RcEkf(voltage_nois_v=0.01)

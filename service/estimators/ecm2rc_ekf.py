@@ -91,6 +91,11 @@ class EkfTuning:
     adaptive_noise_shape: str = "uniform"
     #: SOC in [0, 1] (DESIGN), the same bound as the pipeline's filter
     soc_clip: tuple[float, float] = (0.0, 1.0)
+    #: the measurement Jacobian's dOCV/dSOC: 0 = the table's slope at the estimate (the textbook
+    #: linearisation); > 0 = the secant over ± this much SOC, which reads a fitted table's flat
+    #: steps (a monotone fit's active constraint) as the rise across them
+    #: (``loco_ekf_ocv_slope`` in docs/results/tuning.md)
+    ocv_slope_span_soc: float = 0.0
 
 
 def ecm_parameters(profile: CellProfile, temp_c: np.ndarray) -> dict[str, np.ndarray]:
@@ -205,6 +210,14 @@ class Ecm2RcEkfBank:
         a = np.exp(-dt[:, None] / par["tau"])  # [N, 2]
         return temp, i, r0, r_b, a, r_b * (1.0 - a)
 
+    def _ocv_slope(self, soc: np.ndarray, temp: np.ndarray) -> np.ndarray:
+        """dOCV/dSOC for the measurement Jacobian: the table's slope at ``soc``, or its secant over
+        ± ``ocv_slope_span_soc`` (:class:`EkfTuning`)."""
+        span = self.tuning.ocv_slope_span_soc
+        if span <= 0:
+            return self.ocv.slope(soc, temp)
+        return (self.ocv.ocv(soc + span, temp) - self.ocv.ocv(soc - span, temp)) / (2.0 * span)
+
     def step(
         self,
         dt_s: np.ndarray | float,
@@ -240,7 +253,7 @@ class Ecm2RcEkfBank:
         if self._kinetic:
             v_pred = v_pred - kinetic_overpotential(i, par["i0"], temp)
         h = np.empty((n, N_STATES))
-        h[:, 0] = self.ocv.slope(x[:, 0], temp)
+        h[:, 0] = self._ocv_slope(x[:, 0], temp)
         h[:, 1:] = -1.0
         ph = np.einsum("nij,nj->ni", P, h)
         r_meas = t.voltage_noise_v**2
