@@ -477,3 +477,38 @@ def test_fit_rmse_model_error_equal_to_the_constant_gives_the_same_estimate(nmc_
         runs.append(pack.soc.copy())
     assert runs[1] == pytest.approx(runs[0], rel=1e-12, abs=1e-12)
     assert not np.allclose(runs[2], runs[0], rtol=0, atol=1e-6)
+
+
+# -- OCV-table error state ---------------------------------------------------------------------------
+def _bumped_table(profile, bump_v: float):
+    """``profile`` with its OCV table raised by ``bump_v`` between SOC 0.3 and 0.7 (a fitted table's
+    local error), smoothly at the edges."""
+    soc = np.asarray(profile.ocv.soc)
+    bump = bump_v * np.clip(np.minimum(soc - 0.25, 0.75 - soc) / 0.05, 0.0, 1.0)
+    rows = [list(np.asarray(r) + bump) for r in profile.ocv.ocv_v]
+    return profile.model_copy(update={"ocv": profile.ocv.model_copy(update={"ocv_v": rows})})
+
+
+def test_ocv_error_state_holds_soc_against_a_local_table_error(nmc_recording, nmc_profile) -> None:
+    """A table 10 mV high over mid SOC pulls a filter that reads it as white noise off by its
+    offset over the OCV slope; with the OCV-error state the persistent residual is taken up by the
+    state and SOC stays closer to the truth.  On the exact table the state costs little."""
+    rec = nmc_recording(duration_s=7200, seed=3, soc0=0.9)
+    recording = load_recording(rec.path)
+    wrong = _bumped_table(nmc_profile, 0.010)
+    on = EstimatorSettings(ocv_error_std_v=0.01)
+    err = {name: _rmse_after(fomiukf(s).run(recording, wrong, 0.9).soc - rec.soc_true, rec.time_s)
+           for name, s in (("on", on), ("off", EstimatorSettings()))}
+    assert err["on"] < 0.7 * err["off"], err
+    exact = fomiukf(on).run(recording, nmc_profile, 0.7)
+    assert _rmse_after(exact.soc - rec.soc_true, rec.time_s) < 0.01
+
+
+def test_ocv_error_state_is_off_by_default() -> None:
+    from service.cell.ocv import OcvTable
+    from service.estimators.fomiukf import FoMiUkf
+
+    table = OcvTable.from_points(np.linspace(0, 1, 5), np.linspace(3.4, 4.2, 5))
+    assert FoMiUkf(table, 2, 2, EstimatorSettings()).i_ocv is None
+    with_state = FoMiUkf(table, 2, 2, EstimatorSettings(ocv_error_std_v=0.01, current_bias_state=True))
+    assert (with_state.nx, with_state.i_ocv, with_state.i_bias) == (6, 5, 4)

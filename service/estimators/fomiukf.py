@@ -22,6 +22,14 @@ corrected), ``b`` is a slow random walk, and the update learns it through its co
 SOC, i.e. from a drift of SOC against the OCV.  The offset enters only the integral: its
 instantaneous effect on the branch and ohmic drops (tens of mA times tens of mΩ) is below
 the voltage noise and is left out, so the output does not depend on ``b`` directly.
+
+With ``ocv_error_std_v > 0`` the state gains a last element ``e_ocv``, the OCV table's error at
+the present SOC (not in the paper): the output is ``OCV(SOC) + e_ocv + ...``, and ``e_ocv`` is a
+first-order Gauss-Markov process in SOC, ``e_ocv ← ρ e_ocv + w``, ``ρ = exp(-|ΔSOC| / L)``,
+``var(w) = σ² (1 - ρ²)``, stationary at σ.  A table error is a bias, the same at every sample
+taken at one SOC; as white measurement noise, a long rest's samples would each count as new
+evidence and pull SOC onto the table's error.  Held at rest (ρ = 1), the state takes up a
+residual that persists there, and it decorrelates as the SOC moves.
 """
 
 from __future__ import annotations
@@ -51,11 +59,13 @@ class FoMiUkf:
         self.settings = settings
         self.n = n_cells
         self.b = n_branches
-        self.nx = n_branches + 2 + int(settings.current_bias_state)
+        self.nx = n_branches + 2 + int(settings.current_bias_state) + int(settings.ocv_error_std_v > 0)
         self.i_soc = n_branches
         self.i_uh = n_branches + 1
         #: index of the current-offset state (None without ``current_bias_state``)
         self.i_bias: int | None = n_branches + 2 if settings.current_bias_state else None
+        #: index of the OCV-table error state (None without ``ocv_error_std_v``)
+        self.i_ocv: int | None = self.nx - 1 if settings.ocv_error_std_v > 0 else None
         L = settings.memory_length
         p = settings.innovation_length
         self.x = np.zeros((n_cells, self.nx))
@@ -103,6 +113,8 @@ class FoMiUkf:
         diag[self.i_uh] = max(u_h_std, 1e-3) ** 2
         if self.i_bias is not None:
             diag[self.i_bias] = max(bias_std_a, 1e-6) ** 2
+        if self.i_ocv is not None:
+            diag[self.i_ocv] = self.settings.ocv_error_std_v**2
         self.P[cells] = np.diag(diag)
 
     # -- Table 3 steps 3-5 --------------------------------------------------------------
@@ -132,11 +144,16 @@ class FoMiUkf:
         cols = [a, np.ones((self.n, 1)), a_h[:, None]]
         if self.i_bias is not None:
             cols.append(np.ones((self.n, 1)))
+        if self.i_ocv is not None:
+            rho = np.exp(-np.abs(d_soc) / self.settings.ocv_error_soc_length)
+            cols.append(rho[:, None])
         f = np.concatenate(cols, axis=1)
         x_pred = np.empty_like(self.x)
         x_pred[:, :b] = a * self.x[:, :b] + drive
         x_pred[:, self.i_soc] = self.x[:, self.i_soc] + d_soc
         x_pred[:, self.i_uh] = a_h * self.x[:, self.i_uh] + h_target
+        if self.i_ocv is not None:
+            x_pred[:, self.i_ocv] = rho * self.x[:, self.i_ocv]
         if self.i_bias is None:
             P_pred = self.P * (f[:, :, None] * f[:, None, :])
         else:
@@ -159,6 +176,8 @@ class FoMiUkf:
         if self.i_bias is not None:
             walk = self.settings.current_bias_walk_c_per_sqrt_s * params.capacity_ah
             q[:, self.i_bias] = walk * walk * max(dt_s, 1e-3)
+        if self.i_ocv is not None:
+            q[:, self.i_ocv] = self.settings.ocv_error_std_v**2 * (1.0 - rho * rho)
         P_pred[:, np.arange(self.nx), np.arange(self.nx)] += q
         self.x, self.P = x_pred, P_pred
         self.transition = f
@@ -193,6 +212,7 @@ class FoMiUkf:
         y = (
             (cell_ocv.ocv(soc_s) if cell_ocv is not None else self.ocv.ocv(soc_s, temp_c[:, None]))
             + X[..., self.i_uh]
+            + (X[..., self.i_ocv] if self.i_ocv is not None else 0.0)
             - X[..., :b].sum(axis=-1)
             - drop[:, None]
         )

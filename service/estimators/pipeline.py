@@ -335,6 +335,8 @@ class PackEstimator:
                 soc_post = soc_post - surface  # the OCV is read at the particle surface
             identify = act & (ukf.soc_std < self.settings.identify_below_soc_std)
             ocv_post, slope_post = self.cell_ocv.ocv_and_slope(soc_post)
+            if ukf.i_ocv is not None:  # the output's OCV includes the table-error state
+                ocv_post = ocv_post + x_id[:, ukf.i_ocv]
             self.fast.update(
                 nominal=self.nominal_now,
                 params=params,

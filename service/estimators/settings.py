@@ -115,6 +115,16 @@ class EstimatorSettings(BaseModel):
     current_bias_walk_c_per_sqrt_s: float = Field(
         1e-5, ge=0, description="random walk of the offset state, fraction of 1C per √s"
     )
+    ocv_error_std_v: float = Field(
+        0.0, ge=0, description="augment the SOC filter with an OCV-table error state (V) of this σ: a voltage "
+        "offset the table makes at the present SOC, correlated over SOC, so a persistent residual at one SOC "
+        "(a long rest on a table that is off there) is not read as evidence sample after sample. 0 = off "
+        "(docs/results/tuning.md)"
+    )
+    ocv_error_soc_length: float = Field(
+        0.05, gt=0, le=1, description="SOC distance over which the OCV-table error state decorrelates "
+        "(ρ = exp(-|ΔSOC| / length) per step)"
+    )
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
     ukf_alpha: float = Field(1.0, gt=0, le=1)
     ukf_beta: float = Field(2.0, ge=0)
