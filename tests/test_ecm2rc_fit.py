@@ -10,6 +10,7 @@ import pytest
 
 from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment
+from service.cell.ocv import GRID_POINTS, OcvTable, flat_share
 from service.cell.profile import CellProfile, Ecm2RcPoint, Ecm2RcSpec, OcvSpec, ParameterPoint
 from service.characterisation.characterise import (
     ECM_TOLERANCE,
@@ -18,6 +19,7 @@ from service.characterisation.characterise import (
     FitReport,
     TemperatureFit,
     check_fit_quality,
+    say_flat_joint_ocv,
 )
 from service.characterisation.ecm2rc_fit import TAU1_BOUNDS_S, fit_ecm2rc, simulate_ecm2rc
 from service.estimators.ecm2rc_ekf import Ecm2RcEkf, ecm_parameters
@@ -170,3 +172,16 @@ def test_two_rc_point_writes_the_textbook_model_in_the_fractional_form(tmp_path:
     # the fractional form steps the branches by backward Euler, the 2-RC fit exactly: close, not equal
     assert np.sqrt(np.mean((v_fo - seg.voltage_v) ** 2)) < 1e-3
     assert two_rc_point([str(src), str(tmp_path / "x.toml"), "--temp", "5"]) == 2  # no point there
+
+
+def test_flat_share_and_the_fit_notice_for_a_flat_joint_ocv():
+    """A monotone row flat over 0.4-0.5 SOC (a joint fit's active bound) is flat over a tenth of SOC,
+    and the fit says so per temperature as a notice; a rising row says nothing."""
+    grid = np.linspace(0.0, 1.0, GRID_POINTS)
+    rising = 3.4 + 0.8 * grid
+    flat = np.where(grid < 0.4, rising, np.where(grid <= 0.5, 3.4 + 0.8 * 0.4, rising - 0.08))
+    assert flat_share(OcvTable.from_points(grid, rising), 25.0) == 0.0
+    assert flat_share(OcvTable.from_points(grid, flat), 25.0) == pytest.approx(0.1, abs=0.01)
+    rep = FitReport(echo=lambda _: None)
+    say_flat_joint_ocv(rep, grid, {25.0: rising, 0.0: flat})
+    assert len(rep.lines) == 1 and "0 °C" in rep.lines[0] and "flat over 10 % of SOC" in rep.lines[0]

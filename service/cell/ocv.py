@@ -132,6 +132,17 @@ class OcvTable:
         return np.linspace(0.0, 1.0, GRID_POINTS)
 
 
+#: an OCV table's slope below this (V per unit SOC, 0.1 mV per % SOC) counts as flat: a fitted
+#: monotone table's step where the data would have had it fall
+FLAT_SLOPE_V = 0.01
+
+
+def flat_share(table: OcvTable, temp_c: float) -> float:
+    """Share of SOC over which ``table`` at ``temp_c`` rises by less than :data:`FLAT_SLOPE_V`."""
+    mid = (np.arange(GRID_POINTS - 1) + 0.5) / (GRID_POINTS - 1)
+    return float(np.mean(table.slope(mid, temp_c) < FLAT_SLOPE_V))
+
+
 def make_monotone(ocv_row: np.ndarray, min_step_v: float = 1e-6) -> np.ndarray:
     """Smallest upward correction that makes a row strictly increasing (running max)."""
     out = np.maximum.accumulate(np.asarray(ocv_row, dtype=float))

@@ -50,7 +50,7 @@ from service.cell.fitting import (
     fit_parameters,
     last_current_direction,
 )
-from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
+from service.cell.ocv import GRID_POINTS, OcvTable, flat_share, make_monotone
 from service.cell.profile import (
     BranchSpec,
     CellParameters,
@@ -257,6 +257,18 @@ def measure_soc_resistance(groups: dict[float, list[tuple[Recording, np.ndarray]
     return SocResistanceSpec(soc=grid.tolist(), temps_c=temps, r_ohm_scale=rows_ohm, r_pol_scale=rows_pol)
 
 
+def say_flat_joint_ocv(rep: FitReport, grid: np.ndarray, rows: dict[float, np.ndarray]) -> None:
+    """A notice per temperature where the jointly fitted OCV is flat (:func:`service.cell.ocv.flat_share`):
+    there its monotone bound is active, the recordings do not determine the table, and a filter reading
+    the slope at its estimate takes nothing from the voltage."""
+    for t in sorted(rows, reverse=True):
+        share = flat_share(OcvTable.from_points(grid, rows[t]), 25.0)
+        if share > 0:
+            rep.say(f"  {t:g} °C: the joint OCV is flat over {100 * share:.0f} % of SOC (held up by its monotone "
+                    "bound where the data would have it fall); an OCV test or rests at those SOCs would "
+                    "determine it", notice=True)
+
+
 def characterise(
     recordings: list[Recording],
     capacity_ah: float,
@@ -388,6 +400,7 @@ def characterise(
     if test_rows is None:
         rep.say("OCV: no table or OCV test given: the monotone OCV fitted jointly with the textbook 2-RC model "
                 "at each temperature")
+        say_flat_joint_ocv(rep, grid, ecm_rows)
         ocv_rows.update(ecm_rows)
         # the voltage each rest relaxes towards, not where it stopped (cold rests end unrelaxed)
         limits_by_t = rests_by_t(extrapolate=True)
