@@ -201,6 +201,24 @@ def nested_table(name: str) -> Callable[[Path], str]:
     return render
 
 
+def ocv_flat_table(profiles: tuple[tuple[str, str], ...]) -> Callable[[Path], str]:
+    """Per profile (label, TOML under ``out/``): the share of SOC where the fractional profile's OCV and
+    its stored 2-RC fit's OCV are flat (:func:`service.cell.ocv.flat_share`), at each row's temperature."""
+    def render(out: Path) -> str:
+        from service.cell.ocv import FLAT_SLOPE_V, flat_share
+        from service.cell.profile import load_profile
+        lines = ["| profile | OCV table | flat share at each of the table's temperatures |", "|---|---|---|"]
+        for label, path in profiles:
+            prof = load_profile(out / path)
+            for kind, spec, table in (("fractional", prof.ocv, prof.ocv_table()),
+                                      ("2-RC", prof.ecm2rc.ocv, prof.ecm2rc.ocv_table())):
+                shares = [f"{t:g} °C {100 * flat_share(table, t):.0f} %" for t in sorted(spec.temps_c, reverse=True)]
+                lines.append(f"| {label} | {kind} | " + ", ".join(shares) + " |")
+        return (f"Share of SOC where each OCV table is flat (slope below {FLAT_SLOPE_V:g} V per unit SOC):\n\n"
+                + "\n".join(lines))
+    return render
+
+
 def rest_check_table(*names: str) -> Callable[[Path], str]:
     """``rest_check``'s own table per ``--json``, each headed by its profile."""
     def render(out: Path) -> str:
@@ -304,7 +322,7 @@ def loco_sweep(field: str, tag: str, values: tuple[str, ...], default: str, *, f
     lines written before the swept one in every settings file; ``reference``: the default's column
     label (``tag + default`` unless given)."""
     name = {"cn": "current_noise", "vn": "voltage_noise", "ip": "identifier_prior", "ro": "model_error_shape",
-            "fr": "model_error_fit"}[tag]
+            "fr": "model_error_fit", "oe": "ocv_error"}[tag]
     reference = reference or tag + default
     vals = " ".join(values)
     json_pattern = "out/cn/{cell}_" + tag + "${{c}}_b$b.json"
@@ -321,6 +339,24 @@ G=""; for b in 0 0.01; do
 {loco_inputs(tag + "$c", json_pattern, indent="    ")}; done; done
 python -m research.nested_tuning --by cell --estimator fomiukf --reference {reference} --exclude {TUNING_EXCLUDE} $G \\
     --json out/loco_{name}.json"""
+
+
+def loco_ekf_sweep(field: str, tag: str, values: tuple[str, ...], default: str, name: str) -> str:
+    """An ``[ecm2rc_ekf]`` tuning field swept leave-one-cell-out on the ``char_*`` profiles, every value
+    (the default's too) scored here; the table is ``out/<name>.json``."""
+    vals = " ".join(values)
+    json_pattern = "out/cn/{cell}_" + tag + "${{c}}_b$b.json"
+    return REAL + f"""\
+mkdir -p out/cn
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+for c in {vals}; do printf "[ecm2rc_ekf]\\n{field} = $c\\n" > out/cn/{tag}$c.toml; for b in 0 0.01; do
+  E="--estimator ecm2rc-ekf --settings out/cn/{tag}$c.toml --current-bias-c $b -q"
+{loco_evaluations(json_pattern)}
+done; done
+G=""; for c in {vals}; do for b in 0 0.01; do
+{loco_inputs(tag + "$c", json_pattern)}; done; done
+python -m research.nested_tuning --by cell --estimator ecm2rc-ekf --reference {tag}{default} --exclude {TUNING_EXCLUDE} $G \\
+    --json out/{name}.json"""
 
 
 def loco_inputs(label: str, json_pattern: str, indent: str = "  ") -> str:
@@ -347,6 +383,10 @@ LABELLED = ("dst_s101_4e4041", "hppc_s102_131537", "bjdst_s103_55f05a", "randomw
             "hppc_s105_437525", "dst_s106_462959", "randomwalk_s107_cac951")
 REAL_DIAG = ("pan18650pf_m20C_trise_Cycle1", "pan18650pf_m20C_trise_Cycle1_soc0", "pan18650pf_10C_trise_Cycle1",
              "calce_a123_20C_DST")
+
+
+#: loco_ocv_error's runs without the offset: (label, folder under out/, JSON tag)
+OCV_ERROR_RUNS = (("off (default)", "loco", "noslow"), ("0.01 V", "cn", "oe0.01"), ("0.02 V", "cn", "oe0.02"))
 
 
 @dataclass(frozen=True)
@@ -529,6 +569,17 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference noslo
                                           + tuple((f"k = {k}", f"cn/panhppc_fr{k}_b0.json") for k in (4, 8, 12)),
                                           PAN_GROUPS)(out),
           30, ("needs:loco_defaults",)),
+    Table("loco_ocv_error", "tuning.md",
+          loco_sweep("ocv_error_std_v", "oe", ("0.01", "0.02"), "0"),
+          lambda out: nested_table("loco_ocv_error.json")(out)
+          + "\n\nWithout the offset (mean SOC RMSE after 600 s, %, of `fomiukf`), CALCE and the Panasonic HPPC "
+          "profile:\n\n" + runs_table(
+              tuple((f"{lab} CALCE", f"{d}/calce_{v}_b0.json") for lab, d, v in OCV_ERROR_RUNS),
+              (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUDS)_50soc"),
+               ("the other three", r"_80soc|US06_50soc"), ("all five", r"calce20r")))(out)
+          + "\n\n" + runs_table(tuple((f"{lab} Panasonic HPPC", f"{d}/panhppc_{v}_b0.json")
+                                       for lab, d, v in OCV_ERROR_RUNS), PAN_GROUPS)(out),
+          60, ("needs:loco_defaults",)),
     Table("loco_noise_joint", "tuning.md", REAL + f"""\
 mkdir -p out/cn   # the default (0.0288 C, 0.222 V per C-rate) is loco_defaults' noslow run
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
@@ -561,18 +612,21 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference ancho
     --json out/loco_rest_anchor.json""",
           nested_table("loco_rest_anchor.json"), 30,
           ("needs:loco_defaults", "needs:char_calce", "needs:char_pan_hppc", "needs:char_joint_ocv")),
-    Table("loco_ekf_current_noise", "tuning.md", REAL + f"""\
-mkdir -p out/cn
-PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
-for c in 0.00225 0.0045 0.009 0.01805 0.036 0.072; do printf "[ecm2rc_ekf]\\ncurrent_noise_c = $c\\n" > out/cn/ekf$c.toml; for b in 0 0.01; do
-  E="--estimator ecm2rc-ekf --settings out/cn/ekf$c.toml --current-bias-c $b -q"
-{loco_evaluations("out/cn/{cell}_ekf${{c}}_b$b.json")}
-done; done
-G=""; for c in 0.00225 0.0045 0.009 0.01805 0.036 0.072; do for b in 0 0.01; do
-{loco_inputs("ekf$c", "out/cn/{cell}_ekf${{c}}_b$b.json")}; done; done
-python -m research.nested_tuning --by cell --estimator ecm2rc-ekf --reference ekf0.009 --exclude {TUNING_EXCLUDE} $G \\
-    --json out/loco_ekf_current_noise.json""",
+    Table("loco_ekf_current_noise", "tuning.md",
+          loco_ekf_sweep("current_noise_c", "ekf", ("0.00225", "0.0045", "0.009", "0.01805", "0.036", "0.072"), "0.009",
+                         "loco_ekf_current_noise"),
           nested_table("loco_ekf_current_noise.json"), 40, ("needs:char_calce", "needs:char_a123")),
+    Table("loco_ekf_ocv_slope", "tuning.md",
+          loco_ekf_sweep("ocv_slope_span_soc", "ekfslope", ("0", "0.005", "0.01", "0.02"), "0", "loco_ekf_ocv_slope"),
+          lambda out: nested_table("loco_ekf_ocv_slope.json")(out)
+          + "\n\nThe EKF on CALCE without the offset (mean SOC RMSE after 600 s, %):\n\n" + runs_table(
+              tuple((f"span {c}", f"cn/calce_ekfslope{c}_b0.json") for c in ("0", "0.005", "0.01", "0.02")),
+              (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUDS)_50soc"), ("the other three", r"_80soc|US06_50soc"),
+               ("all five", r"calce20r")), estimator="ecm2rc-ekf")(out)
+          + "\n\n" + ocv_flat_table(
+              (("CALCE", "s25/calce.toml"), ("A123", "s25/a123.toml"), ("Panasonic, HPPC alone", "s25/pan_hppc.toml"),
+               ("Panasonic, OCV test + US06", "s25/pan_us06.toml")))(out), 30, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
+                                                         "needs:char_pan_us06")),
     Table("loco_fit_options", "tuning.md", REAL + f"""\
 mkdir -p out/fitopt
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
