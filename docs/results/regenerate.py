@@ -385,6 +385,9 @@ REAL_DIAG = ("pan18650pf_m20C_trise_Cycle1", "pan18650pf_m20C_trise_Cycle1_soc0"
              "calce_a123_20C_DST")
 
 
+#: the CALCE files by rest: the two that rest two hours at 50 % SOC, the other three, all five
+CALCE_REST_GROUPS = (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUDS)_50soc"),
+                     ("the other three", r"_80soc|US06_50soc"), ("all five", r"calce20r"))
 #: loco_ocv_error's runs without the offset: (label, folder under out/, JSON tag)
 OCV_ERROR_RUNS = (("off (default)", "loco", "noslow"), ("0.01 V", "cn", "oe0.01"), ("0.02 V", "cn", "oe0.02"))
 
@@ -575,8 +578,7 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference noslo
           + "\n\nWithout the offset (mean SOC RMSE after 600 s, %, of `fomiukf`), CALCE and the Panasonic HPPC "
           "profile:\n\n" + runs_table(
               tuple((f"{lab} CALCE", f"{d}/calce_{v}_b0.json") for lab, d, v in OCV_ERROR_RUNS),
-              (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUDS)_50soc"),
-               ("the other three", r"_80soc|US06_50soc"), ("all five", r"calce20r")))(out)
+              CALCE_REST_GROUPS)(out)
           + "\n\n" + runs_table(tuple((f"{lab} Panasonic HPPC", f"{d}/panhppc_{v}_b0.json")
                                        for lab, d, v in OCV_ERROR_RUNS), PAN_GROUPS)(out),
           60, ("needs:loco_defaults",)),
@@ -621,8 +623,7 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference ancho
           lambda out: nested_table("loco_ekf_ocv_slope.json")(out)
           + "\n\nThe EKF on CALCE without the offset (mean SOC RMSE after 600 s, %):\n\n" + runs_table(
               tuple((f"span {c}", f"cn/calce_ekfslope{c}_b0.json") for c in ("0", "0.005", "0.01", "0.02")),
-              (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUDS)_50soc"), ("the other three", r"_80soc|US06_50soc"),
-               ("all five", r"calce20r")), estimator="ecm2rc-ekf")(out)
+              CALCE_REST_GROUPS, estimator="ecm2rc-ekf")(out)
           + "\n\n" + ocv_flat_table(
               (("CALCE", "s25/calce.toml"), ("A123", "s25/a123.toml"), ("Panasonic, HPPC alone", "s25/pan_hppc.toml"),
                ("Panasonic, OCV test + US06", "s25/pan_us06.toml")))(out), 30, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
