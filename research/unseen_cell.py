@@ -23,13 +23,14 @@ Needs PyBaMM (``pip install -e .[research]``).  Not run in CI.
 
     python -m research.unseen_cell build [--cells Chen2020,...] [--ambients 25,10,0] [--jobs 2]
     python -m research.unseen_cell run [--cells ...] [--ambients ...] [--settings S.toml] [--tag T]
-        [-- extra socd fit flags]
+        [--fit-flags=FLAGS --profile-tag T]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -221,7 +222,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--settings", type=Path, help="`socd evaluate --settings` TOML (run)")
     ap.add_argument("--current-bias-c", type=float, default=0.0, help="`socd evaluate --current-bias-c` (run)")
     ap.add_argument("--tag", default="", help="suffix of the evaluation files (run)")
-    ap.add_argument("fit_flags", nargs="*", help="after --: extra `socd fit` flags (run)")
+    ap.add_argument("--fit-flags", default="", help="extra `socd fit` flags as one string, e.g. "
+                    "--fit-flags=--no-kinetics; give --profile-tag too (run)")
     a = ap.parse_args(argv)
     cells = [c for c in a.cells.split(",") if c]
     ambients = [float(x) for x in a.ambients.split(",") if x]
@@ -231,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
             for line in ex.map(_build_one, jobs):
                 print(line, flush=True)
         return 0
-    opt = RunOptions(tuple(a.fit_flags), a.profile_tag, a.refit, tuple(e for e in a.estimators.split(",") if e),
+    opt = RunOptions(tuple(shlex.split(a.fit_flags)), a.profile_tag, a.refit, tuple(e for e in a.estimators.split(",") if e),
                      a.settings, a.current_bias_c, a.tag)
     for cell in cells:
         print(f"{cell}: {run_cell(cell, ambients, a.workdir, opt)}", flush=True)

@@ -316,29 +316,31 @@ LOCO_CELLS = (("calce", "calce", CALCE), ("a123", "a123", A123), ("pan_hppc", "p
 
 
 def loco_sweep(field: str, tag: str, values: tuple[str, ...], default: str, *, fixed: str = "",
-               reference: str | None = None) -> str:
+               reference: str | None = None, unseen: bool = False) -> str:
     """A pipeline setting swept leave-one-cell-out as ``loco_defaults`` scores (the default's runs
     are its ``noslow`` ones); the table is ``out/loco_<field's table name>.json``.  ``fixed``: settings
     lines written before the swept one in every settings file; ``reference``: the default's column
-    label (``tag + default`` unless given)."""
+    label (``tag + default`` unless given); ``unseen``: also score ``research.unseen_cell``'s three
+    cells and pool them as three more (the table ``out/loco_<name>_unseen.json``)."""
     name = {"cn": "current_noise", "vn": "voltage_noise", "ip": "identifier_prior", "ro": "model_error_shape",
             "fr": "model_error_fit", "oe": "ocv_error"}[tag]
     reference = reference or tag + default
     vals = " ".join(values)
     json_pattern = "out/cn/{cell}_" + tag + "${{c}}_b$b.json"
+    nl = "\n"
     return REAL + f"""\
 mkdir -p out/cn   # the default ({default}) is loco_defaults' noslow run
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
 for c in {vals}; do printf "{fixed}{field} = $c\\n" > out/cn/{tag}$c.toml; for b in 0 0.01; do
   E="--estimator fomiukf --no-bar --settings out/cn/{tag}$c.toml --current-bias-c $b -q"
-{loco_evaluations(json_pattern)}
+{loco_evaluations(json_pattern)}{unseen_runs(f"out/cn/{tag}$c.toml", tag + "${c}", before=nl) if unseen else ""}
 done; done
 G=""; for b in 0 0.01; do
-{loco_inputs(reference, "out/loco/{cell}_noslow_b$b.json")}
+{loco_inputs(reference, "out/loco/{cell}_noslow_b$b.json")}{unseen_inputs(reference, "noslow", indent="  ", before=nl) if unseen else ""}
   for c in {vals}; do
-{loco_inputs(tag + "$c", json_pattern, indent="    ")}; done; done
+{loco_inputs(tag + "$c", json_pattern, indent="    ")}{unseen_inputs(tag + "$c", tag + "${c}", before=nl) if unseen else ""}; done; done
 python -m research.nested_tuning --by cell --estimator fomiukf --reference {reference} --exclude {TUNING_EXCLUDE} $G \\
-    --json out/loco_{name}.json"""
+    --json out/loco_{name}{"_unseen" if unseen else ""}.json"""
 
 
 def loco_ekf_sweep(field: str, tag: str, values: tuple[str, ...], default: str, name: str) -> str:
@@ -372,6 +374,21 @@ def loco_evaluations(json_pattern: str) -> str:
     options in ``$E``; ``json_pattern`` names each JSON with ``{cell}`` for its tag."""
     return "\n".join(f"  socd evaluate --cell out/s25/{profile}.toml {files} $E --json {json_pattern.format(cell=tag)}"
                      for profile, tag, files in LOCO_CELLS)
+def unseen_runs(settings: str, tag: str, indent: str = "  ", before: str = "") -> str:
+    """``research.unseen_cell``'s scoring runs of its three cells with ``settings`` (a TOML path) at the
+    current bias ``$b``: the 25 °C drives and the colder ones, each into its own JSON."""
+    run = f"python -m research.unseen_cell run --estimators fomiukf --settings {settings} --current-bias-c $b"
+    return (f"{before}{indent}{run} --ambients 25 --tag _{tag}_b$b\n"
+            f"{indent}{run} --ambients 10,0 --tag _{tag}_b${{b}}_cold")
+
+
+def unseen_inputs(label: str, tag: str, indent: str = "    ", before: str = "") -> str:
+    """The line that adds :func:`unseen_runs`' JSON of each unseen cell to ``$G`` under ``label``."""
+    files = " ".join(f"{label}=out/unseen_cell/{cell}_{tag}_b${{b}}{part}_eval.json"
+                     for cell in UNSEEN_CELLS for part in ("", "_cold"))
+    return f'{before}{indent}G="$G {files}"'
+
+
 PAN_FIT = ("socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv \\\n"
            "    --capacity-ah 2.77 --min-order 0.5 --max-seconds 150")
 CALCE_FIT = "socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --max-seconds 90 --no-kinetics"
@@ -385,6 +402,9 @@ REAL_DIAG = ("pan18650pf_m20C_trise_Cycle1", "pan18650pf_m20C_trise_Cycle1_soc0"
              "calce_a123_20C_DST")
 
 
+#: research.unseen_cell's PyBaMM cells and their recordings by ambient
+UNSEEN_CELLS = ("Chen2020", "Mohtat2020", "Marquis2019")
+UNSEEN_GROUPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"))
 #: the CALCE files by rest: the two that rest two hours at 50 % SOC, the other three, all five
 CALCE_REST_GROUPS = (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUDS)_50soc"),
                      ("the other three", r"_80soc|US06_50soc"), ("all five", r"calce20r"))
@@ -549,12 +569,35 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference noslo
     --json out/loco_defaults.json""",
           nested_table("loco_defaults.json"), 240, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc",
                                                      "needs:char_pan_us06")),
+    Table("loco_defaults_unseen", "tuning.md", f"""\
+# the settings files are loco_defaults', the profiles research.unseen_cell's (unseen_cell)
+for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
+{unseen_runs("out/loco/$o.toml", "${o}")}
+done; done
+G=""; for o in both_ids noid noslow ekfnoise noid_ekfnoise; do for b in 0 0.01; do
+{loco_inputs("$o", "out/loco/{cell}_${{o}}_b$b.json")}
+{unseen_inputs("$o", "${o}", indent="  ")}; done; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference noslow --exclude {TUNING_EXCLUDE} $G \\
+    --json out/loco_defaults_unseen.json""",
+          nested_table("loco_defaults_unseen.json"), 40, ("needs:loco_defaults", "needs:unseen_cell", "needs:pybamm")),
+    Table("unseen_fit_options", "tuning.md", """\
+# the default fit (auto) is the unseen_cell table's
+python -m research.unseen_cell run --estimators fomiukf --profile-tag _nokin --refit --fit-flags=--no-kinetics
+python -m research.unseen_cell run --estimators fomiukf --profile-tag _kin --refit --fit-flags=--kinetics""",
+          runs_table(tuple((f"`{cell}` {label}", f"unseen_cell/{cell}{tag}_eval.json") for cell in UNSEEN_CELLS
+                           for label, tag in (("`auto` (default)", ""), ("`--no-kinetics`", "_nokin"),
+                                              ("`--kinetics`", "_kin"))), UNSEEN_GROUPS),
+          20, ("needs:unseen_cell", "needs:pybamm")),
     Table("loco_current_noise", "tuning.md",
           loco_sweep("current_noise_c", "cn", ("0.0036", "0.00722", "0.0144", "0.0576"), "0.0288"),
           nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
     Table("loco_voltage_noise", "tuning.md",
           loco_sweep("voltage_noise_per_c_v", "vn", ("0.0277", "0.0554", "0.111", "0.444"), "0.222"),
           nested_table("loco_voltage_noise.json"), 50, ("needs:loco_defaults",)),
+    Table("loco_voltage_noise_unseen", "tuning.md",
+          loco_sweep("voltage_noise_per_c_v", "vn", ("0.0554", "0.111"), "0.222", unseen=True),
+          nested_table("loco_voltage_noise_unseen.json"), 50,
+          ("needs:loco_defaults", "needs:loco_defaults_unseen", "needs:pybamm")),
     Table("loco_identifier_prior", "tuning.md",
           loco_sweep("param_init_std_rel", "ip", ("0.01", "0.03", "0.05", "0.1", "0.2"), "0.02"),
           nested_table("loco_identifier_prior.json"), 60, ("needs:loco_defaults",)),
@@ -689,6 +732,11 @@ socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06
 socd evaluate --cell out/s25/pan_us06.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
     --estimator fomiukf -q --json out/s25/pan_us06_eval.json""",
           group_table("s25/pan_us06_eval.json", PAN_GROUPS), 60),
+    Table("unseen_cell", "characterisation.md", """\
+python -m research.unseen_cell build --jobs 2
+python -m research.unseen_cell run --refit""",
+          lambda out: "\n\n".join(f"`{cell}`:\n\n" + group_table(f"unseen_cell/{cell}_eval.json", UNSEEN_GROUPS)(out)
+                                  for cell in UNSEEN_CELLS), 15, ("needs:pybamm",)),
     Table("fit_vs_2rc_point", "characterisation.md", REAL + """\
 A123_FIT="$A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv -q"
 socd fit $A123_FIT --hysteresis --no-kinetics -o out/s25/a123_hys_nokin.toml   # out/s25/a123.toml: char_a123
