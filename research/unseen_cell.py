@@ -10,7 +10,8 @@ real cells are the ones every default was chosen on; this module builds cells th
   (the OCV test, logged every 60 s like the Panasonic one) and the current of every shared
   Panasonic 18650PF drive cycle at 25 °C, scaled to the cell's capacity (the same C-rates),
   from full charge to the lower cut-off.  Noise as :mod:`research.validate_pybamm` (voltage
-  σ 1.5 mV, current 0.5 % + 5 mA, temperature 0.1 K).  Every recording carries ``soc_true``:
+  σ 1.5 mV, current 0.5 % + 5 mA, temperature 0.1 K).  PyBaMM's models have no OCV hysteresis;
+  ``--hysteresis-mv`` adds a one-state one (Zeng Eq. 1, as :mod:`research.validate_pybamm` does).  Every recording carries ``soc_true``:
   the coulomb count from full over the OCV test's C/20 discharge capacity, which is also the
   capacity the user is told.
 * ``run`` is the issue's two commands per cell, unchanged: ``socd fit`` on every ambient's OCV test
@@ -46,6 +47,7 @@ from research.validate_pybamm import (
     T_NOISE,
     V_NOISE,
     _pybamm,
+    hysteresis_state,
     parameter_values,
 )
 from service.recording import load_recording, save_recording
@@ -73,6 +75,7 @@ class Job:
     ambient_c: float
     drive: str
     seed: int
+    hysteresis_v: float = 0.0  # half-gap of the OCV hysteresis added to PyBaMM's voltage
 
     @property
     def stem(self) -> str:
@@ -99,6 +102,14 @@ def _noisy(rng: np.random.Generator, time_s, current_a, voltage_v, temp_c) -> np
     return np.column_stack([time_s, np.round(i, 5), np.round(v, 5), np.round(t, 2)])
 
 
+def _hysteresis(job: Job, time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> np.ndarray | float:
+    """The OCV hysteresis PyBaMM's models lack, ``job.hysteresis_v`` × Zeng Eq. 1's state; every
+    recording starts full, on the after-charge branch."""
+    if not job.hysteresis_v:
+        return 0.0
+    return job.hysteresis_v * hysteresis_state(time_s, current_a, capacity_ah, start=1.0)
+
+
 def ocv_test(job: Job) -> tuple[np.ndarray, float]:
     """A C/20 discharge from full to the lower cut-off, an hour's rest, a C/20 charge to the upper
     one, logged every 60 s; returns the recording and its discharge capacity (Ah)."""
@@ -116,10 +127,12 @@ def ocv_test(job: Job) -> tuple[np.ndarray, float]:
     sol = sim.solve(initial_soc=1.0)
     t = sol["Time [s]"].entries
     keep = np.concatenate([[True], np.diff(t) > 1e-6])
-    q = sol["Discharge capacity [A.h]"].entries
-    data = _noisy(np.random.default_rng(job.seed), t[keep], sol["Current [A]"].entries[keep],
-                  sol["Voltage [V]"].entries[keep], sol["X-averaged cell temperature [C]"].entries[keep])
-    return data, float(np.max(q))
+    capacity = float(np.max(sol["Discharge capacity [A.h]"].entries))
+    current = sol["Current [A]"].entries[keep]
+    voltage = sol["Voltage [V]"].entries[keep] + _hysteresis(job, t[keep], current, capacity)
+    data = _noisy(np.random.default_rng(job.seed), t[keep], current, voltage,
+                  sol["X-averaged cell temperature [C]"].entries[keep])
+    return data, capacity
 
 
 def drive(job: Job, capacity_ah: float) -> np.ndarray:
@@ -138,26 +151,28 @@ def drive(job: Job, capacity_ah: float) -> np.ndarray:
     sol = sim.solve(t_eval=[0.0, float(t[-1])], t_interp=t)
     n = sol["Time [s]"].entries.size
     q = sol["Discharge capacity [A.h]"].entries
-    data = _noisy(np.random.default_rng(job.seed), t[:n], current[:n], sol["Voltage [V]"].entries,
+    voltage = sol["Voltage [V]"].entries + _hysteresis(job, t[:n], current[:n], capacity_ah)
+    data = _noisy(np.random.default_rng(job.seed), t[:n], current[:n], voltage,
                   sol["X-averaged cell temperature [C]"].entries)
     soc = np.round(1.0 - q / capacity_ah, 6)
     return np.column_stack([data, soc])
 
 
-def build_cell(cell: str, ambient_c: float, workdir: Path, seed: int) -> str:
+def build_cell(cell: str, ambient_c: float, workdir: Path, seed: int, hysteresis_v: float = 0.0) -> str:
     """Every recording of one cell at one ambient (skips what is already on disk)."""
     workdir.mkdir(parents=True, exist_ok=True)
-    ocv_job = Job(cell, ambient_c, "ocv", seed)
+    ocv_job = Job(cell, ambient_c, "ocv", seed, hysteresis_v)
     meta_path = workdir / f"{ocv_job.stem}.json"
     if meta_path.exists():
         capacity = json.loads(meta_path.read_text())["capacity_ah"]
     else:
         data, capacity = ocv_test(ocv_job)
         save_recording(workdir / f"{ocv_job.stem}.csv", data, fmt="%.5f")
-        meta_path.write_text(json.dumps({"cell": cell, "ambient_c": ambient_c, "capacity_ah": capacity}))
+        meta_path.write_text(json.dumps({"cell": cell, "ambient_c": ambient_c, "capacity_ah": capacity,
+                                         "hysteresis_v": hysteresis_v}))
     done = []
     for k, name in enumerate(DRIVES):
-        job = Job(cell, ambient_c, name, seed + 1 + k)
+        job = Job(cell, ambient_c, name, seed + 1 + k, hysteresis_v)
         out = workdir / f"{job.stem}.csv"
         if not out.exists():
             save_recording(out, drive(job, capacity), fmt="%.5f")
@@ -165,9 +180,9 @@ def build_cell(cell: str, ambient_c: float, workdir: Path, seed: int) -> str:
     return f"{cell} {_temp_tag(ambient_c)}: {capacity:.4f} Ah, {len(done)} drives"
 
 
-def _build_one(args: tuple[str, float, str, int]) -> str:
-    cell, ambient, workdir, seed = args
-    return build_cell(cell, ambient, Path(workdir), seed)
+def _build_one(args: tuple[str, float, str, int, float]) -> str:
+    cell, ambient, workdir, seed, hysteresis_v = args
+    return build_cell(cell, ambient, Path(workdir), seed, hysteresis_v)
 
 
 @dataclass(frozen=True)
@@ -216,6 +231,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR, help=f"default {DEFAULT_WORKDIR}")
     ap.add_argument("--jobs", type=int, default=1, help="simulations at once (build)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--hysteresis-mv", type=float, default=0.0,
+                    help="half-gap of an OCV hysteresis added to every recording, mV (build; use its own --workdir)")
     ap.add_argument("--profile-tag", default="", help="suffix of the profile (and its evaluations), for fit flags (run)")
     ap.add_argument("--refit", action="store_true", help="fit again when the profile is on disk (run)")
     ap.add_argument("--estimators", default="fomiukf,ecm2rc-ekf", help="scored side by side (run)")
@@ -228,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     cells = [c for c in a.cells.split(",") if c]
     ambients = [float(x) for x in a.ambients.split(",") if x]
     if a.command == "build":
-        jobs = [(c, t, str(a.workdir), a.seed) for c in cells for t in ambients]
+        jobs = [(c, t, str(a.workdir), a.seed, a.hysteresis_mv / 1000.0) for c in cells for t in ambients]
         with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as ex:
             for line in ex.map(_build_one, jobs):
                 print(line, flush=True)

@@ -180,6 +180,21 @@ def _scaled(value, factor: float):
     return factor * value
 
 
+#: the added hysteresis state's rate, per unit of SOC moved (Zeng Eq. 1)
+HYSTERESIS_RATE = 120.0
+
+
+def hysteresis_state(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float, start: float) -> np.ndarray:
+    """The one-state hysteresis of Zeng Eq. 1 with ``U_H = 1`` along a current (+ = discharge, which
+    drives it to −1), from ``start``; multiplied by a half-gap it is the voltage PyBaMM's models lack."""
+    dt = np.diff(time_s, prepend=time_s[0])
+    h, state = start, np.empty(len(current_a))
+    for j, (i, d) in enumerate(zip(current_a, dt)):
+        h += (math.copysign(1.0, -i) - h) * (1.0 - math.exp(-HYSTERESIS_RATE * abs(i) * d / (SECONDS_PER_HOUR * capacity_ah)))
+        state[j] = h
+    return state
+
+
 def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """``(data [n, 4], ocv_soc, ocv_v, info)``; data columns time_s, current_a, voltage_v, temperature_c."""
     pybamm = _pybamm()
@@ -233,11 +248,7 @@ def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -
     i_true = current[:n]
     if effect == "hysteresis":
         info["half_gap_v"] = half = (0.006, 0.011, 0.018)[k]
-        h, state = HYSTERESIS_START, np.empty(n)
-        for j in range(n):  # Zeng Eq. 1 with U_H = 1, rate 120 per unit SOC
-            h += (math.copysign(1.0, -i_true[j]) - h) * (1.0 - math.exp(-120.0 * abs(i_true[j]) / (SECONDS_PER_HOUR * cap)))
-            state[j] = h
-        voltage += half * state
+        voltage += half * hysteresis_state(time_s, i_true, cap, HYSTERESIS_START)
     bias = 0.0
     if effect == "current_bias":
         bias = (0.002, 0.004, 0.008)[k] * cap * (1.0 if rng.random() < 0.5 else -1.0)

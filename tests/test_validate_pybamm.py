@@ -94,3 +94,20 @@ def test_run_one_returns_a_failed_row_instead_of_ending_the_run(monkeypatch, tmp
     text = table([_row("A", "none", "none")], [row])
     assert "named right: 1/1" in text
     assert "not simulated: Ai2020_capacity_clear_dst_s401 (RuntimeError: Ai2020 capacity" in text
+
+
+def test_hysteresis_state_follows_the_charge_moved_whatever_the_sampling():
+    """Zeng Eq. 1 with U_H = 1: rest holds the state, a discharge drives it towards −1 by 1 − e⁻¹ of
+    the way per 1/rate of the capacity moved, and one 60 s sample moves it as sixty 1 s samples do."""
+    from research.validate_pybamm import HYSTERESIS_RATE, hysteresis_state
+
+    cap = 2.0
+    rest = hysteresis_state(np.arange(100.0), np.zeros(100), cap, start=1.0)
+    assert np.all(rest == 1.0)
+    # discharge 1/rate of the capacity at 1C: 3600 / rate seconds
+    n = int(round(3600.0 / HYSTERESIS_RATE))
+    h = hysteresis_state(np.arange(n + 1.0), np.r_[0.0, np.full(n, cap)], cap, start=1.0)
+    assert h[-1] == pytest.approx(1.0 - 2.0 * (1.0 - np.exp(-1.0)), abs=1e-9)
+    fine = hysteresis_state(np.arange(61.0), np.r_[0.0, np.full(60, -0.5)], cap, start=-1.0)
+    coarse = hysteresis_state(np.array([0.0, 60.0]), np.array([0.0, -0.5]), cap, start=-1.0)
+    assert coarse[-1] == pytest.approx(fine[-1], rel=1e-12) and fine[-1] > -1.0
