@@ -104,6 +104,15 @@ def group_table(name: str, groups: tuple[tuple[str, str], ...]) -> Callable[[Pat
     return render
 
 
+def unseen_table(folder: str) -> Callable[[Path], str]:
+    """:func:`group_table` by ambient for each of ``research.unseen_cell``'s cells, from its run in
+    ``out/<folder>/``."""
+    def render(out: Path) -> str:
+        return "\n\n".join(f"`{cell}`:\n\n" + group_table(f"{folder}/{cell}_eval.json", UNSEEN_GROUPS)(out)
+                             for cell in UNSEEN_CELLS)
+    return render
+
+
 def runs_table(runs: tuple[tuple[str, str], ...], groups: tuple[tuple[str, str], ...],
                estimator: str = "fomiukf") -> Callable[[Path], str]:
     """One row per ``socd evaluate --json`` run (label, file), one column per group of recordings
@@ -734,9 +743,11 @@ socd evaluate --cell out/s25/pan_us06.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m
           group_table("s25/pan_us06_eval.json", PAN_GROUPS), 60),
     Table("unseen_cell", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
-python -m research.unseen_cell run --refit""",
-          lambda out: "\n\n".join(f"`{cell}`:\n\n" + group_table(f"unseen_cell/{cell}_eval.json", UNSEEN_GROUPS)(out)
-                                  for cell in UNSEEN_CELLS), 15, ("needs:pybamm",)),
+python -m research.unseen_cell run --refit""", unseen_table("unseen_cell"), 15, ("needs:pybamm",)),
+    Table("unseen_cell_hysteresis", "characterisation.md", """\
+python -m research.unseen_cell build --jobs 2 --hysteresis-mv 10 --workdir out/unseen_cell_hys
+python -m research.unseen_cell run --refit --workdir out/unseen_cell_hys""",
+          unseen_table("unseen_cell_hys"), 15, ("needs:pybamm",)),
     Table("fit_vs_2rc_point", "characterisation.md", REAL + """\
 A123_FIT="$A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv -q"
 socd fit $A123_FIT --hysteresis --no-kinetics -o out/s25/a123_hys_nokin.toml   # out/s25/a123.toml: char_a123
