@@ -105,7 +105,7 @@ def test_hysteresis_state_follows_the_charge_moved_whatever_the_sampling():
     rest = hysteresis_state(np.arange(100.0), np.zeros(100), cap, start=1.0)
     assert np.all(rest == 1.0)
     # discharge 1/rate of the capacity at 1C: 3600 / rate seconds
-    n = int(round(3600.0 / HYSTERESIS_RATE))
+    n = round(3600.0 / HYSTERESIS_RATE)
     h = hysteresis_state(np.arange(n + 1.0), np.r_[0.0, np.full(n, cap)], cap, start=1.0)
     assert h[-1] == pytest.approx(1.0 - 2.0 * (1.0 - np.exp(-1.0)), abs=1e-9)
     fine = hysteresis_state(np.arange(61.0), np.r_[0.0, np.full(60, -0.5)], cap, start=-1.0)

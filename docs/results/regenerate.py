@@ -104,12 +104,13 @@ def group_table(name: str, groups: tuple[tuple[str, str], ...]) -> Callable[[Pat
     return render
 
 
-def unseen_table(folder: str) -> Callable[[Path], str]:
-    """:func:`group_table` by ambient for each of ``research.unseen_cell``'s cells, from its run in
-    ``out/<folder>/``."""
+def unseen_table(folder: str, cells: tuple[str, ...] = (), tag: str = "",
+                 groups: tuple[tuple[str, str], ...] = ()) -> Callable[[Path], str]:
+    """:func:`group_table` by ambient for each of ``research.unseen_cell``'s cells (all unless given),
+    from its run in ``out/<folder>/`` with profile tag ``tag``."""
     def render(out: Path) -> str:
-        return "\n\n".join(f"`{cell}`:\n\n" + group_table(f"{folder}/{cell}_eval.json", UNSEEN_GROUPS)(out)
-                             for cell in UNSEEN_CELLS)
+        return "\n\n".join(f"`{cell}`:\n\n" + group_table(f"{folder}/{cell}{tag}_eval.json", groups or UNSEEN_GROUPS)(out)
+                             for cell in cells or UNSEEN_CELLS)
     return render
 
 
@@ -744,6 +745,11 @@ socd evaluate --cell out/s25/pan_us06.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m
     Table("unseen_cell", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
 python -m research.unseen_cell run --refit""", unseen_table("unseen_cell"), 15, ("needs:pybamm",)),
+    Table("unseen_cell_cold", "characterisation.md", """\
+python -m research.unseen_cell build --jobs 2 --cells Chen2020,Mohtat2020 --ambients -10
+python -m research.unseen_cell run --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10 --profile-tag _m10 --refit""",
+          unseen_table("unseen_cell", ("Chen2020", "Mohtat2020"), "_m10", UNSEEN_GROUPS + (("−10 °C", r"_m10C_"),)),
+          20, ("needs:unseen_cell", "needs:pybamm")),
     Table("unseen_cell_hysteresis", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2 --hysteresis-mv 10 --workdir out/unseen_cell_hys
 python -m research.unseen_cell run --refit --workdir out/unseen_cell_hys""",
