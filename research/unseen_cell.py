@@ -11,16 +11,17 @@ real cells are the ones every default was chosen on; this module builds cells th
   Panasonic 18650PF drive cycle at 25 °C, scaled to the cell's capacity (the same C-rates),
   from full charge to the lower cut-off.  Noise as :mod:`research.validate_pybamm` (voltage
   σ 1.5 mV, current 0.5 % + 5 mA, temperature 0.1 K).  PyBaMM's models have no OCV hysteresis;
-  ``--hysteresis-mv`` adds a one-state one (Zeng Eq. 1, as :mod:`research.validate_pybamm` does).  Every recording carries ``soc_true``:
-  the coulomb count from full over the OCV test's C/20 discharge capacity, which is also the
-  capacity the user is told.
+  ``--hysteresis-mv`` adds a one-state one (Zeng Eq. 1, as :mod:`research.validate_pybamm` does).
+  Every recording carries ``soc_true``: the coulomb count from full over the OCV test's C/20
+  discharge capacity, which is also the capacity the user is told.
 * ``run`` is the issue's two commands per cell, unchanged: ``socd fit`` on every ambient's OCV test
   and US06 (``<cell>.toml``), then ``socd evaluate --estimator fomiukf --estimator ecm2rc-ekf`` on
   every other drive (``<cell>_eval.json``; SOC RMSE after 600 s from a ±20 % start, as the issue
   scores).  ``--settings`` and ``--current-bias-c`` score the same profile another way, for a
   leave-one-cell-out table beside the shared cells (``research.nested_tuning --by cell``).
 
-Needs PyBaMM (``pip install -e .[research]``).  Not run in CI.
+Needs PyBaMM (``pip install -e .[research]``).  CI builds one cell in its test
+(``tests/test_unseen_cell.py``); the tables in ``docs/results/`` are not run there.
 
     python -m research.unseen_cell build [--cells Chen2020,...] [--ambients 25,10,0] [--jobs 2]
     python -m research.unseen_cell run [--cells ...] [--ambients ...] [--settings S.toml] [--tag T]
