@@ -42,15 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from research.validate_pybamm import (
-    I_NOISE_ABS,
-    I_NOISE_REL,
-    T_NOISE,
-    V_NOISE,
-    _pybamm,
-    hysteresis_state,
-    parameter_values,
-)
+from research.validate_pybamm import _pybamm, hysteresis_state, parameter_values, sensor_readings
 from service.recording import load_recording, save_recording
 
 #: NMC and NCA-like sets with a lumped thermal model that simulate the drives from full charge
@@ -96,10 +88,8 @@ def _at_ambient(cell: str, ambient_c: float):
 
 
 def _noisy(rng: np.random.Generator, time_s, current_a, voltage_v, temp_c) -> np.ndarray:
-    n = len(time_s)
-    v = voltage_v + rng.normal(0.0, V_NOISE, n)
-    i = current_a + rng.normal(0.0, 1.0, n) * (I_NOISE_REL * np.abs(current_a) + I_NOISE_ABS)
-    t = temp_c + rng.normal(0.0, T_NOISE, n)
+    """The recording's four columns, read through :func:`research.validate_pybamm.sensor_readings`."""
+    i, v, t = sensor_readings(rng, current_a, voltage_v, temp_c)
     return np.column_stack([time_s, np.round(i, 5), np.round(v, 5), np.round(t, 2)])
 
 

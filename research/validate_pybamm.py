@@ -195,6 +195,18 @@ def hysteresis_state(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: flo
     return state
 
 
+def sensor_readings(rng: np.random.Generator, current_a: np.ndarray, voltage_v: np.ndarray, temp_c: np.ndarray,
+                    bias_a: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(current, voltage, temperature)`` as the labelled files' loggers read them: the true values
+    plus the current sensor's offset ``bias_a`` and seeded noise (module docstring: voltage σ
+    :data:`V_NOISE`, current σ :data:`I_NOISE_REL` |I| + :data:`I_NOISE_ABS`, temperature σ
+    :data:`T_NOISE`)."""
+    n = len(current_a)
+    voltage = voltage_v + rng.normal(0.0, V_NOISE, n)
+    current = current_a + bias_a + rng.normal(0.0, 1.0, n) * (I_NOISE_REL * np.abs(current_a) + I_NOISE_ABS)
+    return current, voltage, temp_c + rng.normal(0.0, T_NOISE, n)
+
+
 def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """``(data [n, 4], ocv_soc, ocv_v, info)``; data columns time_s, current_a, voltage_v, temperature_c."""
     pybamm = _pybamm()
@@ -253,9 +265,7 @@ def simulate(cell: str, effect: str, level: str, seed: int, kind: str = "dst") -
     if effect == "current_bias":
         bias = (0.002, 0.004, 0.008)[k] * cap * (1.0 if rng.random() < 0.5 else -1.0)
         info["bias_a"] = bias
-    voltage += rng.normal(0.0, V_NOISE, n)
-    i_meas = i_true + bias + rng.normal(0.0, 1.0, n) * (I_NOISE_REL * np.abs(i_true) + I_NOISE_ABS)
-    temperature = temperature + rng.normal(0.0, T_NOISE, n)
+    i_meas, voltage, temperature = sensor_readings(rng, i_true, voltage, temperature, bias)
     info["cut_off"] = bool(n < current.size)
     charge = float(sol["Discharge capacity [A.h]"].entries[-1])
     programmed = float(np.sum(i_true[:-1]) / SECONDS_PER_HOUR)

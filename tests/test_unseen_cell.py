@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from research.validate_pybamm import I_NOISE_ABS, I_NOISE_REL
 from service.cell.units import SECONDS_PER_HOUR
 from service.characterisation.ocv_sources import is_ocv_test, slow_branches
 from service.recording import load_recording
@@ -52,7 +53,7 @@ def test_the_drive_is_the_panasonic_current_at_the_same_c_rate_with_a_coulomb_tr
     n = len(rec)
     assert n > 0.9 * len(pan), "the drive runs to the recording's end or the cut-off, not a few samples"
     expected = pan.current_a[:n] * capacity / uc.PANASONIC_AH
-    noise = uc.I_NOISE_REL * np.abs(expected) + uc.I_NOISE_ABS
+    noise = I_NOISE_REL * np.abs(expected) + I_NOISE_ABS
     assert np.mean(np.abs(rec.current_a - expected) / noise) < 1.5, "the current is the scaled one plus noise"
     assert rec.soc_true is not None and rec.soc_true[0] == pytest.approx(1.0)
     charge = np.concatenate([[0.0], np.cumsum(0.5 * (expected[1:] + expected[:-1]) * np.diff(rec.time_s))])
