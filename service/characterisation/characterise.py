@@ -262,7 +262,7 @@ def say_flat_joint_ocv(rep: FitReport, grid: np.ndarray, rows: dict[float, np.nd
     there its monotone bound is active, the recordings do not determine the table, and a filter reading
     the slope at its estimate takes nothing from the voltage."""
     for t in sorted(rows, reverse=True):
-        share = flat_share(OcvTable.from_points(grid, rows[t]), 25.0)
+        share = flat_share(OcvTable.from_points(grid, rows[t]), t)  # a one-row table: any temperature reads it
         if share > 0:
             rep.say(f"  {t:g} °C: the joint OCV is flat over {100 * share:.0f} % of SOC (held up by its monotone "
                     "bound where the data would have it fall); an OCV test or rests at those SOCs would "
