@@ -161,14 +161,12 @@ def build_cell(cell: str, ambient_c: float, workdir: Path, seed: int, hysteresis
         save_recording(workdir / f"{ocv_job.stem}.csv", data, fmt="%.5f")
         meta_path.write_text(json.dumps({"cell": cell, "ambient_c": ambient_c, "capacity_ah": capacity,
                                          "hysteresis_v": hysteresis_v}))
-    done = []
     for k, name in enumerate(DRIVES):
         job = Job(cell, ambient_c, name, seed + 1 + k, hysteresis_v)
         out = workdir / f"{job.stem}.csv"
         if not out.exists():
             save_recording(out, drive(job, capacity), fmt="%.5f")
-        done.append(name)
-    return f"{cell} {_temp_tag(ambient_c)}: {capacity:.4f} Ah, {len(done)} drives"
+    return f"{cell} {_temp_tag(ambient_c)}: {capacity:.4f} Ah, {len(DRIVES)} drives"
 
 
 def _build_one(args: tuple[str, float, str, int, float]) -> str:
@@ -192,9 +190,11 @@ class RunOptions:
 
 def run_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOptions) -> Path:
     """The issue's two commands on one cell: one profile from every ambient's OCV test and US06,
-    every other drive scored; returns the evaluation JSON."""
+    every other drive scored; returns the evaluation JSON.  The capacity the fit is told is the
+    warmest ambient's C/20 discharge, whatever order the ambients come in."""
     stems = [f"{cell}_{_temp_tag(t)}" for t in ambients]
-    capacity = json.loads((workdir / f"{stems[0]}_ocv.json").read_text())["capacity_ah"]
+    warmest = f"{cell}_{_temp_tag(max(ambients))}"
+    capacity = json.loads((workdir / f"{warmest}_ocv.json").read_text())["capacity_ah"]
     profile = workdir / f"{cell}{opt.profile_tag}.toml"
     if opt.refit or not profile.exists():
         fit_files = [str(workdir / f"{s}_{part}.csv") for s in stems for part in ("ocv", FIT_DRIVE)]
