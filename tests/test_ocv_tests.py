@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from service.cell.profile import load_profile
 from service.characterisation.ocv_sources import (
@@ -25,15 +26,18 @@ from tests.conftest import NMC_CAPACITY_AH, nmc_ocv_points, write_recording_csv
 COLD_SHIFT_V = -0.030
 
 
-def write_ocv_test(path: Path, temp_c: float, shift_v: float, r_ohm: float = 0.05, charge_first: bool = False) -> Path:
+def write_ocv_test(path: Path, temp_c: float, shift_v: float, r_ohm: float = 0.05, charge_first: bool = False,
+                   charge_to: float = 1.0, charge_logged: float = 1.0) -> Path:
     """A C/20 discharge from full to empty, an hour's rest, a C/20 charge back to full (60 s
     samples): the voltage is the synthetic cell's OCV plus ``shift_v`` minus the ohmic drop.
     ``charge_first``: the file starts half full with a 1C charge to full and a rest (a tester's
-    OCV test usually does)."""
+    OCV test usually does).  ``charge_to``: the charge stops at this SOC (a cold charge meets the
+    voltage limit early); ``charge_logged``: the charge current is logged at this gain (the counts
+    do not close, the cell still reaches full)."""
     soc_pts, ocv_pts = nmc_ocv_points()
     amps = NMC_CAPACITY_AH / 20.0
     n = 1200  # 20 h at 60 s
-    i = np.concatenate([np.zeros(60), np.full(n, amps), np.zeros(60), np.full(n, -amps), np.zeros(60)])
+    i = np.concatenate([np.zeros(60), np.full(n, amps), np.zeros(60), np.full(round(n * charge_to), -amps), np.zeros(60)])
     start = 1.0
     if charge_first:
         i = np.concatenate([np.zeros(10), np.full(30, -NMC_CAPACITY_AH), i])  # 30 min at 1C from half full
@@ -41,12 +45,13 @@ def write_ocv_test(path: Path, temp_c: float, shift_v: float, r_ohm: float = 0.0
     t = 60.0 * np.arange(i.size)
     soc = start - np.cumsum(i * 60.0) / 3600.0 / NMC_CAPACITY_AH
     v = np.interp(soc, soc_pts, ocv_pts) + shift_v - r_ohm * i
-    return write_recording_csv(path, t, i, v, np.full(i.size, temp_c))
+    return write_recording_csv(path, t, np.where(i < 0, charge_logged * i, i), v, np.full(i.size, temp_c))
 
 
 def test_an_ocv_test_gives_the_ocv_at_its_temperature(tmp_path: Path) -> None:
     rec = load_recording(write_ocv_test(tmp_path / "ocv0.csv", 0.0, COLD_SHIFT_V))
-    grid, curve = ocv_from_test(rec, NMC_CAPACITY_AH)
+    curve = ocv_from_test(rec, NMC_CAPACITY_AH)
+    grid, curve = curve.grid, curve.ocv_v
     soc_pts, ocv_pts = nmc_ocv_points()
     inside = (grid > 0.05) & (grid < 0.95)  # the ends of a sampled branch are coarse
     np.testing.assert_allclose(curve[inside], np.interp(grid, soc_pts, ocv_pts)[inside] + COLD_SHIFT_V, atol=2e-3)
@@ -56,7 +61,8 @@ def test_an_ocv_test_that_starts_with_a_fast_charge_is_still_one(tmp_path: Path,
     """The slow branches make the test, not the file's peak current: a 1C charge before it is left out."""
     rec = load_recording(write_ocv_test(tmp_path / "ocv_cc.csv", 25.0, 0.0, charge_first=True))
     assert is_ocv_test(rec, NMC_CAPACITY_AH)
-    grid, curve = ocv_from_test(rec, NMC_CAPACITY_AH)
+    curve = ocv_from_test(rec, NMC_CAPACITY_AH)
+    grid, curve = curve.grid, curve.ocv_v
     soc_pts, ocv_pts = nmc_ocv_points()
     inside = (grid > 0.05) & (grid < 0.95)
     np.testing.assert_allclose(curve[inside], np.interp(grid, soc_pts, ocv_pts)[inside], atol=2e-3)
@@ -65,6 +71,30 @@ def test_an_ocv_test_that_starts_with_a_fast_charge_is_still_one(tmp_path: Path,
     assert not is_ocv_test(load_recording(drive.path), NMC_CAPACITY_AH)
     half = rec.slice(0, 40 + 60 + 600)
     assert not is_ocv_test(half, NMC_CAPACITY_AH)
+
+
+def test_a_charge_that_stopped_short_is_counted_on_the_discharge_scale(tmp_path: Path) -> None:
+    """A charge that meets the voltage limit at 95 % rests below the voltage at full: it is counted
+    on the discharge's scale, not stretched over the whole range, and the top 5 % is the
+    discharge branch raised to the rest at full (stretched, the curve sits 20 mV low at 90 %)."""
+    rec = load_recording(write_ocv_test(tmp_path / "short.csv", 0.0, 0.0, charge_to=0.95))
+    curve = ocv_from_test(rec, NMC_CAPACITY_AH)
+    assert curve.charge_reach == pytest.approx(0.95, abs=2e-3)
+    soc_pts, ocv_pts = nmc_ocv_points()
+    inside = (curve.grid > 0.05) & (curve.grid < 0.99)
+    np.testing.assert_allclose(curve.ocv_v[inside], np.interp(curve.grid, soc_pts, ocv_pts)[inside], atol=1.5e-3)
+
+
+def test_a_charge_whose_count_falls_short_but_reached_full_keeps_its_own_scale(tmp_path: Path) -> None:
+    """The same shortfall in the count (charge current logged 5 % low) with the cell back at full:
+    the rest after the charge matches the rest before the discharge, so the charge is normalised
+    by its own throughput."""
+    rec = load_recording(write_ocv_test(tmp_path / "gain.csv", 0.0, 0.0, charge_logged=0.95))
+    curve = ocv_from_test(rec, NMC_CAPACITY_AH)
+    assert curve.charge_reach == 1.0
+    soc_pts, ocv_pts = nmc_ocv_points()
+    inside = (curve.grid > 0.05) & (curve.grid < 0.95)
+    np.testing.assert_allclose(curve.ocv_v[inside], np.interp(curve.grid, soc_pts, ocv_pts)[inside], atol=2e-3)
 
 
 def test_rows_between_test_temperatures_are_interpolated_and_held_beyond() -> None:

@@ -317,7 +317,11 @@ def characterise(
     elif ocv_tests:
         by_t: dict[float, list[np.ndarray]] = defaultdict(list)
         for r in ocv_tests:
-            by_t[temperature_group(r)].append(ocv_from_test(r, capacity_ah, grid)[1])
+            curve = ocv_from_test(r, capacity_ah, grid)
+            by_t[temperature_group(r)].append(curve.ocv_v)
+            if curve.charge_reach < 1.0:
+                rep.say(f"OCV: {r.name}'s charge stopped short of full, at {100 * curve.charge_reach:.1f} % of the "
+                        "discharge's capacity; its top is read from the discharge branch and the rest at full")
         test_rows = {t: np.mean(rows, axis=0) for t, rows in by_t.items()}
         rep.say(f"OCV: from OCV test(s) {', '.join(r.name for r in ocv_tests)} at "
                 f"{', '.join(f'{t:g}' for t in sorted(test_rows))} °C")

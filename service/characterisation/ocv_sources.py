@@ -60,24 +60,109 @@ def is_ocv_test(rec: Recording, capacity_ah: float) -> bool:
     return bool(slow_branches(rec, capacity_ah)) and bool(np.ptp(rec.voltage_v) > 0.3)
 
 
-def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+#: the rest after an OCV test's charge is read this long after the charge ends (a longer rest
+#: relaxes further; the rule below only needs it to have started)
+POST_CHARGE_REST_S = 600.0
+
+
+@dataclass
+class OcvTestCurve:
+    """An OCV test's curve on ``grid`` and how far its charge got: ``charge_reach`` is the charge's
+    throughput over the discharge's when the charge stopped short of full (a cold C/20 charge
+    reaches the voltage limit early), 1.0 when it reached full or the test has one branch."""
+
+    grid: np.ndarray
+    ocv_v: np.ndarray
+    charge_reach: float = 1.0
+
+
+@dataclass
+class _Branch:
+    q_ah: np.ndarray  # throughput counted from the branch's start
+    voltage_v: np.ndarray
+    first: int
+    last: int
+
+
+def _branch(rec: Recording, sign: float, mask: np.ndarray) -> _Branch:
+    dt = np.diff(rec.time_s, prepend=rec.time_s[0])
+    idx = np.flatnonzero(mask)
+    q = np.cumsum(sign * rec.current_a[mask] * dt[mask]) / SECONDS_PER_HOUR
+    return _Branch(q, rec.voltage_v[mask], int(idx[0]), int(idx[-1]))
+
+
+def _on_grid(grid: np.ndarray, soc: np.ndarray, voltage_v: np.ndarray) -> np.ndarray:
+    order = np.argsort(soc)
+    return np.interp(grid, soc[order], make_monotone(voltage_v[order], 0.0))
+
+
+def charge_reach(rec: Recording, capacity_ah: float, dis: _Branch, chg: _Branch, grid: np.ndarray) -> float:
+    """Where a charge that returned less than the discharge took out ended, as a fraction of the
+    discharge capacity: ``Q_chg / Q_dis`` when it stopped short of full, 1.0 when the counts only
+    fail to close (coulombic loss, a current offset) and it did reach full.
+
+    The rest after the charge decides, without a threshold: stopped short, it rests near the
+    branches' mean where the charge ended, counted on the discharge's scale; full, it rests near
+    the voltage it rested at before the discharge.  A test that is not discharge-then-charge with
+    a rest before and after is taken as reaching full."""
+    resting = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah
+    reach = float(chg.q_ah[-1] / dis.q_ah[-1])
+    after = np.flatnonzero(resting & (rec.time_s > rec.time_s[chg.last])
+                           & (rec.time_s <= rec.time_s[chg.last] + POST_CHARGE_REST_S))
+    if reach >= 1.0 or dis.last > chg.first or dis.first == 0 or not resting[dis.first - 1] or not after.size:
+        return 1.0
+    v_full = rec.voltage_v[dis.first - 1]
+    v_post = rec.voltage_v[after[-1]]
+    v_dis = _on_grid(grid, 1.0 - dis.q_ah / dis.q_ah[-1], dis.voltage_v)
+    v_chg = _on_grid(grid, chg.q_ah / dis.q_ah[-1], chg.voltage_v)
+    implied = np.interp(reach, grid, v_dis) + _offset_at_reach(grid, reach, v_dis, 0.5 * (v_dis + v_chg))
+    return reach if abs(v_post - implied) < abs(v_post - v_full) else 1.0
+
+
+def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = None) -> OcvTestCurve:
     """Average of the discharge and charge branches of a slow OCV test (:func:`slow_branches`).
 
-    Each branch is coulomb counted and normalised by its own throughput (discharge:
-    SOC = 1 − Q/Q_dis, charge: SOC = Q/Q_chg); a single branch is used as it is.
+    The discharge is coulomb counted from full (SOC = 1 − Q/Q_dis).  A charge that reached full is
+    normalised by its own throughput (SOC = Q/Q_chg); one that stopped short (:func:`charge_reach`)
+    counts on the discharge's scale (SOC = Q/Q_dis), and above where it stopped the curve is the
+    discharge branch raised by an offset that runs from the branches' mean offset there to the
+    rested voltage at full.  A single branch is used as it is.
     """
     grid = np.linspace(0, 1, GRID_POINTS) if grid is None else grid
-    dt = np.diff(rec.time_s, prepend=rec.time_s[0])
-    branches = []
-    for sign, mask in slow_branches(rec, capacity_ah):
-        q = np.cumsum(sign * rec.current_a[mask] * dt[mask]) / SECONDS_PER_HOUR
-        v = rec.voltage_v[mask]
-        soc = 1.0 - q / q[-1] if sign > 0 else q / q[-1]
-        order = np.argsort(soc)
-        branches.append(np.interp(grid, soc[order], make_monotone(v[order], 0.0)))
+    branches = {sign: _branch(rec, sign, mask) for sign, mask in slow_branches(rec, capacity_ah)}
     if not branches:
         raise ValueError(f"{rec.path}: no slow charge or discharge found for an OCV test")
-    return grid, make_monotone(np.mean(branches, axis=0))
+    if len(branches) == 1:
+        ((sign, b),) = branches.items()
+        soc = 1.0 - b.q_ah / b.q_ah[-1] if sign > 0 else b.q_ah / b.q_ah[-1]
+        return OcvTestCurve(grid, make_monotone(_on_grid(grid, soc, b.voltage_v)))
+    dis, chg = branches[1.0], branches[-1.0]
+    v_dis = _on_grid(grid, 1.0 - dis.q_ah / dis.q_ah[-1], dis.voltage_v)
+    reach = charge_reach(rec, capacity_ah, dis, chg, grid)
+    v_chg = _on_grid(grid, chg.q_ah / (dis.q_ah[-1] if reach < 1.0 else chg.q_ah[-1]), chg.voltage_v)
+    mean = 0.5 * (v_dis + v_chg)
+    if reach < 1.0:
+        mean = np.where(grid <= reach, mean, _above_reach(grid, reach, v_dis, mean, rec.voltage_v[dis.first - 1]))
+    return OcvTestCurve(grid, make_monotone(mean), reach)
+
+
+#: the branches' mean offset where a short charge stopped is read over this SOC window below it
+#: (its last few samples climb into the voltage limit)
+REACH_WINDOW = (0.03, 0.005)
+
+
+def _offset_at_reach(grid: np.ndarray, reach: float, v_dis: np.ndarray, mean: np.ndarray) -> float:
+    """The branches' mean less the discharge branch just below ``reach`` (:data:`REACH_WINDOW`)."""
+    window = (grid > reach - REACH_WINDOW[0]) & (grid < reach - REACH_WINDOW[1])
+    return float(np.mean((mean - v_dis)[window])) if window.any() else float(np.interp(reach, grid, mean - v_dis))
+
+
+def _above_reach(grid: np.ndarray, reach: float, v_dis: np.ndarray, mean: np.ndarray, v_full: float) -> np.ndarray:
+    """The OCV above a short charge's end: the discharge branch plus an offset linear in SOC from
+    the branches' mean offset at ``reach`` to the rested voltage at full."""
+    at_reach = _offset_at_reach(grid, reach, v_dis, mean)
+    at_full = v_full - v_dis[-1]
+    return v_dis + at_reach + (at_full - at_reach) * (grid - reach) / (1.0 - reach)
 
 
 def ocv_rows_by_temperature(tests: dict[float, np.ndarray], temps: list[float]) -> dict[float, np.ndarray]:
