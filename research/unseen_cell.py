@@ -186,18 +186,23 @@ class RunOptions:
     settings: Path | None = None
     current_bias_c: float = 0.0
     tag: str = ""
+    #: the ambients whose OCV test joins the fit (None: every ambient's)
+    ocv_ambients: tuple[float, ...] | None = None
 
 
 def run_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOptions) -> Path:
-    """The issue's two commands on one cell: one profile from every ambient's OCV test and US06,
-    every other drive scored; returns the evaluation JSON.  The capacity the fit is told is the
-    warmest ambient's C/20 discharge, whatever order the ambients come in."""
+    """The issue's two commands on one cell: one profile from every ambient's US06 and the OCV
+    tests of ``opt.ocv_ambients`` (default: every ambient's), every other drive scored; returns the
+    evaluation JSON.  The capacity the fit is told is the C/20 discharge of the warmest ambient with
+    an OCV test in the fit, whatever order the ambients come in."""
     stems = [f"{cell}_{_temp_tag(t)}" for t in ambients]
-    warmest = f"{cell}_{_temp_tag(max(ambients))}"
+    ocv_ambients = ambients if opt.ocv_ambients is None else opt.ocv_ambients
+    warmest = f"{cell}_{_temp_tag(max(ocv_ambients))}"
     capacity = json.loads((workdir / f"{warmest}_ocv.json").read_text())["capacity_ah"]
     profile = workdir / f"{cell}{opt.profile_tag}.toml"
     if opt.refit or not profile.exists():
-        fit_files = [str(workdir / f"{s}_{part}.csv") for s in stems for part in ("ocv", FIT_DRIVE)]
+        fit_files = [str(workdir / f"{s}_{part}.csv") for t, s in zip(ambients, stems)
+                     for part in ("ocv", FIT_DRIVE) if part == FIT_DRIVE or t in ocv_ambients]
         subprocess.run(["socd", "fit", *fit_files, "--capacity-ah", f"{capacity:.4f}", "-q", "-o", str(profile),
                         *opt.fit_flags], check=True)
     others = [str(workdir / f"{s}_{d}.csv") for s in stems for d in DRIVES if d != FIT_DRIVE]
@@ -230,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--settings", type=Path, help="`socd evaluate --settings` TOML (run)")
     ap.add_argument("--current-bias-c", type=float, default=0.0, help="`socd evaluate --current-bias-c` (run)")
     ap.add_argument("--tag", default="", help="suffix of the evaluation files (run)")
+    ap.add_argument("--ocv-ambients", help="the ambients whose OCV test joins the fit (run; default: every "
+                    "ambient's), e.g. 25,10,0 with --ambients 40,25,10,0,-10 as the issue's held-out check has")
     ap.add_argument("--fit-flags", default="", help="extra `socd fit` flags as one string, e.g. "
                     "--fit-flags=--no-kinetics; give --profile-tag too (run)")
     a = ap.parse_args(argv)
@@ -242,7 +249,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(line, flush=True)
         return 0
     opt = RunOptions(tuple(shlex.split(a.fit_flags)), a.profile_tag, a.refit, tuple(e for e in a.estimators.split(",") if e),
-                     a.settings, a.current_bias_c, a.tag)
+                     a.settings, a.current_bias_c, a.tag,
+                     None if a.ocv_ambients is None else tuple(float(x) for x in a.ocv_ambients.split(",") if x))
     for cell in cells:
         print(f"{cell}: {run_cell(cell, ambients, a.workdir, opt)}", flush=True)
     return 0

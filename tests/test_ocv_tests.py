@@ -74,24 +74,30 @@ def test_an_ocv_test_that_starts_with_a_fast_charge_is_still_one(tmp_path: Path,
 
 
 def test_a_charge_that_stopped_short_is_counted_on_the_discharge_scale(tmp_path: Path) -> None:
-    """A charge that meets the voltage limit at 95 % rests below the voltage at full: it is counted
-    on the discharge's scale, not stretched over the whole range, and the top 5 % is the
-    discharge branch raised to the rest at full (stretched, the curve sits 20 mV low at 90 %)."""
+    """A charge that meets the voltage limit at 95 % rests below the voltage at full: with
+    ``short_charge`` it is counted on the discharge's scale, not stretched over the whole range,
+    and the top 5 % is the discharge branch raised to the rest at full; stretched (the default),
+    the curve sits 20 mV low at 90 %."""
     rec = load_recording(write_ocv_test(tmp_path / "short.csv", 0.0, 0.0, charge_to=0.95))
-    curve = ocv_from_test(rec, NMC_CAPACITY_AH)
-    assert curve.charge_reach == pytest.approx(0.95, abs=2e-3)
+    curve = ocv_from_test(rec, NMC_CAPACITY_AH, short_charge=True)
+    assert curve.charge_reach == pytest.approx(0.95, abs=2e-3) and curve.short_charge
     soc_pts, ocv_pts = nmc_ocv_points()
     inside = (curve.grid > 0.05) & (curve.grid < 0.99)
-    np.testing.assert_allclose(curve.ocv_v[inside], np.interp(curve.grid, soc_pts, ocv_pts)[inside], atol=1.5e-3)
+    truth = np.interp(curve.grid, soc_pts, ocv_pts)
+    np.testing.assert_allclose(curve.ocv_v[inside], truth[inside], atol=1.5e-3)
+    # the default stretches it (the shortfall is still detected and reported)
+    stretched = ocv_from_test(rec, NMC_CAPACITY_AH)
+    assert stretched.charge_reach == curve.charge_reach and not stretched.short_charge
+    assert np.interp(0.9, curve.grid, stretched.ocv_v - truth) < -0.01
 
 
 def test_a_charge_whose_count_falls_short_but_reached_full_keeps_its_own_scale(tmp_path: Path) -> None:
     """The same shortfall in the count (charge current logged 5 % low) with the cell back at full:
-    the rest after the charge matches the rest before the discharge, so the charge is normalised
-    by its own throughput."""
+    the rest after the charge matches the rest before the discharge, so even with ``short_charge``
+    the charge is normalised by its own throughput."""
     rec = load_recording(write_ocv_test(tmp_path / "gain.csv", 0.0, 0.0, charge_logged=0.95))
-    curve = ocv_from_test(rec, NMC_CAPACITY_AH)
-    assert curve.charge_reach == 1.0
+    curve = ocv_from_test(rec, NMC_CAPACITY_AH, short_charge=True)
+    assert curve.charge_reach == 1.0 and not curve.short_charge
     soc_pts, ocv_pts = nmc_ocv_points()
     inside = (curve.grid > 0.05) & (curve.grid < 0.95)
     np.testing.assert_allclose(curve.ocv_v[inside], np.interp(curve.grid, soc_pts, ocv_pts)[inside], atol=2e-3)

@@ -286,6 +286,7 @@ def characterise(
     slow_branch: bool = False,
     ocv_branch: str = "mean",
     rest_anchor: bool | None = None,
+    short_charge: bool = False,
     report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
@@ -297,7 +298,9 @@ def characterise(
     the table is fitted jointly and a long rest exists; ``True`` requires both; ``False`` keeps the
     joint table and only reports its offsets from the rests.  ``fit_kinetics``: fit the Butler-Volmer
     exchange current at every temperature (True), at none (False), or (None, the default) at each
-    temperature whose recordings have the current steps that resolve it (:func:`kinetics_resolvable`)."""
+    temperature whose recordings have the current steps that resolve it (:func:`kinetics_resolvable`).
+    ``short_charge``: an OCV test whose charge stopped short of full is counted on the discharge's
+    scale (:func:`ocv_from_test`)."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
     rep = report if report is not None else FitReport()
@@ -317,11 +320,13 @@ def characterise(
     elif ocv_tests:
         by_t: dict[float, list[np.ndarray]] = defaultdict(list)
         for r in ocv_tests:
-            curve = ocv_from_test(r, capacity_ah, grid)
+            curve = ocv_from_test(r, capacity_ah, grid, short_charge)
             by_t[temperature_group(r)].append(curve.ocv_v)
             if curve.charge_reach < 1.0:
                 rep.say(f"OCV: {r.name}'s charge stopped short of full, at {100 * curve.charge_reach:.1f} % of the "
-                        "discharge's capacity; its top is read from the discharge branch and the rest at full")
+                        "discharge's capacity; " + ("counted on the discharge's scale" if curve.short_charge else
+                                                    "stretched over the whole range (--short-charge counts it on "
+                                                    "the discharge's scale)"))
         test_rows = {t: np.mean(rows, axis=0) for t, rows in by_t.items()}
         rep.say(f"OCV: from OCV test(s) {', '.join(r.name for r in ocv_tests)} at "
                 f"{', '.join(f'{t:g}' for t in sorted(test_rows))} °C")

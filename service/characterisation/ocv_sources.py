@@ -69,11 +69,13 @@ POST_CHARGE_REST_S = 600.0
 class OcvTestCurve:
     """An OCV test's curve on ``grid`` and how far its charge got: ``charge_reach`` is the charge's
     throughput over the discharge's when the charge stopped short of full (a cold C/20 charge
-    reaches the voltage limit early), 1.0 when it reached full or the test has one branch."""
+    reaches the voltage limit early), 1.0 when it reached full or the test has one branch;
+    ``short_charge``: whether the curve counts such a charge on the discharge's scale."""
 
     grid: np.ndarray
     ocv_v: np.ndarray
     charge_reach: float = 1.0
+    short_charge: bool = False
 
 
 @dataclass
@@ -119,14 +121,17 @@ def charge_reach(rec: Recording, capacity_ah: float, dis: _Branch, chg: _Branch,
     return reach if abs(v_post - implied) < abs(v_post - v_full) else 1.0
 
 
-def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = None) -> OcvTestCurve:
+def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = None,
+                  short_charge: bool = False) -> OcvTestCurve:
     """Average of the discharge and charge branches of a slow OCV test (:func:`slow_branches`).
 
-    The discharge is coulomb counted from full (SOC = 1 − Q/Q_dis).  A charge that reached full is
-    normalised by its own throughput (SOC = Q/Q_chg); one that stopped short (:func:`charge_reach`)
-    counts on the discharge's scale (SOC = Q/Q_dis), and above where it stopped the curve is the
-    discharge branch raised by an offset that runs from the branches' mean offset there to the
-    rested voltage at full.  A single branch is used as it is.
+    The discharge is coulomb counted from full (SOC = 1 − Q/Q_dis), the charge normalised by its
+    own throughput (SOC = Q/Q_chg).  With ``short_charge``, a charge that stopped short of full
+    (:func:`charge_reach`) counts on the discharge's scale instead (SOC = Q/Q_dis), and above where
+    it stopped the curve is the discharge branch raised by an offset that runs from the branches'
+    mean offset there to the rested voltage at full.  That reads the test's OCV closer to the
+    cell's, and scores worse pooled over the cells the defaults are chosen on (``socd fit
+    --short-charge``, docs/results/tuning.md).  A single branch is used as it is.
     """
     grid = np.linspace(0, 1, GRID_POINTS) if grid is None else grid
     branches = {sign: _branch(rec, sign, mask) for sign, mask in slow_branches(rec, capacity_ah)}
@@ -139,11 +144,12 @@ def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = 
     dis, chg = branches[1.0], branches[-1.0]
     v_dis = _on_grid(grid, 1.0 - dis.q_ah / dis.q_ah[-1], dis.voltage_v)
     reach = charge_reach(rec, capacity_ah, dis, chg, grid)
-    v_chg = _on_grid(grid, chg.q_ah / (dis.q_ah[-1] if reach < 1.0 else chg.q_ah[-1]), chg.voltage_v)
+    short = short_charge and reach < 1.0
+    v_chg = _on_grid(grid, chg.q_ah / (dis.q_ah[-1] if short else chg.q_ah[-1]), chg.voltage_v)
     mean = 0.5 * (v_dis + v_chg)
-    if reach < 1.0:
+    if short:
         mean = np.where(grid <= reach, mean, _above_reach(grid, reach, v_dis, mean, rec.voltage_v[dis.first - 1]))
-    return OcvTestCurve(grid, make_monotone(mean), reach)
+    return OcvTestCurve(grid, make_monotone(mean), reach, short)
 
 
 #: the branches' mean offset where a short charge stopped is read over this SOC window below it

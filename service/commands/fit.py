@@ -72,6 +72,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "in rests of 30 min or more at the reference temperature, then fit the rest of the model with it; "
                    "for cells characterised without an OCV test, whose jointly fitted OCV otherwise absorbs the slow "
                    "polarisation (docs/results/cell_options.md: CALCE INR18650-20R)")
+    p.add_argument("--short-charge", action="store_true",
+                   help="an OCV test whose C/20 charge stopped short of full (it rests below where the discharge "
+                   "began, as a cold one does) is counted on the discharge's scale instead of stretched over the "
+                   "whole SOC range; reads the OCV closer to the cell's, yet off by default: it scored worse pooled "
+                   "over the cells the defaults are chosen on (docs/results/tuning.md)")
     p.add_argument("--rest-anchor", action=argparse.BooleanOptionalAction, default=None,
                    help="with no OCV table or test (the OCV fitted jointly with the model): shift the fitted table at "
                    "each temperature to pass through the voltages that temperature's rests of 600 s or more relax "
@@ -120,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
                                        fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
                                        min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
                                        slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
+                                       short_charge=args.short_charge,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
                                        report=report)
         if not args.force:
