@@ -598,6 +598,22 @@ python -m research.unseen_cell run --estimators fomiukf --profile-tag _kin --ref
                            for label, tag in (("`auto` (default)", ""), ("`--no-kinetics`", "_nokin"),
                                               ("`--kinetics`", "_kin"))), UNSEEN_GROUPS),
           20, ("needs:unseen_cell", "needs:pybamm")),
+    Table("unseen_short_charge", "tuning.md", f"""\
+# the default fit is the unseen_cell table's; on the shared cells --short-charge changes nothing (the Panasonic
+# test's charge rests back at full, CALCE and A123 have no two-branch OCV test), so their default runs count for both
+python -m research.unseen_cell run --profile-tag _short --refit --fit-flags=--short-charge
+G=""; for o in stretch short; do
+{loco_inputs("$o", "out/loco/{cell}_noslow_b0.json")}; done
+for c in {" ".join(UNSEEN_CELLS)}; do G="$G stretch=out/unseen_cell/${{c}}_eval.json short=out/unseen_cell/${{c}}_short_eval.json"; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference stretch --exclude {TUNING_EXCLUDE} $G \\
+    --json out/unseen_short_charge.json""",
+          lambda out: nested_table("unseen_short_charge.json")(out) + "\n\n" + "\n\n".join(
+              f"{name}, mean SOC RMSE after 600 s (%):\n\n" + runs_table(
+                  tuple((f"`{cell}` {label}", f"unseen_cell/{cell}{tag}_eval.json") for cell in UNSEEN_CELLS
+                        for label, tag in (("stretched (default)", ""), ("`--short-charge`", "_short"))),
+                  UNSEEN_GROUPS, estimator)(out)
+              for name, estimator in (("`fomiukf`", "fomiukf"), ("`ecm2rc-ekf` (its own 2-RC fit)", "ecm2rc-ekf"))),
+          20, ("needs:unseen_cell", "needs:loco_defaults", "needs:pybamm")),
     Table("loco_current_noise", "tuning.md",
           loco_sweep("current_noise_c", "cn", ("0.0036", "0.00722", "0.0144", "0.0576"), "0.0288"),
           nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
@@ -754,6 +770,11 @@ python -m research.unseen_cell run --cells Chen2020,Mohtat2020 --ambients 25,10,
 python -m research.unseen_cell build --jobs 2 --hysteresis-mv 10 --workdir out/unseen_cell_hys
 python -m research.unseen_cell run --refit --workdir out/unseen_cell_hys""",
           unseen_table("unseen_cell_hys"), 15, ("needs:pybamm",)),
+    Table("unseen_cell_40", "characterisation.md", """\
+python -m research.unseen_cell build --jobs 2 --ambients 40
+python -m research.unseen_cell run --ambients 40,25,10,0 --ocv-ambients 25,10,0 --profile-tag _40 --refit""",
+          unseen_table("unseen_cell", tag="_40", groups=(("40 °C (no OCV test)", r"_40C_"),) + UNSEEN_GROUPS),
+          25, ("needs:unseen_cell", "needs:pybamm")),
     Table("fit_vs_2rc_point", "characterisation.md", REAL + """\
 A123_FIT="$A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv -q"
 socd fit $A123_FIT --hysteresis --no-kinetics -o out/s25/a123_hys_nokin.toml   # out/s25/a123.toml: char_a123
