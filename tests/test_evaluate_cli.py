@@ -682,3 +682,21 @@ def test_with_a_measured_ocv_a_search_on_the_2rc_submodel_keeps_its_own_better_p
     assert ch.on_2rc_submodel(profile.parameters[0])
     assert t.source == "fractional fit", t.source
     assert t.rmse_mv <= t.ecm_rmse_mv
+
+
+def test_fit_caps_the_diffusion_time_constant_where_told(tmp_path: Path, nmc_recording, capsys) -> None:
+    """``--max-tau-df`` caps the fractional diffusion branch's time constant; the default cap is
+    the textbook 2-RC's slow bound, and the help says so."""
+    from service.characterisation.characterise import MAX_TAU_DF_S
+
+    rec = nmc_recording(name="fitdrive", duration_s=2400, seed=4, soc0=0.95)
+    for cap, out in ((None, tmp_path / "default.toml"), (40.0, tmp_path / "capped.toml")):
+        flags = [] if cap is None else ["--max-tau-df", f"{cap:g}"]
+        rc = main(["fit", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "5", "--force", "-q", *flags,
+                   "-o", str(out)])
+        assert rc == 0, capsys.readouterr().err
+        pt = load_profile(out).parameters[0]
+        tau_df = (pt.r_df * pt.c_df) ** (1.0 / pt.n)
+        assert tau_df <= (cap or MAX_TAU_DF_S) * (1 + 1e-6)
+    assert main(["fit", "--help"]) == 0
+    assert f"default {MAX_TAU_DF_S:g}" in " ".join(capsys.readouterr().out.split())

@@ -287,6 +287,7 @@ def characterise(
     ocv_branch: str = "mean",
     rest_anchor: bool | None = None,
     short_charge: bool = False,
+    max_tau_df_s: float = MAX_TAU_DF_S,
     report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
@@ -300,7 +301,8 @@ def characterise(
     exchange current at every temperature (True), at none (False), or (None, the default) at each
     temperature whose recordings have the current steps that resolve it (:func:`kinetics_resolvable`).
     ``short_charge``: an OCV test whose charge stopped short of full is counted on the discharge's
-    scale (:func:`ocv_from_test`)."""
+    scale (:func:`ocv_from_test`).  ``max_tau_df_s``: cap on the fractional diffusion branch's time
+    constant (:func:`service.cell.fitting.diffusion_tau`)."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
     rep = report if report is not None else FitReport()
@@ -448,7 +450,7 @@ def characterise(
         law_t = temperature_law_resolvable(segs, t, rep)
         res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis and t == ref_t,
                              fit_kinetics=kinetics_t, max_seconds=max_seconds, seed=seed, x0=start,
-                             warmer=warmer, colder=colder, min_order=min_order, max_tau_df_s=MAX_TAU_DF_S,
+                             warmer=warmer, colder=colder, min_order=min_order, max_tau_df_s=max_tau_df_s,
                              temperature_law=law_t, law_ref_temp_c=t)
         # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
         pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": t}), res.point.i0_a,

@@ -59,6 +59,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--min-order", type=float, default=None, metavar="A",
                    help="lower bound of the CPE orders m, n (default 0.3); the short G-L memory represents low "
                    "orders poorly (the bundled Panasonic profile uses 0.5)")
+    p.add_argument("--max-tau-df", type=positive_float, default=None, metavar="S",
+                   help="cap on the diffusion branch's time constant, s (default 1000, the textbook 2-RC's slow "
+                   "bound); a longer one can follow the slow polarisation of a long drive, and can also let the "
+                   "branch act as an integrator that soaks up OCV and capacity error")
     p.add_argument("--monotone", action="store_true",
                    help="bound each temperature's R_ohm, R_ct, R_df by the neighbouring fitted temperatures "
                    "(resistance rises in the cold); off by default")
@@ -103,7 +107,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.characterisation.characterise import FitReport, characterise, check_fit_quality
+    from service.characterisation.characterise import MAX_TAU_DF_S, FitReport, characterise, check_fit_quality
 
     setup_logging(args)
     if not args.capacity_ah > 0:
@@ -126,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
                                        min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
                                        slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
                                        short_charge=args.short_charge,
+                                       max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
                                        report=report)
         if not args.force:
