@@ -384,12 +384,18 @@ def loco_evaluations(json_pattern: str) -> str:
     options in ``$E``; ``json_pattern`` names each JSON with ``{cell}`` for its tag."""
     return "\n".join(f"  socd evaluate --cell out/s25/{profile}.toml {files} $E --json {json_pattern.format(cell=tag)}"
                      for profile, tag, files in LOCO_CELLS)
-def unseen_runs(settings: str, tag: str, indent: str = "  ", before: str = "") -> str:
+def unseen_runs(settings: str, tag: str, indent: str = "  ", before: str = "", refit: str = "") -> str:
     """``research.unseen_cell``'s scoring runs of its three cells with ``settings`` (a TOML path) at the
-    current bias ``$b``: the 25 °C drives and the colder ones, each into its own JSON."""
+    current bias ``$b``: the 25 °C drives and the colder ones, each into its own JSON.  ``refit``:
+    ``socd fit`` flags of a profile of their own, tagged ``_<tag>`` (fitted before the first run)."""
     run = f"python -m research.unseen_cell run --estimators fomiukf --settings {settings} --current-bias-c $b"
-    return (f"{before}{indent}{run} --ambients 25 --tag _{tag}_b$b\n"
-            f"{indent}{run} --ambients 10,0 --tag _{tag}_b${{b}}_cold")
+    fit = ""
+    if refit:
+        run += f" --profile-tag _{tag}"
+        fit = f'{indent}[ $b = 0 ] && {run} --refit --fit-flags="{refit}" --tag _fit\n'
+    label = "" if refit else f"_{tag}"
+    return (f"{before}{fit}{indent}{run} --ambients 25 --tag {label}_b$b\n"
+            f"{indent}{run} --ambients 10,0 --tag {label}_b${{b}}_cold")
 
 
 def unseen_inputs(label: str, tag: str, indent: str = "    ", before: str = "") -> str:
@@ -614,6 +620,31 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference stret
                   UNSEEN_GROUPS, estimator)(out)
               for name, estimator in (("`fomiukf`", "fomiukf"), ("`ecm2rc-ekf` (its own 2-RC fit)", "ecm2rc-ekf"))),
           20, ("needs:unseen_cell", "needs:loco_defaults", "needs:pybamm")),
+    Table("loco_max_tau_df", "tuning.md", REAL + f"""\
+mkdir -p out/loco   # the default (1000 s) is loco_defaults' noslow runs on the char_* and unseen_cell profiles
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+F="--max-tau-df 3000 -q"; o=out/loco
+socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 $F -o $o/calce_tau3000.toml
+socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
+    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv $F -o $o/a123_tau3000.toml
+socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 $F -o $o/pan_hppc_tau3000.toml
+socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv --capacity-ah 2.77 $F \\
+    -o $o/pan_us06_tau3000.toml
+for b in 0 0.01; do
+  E="--estimator fomiukf --no-bar --settings out/loco/noslow.toml --current-bias-c $b -q"
+{chr(10).join(line.replace("out/s25/", "out/loco/").replace(".toml", "_tau3000.toml")
+              for line in loco_evaluations("out/loco/{cell}_tau3000_b$b.json").split(chr(10)))}
+{unseen_runs("out/loco/noslow.toml", "tau3000", refit="--max-tau-df 3000")}
+done
+G=""; for b in 0 0.01; do
+{loco_inputs("tau1000", "out/loco/{cell}_noslow_b$b.json")}
+{unseen_inputs("tau1000", "noslow", indent="  ")}
+{loco_inputs("tau3000", "out/loco/{cell}_tau3000_b$b.json")}
+{unseen_inputs("tau3000", "tau3000", indent="  ")}; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference tau1000 --exclude {TUNING_EXCLUDE} $G \\
+    --json out/loco_max_tau_df.json""",
+          nested_table("loco_max_tau_df.json"), 150,
+          ("needs:loco_defaults", "needs:loco_defaults_unseen", "needs:pybamm")),
     Table("loco_current_noise", "tuning.md",
           loco_sweep("current_noise_c", "cn", ("0.0036", "0.00722", "0.0144", "0.0576"), "0.0288"),
           nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
