@@ -107,7 +107,12 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.characterisation.characterise import MAX_TAU_DF_S, FitReport, characterise, check_fit_quality
+    from service.characterisation.characterise import (
+        MAX_TAU_DF_S,
+        FitReport,
+        characterise,
+        check_fit_quality,
+    )
 
     setup_logging(args)
     if not args.capacity_ah > 0:
