@@ -98,7 +98,7 @@ def _on_grid(grid: np.ndarray, soc: np.ndarray, voltage_v: np.ndarray) -> np.nda
     return np.interp(grid, soc[order], make_monotone(voltage_v[order], 0.0))
 
 
-def charge_reach(rec: Recording, capacity_ah: float, dis: _Branch, chg: _Branch, grid: np.ndarray) -> float:
+def _charge_reach(rec: Recording, capacity_ah: float, dis: _Branch, chg: _Branch, grid: np.ndarray) -> float:
     """Where a charge that returned less than the discharge took out ended, as a fraction of the
     discharge capacity: ``Q_chg / Q_dis`` when it stopped short of full, 1.0 when the counts only
     fail to close (coulombic loss, a current offset) and it did reach full.
@@ -127,7 +127,7 @@ def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = 
 
     The discharge is coulomb counted from full (SOC = 1 − Q/Q_dis), the charge normalised by its
     own throughput (SOC = Q/Q_chg).  With ``short_charge``, a charge that stopped short of full
-    (:func:`charge_reach`) counts on the discharge's scale instead (SOC = Q/Q_dis), and above where
+    (:func:`_charge_reach`) counts on the discharge's scale instead (SOC = Q/Q_dis), and above where
     it stopped the curve is the discharge branch raised by an offset that runs from the branches'
     mean offset there to the rested voltage at full.  That reads the test's OCV closer to the
     cell's, and scores worse pooled over the cells the defaults are chosen on (``socd fit
@@ -143,7 +143,7 @@ def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = 
         return OcvTestCurve(grid, make_monotone(_on_grid(grid, soc, b.voltage_v)))
     dis, chg = branches[1.0], branches[-1.0]
     v_dis = _on_grid(grid, 1.0 - dis.q_ah / dis.q_ah[-1], dis.voltage_v)
-    reach = charge_reach(rec, capacity_ah, dis, chg, grid)
+    reach = _charge_reach(rec, capacity_ah, dis, chg, grid)
     short = short_charge and reach < 1.0
     v_chg = _on_grid(grid, chg.q_ah / (dis.q_ah[-1] if short else chg.q_ah[-1]), chg.voltage_v)
     mean = 0.5 * (v_dis + v_chg)
