@@ -110,6 +110,21 @@ def test_rows_between_test_temperatures_are_interpolated_and_held_beyond() -> No
     np.testing.assert_allclose(rows[30.0], [3.2, 3.9])
 
 
+def test_rows_beyond_the_tests_carry_their_slope_on_when_asked() -> None:
+    """``linear``: beyond the tests, the line through the two nearest (kept monotone in SOC); one
+    test is held either way; an unknown rule is refused."""
+    tests = {0.0: np.array([3.0, 3.5]), 10.0: np.array([3.1, 3.6]), 20.0: np.array([3.2, 3.9])}
+    rows = ocv_rows_by_temperature(tests, [-10.0, 5.0, 30.0], beyond="linear")
+    np.testing.assert_allclose(rows[-10.0], [2.9, 3.4], atol=1e-5)
+    np.testing.assert_allclose(rows[5.0], [3.05, 3.55])
+    np.testing.assert_allclose(rows[30.0], [3.3, 4.2], atol=1e-5)
+    crossing = ocv_rows_by_temperature({0.0: np.array([3.0, 3.1]), 10.0: np.array([3.2, 3.15])}, [40.0], "linear")
+    assert np.all(np.diff(crossing[40.0]) >= 0.0)
+    np.testing.assert_allclose(ocv_rows_by_temperature({25.0: np.array([3.0, 3.5])}, [40.0], "linear")[40.0], [3.0, 3.5])
+    with pytest.raises(ValueError, match="quadratic"):
+        ocv_rows_by_temperature(tests, [40.0], "quadratic")
+
+
 def test_fit_keeps_each_ocv_test_at_its_own_temperature(tmp_path: Path, nmc_recording, capsys) -> None:
     """OCV tests at 0 and 25 °C and a drive at each: the profile's 0 °C row is the 0 °C test's
     curve and its 25 °C row the 25 °C test's; averaging the two would put both 15 mV off."""

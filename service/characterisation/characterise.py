@@ -288,6 +288,7 @@ def characterise(
     rest_anchor: bool | None = None,
     short_charge: bool = False,
     max_tau_df_s: float = MAX_TAU_DF_S,
+    ocv_beyond: str = "hold",
     report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
@@ -302,7 +303,8 @@ def characterise(
     temperature whose recordings have the current steps that resolve it (:func:`kinetics_resolvable`).
     ``short_charge``: an OCV test whose charge stopped short of full is counted on the discharge's
     scale (:func:`ocv_from_test`).  ``max_tau_df_s``: cap on the fractional diffusion branch's time
-    constant (:func:`service.cell.fitting.diffusion_tau`)."""
+    constant (:func:`service.cell.fitting.diffusion_tau`).  ``ocv_beyond``: how OCV tests' rows are
+    read at temperatures beyond theirs (:func:`ocv_rows_by_temperature`)."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
     rep = report if report is not None else FitReport()
@@ -379,7 +381,7 @@ def characterise(
 
     if test_rows is not None:
         points_by_t = rests_by_t()
-        base_at = ocv_rows_by_temperature(test_rows, temps)
+        base_at = ocv_rows_by_temperature(test_rows, temps, ocv_beyond)
         for t in temps:
             ocv_rows[t] = ocv_row_from_rests(grid, base_at[t], points_by_t[t])
             if len(points_by_t[t]) >= 3:

@@ -171,13 +171,29 @@ def _above_reach(grid: np.ndarray, reach: float, v_dis: np.ndarray, mean: np.nda
     return v_dis + at_reach + (at_full - at_reach) * (grid - reach) / (1.0 - reach)
 
 
-def ocv_rows_by_temperature(tests: dict[float, np.ndarray], temps: list[float]) -> dict[float, np.ndarray]:
+#: how OCV rows are read beyond the OCV tests' temperatures (:func:`ocv_rows_by_temperature`)
+OCV_BEYOND = ("hold", "linear")
+
+
+def ocv_rows_by_temperature(tests: dict[float, np.ndarray], temps: list[float],
+                            beyond: str = "hold") -> dict[float, np.ndarray]:
     """OCV rows at ``temps`` from OCV tests at their own temperatures (``tests``: temperature →
-    row on one SOC grid): linear in temperature between tests, the nearest test's row beyond
-    them."""
+    row on one SOC grid): linear in temperature between tests; beyond them the nearest test's row
+    (``hold``), or (``linear``, with two tests or more) the line through the two nearest, which
+    carries their entropic slope dOCV/dT on (kept monotone in SOC)."""
+    if beyond not in OCV_BEYOND:
+        raise ValueError(f"OCV beyond the tests' temperatures: {beyond!r} is not one of {', '.join(OCV_BEYOND)}")
     known = sorted(tests)
     table = np.array([tests[t] for t in known])
-    return {t: np.array([np.interp(t, known, col) for col in table.T]) for t in temps}
+    rows = {t: np.array([np.interp(t, known, col) for col in table.T]) for t in temps}
+    if beyond == "linear" and len(known) >= 2:
+        for t in temps:
+            if known[0] <= t <= known[-1]:
+                continue
+            edge, other = (0, 1) if t < known[0] else (-1, -2)
+            slope = (table[edge] - table[other]) / (known[edge] - known[other])
+            rows[t] = make_monotone(table[edge] + slope * (t - known[edge]))
+    return rows
 
 
 @dataclass

@@ -81,6 +81,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "began, as a cold one does) is counted on the discharge's scale instead of stretched over the "
                    "whole SOC range; reads the OCV closer to the cell's, yet off by default: it scored worse pooled "
                    "over the cells the defaults are chosen on (docs/results/tuning.md)")
+    p.add_argument("--ocv-beyond", choices=("hold", "linear"), default="hold",
+                   help="with OCV tests at two or more temperatures, the OCV at a temperature beyond them: the "
+                   "nearest test's (hold, the default) or the line through the two nearest, their entropic "
+                   "slope carried on (linear) (docs/results/characterisation.md)")
     p.add_argument("--rest-anchor", action=argparse.BooleanOptionalAction, default=None,
                    help="with no OCV table or test (the OCV fitted jointly with the model): shift the fitted table at "
                    "each temperature to pass through the voltages that temperature's rests of 600 s or more relax "
@@ -135,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
                                        min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
                                        slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
                                        short_charge=args.short_charge,
-                                       max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S,
+                                       max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S, ocv_beyond=args.ocv_beyond,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
                                        report=report)
         if not args.force:
