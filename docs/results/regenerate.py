@@ -371,11 +371,13 @@ python -m research.nested_tuning --by cell --estimator ecm2rc-ekf --reference {t
     --json out/{name}.json"""
 
 
-def loco_inputs(label: str, json_pattern: str, indent: str = "  ") -> str:
+def loco_inputs(label: str, json_pattern: str, indent: str = "  ", named: bool = False) -> str:
     """The two lines that add one setting's four JSON (``json_pattern`` with ``{cell}`` for each
-    characterisation's tag) to ``$G`` under ``label``, the two Panasonic profiles as one cell."""
+    characterisation's tag) to ``$G`` under ``label``, the two Panasonic profiles as one cell;
+    ``named``: CALCE and A123 named too (a setting scored on profiles of its own)."""
     calce, a123, hppc, us06 = (json_pattern.format(cell=tag) for _, tag, _ in LOCO_CELLS)
-    return (f'{indent}G="$G {label}={calce} {label}={a123}"\n'
+    c, a = ("@calce", "@a123") if named else ("", "")
+    return (f'{indent}G="$G {label}={calce}{c} {label}={a123}{a}"\n'
             f'{indent}G="$G {label}={hppc}@panasonic {label}={us06}@panasonic"')
 
 
@@ -398,9 +400,10 @@ def unseen_runs(settings: str, tag: str, indent: str = "  ", before: str = "", r
             f"{indent}{run} --ambients 10,0 --tag {label}_b${{b}}_cold")
 
 
-def unseen_inputs(label: str, tag: str, indent: str = "    ", before: str = "") -> str:
-    """The line that adds :func:`unseen_runs`' JSON of each unseen cell to ``$G`` under ``label``."""
-    files = " ".join(f"{label}=out/unseen_cell/{cell}_{tag}_b${{b}}{part}_eval.json"
+def unseen_inputs(label: str, tag: str, indent: str = "    ", before: str = "", named: bool = False) -> str:
+    """The line that adds :func:`unseen_runs`' JSON of each unseen cell to ``$G`` under ``label``;
+    ``named``: each file names its cell (a setting scored on profiles of its own)."""
+    files = " ".join(f"{label}=out/unseen_cell/{cell}_{tag}_b${{b}}{part}_eval.json" + (f"@{cell}" if named else "")
                      for cell in UNSEEN_CELLS for part in ("", "_cold"))
     return f'{before}{indent}G="$G {files}"'
 
@@ -610,7 +613,7 @@ python -m research.unseen_cell run --estimators fomiukf --profile-tag _kin --ref
 python -m research.unseen_cell run --profile-tag _short --refit --fit-flags=--short-charge
 G=""; for o in stretch short; do
 {loco_inputs("$o", "out/loco/{cell}_noslow_b0.json")}; done
-for c in {" ".join(UNSEEN_CELLS)}; do G="$G stretch=out/unseen_cell/${{c}}_eval.json short=out/unseen_cell/${{c}}_short_eval.json"; done
+for c in {" ".join(UNSEEN_CELLS)}; do G="$G stretch=out/unseen_cell/${{c}}_eval.json@$c short=out/unseen_cell/${{c}}_short_eval.json@$c"; done
 python -m research.nested_tuning --by cell --estimator fomiukf --reference stretch --exclude {TUNING_EXCLUDE} $G \\
     --json out/unseen_short_charge.json""",
           lambda out: nested_table("unseen_short_charge.json")(out) + "\n\n" + "\n\n".join(
@@ -637,14 +640,38 @@ for b in 0 0.01; do
 {unseen_runs("out/loco/noslow.toml", "tau3000", refit="--max-tau-df 3000")}
 done
 G=""; for b in 0 0.01; do
-{loco_inputs("tau1000", "out/loco/{cell}_noslow_b$b.json")}
-{unseen_inputs("tau1000", "noslow", indent="  ")}
-{loco_inputs("tau3000", "out/loco/{cell}_tau3000_b$b.json")}
-{unseen_inputs("tau3000", "tau3000", indent="  ")}; done
+{loco_inputs("tau1000", "out/loco/{cell}_noslow_b$b.json", named=True)}
+{unseen_inputs("tau1000", "noslow", indent="  ", named=True)}
+{loco_inputs("tau3000", "out/loco/{cell}_tau3000_b$b.json", named=True)}
+{unseen_inputs("tau3000", "tau3000", indent="  ", named=True)}; done
 python -m research.nested_tuning --by cell --estimator fomiukf --reference tau1000 --exclude {TUNING_EXCLUDE} $G \\
     --json out/loco_max_tau_df.json""",
           nested_table("loco_max_tau_df.json"), 150,
           ("needs:loco_defaults", "needs:loco_defaults_unseen", "needs:pybamm")),
+    Table("unseen_ocv_beyond", "tuning.md", f"""\
+# hold is the default: the 40 °C runs are the unseen_cell_40 table's; the shared cells have one OCV temperature
+# (an OCV test or table at 25 °C), where the two rules are the same, so their default runs count for both
+python -m research.unseen_cell run --ambients 40,25,10,0 --ocv-ambients 25,10,0 --profile-tag _40lin --refit \\
+    --fit-flags="--ocv-beyond linear"
+for v in hold linear; do
+  python -m research.unseen_cell run --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10 --ocv-ambients 25,10,0 \\
+      --profile-tag _m10$v --refit --fit-flags="--ocv-beyond $v"
+done
+G=""; for o in hold linear; do
+{loco_inputs("$o", "out/loco/{cell}_noslow_b0.json")}; done
+for c in {" ".join(UNSEEN_CELLS)}; do G="$G hold=out/unseen_cell/${{c}}_40_eval.json@$c linear=out/unseen_cell/${{c}}_40lin_eval.json@$c"; done
+for c in Chen2020 Mohtat2020; do
+  G="$G hold=out/unseen_cell/${{c}}_m10hold_eval.json@$c linear=out/unseen_cell/${{c}}_m10linear_eval.json@$c"; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference hold --exclude {TUNING_EXCLUDE} $G \\
+    --json out/unseen_ocv_beyond.json""",
+          lambda out: nested_table("unseen_ocv_beyond.json")(out) + "\n\n`fomiukf`'s mean SOC RMSE after 600 s (%), "
+          "OCV tests at 25, 10 and 0 °C only:\n\n" + runs_table(
+              tuple((f"`{cell}` {v}", f"unseen_cell/{cell}{tag}_eval.json") for cell in UNSEEN_CELLS
+                    for v, tag in (("hold", "_40"), ("linear", "_40lin"))) + tuple(
+                  (f"`{cell}` {v}, −10 °C fit", f"unseen_cell/{cell}_m10{v}_eval.json")
+                  for cell in ("Chen2020", "Mohtat2020") for v in ("hold", "linear")),
+              (("40 °C", r"_40C_"),) + UNSEEN_GROUPS + (("−10 °C", r"_m10C_"),)),
+          40, ("needs:unseen_cell_40", "needs:loco_defaults", "needs:pybamm")),
     Table("loco_current_noise", "tuning.md",
           loco_sweep("current_noise_c", "cn", ("0.0036", "0.00722", "0.0144", "0.0576"), "0.0288"),
           nested_table("loco_current_noise.json"), 50, ("needs:loco_defaults",)),
