@@ -159,7 +159,7 @@ def test_product_never_imports_research():
 def test_research_tools_live_outside_the_product():
     """The tools that validate and tune the product are not shipped in it."""
     research_tools = {"validate_pybamm", "clean_twin", "validate", "roundtrip", "nested_tuning",
-                      "rest_check", "summary", "unseen_cell"}
+                      "rest_check", "summary", "unseen_cell", "unseen_ocv_truth"}
     shipped = {p.stem for p in _sources("service")} & research_tools
     assert not shipped, f"research tools inside service/: {sorted(shipped)}"
     assert research_tools <= {p.stem for p in _sources("research")}

@@ -607,6 +607,11 @@ python -m research.unseen_cell run --estimators fomiukf --profile-tag _kin --ref
                            for label, tag in (("`auto` (default)", ""), ("`--no-kinetics`", "_nokin"),
                                               ("`--kinetics`", "_kin"))), UNSEEN_GROUPS),
           20, ("needs:unseen_cell", "needs:pybamm")),
+    Table("unseen_ocv_truth", "tuning.md", """\
+python -m research.unseen_ocv_truth --json out/unseen_ocv_truth.json   # the OCV tests are unseen_cell's""",
+          lambda out: tool("unseen_ocv_truth").markdown(
+              [tool("unseen_ocv_truth").OcvTruthRow(**r) for r in _read(out, "unseen_ocv_truth.json")]),
+          2, ("needs:unseen_cell", "needs:pybamm")),
     Table("unseen_short_charge", "tuning.md", f"""\
 # the default fit is the unseen_cell table's; on the shared cells --short-charge changes nothing (the Panasonic
 # test's charge rests back at full, CALCE and A123 have no two-branch OCV test), so their default runs count for both
