@@ -675,7 +675,7 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference hold 
                     for v, tag in (("hold", "_40"), ("linear", "_40lin"))) + tuple(
                   (f"`{cell}` {v}, −10 °C fit", f"unseen_cell/{cell}_m10{v}_eval.json")
                   for cell in ("Chen2020", "Mohtat2020") for v in ("hold", "linear")),
-              (("40 °C", r"_40C_"),) + UNSEEN_GROUPS + (("−10 °C", r"_m10C_"),)),
+              (("40 °C", r"_40C_"),) + UNSEEN_GROUPS + (("−10 °C", r"_m10C_"),))(out),
           40, ("needs:unseen_cell_40", "needs:loco_defaults", "needs:pybamm")),
     Table("loco_current_noise", "tuning.md",
           loco_sweep("current_noise_c", "cn", ("0.0036", "0.00722", "0.0144", "0.0576"), "0.0288"),
