@@ -838,6 +838,14 @@ python -m research.unseen_cell build --jobs 2 --ambients 40
 python -m research.unseen_cell run --ambients 40,25,10,0 --ocv-ambients 25,10,0 --profile-tag _40 --refit""",
           unseen_table("unseen_cell", tag="_40", groups=(("40 °C (no OCV test)", r"_40C_"),) + UNSEEN_GROUPS),
           25, ("needs:unseen_cell", "needs:pybamm")),
+    Table("unseen_cell_shape", "characterisation.md", """\
+python -m research.unseen_cell build --jobs 2 --cells Chen2020,Mohtat2020 --ambients 40,-10,-20
+python -m research.unseen_cell run --cells Chen2020,Mohtat2020 --ambients 40,25,10,0,-10,-20 --ocv-ambients 25,10,0 \\
+    --profile-tag _shape --refit""",
+          unseen_table("unseen_cell", ("Chen2020", "Mohtat2020"), "_shape",
+                       (("40 °C (no OCV test)", r"_40C_"),) + UNSEEN_GROUPS
+                       + (("−10 °C (no OCV test)", r"_m10C_"), ("−20 °C (no OCV test)", r"_m20C_"))),
+          30, ("needs:unseen_cell", "needs:pybamm")),
     Table("fit_vs_2rc_point", "characterisation.md", REAL + """\
 A123_FIT="$A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv -q"
 socd fit $A123_FIT --hysteresis --no-kinetics -o out/s25/a123_hys_nokin.toml   # out/s25/a123.toml: char_a123
