@@ -98,10 +98,13 @@ def _on_grid(grid: np.ndarray, soc: np.ndarray, voltage_v: np.ndarray) -> np.nda
     return np.interp(grid, soc[order], make_monotone(voltage_v[order], 0.0))
 
 
-def _charge_reach(rec: Recording, capacity_ah: float, dis: _Branch, chg: _Branch, grid: np.ndarray) -> float:
+def _charge_reach(rec: Recording, capacity_ah: float, dis: _Branch, chg: _Branch, grid: np.ndarray,
+                  v_dis: np.ndarray, short_mean: np.ndarray) -> float:
     """Where a charge that returned less than the discharge took out ended, as a fraction of the
     discharge capacity: ``Q_chg / Q_dis`` when it stopped short of full, 1.0 when the counts only
-    fail to close (coulombic loss, a current offset) and it did reach full.
+    fail to close (coulombic loss, a current offset) and it did reach full.  ``v_dis``: the
+    discharge branch on ``grid``; ``short_mean``: the branches' mean with the charge counted on the
+    discharge's scale.
 
     The rest after the charge decides, without a threshold: stopped short, it rests near the
     branches' mean where the charge ended, counted on the discharge's scale; full, it rests near
@@ -115,9 +118,7 @@ def _charge_reach(rec: Recording, capacity_ah: float, dis: _Branch, chg: _Branch
         return 1.0
     v_full = rec.voltage_v[dis.first - 1]
     v_post = rec.voltage_v[after[-1]]
-    v_dis = _on_grid(grid, 1.0 - dis.q_ah / dis.q_ah[-1], dis.voltage_v)
-    v_chg = _on_grid(grid, chg.q_ah / dis.q_ah[-1], chg.voltage_v)
-    implied = np.interp(reach, grid, v_dis) + _offset_at_reach(grid, reach, v_dis, 0.5 * (v_dis + v_chg))
+    implied = np.interp(reach, grid, v_dis) + _offset_at_reach(grid, reach, v_dis, short_mean)
     return reach if abs(v_post - implied) < abs(v_post - v_full) else 1.0
 
 
@@ -143,13 +144,13 @@ def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = 
         return OcvTestCurve(grid, make_monotone(_on_grid(grid, soc, b.voltage_v)))
     dis, chg = branches[1.0], branches[-1.0]
     v_dis = _on_grid(grid, 1.0 - dis.q_ah / dis.q_ah[-1], dis.voltage_v)
-    reach = _charge_reach(rec, capacity_ah, dis, chg, grid)
-    short = short_charge and reach < 1.0
-    v_chg = _on_grid(grid, chg.q_ah / (dis.q_ah[-1] if short else chg.q_ah[-1]), chg.voltage_v)
-    mean = 0.5 * (v_dis + v_chg)
-    if short:
-        mean = np.where(grid <= reach, mean, _above_reach(grid, reach, v_dis, mean, rec.voltage_v[dis.first - 1]))
-    return OcvTestCurve(grid, make_monotone(mean), reach, short)
+    short_mean = 0.5 * (v_dis + _on_grid(grid, chg.q_ah / dis.q_ah[-1], chg.voltage_v))
+    reach = _charge_reach(rec, capacity_ah, dis, chg, grid, v_dis, short_mean)
+    if short_charge and reach < 1.0:
+        top = _above_reach(grid, reach, v_dis, short_mean, rec.voltage_v[dis.first - 1])
+        return OcvTestCurve(grid, make_monotone(np.where(grid <= reach, short_mean, top)), reach, True)
+    mean = 0.5 * (v_dis + _on_grid(grid, chg.q_ah / chg.q_ah[-1], chg.voltage_v))
+    return OcvTestCurve(grid, make_monotone(mean), reach)
 
 
 #: the branches' mean offset where a short charge stopped is read over this SOC window below it
