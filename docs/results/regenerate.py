@@ -381,11 +381,12 @@ def loco_inputs(label: str, json_pattern: str, indent: str = "  ", named: bool =
             f'{indent}G="$G {label}={hppc}@panasonic {label}={us06}@panasonic"')
 
 
-def loco_evaluations(json_pattern: str) -> str:
+def loco_evaluations(json_pattern: str, profile_pattern: str = "out/s25/{profile}.toml") -> str:
     """The scoring runs of a leave-one-cell-out table, one per characterisation, with the evaluate
-    options in ``$E``; ``json_pattern`` names each JSON with ``{cell}`` for its tag."""
-    return "\n".join(f"  socd evaluate --cell out/s25/{profile}.toml {files} $E --json {json_pattern.format(cell=tag)}"
-                     for profile, tag, files in LOCO_CELLS)
+    options in ``$E``; ``json_pattern`` names each JSON with ``{cell}`` for its tag, and
+    ``profile_pattern`` each profile with ``{profile}`` for its name (default: the char_* tables')."""
+    return "\n".join(f"  socd evaluate --cell {profile_pattern.format(profile=profile)} {files} $E "
+                     f"--json {json_pattern.format(cell=tag)}" for profile, tag, files in LOCO_CELLS)
 def unseen_runs(settings: str, tag: str, indent: str = "  ", before: str = "", refit: str = "") -> str:
     """``research.unseen_cell``'s scoring runs of its three cells with ``settings`` (a TOML path) at the
     current bias ``$b``: the 25 °C drives and the colder ones, each into its own JSON.  ``refit``:
@@ -640,8 +641,7 @@ socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US
     -o $o/pan_us06_tau3000.toml
 for b in 0 0.01; do
   E="--estimator fomiukf --no-bar --settings out/loco/noslow.toml --current-bias-c $b -q"
-{chr(10).join(line.replace("out/s25/", "out/loco/").replace(".toml", "_tau3000.toml")
-              for line in loco_evaluations("out/loco/{cell}_tau3000_b$b.json").split(chr(10)))}
+{loco_evaluations("out/loco/{cell}_tau3000_b$b.json", "out/loco/{profile}_tau3000.toml")}
 {unseen_runs("out/loco/noslow.toml", "tau3000", refit="--max-tau-df 3000")}
 done
 G=""; for b in 0 0.01; do
