@@ -26,6 +26,7 @@ Needs PyBaMM (``pip install -e .[research]``).  CI builds one cell in its test
     python -m research.unseen_cell build [--cells Chen2020,...] [--ambients 25,10,0] [--jobs 2]
     python -m research.unseen_cell run [--cells ...] [--ambients ...] [--settings S.toml] [--tag T]
         [--fit-flags=FLAGS --profile-tag T]
+    python -m research.unseen_cell fit [...]   # the profile alone, as ``run`` fits it
 """
 
 from __future__ import annotations
@@ -190,22 +191,29 @@ class RunOptions:
     ocv_ambients: tuple[float, ...] | None = None
 
 
-def run_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOptions) -> Path:
-    """The issue's two commands on one cell: one profile from every ambient's US06 and the OCV
-    tests of ``opt.ocv_ambients`` (default: every ambient's), every other drive scored; returns the
-    evaluation JSON.  The capacity the fit is told is the C/20 discharge of the warmest ambient with
+def fit_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOptions) -> Path:
+    """The issue's first command on one cell: ``socd fit`` on every ambient's US06 and the OCV tests
+    of ``opt.ocv_ambients`` (default: every ambient's); a profile on disk is kept unless
+    ``opt.refit``.  The capacity the fit is told is the C/20 discharge of the warmest ambient with
     an OCV test in the fit, whatever order the ambients come in."""
-    stems = [f"{cell}_{_temp_tag(t)}" for t in ambients]
+    profile = workdir / f"{cell}{opt.profile_tag}.toml"
+    if profile.exists() and not opt.refit:
+        return profile
     ocv_ambients = ambients if opt.ocv_ambients is None else opt.ocv_ambients
     warmest = f"{cell}_{_temp_tag(max(ocv_ambients))}"
     capacity = json.loads((workdir / f"{warmest}_ocv.json").read_text())["capacity_ah"]
-    profile = workdir / f"{cell}{opt.profile_tag}.toml"
-    if opt.refit or not profile.exists():
-        fit_files = [str(workdir / f"{s}_{part}.csv") for t, s in zip(ambients, stems)
-                     for part in ("ocv", FIT_DRIVE) if part == FIT_DRIVE or t in ocv_ambients]
-        subprocess.run(["socd", "fit", *fit_files, "--capacity-ah", f"{capacity:.4f}", "-q", "-o", str(profile),
-                        *opt.fit_flags], check=True)
-    others = [str(workdir / f"{s}_{d}.csv") for s in stems for d in DRIVES if d != FIT_DRIVE]
+    fit_files = [str(workdir / f"{cell}_{_temp_tag(t)}_{part}.csv") for t in ambients
+                 for part in ("ocv", FIT_DRIVE) if part == FIT_DRIVE or t in ocv_ambients]
+    subprocess.run(["socd", "fit", *fit_files, "--capacity-ah", f"{capacity:.4f}", "-q", "-o", str(profile),
+                    *opt.fit_flags], check=True)
+    return profile
+
+
+def run_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOptions) -> Path:
+    """The issue's two commands on one cell: :func:`fit_cell`, then every drive but the fit's
+    scored; returns the evaluation JSON."""
+    profile = fit_cell(cell, ambients, workdir, opt)
+    others = [str(workdir / f"{cell}_{_temp_tag(t)}_{d}.csv") for t in ambients for d in DRIVES if d != FIT_DRIVE]
     out = workdir / f"{cell}{opt.profile_tag}{opt.tag}_eval.json"
     cmd = ["socd", "evaluate", "--cell", str(profile), *others, "-q", "--json", str(out)]
     cmd += [arg for e in opt.estimators for arg in ("--estimator", e)]
@@ -221,7 +229,8 @@ def run_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOption
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m research.unseen_cell", description=__doc__.split("\n\n")[0])
-    ap.add_argument("command", choices=("build", "run"))
+    ap.add_argument("command", choices=("build", "fit", "run"),
+                    help="build the recordings; fit the profile only; fit (unless on disk) and score")
     ap.add_argument("--cells", default=",".join(CELLS), help=f"PyBaMM parameter sets (default {','.join(CELLS)})")
     ap.add_argument("--ambients", default="25,10,0", help="ambient temperatures, °C (default 25,10,0)")
     ap.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR, help=f"default {DEFAULT_WORKDIR}")
@@ -251,8 +260,9 @@ def main(argv: list[str] | None = None) -> int:
     opt = RunOptions(tuple(shlex.split(a.fit_flags)), a.profile_tag, a.refit, tuple(e for e in a.estimators.split(",") if e),
                      a.settings, a.current_bias_c, a.tag,
                      None if a.ocv_ambients is None else tuple(float(x) for x in a.ocv_ambients.split(",") if x))
+    step = fit_cell if a.command == "fit" else run_cell
     for cell in cells:
-        print(f"{cell}: {run_cell(cell, ambients, a.workdir, opt)}", flush=True)
+        print(f"{cell}: {step(cell, ambients, a.workdir, opt)}", flush=True)
     return 0
 
 

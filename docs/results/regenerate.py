@@ -395,7 +395,8 @@ def unseen_runs(settings: str, tag: str, indent: str = "  ", before: str = "", r
     fit = ""
     if refit:
         run += f" --profile-tag _{tag}"
-        fit = f'{indent}[ $b = 0 ] && {run} --refit --fit-flags="{refit}" --tag _fit\n'
+        fit = (f'{indent}[ $b = 0 ] && python -m research.unseen_cell fit --profile-tag _{tag} --refit '
+               f'--fit-flags="{refit}"\n')
     label = "" if refit else f"_{tag}"
     return (f"{before}{fit}{indent}{run} --ambients 25 --tag {label}_b$b\n"
             f"{indent}{run} --ambients 10,0 --tag {label}_b${{b}}_cold")
