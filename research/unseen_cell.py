@@ -102,21 +102,25 @@ def _hysteresis(job: Job, time_s: np.ndarray, current_a: np.ndarray, capacity_ah
     return job.hysteresis_v * hysteresis_state(time_s, current_a, capacity_ah, start=1.0)
 
 
-def ocv_test(job: Job) -> tuple[np.ndarray, float]:
-    """A C/20 discharge from full to the lower cut-off, an hour's rest, a C/20 charge to the upper
-    one, logged every 60 s; returns the recording and its discharge capacity (Ah)."""
+def c20_solution(cell: str, ambient_c: float, charge: bool = True):
+    """PyBaMM's solution of the OCV test at ``ambient_c`` from full: an hour's rest, a C/20
+    discharge to the lower cut-off and (``charge``) an hour's rest, a C/20 charge to the upper one
+    and an hour's rest, logged every 60 s."""
     pybamm = _pybamm()
-    pv = _at_ambient(job.cell, job.ambient_c)
-    lo, hi = pv["Lower voltage cut-off [V]"], pv["Upper voltage cut-off [V]"]
-    exp = pybamm.Experiment([
-        "Rest for 1 hour",
-        f"Discharge at C/{OCV_TEST_C:g} until {lo} V",
-        "Rest for 1 hour",
-        f"Charge at C/{OCV_TEST_C:g} until {hi} V",
-        "Rest for 1 hour",
-    ], period=f"{OCV_TEST_LOG_S:g} seconds")
+    pv = _at_ambient(cell, ambient_c)
+    steps = ["Rest for 1 hour", f"Discharge at C/{OCV_TEST_C:g} until {pv['Lower voltage cut-off [V]']} V"]
+    if charge:
+        steps += ["Rest for 1 hour", f"Charge at C/{OCV_TEST_C:g} until {pv['Upper voltage cut-off [V]']} V",
+                  "Rest for 1 hour"]
+    exp = pybamm.Experiment(steps, period=f"{OCV_TEST_LOG_S:g} seconds")
     sim = pybamm.Simulation(pybamm.lithium_ion.SPMe({"thermal": "lumped"}), parameter_values=pv, experiment=exp)
-    sol = sim.solve(initial_soc=1.0)
+    return sim.solve(initial_soc=1.0)
+
+
+def ocv_test(job: Job) -> tuple[np.ndarray, float]:
+    """:func:`c20_solution` read as a recording with its sensors' noise (and ``job``'s hysteresis);
+    returns the recording and its discharge capacity (Ah)."""
+    sol = c20_solution(job.cell, job.ambient_c)
     t = sol["Time [s]"].entries
     keep = np.concatenate([[True], np.diff(t) > 1e-6])
     capacity = float(np.max(sol["Discharge capacity [A.h]"].entries))

@@ -19,8 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from research.unseen_cell import CELLS, DEFAULT_WORKDIR, OCV_TEST_C, _at_ambient, _temp_tag
-from research.validate_pybamm import _pybamm
+from research.unseen_cell import CELLS, DEFAULT_WORKDIR, _temp_tag, c20_solution
 from service.characterisation.ocv_sources import ocv_from_test
 from service.recording import load_recording
 
@@ -40,15 +39,9 @@ class OcvTruthRow:
 
 
 def bulk_ocv(cell: str, ambient_c: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(soc, ocv_v)`` of PyBaMM's bulk open-circuit voltage along a C/20 discharge from full to
-    the lower cut-off (SPMe, lumped thermal, as the OCV test is simulated), SOC ascending."""
-    pybamm = _pybamm()
-    pv = _at_ambient(cell, ambient_c)
-    exp = pybamm.Experiment(["Rest for 1 hour",
-                             f"Discharge at C/{OCV_TEST_C:g} until {pv['Lower voltage cut-off [V]']} V"],
-                            period="60 seconds")
-    sol = pybamm.Simulation(pybamm.lithium_ion.SPMe({"thermal": "lumped"}), parameter_values=pv,
-                            experiment=exp).solve(initial_soc=1.0)
+    """``(soc, ocv_v)`` of PyBaMM's bulk open-circuit voltage along the OCV test's C/20 discharge
+    (:func:`research.unseen_cell.c20_solution`), SOC ascending."""
+    sol = c20_solution(cell, ambient_c, charge=False)
     q = sol["Discharge capacity [A.h]"].entries
     soc = 1.0 - q / q.max()
     return soc[::-1], sol["Bulk open-circuit voltage [V]"].entries[::-1]
