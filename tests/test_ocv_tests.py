@@ -11,6 +11,7 @@ import pytest
 from service.cell.profile import load_profile
 from service.characterisation.ocv_sources import (
     ALIGN_SCALE_BOUNDS,
+    OCV_BEYOND,
     RestPoint,
     is_ocv_test,
     ocv_from_test,
@@ -18,7 +19,7 @@ from service.characterisation.ocv_sources import (
     ocv_rows_by_temperature,
     soc_alignment,
 )
-from service.cli import main
+from service.cli import build_parser, main
 from service.recording import load_recording
 from tests.conftest import NMC_CAPACITY_AH, nmc_ocv_points, write_recording_csv
 
@@ -123,6 +124,14 @@ def test_rows_beyond_the_tests_carry_their_slope_on_when_asked() -> None:
     np.testing.assert_allclose(ocv_rows_by_temperature({25.0: np.array([3.0, 3.5])}, [40.0], "linear")[40.0], [3.0, 3.5])
     with pytest.raises(ValueError, match="quadratic"):
         ocv_rows_by_temperature(tests, [40.0], "quadratic")
+
+
+def test_fit_offers_every_rule_beyond_the_tests_and_no_other() -> None:
+    """``socd fit --ocv-beyond`` spells its choices out (the CLI does not import the fit's numerics
+    to start); they are :data:`OCV_BEYOND`, with ``hold`` the default."""
+    fit = build_parser()._subparsers._group_actions[0].choices["fit"]
+    action = next(a for a in fit._actions if a.dest == "ocv_beyond")
+    assert tuple(action.choices) == OCV_BEYOND and action.default == OCV_BEYOND[0]
 
 
 def test_fit_keeps_each_ocv_test_at_its_own_temperature(tmp_path: Path, nmc_recording, capsys) -> None:
