@@ -374,6 +374,9 @@ def test_fit_writes_a_profile_that_reproduces_the_recording(tmp_path: Path, nmc_
     assert prof.name == "fitted"
     assert prof.capacity_ah == 2.0
     assert len(prof.parameters) == 1 and prof.parameters[0].temp_c == 25.0
+    # the G-L memory it was fitted with, as a time: 16 samples of the recording's period
+    assert prof.memory_span_s == pytest.approx(16 * float(np.median(np.diff(rec.time_s))))
+    assert "G-L memory: 16 samples" in captured.err
     # the OCV is the given table
     grid = np.linspace(0.0, 1.0, 101)
     np.testing.assert_allclose(prof.ocv_table().ocv(grid), nmc_profile.ocv_table().ocv(grid), atol=1e-3)

@@ -245,6 +245,10 @@ class CellProfile(_Strict):
     schema_version: int = SCHEMA_VERSION
     name: str = "cell"
     capacity_ah: float = Field(gt=0)
+    #: the G-L short memory the parameters were fitted with, in seconds (``L`` samples × the fit
+    #: data's sample period): the estimators run the model with ``L = span / h`` at their own
+    #: sample period ``h`` (:mod:`service.cell.memory`); None (a profile from before): ``L`` as set
+    memory_span_s: float | None = Field(None, gt=0)
     ocv: OcvSpec
     parameters: list[ParameterPoint] = Field(min_length=1)
     hysteresis: HysteresisSpec = HysteresisSpec()

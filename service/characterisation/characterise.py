@@ -50,6 +50,7 @@ from service.cell.fitting import (
     fit_parameters,
     last_current_direction,
 )
+from service.cell.memory import median_interval_s
 from service.cell.ocv import GRID_POINTS, OcvTable, flat_share, make_monotone
 from service.cell.profile import (
     BranchSpec,
@@ -391,6 +392,7 @@ def characterise(
     ecm: dict[float, Ecm2RcFit] = {}
     order = sorted(temps, key=lambda t: abs(t - ref_t))  # reference first, then outwards
     segs_at = {t: segments_of(t) for t in order}
+    memory_span_s = fitted_memory_span_s([s for segs in segs_at.values() for s in segs], memory_length, rep)
     n_stages = 2 * len(temps)
     for k, t in enumerate(order):
         rep.stage(f"2-RC fit at {t:g} °C", k, n_stages)
@@ -501,6 +503,7 @@ def characterise(
         if outcome.at_bounds:
             rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}", notice=True)
     profile = prof.model_copy(update={
+        "memory_span_s": memory_span_s,
         "parameters": with_linear_kinetics_where_unfitted([points[t] for t in sorted(points)]),
         "hysteresis": hyst or HysteresisSpec(table_branch=ocv_branch),
         "ecm2rc": ecm_spec,
@@ -509,6 +512,20 @@ def characterise(
     })
     rep.stage("done", n_stages, n_stages)
     return CellProfile.model_validate(profile.model_dump()), rep
+
+
+def fitted_memory_span_s(segments: list[FitSegment], memory_length: int, rep: FitReport) -> float | None:
+    """The G-L memory the fit runs with, in seconds: ``memory_length`` samples at the segments'
+    sample period (the median interval over all of them), stored in the profile so the
+    estimators keep that span at their own sample period (:mod:`service.cell.memory`)."""
+    dt = np.concatenate([np.diff(s.time_s) for s in segments]) if segments else np.zeros(0)
+    period = median_interval_s(dt)
+    if period is None:
+        return None
+    span = memory_length * period
+    rep.say(f"G-L memory: {memory_length} samples at the recordings' {period:.3g} s sample period, {span:.3g} s; "
+            "the estimators keep that span at their own sample period")
+    return round(span, 6)
 
 
 def temperature_group(rec: Recording) -> float:

@@ -74,6 +74,8 @@ log = logging.getLogger(__name__)
 #: cells from OCV unless the pack was at rest (|I| <= REST_C_RATE · C) at both ends of it
 MAX_STEP_S = 10.0
 REST_C_RATE = 0.05
+#: the service reads its sample period as the median of this many first intervals
+PERIOD_INTERVALS = 16
 #: period of the slow identifier, in sample time
 SLOW_PERIOD_S = 1.0
 #: an OCV start counts as converged once every cell's SOC σ is below this
@@ -121,7 +123,12 @@ class Daemon:
             from service.bus.encoder import OutputEncoder
 
             self.encoder = OutputEncoder(config)
-        self.estimator = estimator if estimator is not None else PackEstimator(self.profile, self.n, config.estimator)
+        self.estimator = estimator if estimator is not None else PackEstimator(
+            self.profile, self.n, config.estimator, sample_period_s=config.estimator.sample_period_s)
+        #: the first sample intervals, until the sample period is known (the G-L memory's span
+        #: in samples follows it: PackEstimator.set_sample_period); set, or restored: known
+        self._intervals: list[float] = []
+        self._period_known = config.estimator.sample_period_s is not None
         b = config.bus
         if bus is not None:
             self.receiver = CanReceiver(self.health, bus=bus, reconnect_initial_s=b.reconnect_initial_s,
@@ -283,6 +290,7 @@ class Daemon:
                 res.reason, res.detail = "mismatch", f"{path}: state does not fit this estimator: {exc}"
         if res.ok:
             self.initialised = self.restored = True
+            self._period_known = True  # the state holds the memory it was saved with
             self._cell_started[:] = True
             t = res.meta.get("t_s")
             self._restored_t_s = float(t) if isinstance(t, (int, float)) and np.isfinite(t) else None
@@ -437,6 +445,8 @@ class Daemon:
             return
         if dt > MAX_STEP_S:
             self.health.count("dt_gap_at_rest")
+        if not self._period_known:
+            self._learn_sample_period(dt)
         t0 = time.perf_counter()
         self.estimator.step(dt, s.current_a, s.voltage_v, s.temperature_c, fresh)
         self.step_time_s += time.perf_counter() - t0
@@ -445,6 +455,18 @@ class Daemon:
         self._after_step(s, fresh, frame_wall_s)
         for fn in self.step_listeners:
             fn(s)
+
+    def _learn_sample_period(self, dt: float) -> None:
+        """After :data:`PERIOD_INTERVALS` intervals, run the model at their median sample period."""
+        self._intervals.append(dt)
+        if len(self._intervals) < PERIOD_INTERVALS:
+            return
+        self._period_known = True
+        period = float(np.median(self._intervals))
+        set_period = getattr(self.estimator, "set_sample_period", None)
+        if set_period is not None:
+            set_period(period)
+            log.info("sample period %.3g s: G-L memory of %d samples", period, self.estimator.memory_length)
 
     def _resting(self, *currents: float | None) -> bool:
         """Both ends of a gap at rest: no charge moved in between, so it can be integrated."""

@@ -23,6 +23,7 @@ from typing import Literal
 import numpy as np
 
 from service.cell.fractional import gl_weights
+from service.cell.memory import MAX_MEMORY_LENGTH, memory_length_at, sample_period_s
 from service.cell.model import MtsFom, drive, entropic_shift_v, surface_deficit_step
 from service.cell.ocv import CellOcv
 from service.cell.parameters import PARAMETER_NAMES
@@ -53,9 +54,10 @@ class PackEstimator:
         n_cells: int,
         settings: EstimatorSettings | None = None,
         identification: Identification = "multi",
+        sample_period_s: float | None = None,
     ) -> None:
         self.profile = profile
-        self.settings = settings or EstimatorSettings()
+        self.settings = with_memory_for(profile, settings or EstimatorSettings(), sample_period_s)
         self.n = int(n_cells)
         self.identification = identification
         s = self.settings
@@ -96,6 +98,30 @@ class PackEstimator:
         self.reset_count = np.zeros(self.n, dtype=int)
         self.ocv_initialised = np.zeros(self.n, dtype=bool)
         self.steps = 0
+
+    @property
+    def memory_length(self) -> int:
+        """The G-L memory length the model runs with, in samples."""
+        return self.settings.memory_length
+
+    def set_sample_period(self, sample_period_s: float) -> None:
+        """Run the model at ``sample_period_s`` from now on: the G-L memory keeps the profile's
+        span (:func:`with_memory_for`).  The newest values of every memory are kept; a longer
+        memory is padded with zeros (relaxed) beyond what was held."""
+        self.resize_memory(with_memory_for(self.profile, self.settings, sample_period_s).memory_length)
+
+    def resize_memory(self, memory_length: int) -> None:
+        """Hold ``memory_length`` samples of G-L memory (the filter's and the slow identifier's)."""
+        length = int(memory_length)
+        if length == self.memory_length:
+            return
+        self.settings = self.settings.model_copy(update={"memory_length": length})
+        self.ukf.hist = _resized(self.ukf.hist, length)
+        self.ukf.var_hist = _resized(self.ukf.var_hist, length)
+        if self.slow is not None:
+            self.slow.L = length
+            self.slow.ring = _resized(self.slow.ring, length)
+            self.slow.hist0 = _resized(self.slow.hist0, length)
 
     # -- parameters ---------------------------------------------------------------------
     def _entropic_shift(self, temp_c: np.ndarray) -> np.ndarray | None:
@@ -427,10 +453,14 @@ class PackEstimator:
         u = self.ukf
         if int(np.asarray(state.get("state_version", -1))) != STATE_VERSION:
             raise ValueError("estimator state has another version")
+        # the memory the state was saved with (a service that measured its sample period resized it)
+        length = int(np.asarray(state.get("memory_length", self.memory_length)))
+        if not 1 <= length <= MAX_MEMORY_LENGTH:
+            raise ValueError(f"estimator state's memory_length {length} is outside 1..{MAX_MEMORY_LENGTH}")
         x = need("ukf_x", u.x.shape)
         P = need("ukf_P", u.P.shape)
-        hist = need("ukf_hist", u.hist.shape)
-        var_hist = need("ukf_var_hist", u.var_hist.shape)
+        hist = need("ukf_hist", u.hist.shape[:-1] + (length,))
+        var_hist = need("ukf_var_hist", u.var_hist.shape[:-1] + (length,))
         innov = need("ukf_innovations", u.innovations.shape)
         gains = need("ukf_gains", u.gains.shape)
         nis = need("ukf_nis", u.nis_ema.shape)
@@ -454,7 +484,7 @@ class PackEstimator:
                           if self.fast.noise is not None and "fast_noise_moments" in state else None)
         if self.slow is not None:
             slow = (need("slow_z", self.slow.z.shape), need("slow_P", self.slow.P.shape),
-                    need("slow_ring", self.slow.ring.shape), need("slow_moved", self.slow.moved.shape))
+                    need("slow_ring", (self.n, length)), need("slow_moved", self.slow.moved.shape))
         # the capacity estimate (states written before it existed, or while frozen: the profile's)
         capacity = None
         if self.capacity is not None and all(k in state for k in CapacityEstimator.STATE_KEYS):
@@ -463,6 +493,7 @@ class PackEstimator:
         ocv_init = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
         # states written before the surface deficit was kept: a relaxed surface
         surface = need("surface_deficit", (self.n,)) if "surface_deficit" in state else np.zeros(self.n)
+        self.resize_memory(length)
         u.x, u.P, u.hist, u.var_hist, u.innovations, u.gains, u.nis_ema = x, P, hist, var_hist, innov, gains, nis
         u.noise.set_moments(noise_moments)
         self.reset_count, self.ocv_initialised = resets, ocv_init
@@ -482,6 +513,25 @@ class PackEstimator:
             self.capacity.set_state(capacity)
 
 
+def with_memory_for(profile: CellProfile, settings: EstimatorSettings,
+                    sample_period_s: float | None) -> EstimatorSettings:
+    """``settings`` with the G-L memory length that keeps ``profile.memory_span_s`` at
+    ``sample_period_s`` (:mod:`service.cell.memory`); unchanged without a span or a period, or
+    with ``memory_follows_sample_period`` off."""
+    if not settings.memory_follows_sample_period:
+        return settings
+    length = memory_length_at(profile.memory_span_s, sample_period_s, settings.memory_length)
+    return settings if length == settings.memory_length else settings.model_copy(update={"memory_length": length})
+
+
+def _resized(history: np.ndarray, length: int) -> np.ndarray:
+    """A newest-first memory ``[..., L]`` cut or zero-padded to ``length`` entries."""
+    out = np.zeros(history.shape[:-1] + (length,))
+    keep = min(length, history.shape[-1])
+    out[..., :keep] = history[..., :keep]
+    return out
+
+
 # -- offline estimators (one cell, for ``socd evaluate``) ---------------------------------
 class PipelineEstimator:
     """Runs :class:`PackEstimator` for one cell along a recording."""
@@ -495,7 +545,7 @@ class PipelineEstimator:
 
     def run(self, recording: Recording, profile: CellProfile, soc0: float,
             history: Recording | None = None) -> EstimateTrace:
-        est = PackEstimator(profile, 1, self.settings, self.identification)
+        est = PackEstimator(profile, 1, self.settings, self.identification, sample_period_s(recording.time_s))
         est.start(np.array([soc0]))
         if history is not None:
             est.warm_start(history)

@@ -11,6 +11,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.cell.memory import MAX_MEMORY_LENGTH
+
 
 def current_sigma_a(noise_a: float | None, noise_c: float, capacity_ah: np.ndarray) -> np.ndarray:
     """A current sensor's σ [A] for cells of ``capacity_ah``: ``noise_a`` where it is set (a value in
@@ -22,7 +24,18 @@ def current_sigma_a(noise_a: float | None, noise_c: float, capacity_ah: np.ndarr
 class EstimatorSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    memory_length: int = Field(16, ge=1, le=512, description="G-L short-memory length L (Zeng Eq. 2)")
+    memory_length: int = Field(
+        16, ge=1, le=MAX_MEMORY_LENGTH,
+        description="G-L short-memory length L (Zeng Eq. 2) for a profile that does not carry the memory span "
+        "it was fitted with (memory_span_s), or with memory_follows_sample_period off")
+    memory_follows_sample_period: bool = Field(
+        True,
+        description="run the model with L = the profile's memory_span_s / the sample period, so a profile "
+        "fitted on 1 s samples keeps its memory on a 10 Hz bus (service/cell/memory.py); off: L = memory_length")
+    sample_period_s: float | None = Field(
+        None, gt=0,
+        description="the BMS's sample period for `socd run` (s); unset: the median of the first sample "
+        "intervals the service sees. socd evaluate reads each recording's own")
     innovation_length: int = Field(
         1, ge=1, le=512,
         description="multi-innovation window (Zeng Eq. 18); 1 = single innovation, the default: cheaper, and "
