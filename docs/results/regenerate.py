@@ -423,6 +423,10 @@ REAL_DIAG = ("pan18650pf_m20C_trise_Cycle1", "pan18650pf_m20C_trise_Cycle1_soc0"
              "calce_a123_20C_DST")
 
 
+#: the sample_period table's columns: the one 10 Hz drive nobody fitted on, then the 1 s drives by ambient
+SAMPLE_PERIOD_GROUPS = (("25 °C `LA92` at 10 Hz", r"_10Hz"), ("25 °C, 1 s", r"_25C_(?!.*10Hz)"),
+                        ("10 °C (not `trise`)", r"_10C_(?!trise)"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"),
+                        ("−20 °C", r"_m20C_"))
 #: research.unseen_cell's PyBaMM cells and their recordings by ambient
 UNSEEN_CELLS = ("Chen2020", "Mohtat2020", "Marquis2019")
 UNSEEN_GROUPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"))
@@ -822,6 +826,28 @@ socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06
 socd evaluate --cell out/s25/pan_us06.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
     --estimator fomiukf -q --json out/s25/pan_us06_eval.json""",
           group_table("s25/pan_us06_eval.json", PAN_GROUPS), 60),
+    Table("sample_period", "characterisation.md", REAL + """\
+H=$P/fullrate_10Hz; mkdir -p out/hz10
+socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q \\
+    -o out/hz10/pan_us06_1s.toml
+socd fit $D/ocv/ocv_pan18650pf_25C.csv $H/pan18650pf_{25C,10C,0C,m10C,m20C}_US06_10Hz.csv --capacity-ah 2.77 -q \\
+    -o out/hz10/pan_us06_10hz.toml
+printf "memory_follows_sample_period = false\\n" > out/hz10/samples.toml   # L = 16 samples at any period
+for v in 1s 10hz; do
+  socd evaluate --cell out/hz10/pan_us06_$v.toml $H/pan18650pf_25C_LA92_10Hz.csv \\
+      $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) --estimator fomiukf -q \\
+      --json out/hz10/${v}_span.json
+  socd evaluate --cell out/hz10/pan_us06_$v.toml $H/pan18650pf_25C_LA92_10Hz.csv \\
+      $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) --estimator fomiukf -q --no-bar \\
+      --settings out/hz10/samples.toml --json out/hz10/${v}_samples.json
+done""",
+          lambda out: runs_table(
+              tuple((f"{fit}, memory {rule}", f"hz10/{tag}_{m}.json")
+                    for fit, tag in (("fitted on 1 s samples", "1s"), ("fitted at 10 Hz", "10hz"))
+                    for rule, m in (("as a span (default)", "span"), ("as 16 samples", "samples"))),
+              SAMPLE_PERIOD_GROUPS)(out) + "\n\nThe 2-RC EKF on each profile's own 2-RC fit (no G-L memory):\n\n"
+          + runs_table((("fitted on 1 s samples", "hz10/1s_span.json"), ("fitted at 10 Hz", "hz10/10hz_span.json")),
+                       SAMPLE_PERIOD_GROUPS, "ecm2rc-ekf")(out), 30),
     Table("unseen_cell", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
 python -m research.unseen_cell run --refit""", unseen_table("unseen_cell"), 15, ("needs:pybamm",)),
