@@ -126,7 +126,7 @@ class Daemon:
         self.estimator = estimator if estimator is not None else PackEstimator(
             self.profile, self.n, config.estimator, sample_period_s=config.estimator.sample_period_s)
         #: the first sample intervals, until the sample period is known (the G-L memory's span
-        #: in samples follows it: PackEstimator.set_sample_period); set, or restored: known
+        #: in samples follows it: PackEstimator.set_sample_period); known when the config sets it
         self._intervals: list[float] = []
         self._period_known = config.estimator.sample_period_s is not None
         b = config.bus
@@ -290,7 +290,8 @@ class Daemon:
                 res.reason, res.detail = "mismatch", f"{path}: state does not fit this estimator: {exc}"
         if res.ok:
             self.initialised = self.restored = True
-            self._period_known = True  # the state holds the memory it was saved with
+            if self._period_known:  # the state holds the memory it was saved with: at the period set
+                self._run_at_sample_period(self.config.estimator.sample_period_s)
             self._cell_started[:] = True
             t = res.meta.get("t_s")
             self._restored_t_s = float(t) if isinstance(t, (int, float)) and np.isfinite(t) else None
@@ -462,11 +463,13 @@ class Daemon:
         if len(self._intervals) < PERIOD_INTERVALS:
             return
         self._period_known = True
-        period = float(np.median(self._intervals))
+        self._run_at_sample_period(float(np.median(self._intervals)))
+
+    def _run_at_sample_period(self, period_s: float) -> None:
         set_period = getattr(self.estimator, "set_sample_period", None)
         if set_period is not None:
-            set_period(period)
-            log.info("sample period %.3g s: G-L memory of %d samples", period, self.estimator.memory_length)
+            set_period(period_s)
+            log.info("sample period %.3g s: G-L memory of %d samples", period_s, self.estimator.memory_length)
 
     def _resting(self, *currents: float | None) -> bool:
         """Both ends of a gap at rest: no charge moved in between, so it can be integrated."""
