@@ -288,8 +288,16 @@ def test_set_state_rejects_other_pack_size_and_version(nmc_profile) -> None:
         PackEstimator(nmc_profile, 4).set_state(state)
     with pytest.raises(ValueError, match="version"):
         est.set_state({**state, "state_version": np.array(99)})
-    with pytest.raises(ValueError):
-        PackEstimator(nmc_profile, 3, EstimatorSettings(memory_length=8)).set_state(state)
+    # the state carries its G-L memory: an estimator holding another length takes the state's ...
+    other = PackEstimator(nmc_profile, 3, EstimatorSettings(memory_length=8))
+    other.set_state(state)
+    assert other.memory_length == est.memory_length
+    np.testing.assert_array_equal(other.ukf.hist, est.ukf.hist)
+    # ... and memory arrays that do not hold the length the state declares are refused
+    with pytest.raises(ValueError, match="ukf_hist"):
+        est.set_state({**state, "memory_length": np.array(8)})
+    with pytest.raises(ValueError, match="memory_length"):
+        est.set_state({**state, "memory_length": np.array(0)})
 
 
 def test_set_state_rejection_is_atomic_for_counters(nmc_profile) -> None:
