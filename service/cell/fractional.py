@@ -62,6 +62,14 @@ def cpe_step(
     return (g * current_a - memory) / (1.0 + g / r)
 
 
+def resized_history(history: np.ndarray, length: int) -> np.ndarray:
+    """A newest-first memory ``[..., L]`` cut or zero-padded (relaxed) to ``length`` entries."""
+    out = np.zeros(history.shape[:-1] + (length,))
+    keep = min(length, history.shape[-1])
+    out[..., :keep] = history[..., :keep]
+    return out
+
+
 def push_history(history: np.ndarray, newest: np.ndarray) -> None:
     """Shift ``history`` one step older in place and store ``newest`` at index 0."""
     history[..., 1:] = history[..., :-1]

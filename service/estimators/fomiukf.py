@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.cell.fractional import gl_weights
+from service.cell.fractional import gl_weights, resized_history
 from service.cell.hysteresis import hysteresis_decay
 from service.cell.model import kinetic_overpotential
 from service.cell.ocv import CellOcv, OcvTable
@@ -95,6 +95,11 @@ class FoMiUkf:
         self.x_single = self.x
 
     # -- initialisation -----------------------------------------------------------------
+    def resize_memory(self, length: int) -> None:
+        """Hold ``length`` samples of G-L memory, the newest kept (:func:`service.cell.fractional.resized_history`)."""
+        self.hist = resized_history(self.hist, length)
+        self.var_hist = resized_history(self.var_hist, length)
+
     def reset(
         self, cells: np.ndarray, soc: np.ndarray, soc_std: float, u_h_std: float, bias_std_a: float = 0.0
     ) -> None:

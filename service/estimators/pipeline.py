@@ -116,12 +116,9 @@ class PackEstimator:
         if length == self.memory_length:
             return
         self.settings = self.settings.model_copy(update={"memory_length": length})
-        self.ukf.hist = _resized(self.ukf.hist, length)
-        self.ukf.var_hist = _resized(self.ukf.var_hist, length)
+        self.ukf.resize_memory(length)
         if self.slow is not None:
-            self.slow.L = length
-            self.slow.ring = _resized(self.slow.ring, length)
-            self.slow.hist0 = _resized(self.slow.hist0, length)
+            self.slow.resize_memory(length)
 
     # -- parameters ---------------------------------------------------------------------
     def _entropic_shift(self, temp_c: np.ndarray) -> np.ndarray | None:
@@ -522,14 +519,6 @@ def with_memory_for(profile: CellProfile, settings: EstimatorSettings,
         return settings
     length = memory_length_at(profile.memory_span_s, sample_period_s, settings.memory_length)
     return settings if length == settings.memory_length else settings.model_copy(update={"memory_length": length})
-
-
-def _resized(history: np.ndarray, length: int) -> np.ndarray:
-    """A newest-first memory ``[..., L]`` cut or zero-padded to ``length`` entries."""
-    out = np.zeros(history.shape[:-1] + (length,))
-    keep = min(length, history.shape[-1])
-    out[..., :keep] = history[..., :keep]
-    return out
 
 
 # -- offline estimators (one cell, for ``socd evaluate``) ---------------------------------

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.cell.fractional import cpe_step, gl_weights, push_history
+from service.cell.fractional import cpe_step, gl_weights, push_history, resized_history
 from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.parameter_ekf import ORDER_LIMITS, RELATIVE_LIMITS
 
@@ -57,6 +57,12 @@ class SlowIdentifier:
         self.hist0 = np.zeros((n_cells, memory_length))
         self.moved = np.zeros(n_cells)
         self.updates = 0
+
+    def resize_memory(self, length: int) -> None:
+        """Hold ``length`` samples of U_df memory, the newest kept (:func:`service.cell.fractional.resized_history`)."""
+        self.L = length
+        self.ring = resized_history(self.ring, length)
+        self.hist0 = resized_history(self.hist0, length)
 
     def reset(self, cells: np.ndarray) -> None:
         self.z[cells] = np.array([1.0, 1.0, 0.0])
