@@ -333,7 +333,7 @@ def loco_sweep(field: str, tag: str, values: tuple[str, ...], default: str, *, f
     label (``tag + default`` unless given); ``unseen``: also score ``research.unseen_cell``'s three
     cells and pool them as three more (the table ``out/loco_<name>_unseen.json``)."""
     name = {"cn": "current_noise", "vn": "voltage_noise", "ip": "identifier_prior", "ro": "model_error_shape",
-            "fr": "model_error_fit", "oe": "ocv_error"}[tag]
+            "fr": "model_error_fit", "oe": "ocv_error", "ua": "ukf_alpha"}[tag]
     reference = reference or tag + default
     vals = " ".join(values)
     json_pattern = "out/cn/{cell}_" + tag + "${{c}}_b$b.json"
@@ -691,6 +691,10 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference hold 
     Table("loco_voltage_noise_unseen", "tuning.md",
           loco_sweep("voltage_noise_per_c_v", "vn", ("0.0554", "0.111"), "0.222", unseen=True),
           nested_table("loco_voltage_noise_unseen.json"), 50,
+          ("needs:loco_defaults", "needs:loco_defaults_unseen", "needs:pybamm")),
+    Table("loco_ukf_alpha_unseen", "tuning.md",
+          loco_sweep("ukf_alpha", "ua", ("0.5", "0.2"), "1.0", unseen=True),
+          nested_table("loco_ukf_alpha_unseen.json"), 120,
           ("needs:loco_defaults", "needs:loco_defaults_unseen", "needs:pybamm")),
     Table("loco_identifier_prior", "tuning.md",
           loco_sweep("param_init_std_rel", "ip", ("0.01", "0.03", "0.05", "0.1", "0.2"), "0.02"),
