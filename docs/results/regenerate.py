@@ -694,7 +694,16 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference hold 
           ("needs:loco_defaults", "needs:loco_defaults_unseen", "needs:pybamm")),
     Table("loco_ukf_alpha_unseen", "tuning.md",
           loco_sweep("ukf_alpha", "ua", ("0.5", "0.2"), "1.0", unseen=True),
-          nested_table("loco_ukf_alpha_unseen.json"), 120,
+          lambda out: nested_table("loco_ukf_alpha_unseen.json")(out) + "\n\n" + "\n\n".join(
+              f"{title}, mean SOC RMSE after 600 s (%):\n\n" + runs_table(
+                  tuple((f"α = {a}{', +1 % offset' if b == '0.01' else ''}",
+                         f"loco/{cell}_noslow_b{b}.json" if a == "1.0" else f"cn/{cell}_ua{a}_b{b}.json")
+                        for b in offsets for a in ("1.0", "0.5", "0.2")), groups)(out)
+              for title, cell, groups, offsets in (
+                  ("CALCE", "calce", CALCE_REST_GROUPS, ("0", "0.01")),
+                  ("A123", "a123", (("FUDS, US06", r"calce_a123"),), ("0", "0.01")),
+                  ("Panasonic, HPPC profile", "panhppc", PAN_GROUPS, ("0",)))),
+          120,
           ("needs:loco_defaults", "needs:loco_defaults_unseen", "needs:pybamm")),
     Table("loco_identifier_prior", "tuning.md",
           loco_sweep("param_init_std_rel", "ip", ("0.01", "0.03", "0.05", "0.1", "0.2"), "0.02"),
