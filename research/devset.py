@@ -328,11 +328,11 @@ def labelled_one(job: tuple[str, str, str]) -> tuple[str, str]:
 RULE_GRID: dict[str, tuple[float, ...]] = {
     "min_rel_gain": (0.15, 0.20, 0.25, 0.30, 0.40),
     "min_rel_gain_nominated": (0.03, 0.05, 0.10, 0.15),
-    "min_abs_gain_noise": (0.25, 0.5, 1.0),
-    "min_delta_bic": (-10.0, 0.0, 10.0),
+    "min_abs_gain_noise": (0.25, 0.5, 1.0, 1.5),
+    "min_delta_bic": (-20.0, -10.0, 0.0, 10.0),
     "kinetics_max_i0_c": (0.10, 0.12, 0.15, 0.18, 0.20),
-    "relax_min_ratio": (0.15, 0.20, 0.30),
-    "relax_min_z": (3.0, 5.0),
+    "relax_min_ratio": (0.05, 0.075, 0.10, 0.15, 0.20, 0.30),
+    "relax_min_z": (3.0, 5.0, 8.0),
 }
 #: signature levels: the kinetics bound (service.diagnosis.effects.KINETICS_MAX_I0_C: the step fit
 #: nominates kinetics below it and the extension's fitted exchange current must lie below it) and

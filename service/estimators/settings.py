@@ -139,7 +139,10 @@ class EstimatorSettings(BaseModel):
         "(ρ = exp(-|ΔSOC| / length) per step)"
     )
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
-    ukf_alpha: float = Field(1.0, gt=0, le=1)
+    ukf_alpha: float = Field(
+        1.0, gt=0, le=1, description="sigma-point spread (Zeng Table 3): the SOC points sit α·√n σ from the "
+        "estimate, so at 1 the OCV is read across ± 2 σ of SOC (a secant over a flat plateau); chosen "
+        "leave-one-cell-out against 0.5 and 0.2 (docs/results/tuning.md)")
     ukf_beta: float = Field(2.0, ge=0)
     ukf_kappa: float = Field(0.0)
     param_process_rel: float = Field(1e-4, ge=0, description="relative σ per step of parameter random walk (fast)")
