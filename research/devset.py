@@ -328,9 +328,18 @@ def labelled_one(job: tuple[str, str, str]) -> tuple[str, str]:
 RULE_GRID: dict[str, tuple[float, ...]] = {
     "min_rel_gain": (0.15, 0.20, 0.25, 0.30, 0.40),
     "min_rel_gain_nominated": (0.03, 0.05, 0.10, 0.15),
+    "min_abs_gain_noise": (0.25, 0.5, 1.0),
+    "min_delta_bic": (-10.0, 0.0, 10.0),
+    "kinetics_max_i0_c": (0.10, 0.12, 0.15, 0.18, 0.20),
+    "relax_min_ratio": (0.15, 0.20, 0.30),
+    "relax_min_z": (3.0, 5.0),
+}
+#: ``rules --wide-grid``: the axes whose chosen value sits at an edge of :data:`RULE_GRID`, extended past it
+#: (a check that the choice is not held by the grid's edge; docs/results/diagnose.md)
+WIDE_GRID: dict[str, tuple[float, ...]] = {
+    **RULE_GRID,
     "min_abs_gain_noise": (0.25, 0.5, 1.0, 1.5),
     "min_delta_bic": (-20.0, -10.0, 0.0, 10.0),
-    "kinetics_max_i0_c": (0.10, 0.12, 0.15, 0.18, 0.20),
     "relax_min_ratio": (0.05, 0.075, 0.10, 0.15, 0.20, 0.30),
     "relax_min_z": (3.0, 5.0, 8.0),
 }
@@ -358,9 +367,10 @@ def current_rule() -> dict[str, float]:
     return now
 
 
-def rule_grid(with_requirement: bool = False) -> list[dict[str, float]]:
-    """Every rule of :data:`RULE_GRID` (and of :data:`REQUIREMENT_GRID` with ``with_requirement``)."""
-    axes = {**RULE_GRID, **(REQUIREMENT_GRID if with_requirement else {})}
+def rule_grid(with_requirement: bool = False, wide: bool = False) -> list[dict[str, float]]:
+    """Every rule of :data:`RULE_GRID` (:data:`WIDE_GRID` with ``wide``; and of :data:`REQUIREMENT_GRID`
+    with ``with_requirement``)."""
+    axes = {**(WIDE_GRID if wide else RULE_GRID), **(REQUIREMENT_GRID if with_requirement else {})}
     keys = list(axes)
     return [dict(zip(keys, values)) for values in itertools.product(*(axes[k] for k in keys))]
 
@@ -674,6 +684,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-requirement", action="store_true",
                     help="rules: search also whether diffusion needs its relaxation signature (a structural rule "
                          "the product fixes; this asks what the search itself would choose per held-out cell)")
+    ap.add_argument("--wide-grid", action="store_true",
+                    help="rules: search the axes whose choice sits at an edge of the grid past that edge "
+                         "(WIDE_GRID), to check the choice is not held by the edge")
     ap.add_argument("--diffusion-signature", type=float, choices=REQUIREMENT_GRID["diffusion_signature"],
                     help="rules: hold the requirement at this level (0 never, 1 where read, 2 always) instead of "
                          "the product's, to compare the levels")
@@ -714,7 +727,7 @@ def main(argv: list[str] | None = None) -> int:
         _complete(ev, args.labelled / f"{ev.stem}.csv",
                   json.loads((args.labelled / f"{ev.stem}.meta.json").read_text())["capacity_ah"])
         ev.cell = set_cell(labels.get(ev.stem, {}).get("cell", ev.cell), cells)
-    grid = rule_grid(args.search_requirement)
+    grid = rule_grid(args.search_requirement, args.wide_grid)
     if args.diffusion_signature is not None and not args.search_requirement:
         grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
     doc = search([*evs, *labelled], grid, progress=lambda msg: print(msg, file=sys.stderr))

@@ -119,6 +119,9 @@ def test_decide_refuses_diffusion_whose_signature_read_rests_and_did_not_fire():
     diff.signatures = {"diffusion": {"statistic": 0.2, "z": 8.0}}
     assert decide(diff, {"relax_min_ratio": 0.3, "diffusion_signature": 0.0})[0] == "diffusion"
     assert len(rule_grid(True)) == 3 * len(rule_grid()) and all("diffusion_signature" in r for r in rule_grid(True))
+    # the wide grid (rules --wide-grid) holds every rule of the default grid and more
+    wide = {tuple(sorted(r.items())) for r in rule_grid(wide=True)}
+    assert {tuple(sorted(r.items())) for r in rule_grid()} < wide
 
 
 def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():

@@ -277,6 +277,17 @@ def devset_table(name: str) -> Callable[[Path], str]:
     return render
 
 
+def devset_summary_table(name: str) -> Callable[[Path], str]:
+    """The held-out rows, the pooled line and the rule chosen on all cells of a ``devset rules --json``
+    report (the rest of it as :func:`devset_table` renders it)."""
+    def render(out: Path) -> str:
+        lines = tool("devset").markdown(_read(out, name)).splitlines()
+        end = next(k for k, line in enumerate(lines) if line.startswith("**Pooled"))
+        chosen = [line for line in lines if line.startswith("Rule chosen on all cells")]
+        return "\n".join(lines[:end + 1] + [""] + chosen)
+    return render
+
+
 def roundtrip_table(name: str) -> Callable[[Path], str]:
     def render(out: Path) -> str:
         rt = tool("roundtrip")
@@ -965,6 +976,10 @@ python -m research.devset evidence --jobs 2 --workdir out/devset
 python -m research.devset labelled --jobs 2 --workdir out/devset
 python -m research.devset rules --workdir out/devset --json out/devset_rules.json""",
           devset_table("devset_rules.json"), 90, ("needs:pybamm",)),
+    Table("devset_rules_wide", "diagnose.md", """\
+# the set and its evidence are devset_rules'
+python -m research.devset rules --workdir out/devset --wide-grid --json out/devset_rules_wide.json""",
+          devset_summary_table("devset_rules_wide.json"), 5, ("needs:devset_rules", "needs:pybamm")),
     Table("validate", "diagnose.md", "python -m research.validate --seeds 3 --workdir out/validate --json out/validate.json",
           validate_table("validate.json"), 8),
     Table("roundtrip", "diagnose.md", "python -m research.roundtrip --workdir out/roundtrip --json out/roundtrip.json",
