@@ -283,7 +283,8 @@ def devset_summary_table(name: str) -> Callable[[Path], str]:
     def render(out: Path) -> str:
         lines = tool("devset").markdown(_read(out, name)).splitlines()
         end = next(k for k, line in enumerate(lines) if line.startswith("**Pooled"))
-        chosen = [line for line in lines if line.startswith("Rule chosen on all cells")]
+        chosen = [line.replace("(the product's default)", "in this grid") for line in lines
+                  if line.startswith("Rule chosen on all cells")]
         return "\n".join(lines[:end + 1] + [""] + chosen)
     return render
 

@@ -143,7 +143,7 @@ class DiagnoseOptions:
     direct_max_rise_rel: float = 0.10
     # ΔBIC on the fit part: a held-out gain may come with a slightly worse fit-part BIC (an extension
     # that extrapolates well but adds parameters the fit part barely needs)
-    min_delta_bic: float = -10.0
+    min_delta_bic: float = 0.0
     min_abs_gain_noise: float = 1.0
     # a none verdict with an effect its signature nominated or measured whose extension misses
     # its bar on the chronological split: that effect alone is refitted and scored again on this
