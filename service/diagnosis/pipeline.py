@@ -141,8 +141,8 @@ class DiagnoseOptions:
     # ... or by more than this share of the base's held-out RMSE, whichever is larger: the nominated
     # bar mirrored (a voltage change inside the base model's own misfit neither confirms nor refutes)
     direct_max_rise_rel: float = 0.10
-    # ΔBIC on the fit part: a held-out gain may come with a slightly worse fit-part BIC (an extension
-    # that extrapolates well but adds parameters the fit part barely needs)
+    # ΔBIC on the fit part: an extension must not make the fit part's BIC worse than the base's (the
+    # development set's choice; at -10 an OCV-table error that fits a clean drive no better got through)
     min_delta_bic: float = 0.0
     min_abs_gain_noise: float = 1.0
     # a none verdict with an effect its signature nominated or measured whose extension misses
