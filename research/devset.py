@@ -150,6 +150,8 @@ class Candidate:
     significant: bool = False
     #: the fitted size a plausibility bound reads (kinetics: the exchange current in C), if any
     size: float | None = None
+    #: a directly measured effect retried on the confirmation split (significance_reasons' ``measured``)
+    measured: bool = False
 
 
 @dataclass
@@ -424,7 +426,7 @@ def _judge(cands: Iterable[Candidate], noise_mv: float, opt) -> list[Candidate]:
     judged = []
     for c in cands:
         reasons = significance_reasons(c.score, c.rmse_before_mv, c.rmse_after_mv, c.delta_bic, noise_mv,
-                                       c.evidence, opt)
+                                       c.evidence, opt, c.measured)
         judged.append(replace(c, significant=not reasons and not c.fixed_reasons))
     return rank(judged, opt.min_abs_gain_noise * noise_mv)
 
@@ -447,8 +449,8 @@ def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]
         # nomination, and a direct effect needs the nominated bar there
         # (service.diagnosis.pipeline.confirm_nominated)
         unread = set(ev.signatures.get("confirm_unread", []))
-        again = [replace(c, evidence="nominated", fixed_reasons=[r for r in c.fixed_reasons
-                                                                 if not r.startswith(SIGNATURE_REQUIRED)])
+        again = [replace(c, evidence="nominated", measured=c.evidence == "direct",
+                         fixed_reasons=[r for r in c.fixed_reasons if not r.startswith(SIGNATURE_REQUIRED)])
                  if c.name in unread or c.evidence == "direct" else c
                  for c in _with_signature_rules([c for c in ev.confirm_candidates if c.name in retry], ev, rule)]
         confirmed = [c for c in _judge(again, ev.confirm_noise_mv, opt) if c.significant and c.evidence == "nominated"]

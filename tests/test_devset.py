@@ -98,6 +98,13 @@ def test_decide_retries_a_direct_effect_that_made_the_held_out_part_worse_under_
     assert verdict == "temperature" and named.score == pytest.approx(0.12)
     flat = _ev("A", "temperature", [worse], confirm=[_cand("temperature", 0.03, "direct", before=20.0)])
     assert decide(flat, {})[0] == "none"
+    # the retry holds it to the nominated bar, not to ΔBIC (a measured effect is not a parsimony question):
+    # a fit-part BIC worse than the base's does not refuse it, as it does a nominated fit-only effect
+    costly = _ev("A", "temperature", [worse], confirm=[_cand("temperature", 0.12, "direct", before=20.0, dbic=-6.0)])
+    assert decide(costly, {"min_delta_bic": 0.0})[0] == "temperature"
+    fit_only = _ev("A", "diffusion", [_cand("diffusion", 0.05, "nominated")],
+                   confirm=[_cand("diffusion", 0.2, "nominated", before=20.0, dbic=-6.0)])
+    assert decide(fit_only, {"min_delta_bic": 0.0})[0] == "none"
     # a direct effect the first split already named is not retried: its first figures stand
     ok = _ev("A", "temperature", [_cand("temperature", 0.01, "direct")], confirm=[_cand("temperature", 0.5, "direct")])
     verdict, named = decide(ok, {})

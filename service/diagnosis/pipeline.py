@@ -350,7 +350,7 @@ def direct_max_rise_mv(opt: DiagnoseOptions, noise_mv: float, rmse_before_mv: fl
 
 
 def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: float, delta_bic: float,
-                         noise_mv: float, evidence: str, opt: DiagnoseOptions) -> list[str]:
+                         noise_mv: float, evidence: str, opt: DiagnoseOptions, measured: bool = False) -> list[str]:
     """Why an extension is *not* significant (empty: it is), by its evidence (module docstring).
 
     ``direct``: the signature measured the departure, and the held-out RMSE only must not rise
@@ -359,7 +359,9 @@ def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: flo
     base model's own misfit neither confirms nor refutes a departure the signature measured, while a
     wrong one (a current that really flows) raises the misfit far beyond that margin.
     ``nominated`` / ``fit``: the relative gain bar, the absolute drop of ``min_abs_gain_noise`` ×
-    the noise and ΔBIC."""
+    the noise and ΔBIC.  ``measured``: a directly measured effect held to the nominated bar on the
+    confirmation split; the ΔBIC bar, a parsimony guard for an extension the voltage alone
+    proposes, does not apply to it there, as it does not on the first split."""
     reasons = []
     if evidence == "direct":
         rise_mv = direct_max_rise_mv(opt, noise_mv, rmse_before_mv)
@@ -376,7 +378,7 @@ def significance_reasons(score: float, rmse_before_mv: float, rmse_after_mv: flo
     if rmse_before_mv - rmse_after_mv < opt.min_abs_gain_noise * noise_mv:
         reasons.append(f"held-out RMSE drop {rmse_before_mv - rmse_after_mv:.2f} mV < {opt.min_abs_gain_noise:g} x noise "
                        f"({noise_mv:.2f} mV)")
-    if delta_bic < opt.min_delta_bic:
+    if delta_bic < opt.min_delta_bic and not measured:
         reasons.append(f"dBIC {delta_bic:.1f} < {opt.min_delta_bic:g}")
     return reasons
 
@@ -402,10 +404,10 @@ def signature_unread(signatures: dict, name: str) -> bool:
     return name in FIT_PART_SIGNATURES and bool(signatures.get(name, {}).get("skipped"))
 
 
-def rejudge(e: EffectOutcome, evidence: str, noise_mv: float, opt: DiagnoseOptions) -> None:
-    """Judge ``e`` again as evidence class ``evidence``: its significance reasons are replaced, the
-    others (a fitted size of a healthy cell) kept, and a missing-signature refusal dropped when the
-    class says a signature fired."""
+def rejudge(e: EffectOutcome, evidence: str, noise_mv: float, opt: DiagnoseOptions, measured: bool = False) -> None:
+    """Judge ``e`` again as evidence class ``evidence`` (``measured``: as :func:`significance_reasons`):
+    its significance reasons are replaced, the others (a fitted size of a healthy cell) kept, and a
+    missing-signature refusal dropped when the class says a signature fired."""
     n_rule = len(significance_reasons(e.score, e.rmse_before_mv, e.rmse_after_mv, e.delta_bic, noise_mv,
                                       e.evidence, opt))
     fixed = e.reasons[n_rule:]
@@ -413,7 +415,7 @@ def rejudge(e: EffectOutcome, evidence: str, noise_mv: float, opt: DiagnoseOptio
         fixed = [r for r in fixed if not r.startswith(SIGNATURE_REQUIRED)]
     e.evidence = evidence
     e.reasons = significance_reasons(e.score, e.rmse_before_mv, e.rmse_after_mv, e.delta_bic, noise_mv, evidence,
-                                     opt) + fixed
+                                     opt, measured) + fixed
     e.significant = not e.reasons
 
 
@@ -529,7 +531,7 @@ def confirm_nominated(dg: Diagnosis, rec: Recording, profile: CellProfile, opt: 
     sub = _diagnose_on_split(rec, profile, replace(opt, split=opt.confirm_split, effects=names), say)
     for e in sub.effects:
         if e.evidence == "direct" or (e.evidence == "fit" and signature_unread(sub.signatures, e.name)):
-            rejudge(e, "nominated", sub.thresholds["noise_sigma_mv"], opt)
+            rejudge(e, "nominated", sub.thresholds["noise_sigma_mv"], opt, measured=e.evidence == "direct")
     confirmed = rank([e for e in sub.effects if e.significant and e.evidence == "nominated"],
                      opt.min_abs_gain_noise * sub.thresholds["noise_sigma_mv"])
     dg.protocol["confirmation"] = {
