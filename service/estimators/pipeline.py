@@ -481,7 +481,7 @@ class PackEstimator:
                           if self.fast.noise is not None and "fast_noise_moments" in state else None)
         if self.slow is not None:
             slow = (need("slow_z", self.slow.z.shape), need("slow_P", self.slow.P.shape),
-                    need("slow_ring", (self.n, length)), need("slow_moved", self.slow.moved.shape))
+                    need("slow_ring", self.slow.ring.shape[:-1] + (length,)), need("slow_moved", self.slow.moved.shape))
         # the capacity estimate (states written before it existed, or while frozen: the profile's)
         capacity = None
         if self.capacity is not None and all(k in state for k in CapacityEstimator.STATE_KEYS):
