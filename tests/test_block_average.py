@@ -3,6 +3,7 @@ G-L memory it fits with spans 16 s whatever the logging rate (service/characteri
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -19,15 +20,18 @@ SHARED = ROOT.parent / "shared" / "data" / "real" / "panasonic_18650pf"
 
 
 def _at_10hz(rec: Recording) -> Recording:
-    """``rec`` (1 s samples) logged at 10 Hz with jittered stamps: each value held over the second
-    that starts at its own stamp, as a logger that sampled a block-averaged signal would see it."""
+    """``rec`` (evenly sampled, period P a whole number of seconds) logged at 10 Hz with jittered stamps:
+    each value held over the interval that starts at its own stamp, as a logger of a signal held there
+    would see it.  Averaged to 1 s it is ``rec`` again, each value repeated P times."""
+    period = float(np.median(np.diff(rec.time_s)))
+    per = round(period / 0.1)
     rng = np.random.default_rng(3)
-    t = (rec.time_s[:, None] + 0.1 * np.arange(10)[None, :]).ravel()
+    t = (rec.time_s[:, None] + 0.1 * np.arange(per)[None, :]).ravel()
     t = t + rng.uniform(0.0, 0.004, t.size)  # never across a block edge
     t[0] = rec.time_s[0]
 
     def held(x: np.ndarray) -> np.ndarray:
-        return np.repeat(x, 10)
+        return np.repeat(x, per)
 
     return Recording(rec.path, t, held(rec.current_a), held(rec.voltage_v), held(rec.temperature_c))
 
@@ -91,3 +95,25 @@ def test_fit_on_10hz_data_keeps_the_16s_memory_unless_told(tmp_path: Path, nmc_r
         spans[label] = load_profile(out).memory_span_s
     assert spans["default"] == pytest.approx(16.0)
     assert spans["recorded rate"] == pytest.approx(1.6, rel=0.05)
+
+
+def test_diagnose_reads_a_10hz_log_as_its_1s_averages(tmp_path: Path, capsys) -> None:
+    """research.validate's clear capacity case (4 s samples) logged at 10 Hz: diagnose averages it to
+    1 s blocks, the rate its rules were chosen at, says so, and names the effect."""
+    from research.validate import CAP, ocv_spec, write_case
+    from tests.conftest import write_recording_csv
+
+    slow = load_recording(write_case(tmp_path / "capacity_4s.csv", "capacity", "clear", seed=0))
+    fast = _at_10hz(slow)
+    path = write_recording_csv(tmp_path / "capacity_10hz.csv", fast.time_s, fast.current_a, fast.voltage_v,
+                               fast.temperature_c)
+    ocv = tmp_path / "ocv.csv"
+    spec = ocv_spec()
+    np.savetxt(ocv, np.column_stack([spec.soc, spec.ocv_v[0]]), delimiter=",", header="soc,ocv_v", comments="")
+    out = tmp_path / "d.json"
+    rc = main(["diagnose", str(path), "--ocv", str(ocv), "--capacity-ah", str(CAP), "--json", str(out),
+               "--effects", "capacity,current_bias"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "capacity_10hz (0.1 s) block-averaged to 1 s" in err
+    assert json.loads(out.read_text())["verdict"] == "capacity"

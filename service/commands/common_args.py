@@ -231,6 +231,18 @@ def add_soc0_argument(parser: Any, *, help: str | None = None, old_start_soc_ali
         _alias(parser, "--start-soc", "--soc0", "soc0", type=soc_fraction, metavar="SOC")
 
 
+def add_fit_period_argument(parser: Any, *, what: str) -> None:
+    """``--fit-period S``: recordings logged faster are block-averaged to S before ``what``
+    (:mod:`service.characterisation.block_average`)."""
+    from service.characterisation.block_average import DEFAULT_FIT_PERIOD_S
+
+    parser.add_argument("--fit-period", type=non_negative_float, default=DEFAULT_FIT_PERIOD_S, metavar="S",
+                        help=f"a recording logged faster than this is block-averaged to it before {what} (default "
+                        f"{DEFAULT_FIT_PERIOD_S:g} s), so the G-L memory of 16 samples spans the same time whatever "
+                        "the logging rate; 0 keeps the recorded rate (a 10 Hz fit has a 1.6 s memory and generalised "
+                        "worse: docs/results/characterisation.md)")
+
+
 def add_progress_arguments(parser: Any, *, old_no_progress_alias: bool = False) -> None:
     """``-q/--quiet`` and ``--progress`` (progress bars on stderr even when it is no TTY)."""
     g = parser.add_mutually_exclusive_group()

@@ -23,6 +23,7 @@ from service.cli import UserError
 from service.commands.common_args import (
     add_cell_argument,
     add_common_arguments,
+    add_fit_period_argument,
     add_soc0_argument,
     float_in,
     json_to_stdout,
@@ -62,6 +63,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "away from it and whose temperature then moves by 2 K or more has its temperature effect "
                    "nominated; 'none' judges the temperature only by how well a constant ambient explains it")
     p.add_argument("--seed", type=int, default=0)
+    add_fit_period_argument(p, what="the diagnosis (its rules were chosen on 1 s recordings)")
     add_common_arguments(p, progress=True, json_out="the result", bounds=True)
     p.set_defaults(func=run)
 
@@ -117,13 +119,17 @@ def _profile_from_args(args):
 
 def run(args: argparse.Namespace) -> int:
     from service.cell.profile import save_profile
+    from service.characterisation.block_average import describe, to_fit_period
     from service.diagnosis.effects import EFFECTS
     from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
     from service.recording import load_recording
 
     setup_logging(args)
     profile, fit_base = _profile_from_args(args)
-    rec = load_recording(args.recording)
+    averaged = to_fit_period([load_recording(args.recording)], args.fit_period)
+    rec = averaged[0].recording
+    if (line := describe(averaged, args.fit_period)) is not None and not args.quiet:
+        print(f"socd diagnose: {line}", file=sys.stderr)
     if not 0.2 <= args.fit_fraction <= 0.9:
         raise UserError(f"--fit-fraction must be in [0.2, 0.9], got {args.fit_fraction:g}")
     effects = tuple(EFFECTS)

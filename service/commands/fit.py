@@ -8,12 +8,12 @@ from pathlib import Path
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
-from service.characterisation.block_average import DEFAULT_FIT_PERIOD_S, describe, to_fit_period
+from service.characterisation.block_average import describe, to_fit_period
 from service.cli import UserError
 from service.commands.common_args import (
     add_common_arguments,
+    add_fit_period_argument,
     full_at,
-    non_negative_float,
     positive_float,
     positive_int,
     progress_enabled,
@@ -96,11 +96,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
                         "says whether the bound cut one (its end point then depends on the machine's load)")
     p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
-    p.add_argument("--fit-period", type=non_negative_float, default=DEFAULT_FIT_PERIOD_S, metavar="S",
-                   help="recordings sampled faster than this are block-averaged to it before the fit (default 1 s), "
-                   "so the G-L memory of --memory-length samples spans the same time whatever the logging rate; the "
-                   "profile still runs at any rate. 0 fits at the recorded rate (a 10 Hz fit has a 1.6 s memory and "
-                   "generalised worse: docs/results/characterisation.md)")
+    add_fit_period_argument(p, what="the fit")
     p.add_argument("--force", action="store_true",
                    help="write the profile even when a temperature's fit is poor (RMSE above 50 mV) or worse than "
                    "the textbook 2-RC fit of the same data; without it such a fit exits 2 and writes nothing")
