@@ -66,6 +66,7 @@ def test_only_recordings_faster_than_the_period_are_averaged() -> None:
     assert line is not None and "pan18650pf_25C_US06 (0.1 s)" in line and "--fit-period 0" in line
     assert [a.averaged for a in to_fit_period([fast], 0.0)] == [False]
     assert describe(to_fit_period([slow], 1.0), 1.0) is None
+    assert main(["fit", str(BUNDLED), "--capacity-ah", "2.77", "--fit-period", "60", "-o", "unused.toml"]) == 2
     with pytest.raises(ValueError, match="block period"):
         block_average(slow, 0.0)
 

@@ -25,6 +25,8 @@ from service.recording import Recording
 
 #: the fit's sample period by default, s: the rate the defaults were chosen at
 DEFAULT_FIT_PERIOD_S = 1.0
+#: the longest block, s: longer ones would average away the 1-100 s dynamics the model is fitted to
+MAX_FIT_PERIOD_S = 10.0
 #: a recording is averaged when its sample period is below this share of the fit's period
 FASTER_THAN = 0.9
 

@@ -234,9 +234,9 @@ def add_soc0_argument(parser: Any, *, help: str | None = None, old_start_soc_ali
 def add_fit_period_argument(parser: Any, *, what: str) -> None:
     """``--fit-period S``: recordings logged faster are block-averaged to S before ``what``
     (:mod:`service.characterisation.block_average`)."""
-    from service.characterisation.block_average import DEFAULT_FIT_PERIOD_S
+    from service.characterisation.block_average import DEFAULT_FIT_PERIOD_S, MAX_FIT_PERIOD_S
 
-    parser.add_argument("--fit-period", type=non_negative_float, default=DEFAULT_FIT_PERIOD_S, metavar="S",
+    parser.add_argument("--fit-period", type=float_in(0.0, MAX_FIT_PERIOD_S, "a period in seconds"), default=DEFAULT_FIT_PERIOD_S, metavar="S",
                         help=f"a recording logged faster than this is block-averaged to it before {what} (default "
                         f"{DEFAULT_FIT_PERIOD_S:g} s), so the G-L memory of 16 samples spans the same time whatever "
                         "the logging rate; 0 keeps the recorded rate (a 10 Hz fit has a 1.6 s memory and generalised "
