@@ -72,9 +72,11 @@ from service.cell.truth import truth_and_start
 from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
+    REST_INTERP_MAX_GAP,
     REST_MIN_S,
     RestPoint,
     alignment_at_bound,
+    interpolate_between_rests,
     is_ocv_test,
     ocv_from_test,
     ocv_row_from_rests,
@@ -82,6 +84,7 @@ from service.characterisation.ocv_sources import (
     rest_alignment,
     rest_points,
     rest_spans,
+    rests_settled,
 )
 from service.characterisation.relaxation import measure_slow_relaxation
 from service.recording import Recording
@@ -290,6 +293,7 @@ def characterise(
     short_charge: bool = False,
     max_tau_df_s: float = MAX_TAU_DF_S,
     ocv_beyond: str = "hold",
+    ocv_between_rests: str = "joint",
     report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
@@ -420,7 +424,7 @@ def characterise(
         # the voltage each rest relaxes towards, not where it stopped (cold rests end unrelaxed)
         limits_by_t = rests_by_t(extrapolate=True)
         if rest_anchor is True or (rest_anchor is None and any(limits_by_t.values())):
-            anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t)
+            anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t, ocv_between_rests)
         elif rest_anchor is None:
             rep.say(f"OCV: no rest of {REST_MIN_S:g} s or more to anchor the joint table at; it stands as fitted")
         else:
@@ -605,11 +609,14 @@ def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[Pa
 
 
 def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],
-                         points_by_t: dict[float, list]) -> None:
+                         points_by_t: dict[float, list], between: str) -> None:
     """The rest anchor (``socd fit``'s default, ``--rest-anchor``): each temperature's jointly
     fitted OCV row shifted through the relaxed voltages of that temperature's long rests
     (``points_by_t``; :func:`ocv_row_from_rests`, one rest is enough); a temperature without one
-    keeps its row.  No rest at any temperature is an error."""
+    keeps its row.  Between rests close in SOC the row is then the monotone cubic through them
+    (:func:`interpolate_between_rests`) instead of the joint fit's shape: at every temperature
+    (``between`` "interpolate"), where the temperature's rests have settled (:func:`rests_settled`,
+    "settled"), or nowhere ("joint").  No rest at any temperature is an error."""
     if not any(points_by_t.values()):
         raise ValueError(f"--rest-anchor: no rest of {REST_MIN_S:g} s or more in the recordings at any temperature "
                          f"({', '.join(f'{t:g} °C' for t in sorted(points_by_t))}) to anchor the OCV table on")
@@ -621,6 +628,13 @@ def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float,
         rep.say(f"joint OCV at {t:g} °C anchored at the relaxed rest voltage(s) of "
                 + rest_offsets_text(grid, ocv_rows[t], anchors, "the table moved"))
         ocv_rows[t] = ocv_row_from_rests(grid, ocv_rows[t], anchors, min_points=1)
+        if between == "interpolate" or (between == "settled" and rests_settled(anchors)):
+            row = interpolate_between_rests(grid, ocv_rows[t], anchors)
+            moved = float(np.max(np.abs(row - ocv_rows[t])))
+            if moved > 0:
+                rep.say(f"{t:g} °C: between rests at most {REST_INTERP_MAX_GAP:g} apart in SOC, the OCV is the "
+                        f"monotone cubic through them (moved the row by up to {1000 * moved:.1f} mV)")
+            ocv_rows[t] = row
 
 
 def say_joint_ocv_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],

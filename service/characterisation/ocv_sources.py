@@ -4,8 +4,10 @@ joint fit to a drive cycle when nothing better exists."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
+from scipy.interpolate import PchipInterpolator
 from scipy.optimize import least_squares
 
 from service.cell.coulomb import coulomb_soc
@@ -202,6 +204,9 @@ class RestPoint:
     soc: float
     ocv_v: float
     temp_c: float
+    #: the relaxation still to come at the rest's end (its limit minus its end voltage), V; 0 where
+    #: the rest was read where it stopped
+    unrelaxed_v: float = 0.0
 
 
 #: :func:`relaxation_limit`: voltage means over this long a window at 1/3, 2/3 and the end of a rest
@@ -221,10 +226,12 @@ def rest_points(rec: Recording, capacity_ah: float, soc0: float = 1.0, min_rest_
     sample (backward zero-order hold, which matches the testers' Ah counters).
     """
     soc = coulomb_soc(rec.time_s, rec.current_a, capacity_ah, soc0)
-    return [RestPoint(float(soc[j]),
-                      relaxation_limit(rec.time_s[k:j + 1], rec.voltage_v[k:j + 1]) if extrapolate
-                      else float(rec.voltage_v[j]), float(rec.temperature_c[j]))
-            for k, j in rest_spans(rec, capacity_ah, min_rest_s)]
+    points = []
+    for k, j in rest_spans(rec, capacity_ah, min_rest_s):
+        end = float(rec.voltage_v[j])
+        limit = relaxation_limit(rec.time_s[k:j + 1], rec.voltage_v[k:j + 1]) if extrapolate else end
+        points.append(RestPoint(float(soc[j]), limit, float(rec.temperature_c[j]), limit - end))
+    return points
 
 
 def relaxation_limit(time_s: np.ndarray, voltage_v: np.ndarray) -> float:
@@ -334,3 +341,59 @@ def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[
         base_ocv = OcvTable.from_points(base_soc, base_ocv).ocv(shift + scale * (base_soc - 1.0) + 1.0)
     off = v - np.interp(s, base_soc, base_ocv)
     return make_monotone(base_ocv + np.interp(base_soc, s, off))
+
+
+#: rests closer than this in counted SOC are one reading of the OCV there (their mean)
+REST_MERGE_SOC = 0.005
+#: a temperature's rests have settled when the median of their remaining relaxation (each rest's limit
+#: minus its end voltage) is within this: they are then readings of the OCV, not extrapolations
+#: towards it (a cold rest ends far from its limit)
+REST_SETTLED_V = 1e-3
+#: between neighbouring rests no further apart than this in SOC the OCV is interpolated through them
+#: (:func:`interpolate_between_rests`): a pulse test's 10 % steps, with room for its pulses' own charge
+REST_INTERP_MAX_GAP = 0.15
+#: how the OCV between a temperature's rests is read when it is fitted jointly (``socd fit
+#: --ocv-between-rests``): through the rests, or the joint fit's shape shifted onto them
+OCV_BETWEEN_RESTS = ("settled", "interpolate", "joint")
+
+
+def rests_settled(points: list[RestPoint]) -> bool:
+    """True when the median remaining relaxation of the usable ``points`` is within
+    :data:`REST_SETTLED_V`."""
+    usable = usable_rests(points)
+    return bool(usable) and float(np.median([abs(p.unrelaxed_v) for p in usable])) <= REST_SETTLED_V
+
+
+def merged_rests(points: list[RestPoint]) -> tuple[np.ndarray, np.ndarray]:
+    """``(soc, ocv_v)`` of the usable rest points, those within :data:`REST_MERGE_SOC` of a group's
+    first merged into their mean, in SOC order."""
+    groups: list[list[RestPoint]] = []
+    for p in usable_rests(points):
+        if groups and p.soc - groups[-1][0].soc < REST_MERGE_SOC:
+            groups[-1].append(p)
+        else:
+            groups.append([p])
+    return (np.array([np.mean([p.soc for p in g]) for g in groups]),
+            np.array([np.mean([p.ocv_v for p in g]) for g in groups]))
+
+
+def interpolate_between_rests(base_soc: np.ndarray, row: np.ndarray, points: list[RestPoint]) -> np.ndarray:
+    """``row`` (an OCV row already through the rests, :func:`ocv_row_from_rests`) with the stretch
+    between every two neighbouring rests (:func:`merged_rests`) no more than
+    :data:`REST_INTERP_MAX_GAP` apart replaced by the monotone cubic (PCHIP) through them.
+
+    A jointly fitted OCV is pinned by the rests only where they are; between them its shape is what
+    the spline's knots made of the dynamic data, and on a pulse test it wiggles by tens of mV between
+    steps 10 % apart.  A relaxed rest is a direct reading of the OCV, and an OCV curve is smooth on
+    that scale, so between close rests the rests decide.  Across a wider gap, and beyond the
+    outermost rests, the row is kept."""
+    soc, ocv = merged_rests(points)
+    if soc.size < 2:
+        return row
+    out = row.copy()
+    curve = PchipInterpolator(soc, ocv, extrapolate=False)
+    for lo, hi in pairwise(soc):
+        if hi - lo <= REST_INTERP_MAX_GAP:
+            inside = (base_soc >= lo) & (base_soc <= hi)
+            out[inside] = curve(base_soc[inside])
+    return make_monotone(out)

@@ -9,6 +9,7 @@ from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
 from service.characterisation.block_average import describe, to_fit_period
+from service.characterisation.ocv_sources import OCV_BETWEEN_RESTS, REST_INTERP_MAX_GAP
 from service.cli import UserError
 from service.commands.common_args import (
     add_common_arguments,
@@ -93,6 +94,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "towards (each rest's decay extrapolated; the outermost offset holds beyond them; a temperature "
                    "without one keeps its table). Default: on where such a rest exists; --rest-anchor requires one, "
                    "--no-rest-anchor keeps the joint table (docs/results/characterisation.md, tuning.md)")
+    p.add_argument("--ocv-between-rests", choices=OCV_BETWEEN_RESTS, default="joint",
+                   help="with the OCV fitted jointly and anchored at the rests: between two rests at most "
+                   f"{REST_INTERP_MAX_GAP:g} apart in SOC (a pulse test's steps), read the OCV as the monotone cubic "
+                   "through the rests at temperatures whose rests have settled (settled), at every temperature "
+                   "(interpolate), or as the joint fit's shape shifted onto them (joint, the default)")
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
                         "says whether the bound cut one (its end point then depends on the machine's load)")
     p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
@@ -146,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
                                        slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
                                        short_charge=args.short_charge,
                                        max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S, ocv_beyond=args.ocv_beyond,
+                                       ocv_between_rests=args.ocv_between_rests,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
                                        report=report)
         if not args.force:

@@ -1,0 +1,82 @@
+"""The OCV between a pulse test's rests (service/characterisation/ocv_sources.py): with no OCV test the
+table is fitted jointly with the 2-RC model and anchored at the rests; between rests close in SOC it
+can be read as the monotone cubic through them instead of the joint fit's shape."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.characterisation.ocv_sources import (
+    REST_INTERP_MAX_GAP,
+    REST_MERGE_SOC,
+    REST_SETTLED_V,
+    RestPoint,
+    interpolate_between_rests,
+    merged_rests,
+    rests_settled,
+)
+from service.cli import main
+
+GRID = np.linspace(0.0, 1.0, 201)
+
+
+def true_ocv(soc: np.ndarray) -> np.ndarray:
+    """A smooth NMC-like curve, V."""
+    soc = np.asarray(soc, dtype=float)
+    return 3.3 + 0.75 * soc + 0.12 * np.tanh((soc - 0.03) / 0.03) + 0.05 * soc ** 3
+
+
+def rests_at(socs: list[float], unrelaxed_v: float = 0.0) -> list[RestPoint]:
+    return [RestPoint(s, float(true_ocv(s)), 25.0, unrelaxed_v) for s in socs]
+
+
+def wiggly_row() -> np.ndarray:
+    """The true curve with a joint fit's wiggle between steps 10 % apart: ±15 mV, zero at the rests
+    (monotone still, as a joint table is)."""
+    return true_ocv(GRID) + 0.015 * np.sin(np.pi * GRID / 0.1)
+
+
+def test_between_close_rests_the_row_follows_the_rests_not_the_wiggle() -> None:
+    steps = [round(0.1 * k, 2) for k in range(1, 10)]
+    row = interpolate_between_rests(GRID, wiggly_row(), rests_at(steps))
+    inside = (GRID >= 0.1) & (GRID <= 0.9)
+    assert np.max(np.abs(row - true_ocv(GRID))[inside]) < 2e-3
+    assert np.max(np.abs(wiggly_row() - true_ocv(GRID))[inside]) > 0.014  # what it replaced
+    assert np.all(np.diff(row) > 0)  # still a monotone table
+    # beyond the rests: kept (make_monotone lifts each step by at most a µV)
+    np.testing.assert_allclose(row[GRID < 0.09], wiggly_row()[GRID < 0.09], rtol=0, atol=1e-4)
+
+
+def test_a_gap_wider_than_a_pulse_step_keeps_the_joint_shape() -> None:
+    socs = [0.2, 0.3, 0.3 + REST_INTERP_MAX_GAP + 0.05, 0.7]
+    row = interpolate_between_rests(GRID, wiggly_row(), rests_at(socs))
+    gap = (GRID > 0.31) & (GRID < socs[2] - 0.01)
+    np.testing.assert_allclose(row[gap], wiggly_row()[gap], rtol=0, atol=2e-4)
+    close = (GRID > 0.21) & (GRID < 0.29)
+    assert np.max(np.abs(row - true_ocv(GRID))[close]) < 2e-3
+
+
+def test_rests_within_half_a_percent_are_one_reading() -> None:
+    pts = [RestPoint(0.500, 3.70, 25.0), RestPoint(0.500 + 0.8 * REST_MERGE_SOC, 3.71, 25.0),
+           RestPoint(0.60, 3.80, 25.0), RestPoint(1.5, 4.5, 25.0)]  # the last: not a usable SOC
+    soc, ocv = merged_rests(pts)
+    np.testing.assert_allclose(soc, [0.502, 0.60])
+    np.testing.assert_allclose(ocv, [3.705, 3.80])
+    # one reading: nothing to interpolate between
+    np.testing.assert_array_equal(interpolate_between_rests(GRID, wiggly_row(), pts[:1]), wiggly_row())
+
+
+def test_rests_have_settled_when_most_end_near_their_limit() -> None:
+    assert rests_settled(rests_at([0.2, 0.5, 0.8], unrelaxed_v=0.3e-3))
+    assert not rests_settled(rests_at([0.2, 0.5, 0.8], unrelaxed_v=2.5 * REST_SETTLED_V))
+    mixed = rests_at([0.2, 0.5], unrelaxed_v=0.0) + rests_at([0.8], unrelaxed_v=0.01)
+    assert rests_settled(mixed)  # the median decides: one cold tail does not
+    assert not rests_settled([])
+
+
+@pytest.mark.parametrize("value", ["spline", ""])
+def test_fit_names_the_choices(value: str, capsys) -> None:
+    assert main(["fit", "x.csv", "--capacity-ah", "2", "--ocv-between-rests", value, "-o", "y.toml"]) == 2
+    err = capsys.readouterr().err
+    assert "--ocv-between-rests" in err and "settled" in err and "joint" in err
