@@ -54,6 +54,9 @@ PANASONIC_AH = 2.9
 #: the Panasonic 25 °C drive cycles whose current shapes the cells are driven with; US06 is the fit's
 DRIVES = ("US06", "HWFETa", "HWFETb", "LA92", "NN", "Cycle1", "Cycle2", "Cycle3", "Cycle4")
 FIT_DRIVE = "US06"
+#: the Panasonic 25 °C pulse test (discharge pulses and rests every 10 % SOC), built beside the drives:
+#: what a user characterises from without an OCV test (``--fit-drive HPPC``)
+PULSE_DRIVE = "HPPC"
 OCV_TEST_C = 20.0
 OCV_TEST_LOG_S = 60.0
 #: W/m²/K: a cell in a ventilated chamber.  PyBaMM's sets ship 5-10, which heats Chen2020's
@@ -166,12 +169,12 @@ def build_cell(cell: str, ambient_c: float, workdir: Path, seed: int, hysteresis
         save_recording(workdir / f"{ocv_job.stem}.csv", data, fmt="%.5f")
         meta_path.write_text(json.dumps({"cell": cell, "ambient_c": ambient_c, "capacity_ah": capacity,
                                          "hysteresis_v": hysteresis_v}))
-    for k, name in enumerate(DRIVES):
+    for k, name in enumerate((*DRIVES, PULSE_DRIVE)):
         job = Job(cell, ambient_c, name, seed + 1 + k, hysteresis_v)
         out = workdir / f"{job.stem}.csv"
         if not out.exists():
             save_recording(out, drive(job, capacity), fmt="%.5f")
-    return f"{cell} {_temp_tag(ambient_c)}: {capacity:.4f} Ah, {len(DRIVES)} drives"
+    return f"{cell} {_temp_tag(ambient_c)}: {capacity:.4f} Ah, {len(DRIVES)} drives and the pulse test"
 
 
 def _build_one(args: tuple[str, float, str, int, float]) -> str:
@@ -191,8 +194,10 @@ class RunOptions:
     settings: Path | None = None
     current_bias_c: float = 0.0
     tag: str = ""
-    #: the ambients whose OCV test joins the fit (None: every ambient's)
+    #: the ambients whose OCV test joins the fit (None: every ambient's; empty: none)
     ocv_ambients: tuple[float, ...] | None = None
+    #: the recording fitted at every ambient: US06, or the pulse test (then every drive is scored)
+    fit_drive: str = FIT_DRIVE
 
 
 def fit_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOptions) -> Path:
@@ -204,10 +209,10 @@ def fit_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOption
     if profile.exists() and not opt.refit:
         return profile
     ocv_ambients = ambients if opt.ocv_ambients is None else opt.ocv_ambients
-    warmest = f"{cell}_{_temp_tag(max(ocv_ambients))}"
+    warmest = f"{cell}_{_temp_tag(max(ocv_ambients or ambients))}"
     capacity = json.loads((workdir / f"{warmest}_ocv.json").read_text())["capacity_ah"]
     fit_files = [str(workdir / f"{cell}_{_temp_tag(t)}_{part}.csv") for t in ambients
-                 for part in ("ocv", FIT_DRIVE) if part == FIT_DRIVE or t in ocv_ambients]
+                 for part in ("ocv", opt.fit_drive) if part == opt.fit_drive or t in ocv_ambients]
     subprocess.run(["socd", "fit", *fit_files, "--capacity-ah", f"{capacity:.4f}", "-q", "-o", str(profile),
                     *opt.fit_flags], check=True)
     return profile
@@ -217,7 +222,7 @@ def run_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOption
     """The issue's two commands on one cell: :func:`fit_cell`, then every drive but the fit's
     scored; returns the evaluation JSON."""
     profile = fit_cell(cell, ambients, workdir, opt)
-    others = [str(workdir / f"{cell}_{_temp_tag(t)}_{d}.csv") for t in ambients for d in DRIVES if d != FIT_DRIVE]
+    others = [str(workdir / f"{cell}_{_temp_tag(t)}_{d}.csv") for t in ambients for d in DRIVES if d != opt.fit_drive]
     out = workdir / f"{cell}{opt.profile_tag}{opt.tag}_eval.json"
     cmd = ["socd", "evaluate", "--cell", str(profile), *others, "-q", "--json", str(out)]
     cmd += [arg for e in opt.estimators for arg in ("--estimator", e)]
@@ -250,6 +255,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tag", default="", help="suffix of the evaluation files (run)")
     ap.add_argument("--ocv-ambients", help="the ambients whose OCV test joins the fit (run; default: every "
                     "ambient's), e.g. 25,10,0 with --ambients 40,25,10,0,-10 as the issue's held-out check has")
+    ap.add_argument("--fit-drive", choices=(FIT_DRIVE, PULSE_DRIVE), default=FIT_DRIVE,
+                    help="the recording fitted at every ambient (fit, run): US06 (default), or the pulse test, "
+                    "then with no OCV test unless --ocv-ambients names some, and every drive scored")
     ap.add_argument("--fit-flags", default="", help="extra `socd fit` flags as one string, e.g. "
                     "--fit-flags=--no-kinetics; give --profile-tag too (run)")
     a = ap.parse_args(argv)
@@ -261,9 +269,11 @@ def main(argv: list[str] | None = None) -> int:
             for line in ex.map(_build_one, jobs):
                 print(line, flush=True)
         return 0
+    ocv_ambients = None if a.ocv_ambients is None else tuple(float(x) for x in a.ocv_ambients.split(",") if x)
+    if a.fit_drive == PULSE_DRIVE and ocv_ambients is None:
+        ocv_ambients = ()
     opt = RunOptions(tuple(shlex.split(a.fit_flags)), a.profile_tag, a.refit, tuple(e for e in a.estimators.split(",") if e),
-                     a.settings, a.current_bias_c, a.tag,
-                     None if a.ocv_ambients is None else tuple(float(x) for x in a.ocv_ambients.split(",") if x))
+                     a.settings, a.current_bias_c, a.tag, ocv_ambients, a.fit_drive)
     step = fit_cell if a.command == "fit" else run_cell
     for cell in cells:
         print(f"{cell}: {step(cell, ambients, a.workdir, opt)}", flush=True)
