@@ -57,6 +57,8 @@ FIT_DRIVE = "US06"
 #: the Panasonic 25 °C pulse test (discharge pulses and rests every 10 % SOC), built beside the drives:
 #: what a user characterises from without an OCV test (``--fit-drive HPPC``)
 PULSE_DRIVE = "HPPC"
+#: the recordings built beside the drives (the pulse test)
+PULSE_DRIVES = (PULSE_DRIVE,)
 OCV_TEST_C = 20.0
 OCV_TEST_LOG_S = 60.0
 #: W/m²/K: a cell in a ventilated chamber.  PyBaMM's sets ship 5-10, which heats Chen2020's
@@ -169,12 +171,12 @@ def build_cell(cell: str, ambient_c: float, workdir: Path, seed: int, hysteresis
         save_recording(workdir / f"{ocv_job.stem}.csv", data, fmt="%.5f")
         meta_path.write_text(json.dumps({"cell": cell, "ambient_c": ambient_c, "capacity_ah": capacity,
                                          "hysteresis_v": hysteresis_v}))
-    for k, name in enumerate((*DRIVES, PULSE_DRIVE)):
+    for k, name in enumerate((*DRIVES, *PULSE_DRIVES)):
         job = Job(cell, ambient_c, name, seed + 1 + k, hysteresis_v)
         out = workdir / f"{job.stem}.csv"
         if not out.exists():
             save_recording(out, drive(job, capacity), fmt="%.5f")
-    return f"{cell} {_temp_tag(ambient_c)}: {capacity:.4f} Ah, {len(DRIVES)} drives and the pulse test"
+    return f"{cell} {_temp_tag(ambient_c)}: {capacity:.4f} Ah, {len(DRIVES)} drives, {len(PULSE_DRIVES)} pulse test(s)"
 
 
 def _build_one(args: tuple[str, float, str, int, float]) -> str:

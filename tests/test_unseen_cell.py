@@ -27,7 +27,8 @@ def built(tmp_path_factory):
         pytest.skip(f"Panasonic recordings not found at {uc.PANASONIC}")
     workdir = tmp_path_factory.mktemp("unseen")
     mp = pytest.MonkeyPatch()
-    mp.setattr(uc, "DRIVES", ("US06",))  # one drive keeps the test short; the build is the same
+    mp.setattr(uc, "DRIVES", ("US06",))  # one drive and no pulse test keep the test short; the build is the same
+    mp.setattr(uc, "PULSE_DRIVES", ())
     line = uc.build_cell(CELL, 25.0, workdir, seed=0)
     yield uc, workdir, line
     mp.undo()
