@@ -149,7 +149,7 @@ def drive(job: Job, capacity_ah: float) -> np.ndarray:
     # regen near full may pass the upper cut-off for a moment: only the lower one ends a drive
     model.events = [e for e in model.events if "Maximum voltage" not in e.name]
     sim = pybamm.Simulation(model, parameter_values=pv, solver=pybamm.IDAKLUSolver())
-    sol = sim.solve(t_eval=[0.0, float(t[-1])], t_interp=t)
+    sol = sim.solve(t_eval=_solver_stops(job, t, current, capacity_ah), t_interp=t)
     n = sol["Time [s]"].entries.size
     q = sol["Discharge capacity [A.h]"].entries
     voltage = sol["Voltage [V]"].entries + _hysteresis(job, t[:n], current[:n], capacity_ah)
@@ -157,6 +157,16 @@ def drive(job: Job, capacity_ah: float) -> np.ndarray:
                   sol["X-averaged cell temperature [C]"].entries)
     soc = np.round(1.0 - q / capacity_ah, 6)
     return np.column_stack([data, soc])
+
+
+def _solver_stops(job: Job, t: np.ndarray, current: np.ndarray, capacity_ah: float) -> np.ndarray:
+    """Where the solver must stop: a pulse test's every current step (over its long rests the solver's
+    steps grow to hours and would pass a pulse unseen); a drive cycle's current changes every second,
+    which keeps the steps short, so only its ends."""
+    if job.drive not in PULSE_DRIVES:
+        return np.array([0.0, float(t[-1])])
+    step_at = np.flatnonzero(np.abs(np.diff(current)) > 0.01 * capacity_ah)
+    return np.unique(np.concatenate([[0.0, float(t[-1])], t[step_at], t[step_at + 1]]))
 
 
 def build_cell(cell: str, ambient_c: float, workdir: Path, seed: int, hysteresis_v: float = 0.0) -> str:
