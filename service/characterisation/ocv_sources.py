@@ -204,8 +204,7 @@ class RestPoint:
     soc: float
     ocv_v: float
     temp_c: float
-    #: the relaxation still to come at the rest's end (its limit minus its end voltage), V; 0 where
-    #: the rest was read where it stopped
+    #: how far the rest was from relaxed at its end, V (:func:`rest_reading`)
     unrelaxed_v: float = 0.0
 
 
@@ -228,9 +227,9 @@ def rest_points(rec: Recording, capacity_ah: float, soc0: float = 1.0, min_rest_
     soc = coulomb_soc(rec.time_s, rec.current_a, capacity_ah, soc0)
     points = []
     for k, j in rest_spans(rec, capacity_ah, min_rest_s):
-        end = float(rec.voltage_v[j])
-        limit = relaxation_limit(rec.time_s[k:j + 1], rec.voltage_v[k:j + 1]) if extrapolate else end
-        points.append(RestPoint(float(soc[j]), limit, float(rec.temperature_c[j]), limit - end))
+        limit, unrelaxed = rest_reading(rec.time_s[k:j + 1], rec.voltage_v[k:j + 1])
+        points.append(RestPoint(float(soc[j]), limit if extrapolate else float(rec.voltage_v[j]),
+                                float(rec.temperature_c[j]), unrelaxed))
     return points
 
 
@@ -241,6 +240,14 @@ def relaxation_limit(time_s: np.ndarray, voltage_v: np.ndarray) -> float:
     (:data:`RELAX_WINDOW_S`) at a third, two thirds and the end of the rest.  A settled rest
     (:data:`RELAX_SETTLED_V`) or steps that do not shrink geometrically (:data:`RELAX_MAX_RATIO`)
     give the end voltage."""
+    return rest_reading(time_s, voltage_v)[0]
+
+
+def rest_reading(time_s: np.ndarray, voltage_v: np.ndarray) -> tuple[float, float]:
+    """``(limit, unrelaxed)``: :func:`relaxation_limit`, and how far the rest was from it at its end:
+    the limit minus the end voltage where the decay was extrapolated, the last step ``d2`` where it
+    could not be (a decay slower than first order: the rest is still moving by that much), 0 where
+    it had settled."""
     t, v = np.asarray(time_s, dtype=float), np.asarray(voltage_v, dtype=float)
     means = []
     for frac in (1.0 / 3.0, 2.0 / 3.0, 1.0):
@@ -249,11 +256,11 @@ def relaxation_limit(time_s: np.ndarray, voltage_v: np.ndarray) -> float:
         means.append(float(v[window].mean()) if window.any() else float(np.interp(tc, t, v)))
     d1, d2 = means[1] - means[0], means[2] - means[1]
     if abs(d2) < RELAX_SETTLED_V or d1 == 0.0:
-        return float(v[-1])
+        return float(v[-1]), 0.0
     ratio = d2 / d1
     if not 0.0 < ratio < RELAX_MAX_RATIO:
-        return float(v[-1])
-    return float(v[-1] + d2 * ratio / (1.0 - ratio))
+        return float(v[-1]), d2
+    return float(v[-1] + d2 * ratio / (1.0 - ratio)), d2 * ratio / (1.0 - ratio)
 
 
 def rest_spans(rec: Recording, capacity_ah: float, min_rest_s: float) -> list[tuple[int, int]]:
@@ -345,9 +352,9 @@ def ocv_row_from_rests(base_soc: np.ndarray, base_ocv: np.ndarray, points: list[
 
 #: rests closer than this in counted SOC are one reading of the OCV there (their mean)
 REST_MERGE_SOC = 0.005
-#: a temperature's rests have settled when the median of their remaining relaxation (each rest's limit
-#: minus its end voltage) is within this: they are then readings of the OCV, not extrapolations
-#: towards it (a cold rest ends far from its limit)
+#: a temperature's rests have settled when the median of how far each was from relaxed at its end
+#: (:func:`rest_reading`) is within this: they are then readings of the OCV, not extrapolations
+#: towards it (a cold rest ends far from its limit, a slow one still moving)
 REST_SETTLED_V = 1e-3
 #: between neighbouring rests no further apart than this in SOC the OCV is interpolated through them
 #: (:func:`interpolate_between_rests`): a pulse test's 10 % steps, with room for its pulses' own charge
