@@ -836,6 +836,19 @@ socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full
 socd evaluate --cell out/s25/pan_hppc.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC) \\
     --estimator fomiukf -q --json out/s25/pan_hppc_eval.json""",
           group_table("s25/pan_hppc_eval.json", PAN_GROUPS), 60),
+    Table("hppc_ocv_between_rests", "cell_options.md", REAL + """\
+PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC)"   # joint (the default): char_pan_hppc's
+for v in settled interpolate; do
+  socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --ocv-between-rests $v -q \\
+      -o out/s25/pan_hppc_$v.toml
+  socd evaluate --cell out/s25/pan_hppc_$v.toml $PANX --estimator fomiukf -q --json out/s25/pan_hppc_${v}_eval.json
+done""",
+          lambda out: runs_table((("`joint` (default)", "s25/pan_hppc_eval.json"),
+                                  ("`settled`", "s25/pan_hppc_settled_eval.json"),
+                                  ("`interpolate`", "s25/pan_hppc_interpolate_eval.json")), PAN_GROUPS)(out)
+          + "\n\nThe 2-RC EKF on its own fit (the same in every run: the option does not touch it):\n\n"
+          + runs_table((("`ecm2rc-ekf`", "s25/pan_hppc_eval.json"),), PAN_GROUPS, "ecm2rc-ekf")(out),
+          25, ("needs:char_pan_hppc",)),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json
