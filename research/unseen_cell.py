@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from research.validate_pybamm import _pybamm, hysteresis_state, parameter_values, sensor_readings
+from service.cell.units import SECONDS_PER_HOUR
 from service.recording import load_recording, save_recording
 
 #: NMC and NCA-like sets with a lumped thermal model that simulate the drives from full charge
@@ -144,7 +145,7 @@ def drive(job: Job, capacity_ah: float) -> np.ndarray:
     t = np.round(rec.time_s - rec.time_s[0], 3)
     current = rec.current_a * capacity_ah / PANASONIC_AH
     pv = _at_ambient(job.cell, job.ambient_c).set_initial_state(1.0)
-    pv["Current function [A]"] = pybamm.Interpolant(t, current, pybamm.t, interpolator="linear")
+    pv["Current function [A]"] = _current_function(pybamm, job, t, current)
     model = pybamm.lithium_ion.SPMe({"thermal": "lumped"})
     # regen near full may pass the upper cut-off for a moment: only the lower one ends a drive
     model.events = [e for e in model.events if "Maximum voltage" not in e.name]
@@ -156,7 +157,24 @@ def drive(job: Job, capacity_ah: float) -> np.ndarray:
     data = _noisy(np.random.default_rng(job.seed), t[:n], current[:n], voltage,
                   sol["X-averaged cell temperature [C]"].entries)
     soc = np.round(1.0 - q / capacity_ah, 6)
+    if job.drive in PULSE_DRIVES:  # the recording must hold the charge the cell gave
+        counted = float(np.sum(current[1:n] * np.diff(t[:n]))) / SECONDS_PER_HOUR
+        if abs(float(q[-1]) - counted) > 0.01 * capacity_ah:
+            raise RuntimeError(f"{job.stem}: the solver drew {float(q[-1]):.3f} Ah, the recording counts {counted:.3f} Ah")
     return np.column_stack([data, soc])
+
+
+def _current_function(pybamm, job: Job, t: np.ndarray, current: np.ndarray):
+    """The current PyBaMM draws.  A drive cycle's 1 s samples, linearly interpolated.  A pulse test's
+    as the estimators count it, each sample held over the interval before it (backward zero-order
+    hold): its log is sparse in the rests, and a line from a pulse's last sample to the next one a
+    minute later would draw charge the recording does not hold."""
+    if job.drive not in PULSE_DRIVES:
+        return pybamm.Interpolant(t, current, pybamm.t, interpolator="linear")
+    eps = 1e-3
+    t_step = np.concatenate([[t[0]], np.column_stack([t[:-1] + eps, t[1:]]).ravel()])
+    i_step = np.concatenate([[current[0]], np.repeat(current[1:], 2)])
+    return pybamm.Interpolant(t_step, i_step, pybamm.t, interpolator="linear")
 
 
 def _solver_stops(job: Job, t: np.ndarray, current: np.ndarray, capacity_ah: float) -> np.ndarray:
