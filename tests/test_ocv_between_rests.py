@@ -4,6 +4,8 @@ can be read as the monotone cubic through them instead of the joint fit's shape.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -17,6 +19,9 @@ from service.characterisation.ocv_sources import (
     rests_settled,
 )
 from service.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+BUNDLED = ROOT / "service" / "data" / "pan18650pf_25C_US06.csv"
 
 GRID = np.linspace(0.0, 1.0, 201)
 
@@ -80,3 +85,12 @@ def test_fit_names_the_choices(value: str, capsys) -> None:
     assert main(["fit", "x.csv", "--capacity-ah", "2", "--ocv-between-rests", value, "-o", "y.toml"]) == 2
     err = capsys.readouterr().err
     assert "--ocv-between-rests" in err and "settled" in err and "joint" in err
+
+
+def test_the_option_is_refused_where_there_is_no_joint_anchored_ocv(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "never.toml"
+    argv = ["fit", str(BUNDLED), "--capacity-ah", "2.77", "--ocv-between-rests", "settled", "-o", str(out)]
+    assert main([*argv, "--no-rest-anchor"]) == 2
+    err = capsys.readouterr().err
+    assert "--ocv-between-rests settled" in err and "--no-rest-anchor" in err
+    assert not out.exists()

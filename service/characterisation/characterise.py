@@ -317,6 +317,10 @@ def characterise(
     if rest_anchor is True and (ocv_table is not None or ocv_tests):
         raise ValueError("--rest-anchor anchors a jointly fitted OCV table; with an OCV table or test given, "
                          "the table is already shifted to the rests of each temperature")
+    if ocv_between_rests != "joint" and (ocv_table is not None or ocv_tests or rest_anchor is False):
+        given = "--no-rest-anchor" if rest_anchor is False else "an OCV table or test"
+        raise ValueError(f"--ocv-between-rests {ocv_between_rests} reads between the rests of a jointly fitted, "
+                         f"rest-anchored OCV; with {given} there is none")
     dynamic = [(r, fa) for r, fa in zip(recordings, full_at) if not is_ocv_test(r, capacity_ah)]
     if not dynamic:
         raise ValueError("socd fit needs at least one dynamic recording (drive cycle or HPPC) to fit the model")
