@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.characterisation.ocv_choices import REST_INTERP_MAX_GAP
 from service.characterisation.ocv_sources import (
-    REST_INTERP_MAX_GAP,
     REST_MERGE_SOC,
     REST_SETTLED_V,
     RestPoint,

@@ -13,6 +13,7 @@ from scipy.optimize import least_squares
 from service.cell.coulomb import coulomb_soc
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
 from service.cell.units import SECONDS_PER_HOUR
+from service.characterisation.ocv_choices import REST_INTERP_MAX_GAP
 from service.recording import Recording
 
 REST_CURRENT_C = 0.01  # |I| below this fraction of 1C counts as rest
@@ -356,12 +357,6 @@ REST_MERGE_SOC = 0.005
 #: (:func:`rest_reading`) is within this: they are then readings of the OCV, not extrapolations
 #: towards it (a cold rest ends far from its limit, a slow one still moving)
 REST_SETTLED_V = 1e-3
-#: between neighbouring rests no further apart than this in SOC the OCV is interpolated through them
-#: (:func:`interpolate_between_rests`): a pulse test's 10 % steps, with room for its pulses' own charge
-REST_INTERP_MAX_GAP = 0.15
-#: how the OCV between a temperature's rests is read when it is fitted jointly (``socd fit
-#: --ocv-between-rests``): through the rests, or the joint fit's shape shifted onto them
-OCV_BETWEEN_RESTS = ("settled", "interpolate", "joint")
 
 
 def rests_settled(points: list[RestPoint]) -> bool:

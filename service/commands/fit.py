@@ -9,7 +9,7 @@ from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
 from service.characterisation.block_average import describe, to_fit_period
-from service.characterisation.ocv_sources import OCV_BETWEEN_RESTS, REST_INTERP_MAX_GAP
+from service.characterisation.ocv_choices import OCV_BETWEEN_RESTS, REST_INTERP_MAX_GAP
 from service.cli import UserError
 from service.commands.common_args import (
     add_common_arguments,
@@ -94,7 +94,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "towards (each rest's decay extrapolated; the outermost offset holds beyond them; a temperature "
                    "without one keeps its table). Default: on where such a rest exists; --rest-anchor requires one, "
                    "--no-rest-anchor keeps the joint table (docs/results/characterisation.md, tuning.md)")
-    p.add_argument("--ocv-between-rests", choices=OCV_BETWEEN_RESTS, default="joint",
+    p.add_argument("--ocv-between-rests", choices=OCV_BETWEEN_RESTS, default=OCV_BETWEEN_RESTS[0],
                    help="with the OCV fitted jointly and anchored at the rests: between two rests at most "
                    f"{REST_INTERP_MAX_GAP:g} apart in SOC (a pulse test's steps), read the OCV as the monotone cubic "
                    "through the rests at temperatures whose rests have settled (settled), at every temperature "
