@@ -849,6 +849,20 @@ done""",
           + "\n\nThe 2-RC EKF on its own fit (the same in every run: the option does not touch it):\n\n"
           + runs_table((("`ecm2rc-ekf`", "s25/pan_hppc_eval.json"),), PAN_GROUPS, "ecm2rc-ekf")(out),
           25, ("needs:char_pan_hppc",)),
+    Table("unseen_cell_hppc", "characterisation.md", """\
+python -m research.unseen_cell build --jobs 2
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc &
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_noanchor --fit-flags=--no-rest-anchor &
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_settled --fit-flags="--ocv-between-rests settled"
+wait""",
+          lambda out: "\n\n".join(
+              f"`{c}`:\n\n" + runs_table((("rest anchor (default)", f"unseen_cell/{c}_hppc_eval.json"),
+                                           ("`--no-rest-anchor`", f"unseen_cell/{c}_hppc_noanchor_eval.json"),
+                                           ("`--ocv-between-rests settled`", f"unseen_cell/{c}_hppc_settled_eval.json")),
+                                          UNSEEN_GROUPS)(out)
+              + "\n" + runs_table((("2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_eval.json"),), UNSEEN_GROUPS,
+                                   "ecm2rc-ekf")(out).split("\n", 2)[2]
+              for c in UNSEEN_CELLS), 40),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json
