@@ -94,3 +94,18 @@ def test_the_option_is_refused_where_there_is_no_joint_anchored_ocv(tmp_path: Pa
     err = capsys.readouterr().err
     assert "--ocv-between-rests settled" in err and "--no-rest-anchor" in err
     assert not out.exists()
+
+
+def test_near_reference_reads_through_the_rests_only_within_15_k_of_the_reference() -> None:
+    from service.characterisation.characterise import reads_through_rests
+    from service.characterisation.ocv_choices import NEAR_REFERENCE_K
+
+    rests = rests_at([0.2, 0.5, 0.8])
+    assert reads_through_rests("near-reference", 25.0, 25.0, rests)
+    assert reads_through_rests("near-reference", 25.0 - NEAR_REFERENCE_K, 25.0, rests)
+    assert not reads_through_rests("near-reference", 0.0, 25.0, rests)
+    assert not reads_through_rests("near-reference", 45.0, 25.0, rests)
+    assert reads_through_rests("interpolate", 0.0, 25.0, rests)
+    assert not reads_through_rests("joint", 25.0, 25.0, rests)
+    cold = rests_at([0.2, 0.5, 0.8], unrelaxed_v=2.5 * REST_SETTLED_V)
+    assert reads_through_rests("settled", -20.0, 25.0, rests) and not reads_through_rests("settled", 25.0, 25.0, cold)

@@ -70,7 +70,7 @@ from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
 from service.cell.truth import truth_and_start
 from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
-from service.characterisation.ocv_choices import REST_INTERP_MAX_GAP
+from service.characterisation.ocv_choices import NEAR_REFERENCE_K, REST_INTERP_MAX_GAP
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
     REST_MIN_S,
@@ -428,7 +428,7 @@ def characterise(
         # the voltage each rest relaxes towards, not where it stopped (cold rests end unrelaxed)
         limits_by_t = rests_by_t(extrapolate=True)
         if rest_anchor is True or (rest_anchor is None and any(limits_by_t.values())):
-            anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t, ocv_between_rests)
+            anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t, ocv_between_rests, ref_t)
         elif rest_anchor is None:
             rep.say(f"OCV: no rest of {REST_MIN_S:g} s or more to anchor the joint table at; it stands as fitted")
         else:
@@ -612,15 +612,23 @@ def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[Pa
     return [p if p.i0_a is not None else p.model_copy(update={"i0_a": LINEAR_I0_A}) for p in points]
 
 
+def reads_through_rests(between: str, temp_c: float, ref_t: float, anchors: list[RestPoint]) -> bool:
+    """Whether the OCV row at ``temp_c`` is read through its rests (``--ocv-between-rests``): everywhere
+    (``interpolate``), within :data:`NEAR_REFERENCE_K` of the reference temperature ``ref_t``
+    (``near-reference``), where the rests have settled (``settled``, :func:`rests_settled`), or
+    nowhere (``joint``)."""
+    return (between == "interpolate" or (between == "near-reference" and abs(temp_c - ref_t) <= NEAR_REFERENCE_K)
+            or (between == "settled" and rests_settled(anchors)))
+
+
 def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],
-                         points_by_t: dict[float, list], between: str) -> None:
+                         points_by_t: dict[float, list], between: str, ref_t: float) -> None:
     """The rest anchor (``socd fit``'s default, ``--rest-anchor``): each temperature's jointly
     fitted OCV row shifted through the relaxed voltages of that temperature's long rests
     (``points_by_t``; :func:`ocv_row_from_rests`, one rest is enough); a temperature without one
     keeps its row.  Between rests close in SOC the row is then the monotone cubic through them
-    (:func:`interpolate_between_rests`) instead of the joint fit's shape: at every temperature
-    (``between`` "interpolate"), where the temperature's rests have settled (:func:`rests_settled`,
-    "settled"), or nowhere ("joint").  No rest at any temperature is an error."""
+    (:func:`interpolate_between_rests`) instead of the joint fit's shape where
+    :func:`reads_through_rests` says so for ``between``.  No rest at any temperature is an error."""
     if not any(points_by_t.values()):
         raise ValueError(f"--rest-anchor: no rest of {REST_MIN_S:g} s or more in the recordings at any temperature "
                          f"({', '.join(f'{t:g} °C' for t in sorted(points_by_t))}) to anchor the OCV table on")
@@ -632,7 +640,7 @@ def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float,
         rep.say(f"joint OCV at {t:g} °C anchored at the relaxed rest voltage(s) of "
                 + rest_offsets_text(grid, ocv_rows[t], anchors, "the table moved"))
         ocv_rows[t] = ocv_row_from_rests(grid, ocv_rows[t], anchors, min_points=1)
-        if between == "interpolate" or (between == "settled" and rests_settled(anchors)):
+        if reads_through_rests(between, t, ref_t, anchors):
             row = interpolate_between_rests(grid, ocv_rows[t], anchors)
             moved = float(np.max(np.abs(row - ocv_rows[t])))
             if moved > 0:

@@ -7,7 +7,11 @@ from __future__ import annotations
 #: (:func:`service.characterisation.ocv_sources.interpolate_between_rests`): a pulse test's 10 % steps,
 #: with room for its pulses' own charge
 REST_INTERP_MAX_GAP = 0.15
+#: ``near-reference`` reads the OCV through the rests at temperatures within this of the fit's reference
+#: temperature (the one nearest 25 °C), K: in the cold the joint table carries polarisation the model
+#: does not, and the rests' own OCV there scored worse on two of four cells
+NEAR_REFERENCE_K = 15.0
 #: how the OCV between a temperature's rests is read when it is fitted jointly (``socd fit
-#: --ocv-between-rests``): through the rests where they have settled, through them everywhere, or the
-#: joint fit's shape shifted onto them (the default)
-OCV_BETWEEN_RESTS = ("joint", "settled", "interpolate")
+#: --ocv-between-rests``): the joint fit's shape shifted onto them (the default), or through the rests
+#: near the reference temperature, where they have settled, or everywhere
+OCV_BETWEEN_RESTS = ("joint", "near-reference", "settled", "interpolate")

@@ -9,7 +9,11 @@ from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
 from service.characterisation.block_average import describe, to_fit_period
-from service.characterisation.ocv_choices import OCV_BETWEEN_RESTS, REST_INTERP_MAX_GAP
+from service.characterisation.ocv_choices import (
+    NEAR_REFERENCE_K,
+    OCV_BETWEEN_RESTS,
+    REST_INTERP_MAX_GAP,
+)
 from service.cli import UserError
 from service.commands.common_args import (
     add_common_arguments,
@@ -96,9 +100,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "--no-rest-anchor keeps the joint table (docs/results/characterisation.md, tuning.md)")
     p.add_argument("--ocv-between-rests", choices=OCV_BETWEEN_RESTS, default=OCV_BETWEEN_RESTS[0],
                    help="with the OCV fitted jointly and anchored at the rests: between two rests at most "
-                   f"{REST_INTERP_MAX_GAP:g} apart in SOC (a pulse test's steps), read the OCV as the monotone cubic "
-                   "through the rests at temperatures whose rests have settled (settled), at every temperature "
-                   "(interpolate), or as the joint fit's shape shifted onto them (joint, the default)")
+                   f"{REST_INTERP_MAX_GAP:g} apart in SOC (a pulse test's steps), read the OCV as the joint fit's "
+                   "shape shifted onto them (joint, the default) or as the monotone cubic through the rests at "
+                   f"temperatures within {NEAR_REFERENCE_K:g} K of the reference (near-reference), where the "
+                   "temperature's rests have settled (settled) or everywhere (interpolate); docs/results/cell_options.md")
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
                         "says whether the bound cut one (its end point then depends on the machine's load)")
     p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
