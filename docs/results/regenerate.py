@@ -838,12 +838,13 @@ socd evaluate --cell out/s25/pan_hppc.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m
           group_table("s25/pan_hppc_eval.json", PAN_GROUPS), 60),
     Table("hppc_ocv_between_rests", "cell_options.md", REAL + """\
 PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC)"   # joint (the default): char_pan_hppc's
-for v in settled interpolate; do
+for v in near-reference settled interpolate; do
   socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --ocv-between-rests $v -q \\
       -o out/s25/pan_hppc_$v.toml
   socd evaluate --cell out/s25/pan_hppc_$v.toml $PANX --estimator fomiukf -q --json out/s25/pan_hppc_${v}_eval.json
 done""",
           lambda out: runs_table((("`joint` (default)", "s25/pan_hppc_eval.json"),
+                                  ("`near-reference`", "s25/pan_hppc_near-reference_eval.json"),
                                   ("`settled`", "s25/pan_hppc_settled_eval.json"),
                                   ("`interpolate`", "s25/pan_hppc_interpolate_eval.json")), PAN_GROUPS)(out)
           + "\n\nThe 2-RC EKF on its own fit (the same in every run: the option does not touch it):\n\n"
@@ -852,12 +853,15 @@ done""",
     Table("unseen_cell_hppc", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
 python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc &
-python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_noanchor --fit-flags=--no-rest-anchor &
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_noanchor --fit-flags=--no-rest-anchor
+wait
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_near --fit-flags="--ocv-between-rests near-reference" &
 python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_settled --fit-flags="--ocv-between-rests settled"
 wait""",
           lambda out: "\n\n".join(
               f"`{c}`:\n\n" + runs_table((("rest anchor (default)", f"unseen_cell/{c}_hppc_eval.json"),
                                            ("`--no-rest-anchor`", f"unseen_cell/{c}_hppc_noanchor_eval.json"),
+                                           ("`--ocv-between-rests near-reference`", f"unseen_cell/{c}_hppc_near_eval.json"),
                                            ("`--ocv-between-rests settled`", f"unseen_cell/{c}_hppc_settled_eval.json")),
                                           UNSEEN_GROUPS)(out)
               + "\n" + runs_table((("2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_eval.json"),), UNSEEN_GROUPS,
