@@ -36,7 +36,6 @@ class Averaged:
     """What :func:`to_fit_period` did to one recording."""
 
     recording: Recording
-    name: str
     period_s: float | None  # the recording's own sample period (None: fewer than two samples)
     averaged: bool
 
@@ -69,7 +68,7 @@ def to_fit_period(recordings: list[Recording], period_s: float) -> list[Averaged
     for rec in recordings:
         own = sample_period_s(rec.time_s)
         faster = period_s > 0 and own is not None and own < FASTER_THAN * period_s
-        out.append(Averaged(block_average(rec, period_s) if faster else rec, rec.name, own, faster))
+        out.append(Averaged(block_average(rec, period_s) if faster else rec, own, faster))
     return out
 
 
@@ -78,6 +77,6 @@ def describe(averaged: list[Averaged], period_s: float) -> str | None:
     done = [a for a in averaged if a.averaged]
     if not done:
         return None
-    names = ", ".join(f"{a.name} ({a.period_s:.3g} s)" for a in done)
+    names = ", ".join(f"{a.recording.name} ({a.period_s:.3g} s)" for a in done)
     return (f"sample period: {names} block-averaged to {period_s:g} s before the fit, so the G-L memory spans "
             f"the same time as at the defaults' rate (--fit-period 0 fits at the recorded rate)")
