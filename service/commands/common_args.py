@@ -237,7 +237,8 @@ def add_fit_period_argument(parser: Any, *, what: str) -> None:
     from service.characterisation.block_average import DEFAULT_FIT_PERIOD_S, MAX_FIT_PERIOD_S
 
     parser.add_argument("--fit-period", type=float_in(0.0, MAX_FIT_PERIOD_S, "a period in seconds"),
-                        default=DEFAULT_FIT_PERIOD_S, metavar="S", help=f"a recording logged faster than this is block-averaged to it before {what} (default "
+                        default=DEFAULT_FIT_PERIOD_S, metavar="S",
+                        help=f"a recording logged faster than this is block-averaged to it before {what} (default "
                         f"{DEFAULT_FIT_PERIOD_S:g} s), so the G-L memory of 16 samples spans the same time whatever "
                         "the logging rate; 0 keeps the recorded rate (a 10 Hz fit has a 1.6 s memory and generalised "
                         "worse: docs/results/characterisation.md)")

@@ -8,7 +8,6 @@ from pathlib import Path
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
-from service.characterisation.block_average import describe, to_fit_period
 from service.characterisation.ocv_choices import (
     NEAR_REFERENCE_K,
     OCV_BETWEEN_RESTS,
@@ -125,6 +124,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.characterisation.block_average import describe, to_fit_period
     from service.characterisation.characterise import (
         MAX_TAU_DF_S,
         FitReport,
