@@ -70,7 +70,7 @@ from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
 from service.cell.truth import truth_and_start
 from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
-from service.characterisation.ocv_choices import NEAR_REFERENCE_K, REST_INTERP_MAX_GAP
+from service.characterisation.ocv_choices import DEFAULT_OCV_BETWEEN_RESTS, NEAR_REFERENCE_K, REST_INTERP_MAX_GAP
 from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
     REST_MIN_S,
@@ -293,7 +293,7 @@ def characterise(
     short_charge: bool = False,
     max_tau_df_s: float = MAX_TAU_DF_S,
     ocv_beyond: str = "hold",
-    ocv_between_rests: str = "joint",
+    ocv_between_rests: str | None = None,
     report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
@@ -309,7 +309,10 @@ def characterise(
     ``short_charge``: an OCV test whose charge stopped short of full is counted on the discharge's
     scale (:func:`ocv_from_test`).  ``max_tau_df_s``: cap on the fractional diffusion branch's time
     constant (:func:`service.cell.fitting.diffusion_tau`).  ``ocv_beyond``: how OCV tests' rows are
-    read at temperatures beyond theirs (:func:`ocv_rows_by_temperature`)."""
+    read at temperatures beyond theirs (:func:`ocv_rows_by_temperature`).  ``ocv_between_rests``: how
+    a rest-anchored joint OCV is read between rests close in SOC (:func:`reads_through_rests`); ``None``
+    (the default) reads it the :data:`DEFAULT_OCV_BETWEEN_RESTS` way where there is such an OCV and
+    leaves any other OCV alone, while a choice named where there is none is an error."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
     rep = report if report is not None else FitReport()
@@ -317,7 +320,7 @@ def characterise(
     if rest_anchor is True and (ocv_table is not None or ocv_tests):
         raise ValueError("--rest-anchor anchors a jointly fitted OCV table; with an OCV table or test given, "
                          "the table is already shifted to the rests of each temperature")
-    if ocv_between_rests != "joint" and (ocv_table is not None or ocv_tests or rest_anchor is False):
+    if ocv_between_rests is not None and (ocv_table is not None or ocv_tests or rest_anchor is False):
         given = "--no-rest-anchor" if rest_anchor is False else "an OCV table or test"
         raise ValueError(f"--ocv-between-rests {ocv_between_rests} reads between the rests of a jointly fitted, "
                          f"rest-anchored OCV; with {given} there is none")
@@ -428,7 +431,8 @@ def characterise(
         # the voltage each rest relaxes towards, not where it stopped (cold rests end unrelaxed)
         limits_by_t = rests_by_t(extrapolate=True)
         if rest_anchor is True or (rest_anchor is None and any(limits_by_t.values())):
-            anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t, ocv_between_rests, ref_t)
+            anchor_rows_at_rests(rep, grid, ocv_rows, limits_by_t,
+                                 ocv_between_rests or DEFAULT_OCV_BETWEEN_RESTS, ref_t)
         elif rest_anchor is None:
             rep.say(f"OCV: no rest of {REST_MIN_S:g} s or more to anchor the joint table at; it stands as fitted")
         else:

@@ -12,6 +12,9 @@ REST_INTERP_MAX_GAP = 0.15
 #: does not, and the rests' own OCV there scored worse on two of four cells
 NEAR_REFERENCE_K = 15.0
 #: how the OCV between a temperature's rests is read when it is fitted jointly (``socd fit
-#: --ocv-between-rests``): the joint fit's shape shifted onto them (the default), or through the rests
-#: near the reference temperature, where they have settled, or everywhere
-OCV_BETWEEN_RESTS = ("joint", "near-reference", "settled", "interpolate")
+#: --ocv-between-rests``): through the rests near the reference temperature (the default), the joint
+#: fit's shape shifted onto them, through the rests where they have settled, or everywhere
+OCV_BETWEEN_RESTS = ("near-reference", "joint", "settled", "interpolate")
+#: the default, chosen leave-one-cell-out over the Panasonic cell and the three PyBaMM cells fitted from
+#: pulse tests alone (docs/results/characterisation.md, table ``loco_ocv_between_rests``)
+DEFAULT_OCV_BETWEEN_RESTS = "near-reference"

@@ -97,12 +97,14 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "towards (each rest's decay extrapolated; the outermost offset holds beyond them; a temperature "
                    "without one keeps its table). Default: on where such a rest exists; --rest-anchor requires one, "
                    "--no-rest-anchor keeps the joint table (docs/results/characterisation.md, tuning.md)")
-    p.add_argument("--ocv-between-rests", choices=OCV_BETWEEN_RESTS, default=OCV_BETWEEN_RESTS[0],
+    p.add_argument("--ocv-between-rests", choices=OCV_BETWEEN_RESTS, default=None,
                    help="with the OCV fitted jointly and anchored at the rests: between two rests at most "
-                   f"{REST_INTERP_MAX_GAP:g} apart in SOC (a pulse test's steps), read the OCV as the joint fit's "
-                   "shape shifted onto them (joint, the default) or as the monotone cubic through the rests at "
-                   f"temperatures within {NEAR_REFERENCE_K:g} K of the reference (near-reference), where the "
-                   "temperature's rests have settled (settled) or everywhere (interpolate); docs/results/cell_options.md")
+                   f"{REST_INTERP_MAX_GAP:g} apart in SOC (a pulse test's steps), read the OCV as the monotone "
+                   f"cubic through the rests at temperatures within {NEAR_REFERENCE_K:g} K of the reference "
+                   "(near-reference, the default; the joint shape in the cold), as the joint fit's shape shifted "
+                   "onto them (joint), through the rests where the temperature's rests have settled (settled) or "
+                   "everywhere (interpolate); naming one with an OCV table or test is an error "
+                   "(docs/results/characterisation.md, cell_options.md)")
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
                         "says whether the bound cut one (its end point then depends on the machine's load)")
     p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
