@@ -837,16 +837,17 @@ socd evaluate --cell out/s25/pan_hppc.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m
     --estimator fomiukf -q --json out/s25/pan_hppc_eval.json""",
           group_table("s25/pan_hppc_eval.json", PAN_GROUPS), 60),
     Table("hppc_ocv_between_rests", "cell_options.md", REAL + """\
-PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC)"   # joint (the default): char_pan_hppc's
-for v in near-reference settled interpolate; do
+PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC)"   # near-reference (the default): char_pan_hppc's
+for v in joint settled interpolate; do
   socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --ocv-between-rests $v -q \\
-      -o out/s25/pan_hppc_$v.toml
-  socd evaluate --cell out/s25/pan_hppc_$v.toml $PANX --estimator fomiukf -q --json out/s25/pan_hppc_${v}_eval.json
+      -o out/s25/pan_hppc_between_$v.toml
+  socd evaluate --cell out/s25/pan_hppc_between_$v.toml $PANX --estimator fomiukf -q \\
+      --json out/s25/pan_hppc_between_${v}_eval.json
 done""",
-          lambda out: runs_table((("`joint` (default)", "s25/pan_hppc_eval.json"),
-                                  ("`near-reference`", "s25/pan_hppc_near-reference_eval.json"),
-                                  ("`settled`", "s25/pan_hppc_settled_eval.json"),
-                                  ("`interpolate`", "s25/pan_hppc_interpolate_eval.json")), PAN_GROUPS)(out)
+          lambda out: runs_table((("`near-reference` (default)", "s25/pan_hppc_eval.json"),
+                                  ("`joint`", "s25/pan_hppc_between_joint_eval.json"),
+                                  ("`settled`", "s25/pan_hppc_between_settled_eval.json"),
+                                  ("`interpolate`", "s25/pan_hppc_between_interpolate_eval.json")), PAN_GROUPS)(out)
           + "\n\nThe 2-RC EKF on its own fit (the same in every run: the option does not touch it):\n\n"
           + runs_table((("`ecm2rc-ekf`", "s25/pan_hppc_eval.json"),), PAN_GROUPS, "ecm2rc-ekf")(out),
           25, ("needs:char_pan_hppc",)),
@@ -855,18 +856,29 @@ python -m research.unseen_cell build --jobs 2
 python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc &
 python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_noanchor --fit-flags=--no-rest-anchor
 wait
-python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_near --fit-flags="--ocv-between-rests near-reference" &
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_joint --fit-flags="--ocv-between-rests joint" &
 python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_settled --fit-flags="--ocv-between-rests settled"
 wait""",
           lambda out: "\n\n".join(
-              f"`{c}`:\n\n" + runs_table((("rest anchor (default)", f"unseen_cell/{c}_hppc_eval.json"),
+              f"`{c}`:\n\n" + runs_table((("rest anchor, `near-reference` (default)", f"unseen_cell/{c}_hppc_eval.json"),
                                            ("`--no-rest-anchor`", f"unseen_cell/{c}_hppc_noanchor_eval.json"),
-                                           ("`--ocv-between-rests near-reference`", f"unseen_cell/{c}_hppc_near_eval.json"),
+                                           ("`--ocv-between-rests joint`", f"unseen_cell/{c}_hppc_joint_eval.json"),
                                            ("`--ocv-between-rests settled`", f"unseen_cell/{c}_hppc_settled_eval.json")),
                                           UNSEEN_GROUPS)(out)
               + "\n" + runs_table((("2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_eval.json"),), UNSEEN_GROUPS,
                                    "ecm2rc-ekf")(out).split("\n", 2)[2]
               for c in UNSEEN_CELLS), 40),
+    Table("loco_ocv_between_rests", "characterisation.md", """\
+G=""; for v in joint settled; do
+  G="$G $v=out/s25/pan_hppc_between_${v}_eval.json@panasonic"
+  for c in Chen2020 Mohtat2020 Marquis2019; do G="$G $v=out/unseen_cell/${c}_hppc_${v}_eval.json@$c"; done
+done
+G="$G near-reference=out/s25/pan_hppc_eval.json@panasonic"
+for c in Chen2020 Mohtat2020 Marquis2019; do G="$G near-reference=out/unseen_cell/${c}_hppc_eval.json@$c"; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference near-reference --exclude _10C_trise $G \\
+    --json out/loco_ocv_between_rests.json""",
+          nested_table("loco_ocv_between_rests.json"), 1,
+          ("needs:char_pan_hppc", "needs:hppc_ocv_between_rests", "needs:unseen_cell_hppc")),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json
