@@ -853,11 +853,11 @@ done""",
           25, ("needs:char_pan_hppc",)),
     Table("unseen_cell_hppc", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
-python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc &
-python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_noanchor --fit-flags=--no-rest-anchor
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc --refit &
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_noanchor --fit-flags=--no-rest-anchor --refit
 wait
-python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_joint --fit-flags="--ocv-between-rests joint" &
-python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_settled --fit-flags="--ocv-between-rests settled"
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_joint --fit-flags="--ocv-between-rests joint" --refit &
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_settled --fit-flags="--ocv-between-rests settled" --refit
 wait""",
           lambda out: "\n\n".join(
               f"`{c}`:\n\n" + runs_table((("rest anchor, `near-reference` (default)", f"unseen_cell/{c}_hppc_eval.json"),
