@@ -109,3 +109,18 @@ def test_near_reference_reads_through_the_rests_only_within_15_k_of_the_referenc
     assert not reads_through_rests("joint", 25.0, 25.0, rests)
     cold = rests_at([0.2, 0.5, 0.8], unrelaxed_v=2.5 * REST_SETTLED_V)
     assert reads_through_rests("settled", -20.0, 25.0, rests) and not reads_through_rests("settled", 25.0, 25.0, cold)
+
+
+def test_by_default_the_rest_anchor_reads_through_the_rests_near_the_reference_only() -> None:
+    """``socd fit``'s default (``ocv_between_rests=None``): the 25 °C row follows the rests, the 0 °C row
+    keeps the joint fit's shape between them."""
+    from service.characterisation.characterise import FitReport, anchor_rows_at_rests
+    from service.characterisation.ocv_choices import DEFAULT_OCV_BETWEEN_RESTS
+
+    steps = [round(0.1 * k, 2) for k in range(1, 10)]
+    rows = {0.0: wiggly_row(), 25.0: wiggly_row()}
+    anchor_rows_at_rests(FitReport(), GRID, rows, {0.0: rests_at(steps), 25.0: rests_at(steps)},
+                         DEFAULT_OCV_BETWEEN_RESTS, 25.0)
+    inside = (GRID >= 0.1) & (GRID <= 0.9)
+    assert np.max(np.abs(rows[25.0] - true_ocv(GRID))[inside]) < 2e-3
+    assert np.max(np.abs(rows[0.0] - true_ocv(GRID))[inside]) > 0.014
