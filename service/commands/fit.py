@@ -103,7 +103,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    f"cubic through the rests at temperatures within {NEAR_REFERENCE_K:g} K of the reference "
                    "(near-reference, the default; the joint shape in the cold), as the joint fit's shape shifted "
                    "onto them (joint), through the rests where the temperature's rests have settled (settled) or "
-                   "everywhere (interpolate); naming one with an OCV table or test is an error "
+                   "everywhere (interpolate); naming one with an OCV table or test or --no-rest-anchor is an error "
                    "(docs/results/characterisation.md, cell_options.md)")
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
                         "says whether the bound cut one (its end point then depends on the machine's load)")
