@@ -124,3 +124,15 @@ def test_by_default_the_rest_anchor_reads_through_the_rests_near_the_reference_o
     inside = (GRID >= 0.1) & (GRID <= 0.9)
     assert np.max(np.abs(rows[25.0] - true_ocv(GRID))[inside]) < 2e-3
     assert np.max(np.abs(rows[0.0] - true_ocv(GRID))[inside]) > 0.014
+
+
+def test_the_fit_log_says_where_near_reference_keeps_the_joint_shape() -> None:
+    from service.characterisation.characterise import FitReport, anchor_rows_at_rests
+
+    steps = [round(0.1 * k, 2) for k in range(1, 10)]
+    rep = FitReport()
+    anchor_rows_at_rests(rep, GRID, {0.0: wiggly_row(), 25.0: wiggly_row()},
+                         {0.0: rests_at(steps), 25.0: rests_at(steps)}, "near-reference", 25.0)
+    said = "\n".join(rep.lines)
+    assert "25 °C: between rests" in said and "monotone cubic through them" in said
+    assert "0 °C: more than 15 K from the reference 25 °C" in said and "keeps the joint fit's shape" in said

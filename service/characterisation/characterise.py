@@ -648,13 +648,16 @@ def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float,
         rep.say(f"joint OCV at {t:g} °C anchored at the relaxed rest voltage(s) of "
                 + rest_offsets_text(grid, ocv_rows[t], anchors, "the table moved"))
         ocv_rows[t] = ocv_row_from_rests(grid, ocv_rows[t], anchors, min_points=1)
-        if reads_through_rests(between, t, ref_t, anchors):
-            row = interpolate_between_rests(grid, ocv_rows[t], anchors)
-            moved = float(np.max(np.abs(row - ocv_rows[t])))
-            if moved > 0:
-                rep.say(f"{t:g} °C: between rests at most {REST_INTERP_MAX_GAP:g} apart in SOC, the OCV is the "
-                        f"monotone cubic through them (moved the row by up to {1000 * moved:.1f} mV)")
+        row = interpolate_between_rests(grid, ocv_rows[t], anchors)
+        moved = float(np.max(np.abs(row - ocv_rows[t])))
+        if moved > 0 and reads_through_rests(between, t, ref_t, anchors):
+            rep.say(f"{t:g} °C: between rests at most {REST_INTERP_MAX_GAP:g} apart in SOC, the OCV is the "
+                    f"monotone cubic through them (moved the row by up to {1000 * moved:.1f} mV)")
             ocv_rows[t] = row
+        elif moved > 0 and between == "near-reference":
+            rep.say(f"{t:g} °C: more than {NEAR_REFERENCE_K:g} K from the reference {ref_t:g} °C, so between its "
+                    "rests the OCV keeps the joint fit's shape (the cubic through them would move it by up to "
+                    f"{1000 * moved:.1f} mV; --ocv-between-rests interpolate reads through them)")
 
 
 def say_joint_ocv_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float, np.ndarray],
