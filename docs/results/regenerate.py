@@ -132,6 +132,34 @@ def runs_table(runs: tuple[tuple[str, str], ...], groups: tuple[tuple[str, str],
     return render
 
 
+def fit_file_rule_table(out: Path) -> str:
+    """Per characterisation and temperature: ``fomiukf`` on the fit file(s) and on the held-out files
+    with the fractional profile and with its 2-RC point, which of the two the fit file picks, and
+    the held-out score at that pick."""
+    def means(name: str, groups: tuple[tuple[str, str], ...]) -> list[float | None]:
+        rows = [r for r in _read(out, name)["results"]
+                if r["estimator"] == "fomiukf" and r["soc_rmse_after_600s_pct"] is not None]
+        vals = [[r["soc_rmse_after_600s_pct"] for r in rows if re.search(pat, r["recording"])] for _, pat in groups]
+        return [statistics.mean(v) if v else None for v in vals]
+    lines = ["| characterisation | temperature | fit file: fractional | fit file: 2-RC point | the fit file picks "
+             "| held out: fractional | held out: 2-RC point | held out at the pick |", "|---|---|---|---|---|---|---|---|"]
+    changes = []
+    for label, tag, groups in FIT_FILE_CELLS:
+        cols = [means(f"pt2/{tag}{part}.json", groups) for part in ("_fit", "_2rc_fit", "_held", "_2rc_held")]
+        for (t, _), ff, fb, hf, hb in zip(groups, *cols):
+            if None in (ff, fb, hf, hb):
+                continue
+            pick_2rc = fb < ff
+            changes.append(hb - hf if pick_2rc else 0.0)
+            lines.append(f"| {label} | {t} | {ff:.2f} | {fb:.2f} | {'2-RC point' if pick_2rc else 'fractional'} "
+                         f"| {hf:.2f} | {hb:.2f} | {hb if pick_2rc else hf:.2f} |")
+    moved = [c for c in changes if c != 0.0]
+    lines.append(f"\nThe rule moves {len(moved)} of {len(changes)} rows: {sum(c < 0 for c in moved)} better, "
+                 f"{sum(c > 0 for c in moved)} worse, held-out mean over the rows {statistics.mean(changes):+.3f} "
+                 "points against the fractional profile everywhere.")
+    return "\n".join(lines)
+
+
 def json_rows_table(header: str, row: Callable[[str, dict], str], names: tuple[str, ...]) -> Callable[[Path], str]:
     """One row per run from its ``--json``: ``row(name, data)`` under ``header``."""
     def render(out: Path) -> str:
@@ -442,6 +470,13 @@ SAMPLE_PERIOD_GROUPS = (("25 °C `LA92` at 10 Hz", r"_10Hz"), ("25 °C, 1 s", r"
 #: research.unseen_cell's PyBaMM cells and their recordings by ambient
 UNSEEN_CELLS = ("Chen2020", "Mohtat2020", "Marquis2019")
 UNSEEN_GROUPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"))
+#: the characterisations ``two_rc_point_by_fit_file`` scores: (label, tag, temperature groups)
+PAN_TEMPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"), ("−20 °C", r"_m20C_"))
+FIT_FILE_CELLS = (("CALCE, DST file", "calce", (("25 °C", r"calce20r"),)),
+                  ("A123, DST file", "a123", (("20 °C", r"a123"),)),
+                  ("Panasonic, HPPC alone", "pan_hppc", PAN_TEMPS),
+                  ("Panasonic, OCV test + US06", "pan_us06", PAN_TEMPS)) + tuple(
+    (f"`{c}`, OCV test + US06", c, UNSEEN_GROUPS) for c in UNSEEN_CELLS)
 #: the CALCE files by rest: the two that rest two hours at 50 % SOC, the other three, all five
 CALCE_REST_GROUPS = (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUDS)_50soc"),
                      ("the other three", r"_80soc|US06_50soc"), ("all five", r"calce20r"))
@@ -977,6 +1012,31 @@ done""",
                                                                     ("−20 °C", "m20C"))
                     for what, pat in (("drives", "(?!HPPC)"), ("HPPC (fit file)", "HPPC"))))(out),
           35, ("needs:char_a123", "needs:char_pan_hppc")),
+    Table("two_rc_point_by_fit_file", "characterisation.md", REAL + f"""\
+mkdir -p out/pt2
+E="--estimator fomiukf --no-bar -q"
+pt() {{  # TAG PROFILE FIT_FILES HELD_OUT_FILES: both profiles on both sets of files
+  python -m research.two_rc_point $2 out/pt2/$1_2rc.toml
+  socd evaluate --cell $2 $3 $E --json out/pt2/$1_fit.json
+  socd evaluate --cell out/pt2/$1_2rc.toml $3 $E --json out/pt2/$1_2rc_fit.json
+  socd evaluate --cell $2 $4 $E --json out/pt2/$1_held.json
+  socd evaluate --cell out/pt2/$1_2rc.toml $4 $E --json out/pt2/$1_2rc_held.json
+}}
+(
+  pt calce out/s25/calce.toml "$C/calce20r_25C_DST_80soc.csv --full-at 3303" "{CALCE}"
+  pt a123 out/s25/a123.toml "$A/calce_a123_20C_DST.csv --full-at 4815" "{A123}"
+  for c in {" ".join(UNSEEN_CELLS)}; do
+    pt $c out/unseen_cell/$c.toml "$(ls out/unseen_cell/${{c}}_{{25C,10C,0C}}_US06.csv)" \\
+        "$(ls out/unseen_cell/${{c}}_{{25C,10C,0C}}_*.csv | grep -v -e US06 -e HPPC -e _ocv)"
+  done
+) & first=$!
+pt pan_hppc out/s25/pan_hppc.toml "$P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --full-at 0" \\
+    "$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v -e HPPC -e trise)"
+pt pan_us06 out/s25/pan_us06.toml "$P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv" \\
+    "$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v -e HPPC -e US06 -e trise)"
+wait $first""",
+          fit_file_rule_table, 40,
+          ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc", "needs:char_pan_us06", "needs:unseen_cell")),
     Table("bench", "bench.md", "for k in 1 2 3; do socd bench --cells 200 --json out/bench200_$k.json; done",
           bench_table("bench200_1.json", "bench200_2.json", "bench200_3.json"), 3),
     Table("bench_simulate", "bench.md",
