@@ -141,8 +141,9 @@ def fit_file_rule_table(out: Path) -> str:
                 if r["estimator"] == "fomiukf" and r["soc_rmse_after_600s_pct"] is not None]
         vals = [[r["soc_rmse_after_600s_pct"] for r in rows if re.search(pat, r["recording"])] for _, pat in groups]
         return [statistics.mean(v) if v else None for v in vals]
-    lines = ["| characterisation | temperature | fit file: fractional | fit file: 2-RC point | the fit file picks "
-             "| held out: fractional | held out: 2-RC point | held out at the pick |", "|---|---|---|---|---|---|---|---|"]
+    header = ("| characterisation | temperature | fit file: fractional | fit file: 2-RC point | the fit file picks "
+              "| held out: fractional | held out: 2-RC point | held out at the pick |")
+    lines = [header, "|---|---|---|---|---|---|---|---|"]
     changes = []
     for label, tag, groups in FIT_FILE_CELLS:
         cols = [means(f"pt2/{tag}{part}.json", groups) for part in ("_fit", "_2rc_fit", "_held", "_2rc_held")]
@@ -1030,9 +1031,9 @@ pt() {{  # TAG PROFILE FIT_FILES HELD_OUT_FILES: both profiles on both sets of f
         "$(ls out/unseen_cell/${{c}}_{{25C,10C,0C}}_*.csv | grep -v -e US06 -e HPPC -e _ocv)"
   done
 ) & first=$!
-pt pan_hppc out/s25/pan_hppc.toml "$P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --full-at 0" \\
+pt pan_hppc out/s25/pan_hppc.toml "$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv) --full-at 0" \\
     "$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v -e HPPC -e trise)"
-pt pan_us06 out/s25/pan_us06.toml "$P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv" \\
+pt pan_us06 out/s25/pan_us06.toml "$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv)" \\
     "$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v -e HPPC -e US06 -e trise)"
 wait $first""",
           fit_file_rule_table, 40,
