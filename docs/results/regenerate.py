@@ -1024,8 +1024,11 @@ pt() {{  # TAG PROFILE FIT_FILES HELD_OUT_FILES: both profiles on both sets of f
   socd evaluate --cell out/pt2/$1_2rc.toml $4 $E --json out/pt2/$1_2rc_held.json
 }}
 (
-  pt calce out/s25/calce.toml "$C/calce20r_25C_DST_80soc.csv --full-at 3303" "{CALCE}"
-  pt a123 out/s25/a123.toml "$A/calce_a123_20C_DST.csv --full-at 4815" "{A123}"
+  pt calce out/s25/calce.toml "$C/calce20r_25C_DST_80soc.csv --full-at 3303" \\
+      "$(echo $C/calce20r_25C_{{DST_50soc,FUDS_80soc,FUDS_50soc,US06_50soc,US06_80soc}}.csv) \\
+      --full-at 10015 --full-at 9999 --full-at 5080 --full-at 10160 --full-at 9984"
+  pt a123 out/s25/a123.toml "$A/calce_a123_20C_DST.csv --full-at 4815" \\
+      "$(echo $A/calce_a123_20C_{{FUDS,US06}}.csv) --full-at 4478 --full-at 4436"
   for c in {" ".join(UNSEEN_CELLS)}; do
     pt $c out/unseen_cell/$c.toml "$(ls out/unseen_cell/${{c}}_{{25C,10C,0C}}_US06.csv)" \\
         "$(ls out/unseen_cell/${{c}}_{{25C,10C,0C}}_*.csv | grep -v -e US06 -e HPPC -e _ocv)"
