@@ -121,32 +121,35 @@ def runs_table(runs: tuple[tuple[str, str], ...], groups: tuple[tuple[str, str],
     def render(out: Path) -> str:
         lines = ["| run | " + " | ".join(label for label, _ in groups) + " |", "|---|" + "---|" * len(groups)]
         for label, name in runs:
-            rows = [r for r in _read(out, name)["results"] if r["estimator"] == estimator]
-            cells = []
-            for _, pattern in groups:
-                vals = [r["soc_rmse_after_600s_pct"] for r in rows if re.search(pattern, r["recording"])
-                        and r["soc_rmse_after_600s_pct"] is not None]
-                cells.append(f"{sum(vals) / len(vals):.2f}" if vals else "-")
+            cells = ["-" if m is None else f"{m:.2f}" for m in group_means(out, name, groups, estimator)]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         return "\n".join(lines)
     return render
+
+
+def group_means(out: Path, name: str, groups: tuple[tuple[str, str], ...],
+                estimator: str = "fomiukf") -> list[float | None]:
+    """``estimator``'s mean SOC RMSE after 600 s in one ``socd evaluate --json`` for each group of
+    recordings (a regular expression on the name); None where the group has no scored recording."""
+    rows = [r for r in _read(out, name)["results"]
+            if r["estimator"] == estimator and r["soc_rmse_after_600s_pct"] is not None]
+    means: list[float | None] = []
+    for _, pattern in groups:
+        vals = [r["soc_rmse_after_600s_pct"] for r in rows if re.search(pattern, r["recording"])]
+        means.append(sum(vals) / len(vals) if vals else None)
+    return means
 
 
 def fit_file_rule_table(out: Path) -> str:
     """Per characterisation and temperature: ``fomiukf`` on the fit file(s) and on the held-out files
     with the fractional profile and with its 2-RC point, which of the two the fit file picks, and
     the held-out score at that pick."""
-    def means(name: str, groups: tuple[tuple[str, str], ...]) -> list[float | None]:
-        rows = [r for r in _read(out, name)["results"]
-                if r["estimator"] == "fomiukf" and r["soc_rmse_after_600s_pct"] is not None]
-        vals = [[r["soc_rmse_after_600s_pct"] for r in rows if re.search(pat, r["recording"])] for _, pat in groups]
-        return [statistics.mean(v) if v else None for v in vals]
     header = ("| characterisation | temperature | fit file: fractional | fit file: 2-RC point | the fit file picks "
               "| held out: fractional | held out: 2-RC point | held out at the pick |")
     lines = [header, "|---|---|---|---|---|---|---|---|"]
     changes = []
     for label, tag, groups in FIT_FILE_CELLS:
-        cols = [means(f"pt2/{tag}{part}.json", groups) for part in ("_fit", "_2rc_fit", "_held", "_2rc_held")]
+        cols = [group_means(out, f"pt2/{tag}{part}.json", groups) for part in ("_fit", "_2rc_fit", "_held", "_2rc_held")]
         for (t, _), ff, fb, hf, hb in zip(groups, *cols):
             if None in (ff, fb, hf, hb):
                 continue
