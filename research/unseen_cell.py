@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from research.validate_pybamm import _pybamm, hysteresis_state, parameter_values, sensor_readings
-from service.cell.units import SECONDS_PER_HOUR
+from service.cell.coulomb import coulomb_soc
 from service.recording import load_recording, save_recording
 
 #: NMC and NCA-like sets with a lumped thermal model that simulate the drives from full charge
@@ -158,7 +158,7 @@ def drive(job: Job, capacity_ah: float) -> np.ndarray:
                   sol["X-averaged cell temperature [C]"].entries)
     soc = np.round(1.0 - q / capacity_ah, 6)
     if job.drive in PULSE_DRIVES:  # the recording must hold the charge the cell gave
-        counted = float(np.sum(current[1:n] * np.diff(t[:n]))) / SECONDS_PER_HOUR
+        counted = (1.0 - float(coulomb_soc(t[:n], current[:n], capacity_ah, 1.0)[-1])) * capacity_ah
         if abs(float(q[-1]) - counted) > 0.01 * capacity_ah:
             raise RuntimeError(f"{job.stem}: the solver drew {float(q[-1]):.3f} Ah, the recording counts {counted:.3f} Ah")
     return np.column_stack([data, soc])
