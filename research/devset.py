@@ -208,6 +208,25 @@ def signature_stats(sig: dict) -> dict[str, dict]:
                             "nominal_c": temp.get("nominal_ambient_c")}}
 
 
+def rest_key(min_rest_s: float) -> str:
+    """The key of one rest length in ``signatures["diffusion_by_rest"]`` (JSON keys are strings)."""
+    return f"{min_rest_s:g}"
+
+
+def relaxation_by_rest(rec, capacity_ah: float, opt) -> dict[str, dict]:
+    """The diffusion relaxation signature's statistic and z (as :func:`signature_stats` keeps them)
+    on the fit part of ``opt.split``, read from rests of each length of :data:`RELAX_REST_GRID`."""
+    from service.diagnosis.pipeline import held_out_mask
+    from service.diagnosis.signatures import rest_relaxation
+
+    fit = ~held_out_mask(rec.time_s, opt)
+    out = {}
+    for length in RELAX_REST_GRID:
+        sig = rest_relaxation(rec.time_s, rec.current_a, rec.voltage_v, capacity_ah, usable=fit, min_rest_s=length)
+        out[rest_key(length)] = signature_stats({"diffusion": sig})["diffusion"]
+    return out
+
+
 def confirm_unread(sub_signatures: dict) -> list[str]:
     """The effects whose fit-part signature found nothing to read on the confirmation split."""
     from service.diagnosis.pipeline import FIT_PART_SIGNATURES, signature_unread
@@ -226,7 +245,8 @@ def recording_signature_stats(rec, capacity_ah: float, opt) -> dict:
     first["temperature"] = temperature_signature(rec.time_s, rec.current_a, rec.temperature_c, capacity_ah,
                                                  opt.nominal_ambient_c)
     retry = fit_part_signatures(rec, capacity_ah, ~held_out_mask(rec.time_s, replace(opt, split=opt.confirm_split)))
-    return {**signature_stats(first), "confirm_unread": confirm_unread(retry)}
+    return {**signature_stats(first), "confirm_unread": confirm_unread(retry),
+            "diffusion_by_rest": relaxation_by_rest(rec, capacity_ah, opt)}
 
 
 def _candidates(dg, opt) -> list[Candidate]:
@@ -262,7 +282,9 @@ def evidence_of(spec: Spec, dg, sub, opt) -> Evidence:
                     # nominated effect short of its bar
                     seconds_confirmation=sub.seconds if sub is not None and retried else 0.0,
                     signatures={**signature_stats(dg.signatures),
-                                "confirm_unread": confirm_unread(sub.signatures) if sub is not None else []})
+                                "confirm_unread": confirm_unread(sub.signatures) if sub is not None else [],
+                                "diffusion_by_rest": relaxation_by_rest(dg.recording, dg.base_profile.effective_capacity_ah,
+                                                                        opt)})
 
 
 def diagnose_for_evidence(spec: Spec, rec, profile, opt) -> Evidence:
@@ -325,6 +347,11 @@ def labelled_one(job: tuple[str, str, str]) -> tuple[str, str]:
 
 
 # -- rules -----------------------------------------------------------------------------------------
+#: the shortest rest the diffusion relaxation signature reads (s), searched as a rule: a long rest
+#: reads the slow tail alone, a shorter one reads drives that park only briefly (a random walk's
+#: rests of a few minutes) but also more of a healthy cell's faster relaxation.  The evidence keeps
+#: the signature's statistic at every length (:func:`relaxation_by_rest`)
+RELAX_REST_GRID: tuple[float, ...] = (60.0, 120.0, 300.0, 500.0)
 #: the rules searched: significance thresholds (fields of DiagnoseOptions) and signature levels
 #: (:data:`SIGNATURE_RULES`); each list holds the product's current value
 RULE_GRID: dict[str, tuple[float, ...]] = {
@@ -335,6 +362,7 @@ RULE_GRID: dict[str, tuple[float, ...]] = {
     "kinetics_max_i0_c": (0.10, 0.12, 0.15, 0.18, 0.20),
     "relax_min_ratio": (0.15, 0.20, 0.30),
     "relax_min_z": (3.0, 5.0),
+    "relax_rest_min_s": RELAX_REST_GRID,
 }
 #: ``rules --wide-grid``: the axes whose chosen value sits at an edge of :data:`RULE_GRID`, extended past it
 #: (a check that the choice is not held by the grid's edge; docs/results/diagnose.md)
@@ -348,7 +376,7 @@ WIDE_GRID: dict[str, tuple[float, ...]] = {
 #: signature levels: the kinetics bound (service.diagnosis.effects.KINETICS_MAX_I0_C: the step fit
 #: nominates kinetics below it and the extension's fitted exchange current must lie below it) and
 #: the relaxation signature's ratio and z (service.diagnosis.signatures.RELAX_MIN_RATIO, RELAX_MIN_Z)
-SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "diffusion_signature")
+SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "relax_rest_min_s", "diffusion_signature")
 #: a structural rule the search leaves alone unless asked (``rules --search-requirement``): whether a
 #: fit-only diffusion is refused never (0), where its relaxation signature read rests and did not
 #: fire (1, the product), or always (2): the index into service.diagnosis.effects.SIGNATURE_NEEDED
@@ -364,7 +392,7 @@ def current_rule() -> dict[str, float]:
     opt = DiagnoseOptions()
     now = {k: getattr(opt, k) for k in RULE_GRID if k not in SIGNATURE_RULES}
     now.update(kinetics_max_i0_c=KINETICS_MAX_I0_C, relax_min_ratio=signatures.RELAX_MIN_RATIO,
-               relax_min_z=signatures.RELAX_MIN_Z,
+               relax_min_z=signatures.RELAX_MIN_Z, relax_rest_min_s=signatures.RELAX_REST_MIN_S,
                diffusion_signature=float(SIGNATURE_NEEDED.index(EFFECTS["diffusion"].needs_signature)))
     return now
 
@@ -390,10 +418,12 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
             if c.size is not None and c.size >= k:
                 fixed.append(f"{KINETICS_SIZE_REASON}{c.size:.2f} C >= {k:g} C")
             c = replace(c, evidence="nominated" if nominated else "fit", fixed_reasons=fixed)
-        elif c.name == "diffusion" and {"relax_min_ratio", "relax_min_z", "diffusion_signature"} & rule.keys():
+        elif c.name == "diffusion" and {"relax_min_ratio", "relax_min_z", "relax_rest_min_s",
+                                        "diffusion_signature"} & rule.keys():
             from service.diagnosis.signatures import RELAX_MIN_RATIO, RELAX_MIN_Z
 
-            sig = ev.signatures["diffusion"]
+            sig = (ev.signatures["diffusion_by_rest"][rest_key(rule["relax_rest_min_s"])]
+                   if "relax_rest_min_s" in rule else ev.signatures["diffusion"])
             read = sig["statistic"] is not None
             nominated = (read and sig["statistic"] >= rule.get("relax_min_ratio", RELAX_MIN_RATIO)
                          and sig["z"] >= rule.get("relax_min_z", RELAX_MIN_Z))
@@ -752,13 +782,15 @@ def set_cell(name: str, cells: Sequence[str]) -> str:
 
 
 def _complete(ev: Evidence, csv: Path, capacity_ah: float) -> None:
-    """Evidence cached before the signature statistics were kept gets them from its recording."""
-    if "confirm_unread" in ev.signatures and (ev.signatures.get("temperature") or {}).get("coldest_c") is not None:
-        return
+    """Evidence cached before the signature statistics were kept gets them from its recording (they
+    read the recording alone, no fit)."""
     from service.diagnosis.pipeline import DiagnoseOptions
     from service.recording import load_recording
 
-    ev.signatures = recording_signature_stats(load_recording(csv), capacity_ah, DiagnoseOptions())
+    if "confirm_unread" not in ev.signatures or (ev.signatures.get("temperature") or {}).get("coldest_c") is None:
+        ev.signatures = recording_signature_stats(load_recording(csv), capacity_ah, DiagnoseOptions())
+    elif "diffusion_by_rest" not in ev.signatures:
+        ev.signatures["diffusion_by_rest"] = relaxation_by_rest(load_recording(csv), capacity_ah, DiagnoseOptions())
 
 
 def search(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = None, progress=None) -> dict:
