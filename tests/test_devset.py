@@ -13,11 +13,13 @@ import pytest
 from research.devset import (
     CELLS,
     DRIVES,
+    RELAX_REST_GRID,
     REPEAT,
     Candidate,
     Evidence,
     Spec,
     choose_rule,
+    current_rule,
     decide,
     evidence_of,
     leave_one_cell_out,
@@ -129,6 +131,23 @@ def test_decide_refuses_diffusion_whose_signature_read_rests_and_did_not_fire():
     # the wide grid (rules --wide-grid) holds every rule of the default grid and more
     wide = {tuple(sorted(r.items())) for r in rule_grid(wide=True)}
     assert {tuple(sorted(r.items())) for r in rule_grid()} < wide
+
+
+def test_the_rest_length_rule_reads_the_signature_at_that_length():
+    """relax_rest_min_s: a fit-only diffusion gain on a drive that parks only briefly is named when the
+    signature reads long rests alone (nothing to read), refused at a length that reads the brief
+    parking, which relaxed, and named where the brief parking shows a slow tail; every rule of the
+    grid carries a length the evidence keeps."""
+    diff = _ev("A", "diffusion", [_cand("diffusion", 0.6, "fit")])
+    diff.signatures = {"diffusion": {"statistic": None, "z": None},
+                       "diffusion_by_rest": {"120": {"statistic": 0.02, "z": 1.0},
+                                             "500": {"statistic": None, "z": None}}}
+    assert decide(diff, {"relax_rest_min_s": 500.0})[0] == "diffusion"
+    assert decide(diff, {"relax_rest_min_s": 120.0})[0] == "none"
+    diff.signatures["diffusion_by_rest"]["120"] = {"statistic": 0.4, "z": 9.0}
+    assert decide(diff, {"relax_rest_min_s": 120.0})[0] == "diffusion"
+    assert {r["relax_rest_min_s"] for r in rule_grid()} == set(RELAX_REST_GRID)
+    assert set(rule_grid()[0]) <= set(current_rule())  # the tie-break reads the current value of each
 
 
 def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():

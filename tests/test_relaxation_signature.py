@@ -55,6 +55,17 @@ def test_only_usable_rests_are_read():
     assert none["n_rests"] == 0 and not none["nominated"] and "fit part" in none["skipped"]
 
 
+def test_the_rests_read_are_those_of_the_length_asked():
+    """min_rest_s: rests of 200 s are read at the default length (120 s), not at 500 s, where only
+    the closing rest (600 s) counts; the slow tail is still to come at the end of the short ones."""
+    cols, _ = va.simulate_cell(SLOW, hppc_current(200.0), 0)
+    t, i, v, _ = cols.T
+    short, long_only = (rest_relaxation(t, i, v, va.CAP, min_rest_s=s) for s in (RELAX_REST_MIN_S, 500.0))
+    assert short["n_rests"] == 8 and long_only["n_rests"] == 1, (short["n_rests"], long_only["n_rests"])
+    assert short["min_rest_s"] == RELAX_REST_MIN_S and "500 s" in long_only["what"]
+    assert short["nominated"], short
+
+
 def test_short_rests_give_no_signature():
     r = relaxation(SLOW, rest_s=RELAX_REST_MIN_S / 2)
     # only the closing rest (600 s after the charge pulse's 40 s rest) is long enough
