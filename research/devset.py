@@ -722,7 +722,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--diffusion-signature", type=float, choices=REQUIREMENT_GRID["diffusion_signature"],
                     help="rules: hold the requirement at this level (0 never, 1 where read, 2 always) instead of "
                          "the product's, to compare the levels")
+    ap.add_argument("--hold", action="append", default=[], metavar="RULE=VALUE",
+                    help="rules: search only the rules with RULE at VALUE, e.g. relax_rest_min_s=500 (a level held "
+                         "for every fold, to compare it with the one the search chooses); repeatable")
     args = ap.parse_args(argv)
+    held = _parse_holds(ap, args.hold)
     cells = [c for c in args.cells.split(",") if c]
     specs = plan(cells)
     if args.stage == "plan":
@@ -762,6 +766,9 @@ def main(argv: list[str] | None = None) -> int:
     grid = rule_grid(args.search_requirement, args.wide_grid)
     if args.diffusion_signature is not None and not args.search_requirement:
         grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
+    grid = [r for r in grid if all(r.get(k) == v for k, v in held.items())]
+    if not grid:
+        ap.error(f"--hold {' '.join(args.hold)}: no rule of the grid searched holds that (--wide-grid has more values)")
     doc = search([*evs, *labelled], grid, progress=lambda msg: print(msg, file=sys.stderr))
     held_out = {r["stem"]: r["verdict"] for r in doc["rows"]}
     doc["labelled"] = [{"stem": ev.stem, "cell": ev.cell, "truth": ev.effect, "verdict": held_out[ev.stem],
@@ -773,6 +780,24 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.write_text(json.dumps(doc, indent=1))
     return 0
+
+
+def _parse_holds(ap: argparse.ArgumentParser, holds: Sequence[str]) -> dict[str, float]:
+    """``--hold RULE=VALUE`` options as a dict; an unknown rule or a value off its grid is an error."""
+    out = {}
+    for h in holds:
+        key, _, value = h.partition("=")
+        axis = {**WIDE_GRID, **REQUIREMENT_GRID}.get(key)
+        try:
+            v = float(value)
+        except ValueError:
+            ap.error(f"--hold {h}: VALUE must be a number")
+        if axis is None:
+            ap.error(f"--hold {h}: unknown rule {key!r}; rules: {', '.join({**WIDE_GRID, **REQUIREMENT_GRID})}")
+        if v not in axis:
+            ap.error(f"--hold {h}: {v:g} is not on the grid of {key} ({', '.join(f'{a:g}' for a in axis)})")
+        out[key] = v
+    return out
 
 
 def set_cell(name: str, cells: Sequence[str]) -> str:

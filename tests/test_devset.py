@@ -150,6 +150,15 @@ def test_the_rest_length_rule_reads_the_signature_at_that_length():
     assert set(rule_grid()[0]) <= set(current_rule())  # the tie-break reads the current value of each
 
 
+@pytest.mark.parametrize("hold", ["foo=1", "relax_rest_min_s=400", "relax_rest_min_s=abc"])
+def test_a_held_rule_off_the_grid_is_an_error_naming_it(hold, capsys):
+    from research.devset import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["rules", "--hold", hold])
+    assert exc.value.code == 2 and f"--hold {hold}" in capsys.readouterr().err
+
+
 def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     """Effects at a gain of 0.2 and clean recordings whose best candidate gains 0.12: 0.15 is the
     bar that names every effect and no clean one; 0.10 names more effects on cell C only at the
