@@ -347,10 +347,10 @@ def labelled_one(job: tuple[str, str, str]) -> tuple[str, str]:
 
 
 # -- rules -----------------------------------------------------------------------------------------
-#: the shortest rest the diffusion relaxation signature reads (s), searched as a rule: a long rest
-#: reads the slow tail alone, a shorter one reads drives that park only briefly (a random walk's
-#: rests of a few minutes) but also more of a healthy cell's faster relaxation.  The evidence keeps
-#: the signature's statistic at every length (:func:`relaxation_by_rest`)
+#: the shortest rest the diffusion relaxation signature reads (s), searched with ``rules
+#: --search-rest-length``: a long rest reads the slow tail alone, a shorter one reads drives that park
+#: only briefly (a random walk's rests of a few minutes) but also more of a healthy cell's faster
+#: relaxation.  The evidence keeps the signature's statistic at every length (:func:`relaxation_by_rest`)
 RELAX_REST_GRID: tuple[float, ...] = (60.0, 120.0, 300.0, 500.0)
 #: the rules searched: significance thresholds (fields of DiagnoseOptions) and signature levels
 #: (:data:`SIGNATURE_RULES`); each list holds the product's current value
@@ -362,7 +362,6 @@ RULE_GRID: dict[str, tuple[float, ...]] = {
     "kinetics_max_i0_c": (0.10, 0.12, 0.15, 0.18, 0.20),
     "relax_min_ratio": (0.15, 0.20, 0.30),
     "relax_min_z": (3.0, 5.0),
-    "relax_rest_min_s": RELAX_REST_GRID,
 }
 #: ``rules --wide-grid``: the axes whose chosen value sits at an edge of :data:`RULE_GRID`, extended past it
 #: (a check that the choice is not held by the grid's edge; docs/results/diagnose.md)
@@ -381,6 +380,8 @@ SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "relax
 #: fit-only diffusion is refused never (0), where its relaxation signature read rests and did not
 #: fire (1, the product), or always (2): the index into service.diagnosis.effects.SIGNATURE_NEEDED
 REQUIREMENT_GRID: dict[str, tuple[float, ...]] = {"diffusion_signature": (0.0, 1.0, 2.0)}
+#: ``rules --search-rest-length``: the relaxation signature's shortest rest, searched with the rest
+REST_LENGTH_GRID: dict[str, tuple[float, ...]] = {"relax_rest_min_s": RELAX_REST_GRID}
 
 
 def current_rule() -> dict[str, float]:
@@ -397,10 +398,11 @@ def current_rule() -> dict[str, float]:
     return now
 
 
-def rule_grid(with_requirement: bool = False, wide: bool = False) -> list[dict[str, float]]:
+def rule_grid(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False) -> list[dict[str, float]]:
     """Every rule of :data:`RULE_GRID` (:data:`WIDE_GRID` with ``wide``; and of :data:`REQUIREMENT_GRID`
-    with ``with_requirement``)."""
-    axes = {**(WIDE_GRID if wide else RULE_GRID), **(REQUIREMENT_GRID if with_requirement else {})}
+    with ``with_requirement``, of :data:`REST_LENGTH_GRID` with ``with_rest_length``)."""
+    axes = {**(WIDE_GRID if wide else RULE_GRID), **(REQUIREMENT_GRID if with_requirement else {}),
+            **(REST_LENGTH_GRID if with_rest_length else {})}
     keys = list(axes)
     return [dict(zip(keys, values)) for values in itertools.product(*(axes[k] for k in keys))]
 
@@ -722,6 +724,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--diffusion-signature", type=float, choices=REQUIREMENT_GRID["diffusion_signature"],
                     help="rules: hold the requirement at this level (0 never, 1 where read, 2 always) instead of "
                          "the product's, to compare the levels")
+    ap.add_argument("--search-rest-length", action="store_true",
+                    help="rules: search also the shortest rest the diffusion relaxation signature reads "
+                         "(60, 120, 300, 500 s; the product reads 500 s)")
     ap.add_argument("--hold", action="append", default=[], metavar="RULE=VALUE",
                     help="rules: search only the rules with RULE at VALUE, e.g. relax_rest_min_s=500 (a level held "
                          "for every fold, to compare it with the one the search chooses); repeatable")
@@ -763,12 +768,13 @@ def main(argv: list[str] | None = None) -> int:
         _complete(ev, args.labelled / f"{ev.stem}.csv",
                   json.loads((args.labelled / f"{ev.stem}.meta.json").read_text())["capacity_ah"])
         ev.cell = set_cell(labels.get(ev.stem, {}).get("cell", ev.cell), cells)
-    grid = rule_grid(args.search_requirement, args.wide_grid)
+    grid = rule_grid(args.search_requirement, args.wide_grid, args.search_rest_length)
     if args.diffusion_signature is not None and not args.search_requirement:
         grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
     grid = [r for r in grid if all(r.get(k) == v for k, v in held.items())]
     if not grid:
-        ap.error(f"--hold {' '.join(args.hold)}: no rule of the grid searched holds that (--wide-grid has more values)")
+        ap.error(f"--hold {' '.join(args.hold)}: no rule of the grid searched holds that (--wide-grid and "
+                 "--search-rest-length add values)")
     doc = search([*evs, *labelled], grid, progress=lambda msg: print(msg, file=sys.stderr))
     held_out = {r["stem"]: r["verdict"] for r in doc["rows"]}
     doc["labelled"] = [{"stem": ev.stem, "cell": ev.cell, "truth": ev.effect, "verdict": held_out[ev.stem],
@@ -787,13 +793,14 @@ def _parse_holds(ap: argparse.ArgumentParser, holds: Sequence[str]) -> dict[str,
     out = {}
     for h in holds:
         key, _, value = h.partition("=")
-        axis = {**WIDE_GRID, **REQUIREMENT_GRID}.get(key)
+        axis = {**WIDE_GRID, **REQUIREMENT_GRID, **REST_LENGTH_GRID}.get(key)
         try:
             v = float(value)
         except ValueError:
             ap.error(f"--hold {h}: VALUE must be a number")
         if axis is None:
-            ap.error(f"--hold {h}: unknown rule {key!r}; rules: {', '.join({**WIDE_GRID, **REQUIREMENT_GRID})}")
+            ap.error(f"--hold {h}: unknown rule {key!r}; rules: "
+                     f"{', '.join({**WIDE_GRID, **REQUIREMENT_GRID, **REST_LENGTH_GRID})}")
         if v not in axis:
             ap.error(f"--hold {h}: {v:g} is not on the grid of {key} ({', '.join(f'{a:g}' for a in axis)})")
         out[key] = v

@@ -134,7 +134,7 @@ def test_decide_refuses_diffusion_whose_signature_read_rests_and_did_not_fire():
 
 
 def test_the_rest_length_rule_reads_the_signature_at_that_length():
-    """relax_rest_min_s: a fit-only diffusion gain on a drive that parks only briefly is named when the
+    """relax_rest_min_s (rules --search-rest-length): a fit-only diffusion gain on a drive that parks only briefly is named when the
     signature reads long rests alone (nothing to read), refused at a length that reads the brief
     parking, which relaxed, and named where the brief parking shows a slow tail; every rule of the
     grid carries a length the evidence keeps."""
@@ -146,7 +146,8 @@ def test_the_rest_length_rule_reads_the_signature_at_that_length():
     assert decide(diff, {"relax_rest_min_s": 120.0})[0] == "none"
     diff.signatures["diffusion_by_rest"]["120"] = {"statistic": 0.4, "z": 9.0}
     assert decide(diff, {"relax_rest_min_s": 120.0})[0] == "diffusion"
-    assert {r["relax_rest_min_s"] for r in rule_grid()} == set(RELAX_REST_GRID)
+    assert {r["relax_rest_min_s"] for r in rule_grid(with_rest_length=True)} == set(RELAX_REST_GRID)
+    assert all("relax_rest_min_s" not in r for r in rule_grid())  # searched only when asked
     assert set(rule_grid()[0]) <= set(current_rule())  # the tie-break reads the current value of each
 
 
