@@ -374,7 +374,8 @@ WIDE_GRID: dict[str, tuple[float, ...]] = {
 }
 #: signature levels: the kinetics bound (service.diagnosis.effects.KINETICS_MAX_I0_C: the step fit
 #: nominates kinetics below it and the extension's fitted exchange current must lie below it) and
-#: the relaxation signature's ratio and z (service.diagnosis.signatures.RELAX_MIN_RATIO, RELAX_MIN_Z)
+#: the relaxation signature's ratio and z (service.diagnosis.signatures.RELAX_MIN_RATIO, RELAX_MIN_Z), and
+#: with ``rules --search-rest-length`` the shortest rest it reads (RELAX_REST_MIN_S)
 SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "relax_rest_min_s", "diffusion_signature")
 #: a structural rule the search leaves alone unless asked (``rules --search-requirement``): whether a
 #: fit-only diffusion is refused never (0), where its relaxation signature read rests and did not

@@ -93,12 +93,12 @@ departure the effect describes is present.  An effect whose signature fires is
   :data:`service.diagnosis.effects.KINETICS_MAX_I0_C` (the bound the kinetics extension's
   own fitted size must meet).  Only the fit part's steps are read.
 * ``diffusion`` — a slow solid diffusion shows as relaxation that is still running at the end
-  of a rest (:func:`rest_relaxation`).  For each rest of at least
+  of a long rest (:func:`rest_relaxation`).  For each rest of at least
   :data:`RELAX_REST_MIN_S` after a load step of at least :data:`RELAX_MIN_STEP_C` × 1C, the
   relaxation still to come is extrapolated from the rest's last quarter as a diffusion tail
   (``V∞ − V ∝ t^−1/2``, so ``V∞ − V(t) = 2·t·dV/dt``) and divided by the instantaneous
-  voltage step when the current stopped (the ohmic drop, which every cell shows at once).  On
-  a healthy cell what is still to come is a small share of that step; nominated when the
+  voltage step when the current stopped (the ohmic drop, which every cell shows at once).  A
+  healthy Li-ion cell has done nearly all of its relaxing after ten minutes; nominated when the
   median ratio is at least :data:`RELAX_MIN_RATIO` and the pooled z of the remaining
   relaxation is at least :data:`RELAX_MIN_Z`.  It nominates (the lower gain bar), it does not
   measure the extension's size: how much of the slow relaxation the surface lag describes is
