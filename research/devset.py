@@ -791,17 +791,17 @@ def main(argv: list[str] | None = None) -> int:
 
 def _parse_holds(ap: argparse.ArgumentParser, holds: Sequence[str]) -> dict[str, float]:
     """``--hold RULE=VALUE`` options as a dict; an unknown rule or a value off its grid is an error."""
+    axes = {**WIDE_GRID, **REQUIREMENT_GRID, **REST_LENGTH_GRID}
     out = {}
     for h in holds:
         key, _, value = h.partition("=")
-        axis = {**WIDE_GRID, **REQUIREMENT_GRID, **REST_LENGTH_GRID}.get(key)
+        axis = axes.get(key)
         try:
             v = float(value)
         except ValueError:
             ap.error(f"--hold {h}: VALUE must be a number")
         if axis is None:
-            ap.error(f"--hold {h}: unknown rule {key!r}; rules: "
-                     f"{', '.join({**WIDE_GRID, **REQUIREMENT_GRID, **REST_LENGTH_GRID})}")
+            ap.error(f"--hold {h}: unknown rule {key!r}; rules: {', '.join(axes)}")
         if v not in axis:
             ap.error(f"--hold {h}: {v:g} is not on the grid of {key} ({', '.join(f'{a:g}' for a in axis)})")
         out[key] = v
