@@ -1074,10 +1074,7 @@ for n in 8 96; do
       --spread-capacity 0.05 --json out/demo${n}_cap5_model_absolute.json
 done
 # the recorded drive on the Panasonic profile today's socd fit writes with the bundled one's command
-# (soc_accuracy.md, profiles_refit), whose 25 °C OCV row follows the HPPC rests down to empty
-D=../shared/data/real; P=$D/panasonic_18650pf; mkdir -p out/refit
-socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv \\
-    --capacity-ah 2.77 --min-order 0.5 --max-seconds 150 --kinetics -q -o out/refit/panasonic_18650pf.toml
+# (profiles_refit's out/refit/panasonic_18650pf.toml), whose 25 °C OCV row follows the HPPC rests down to empty
 socd demo --cell out/refit/panasonic_18650pf.toml --spread-capacity 0.05 --json out/demo8_cap5_refit.json
 SOCD_ESTIMATOR__CAPACITY_ESTIMATION=absolute socd demo --cell out/refit/panasonic_18650pf.toml \\
     --spread-capacity 0.05 --json out/demo8_cap5_refit_absolute.json""",
@@ -1085,7 +1082,7 @@ SOCD_ESTIMATOR__CAPACITY_ESTIMATION=absolute socd demo --cell out/refit/panasoni
                               "demo8_cap5_seed1.json", "demo8_cap5_seed2.json", "demo96_cap5.json",
                               "demo8_cap5_model.json", "demo8_cap5_model_absolute.json", "demo96_cap5_model.json",
                               "demo96_cap5_model_absolute.json", "demo8_cap5_refit.json",
-                              "demo8_cap5_refit_absolute.json"), 5),
+                              "demo8_cap5_refit_absolute.json"), 5, ("needs:profiles_refit",)),
     Table("diag_labelled", "diagnose.md", """\
 S=../shared/data/synthetic
 for f in dst_s101_4e4041 hppc_s102_131537 bjdst_s103_55f05a randomwalk_s104_e90722 hppc_s105_437525 dst_s106_462959 randomwalk_s107_cac951; do
