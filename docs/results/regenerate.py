@@ -221,6 +221,29 @@ def demo_capacity_table(*names: str) -> Callable[[Path], str]:
         "| both targets (±1.5 %, ≤ 0.7 %) |", row, names)
 
 
+def capacity_bias_table(*runs: tuple[str, str]) -> Callable[[Path], str]:
+    """``python -m research.capacity_bias --json`` runs side by side, one row per band of true SOC:
+    the SOC offset the frozen filter's voltage innovations point to, and the absolute capacity
+    estimator's error at the band's end, per run (``runs``: label, JSON name)."""
+    def render(out: Path) -> str:
+        data = [_read(out, n) for _, n in runs]
+        labels = [label for label, _ in runs]
+        lines = ["| true SOC, % | " + " | ".join(f"voltage says, % SOC ({x})" for x in labels) + " | "
+                 + " | ".join(f"absolute capacity error, % ({x})" for x in labels) + " |",
+                 "|" + "---|" * (1 + 2 * len(runs))]
+        def cell(b: dict | None, key: str) -> str:
+            return "–" if b is None else f"{b[key]:+.2f}"
+
+        for lo, hi in [(b["soc_from_pct"], b["soc_to_pct"]) for b in data[0]["bands"]]:
+            rows = [next((b for b in d["bands"] if (b["soc_from_pct"], b["soc_to_pct"]) == (lo, hi)), None) for d in data]
+            lines.append(f"| {lo:.0f}-{hi:.0f} | " + " | ".join(cell(b, "voltage_soc_offset_pct") for b in rows) + " | "
+                         + " | ".join(cell(b, "absolute_capacity_err_pct") for b in rows) + " |")
+        lines.append("| **whole drive** | " + " | ".join(f"**{d['voltage_soc_offset_pct']:+.2f}**" for d in data) + " | "
+                     + " | ".join(f"**{d['absolute_capacity_err_pct']:+.2f}**" for d in data) + " |")
+        return "\n".join(lines)
+    return render
+
+
 def demo_table(*names: str) -> Callable[[Path], str]:
     """One row per ``socd demo --json`` run."""
     def row(n: str, d: dict) -> str:
@@ -1083,6 +1106,16 @@ SOCD_ESTIMATOR__CAPACITY_ESTIMATION=absolute socd demo --cell out/refit/panasoni
                               "demo8_cap5_model.json", "demo8_cap5_model_absolute.json", "demo96_cap5_model.json",
                               "demo96_cap5_model_absolute.json", "demo8_cap5_refit.json",
                               "demo8_cap5_refit_absolute.json"), 5, ("needs:profiles_refit",)),
+    Table("capacity_bias", "bench.md", """\
+# the single recorded cell at the profile's capacity, started at the truth (research.capacity_bias)
+python -m research.capacity_bias service/data/pan18650pf_25C_US06.csv --json out/capacity_bias_bundled.json
+python -m research.capacity_bias service/data/pan18650pf_25C_US06.csv --cell out/refit/panasonic_18650pf.toml \\
+    --json out/capacity_bias_refit.json
+python -m research.capacity_bias out/model_us06.csv --json out/capacity_bias_model.json   # demo_capacity's model drive""",
+          capacity_bias_table(("recorded, bundled profile", "capacity_bias_bundled.json"),
+                              ("recorded, refit profile", "capacity_bias_refit.json"),
+                              ("model drive", "capacity_bias_model.json")), 1,
+          ("needs:demo_capacity", "needs:profiles_refit")),
     Table("diag_labelled", "diagnose.md", """\
 S=../shared/data/synthetic
 for f in dst_s101_4e4041 hppc_s102_131537 bjdst_s103_55f05a randomwalk_s104_e90722 hppc_s105_437525 dst_s106_462959 randomwalk_s107_cac951; do
