@@ -131,6 +131,21 @@ def test_fit_quality_rule(rmse, ecm, overpotential, bad):
         check_fit_quality(rep)
 
 
+@pytest.mark.parametrize("measured", [False, True])
+def test_a_refused_fit_names_data_the_user_has_not_given(measured):
+    """With the OCV fitted jointly an OCV test would help; with it measured (a table or a test given),
+    suggesting one again would send the user for data they already gave: the hint names the dynamics."""
+    rep = FitReport(temperatures=[TemperatureFit(temp_c=10.0, rmse_mv=72.6, ecm_rmse_mv=76.8, at_bounds=[],
+                                                 source="fractional fit", overpotential_rms_mv=136.0,
+                                                 ocv_measured=measured)])
+    with pytest.raises(FitQualityError) as err:
+        check_fit_quality(rep)
+    text = str(err.value)
+    assert text.startswith("10 °C: fit RMSE 72.6 mV") and text.endswith("--force writes the profile anyway")
+    assert ("an OCV test" in text) is not measured
+    assert ("the OCV there is measured" in text and "76.8 mV" in text and "HPPC" in text) is measured
+
+
 @pytest.mark.parametrize(("rmse", "simulated", "bad"), [
     (9.6, 9.9, False),   # 11 % above the 2-RC fit's own 8.6 mV, but better than its point as this model reads it
     (11.0, 9.9, True),   # worse than the 2-RC point read the same way

@@ -158,6 +158,8 @@ class TemperatureFit:
     #: the 2-RC fit's point simulated as the fractional model is (the OCV as stored, the fractional
     #: time step): the bar of :meth:`problem`, so both fits are read the same way; None: ``ecm_rmse_mv``
     ecm_simulated_mv: float | None = None
+    #: the OCV at this temperature came from a table or an OCV test, not a joint fit
+    ocv_measured: bool = False
 
     def problem(self) -> str | None:
         bound = max(POOR_FIT_MV, POOR_FIT_SHARE * self.overpotential_rms_mv)
@@ -169,6 +171,15 @@ class TemperatureFit:
             return (f"fit RMSE {self.rmse_mv:.1f} mV is worse than the textbook 2-RC fit of the same data "
                     f"({bar:.1f} mV as this model simulates its point; {self.ecm_rmse_mv:.1f} mV its own fit)")
         return None
+
+    def data_hint(self) -> str:
+        """What data would help a temperature whose fit has a :meth:`problem`."""
+        if not self.ocv_measured:
+            return ("an OCV test (a C/20 discharge and charge, or rests of an hour or more at five or more SOC "
+                    "levels) given with --ocv or among the recordings, or an HPPC test")
+        return (f"the OCV there is measured, so what is left is in the dynamics (the textbook 2-RC fit leaves "
+                f"{self.ecm_rmse_mv:.1f} mV): an HPPC test (current pulses from rest at several SOC levels) or "
+                "drives at lower C-rates beside this one")
 
 
 @dataclass
@@ -503,7 +514,8 @@ def characterise(
             hyst = res.hysteresis
         outcome = TemperatureFit(temp_c=t, rmse_mv=rmse, ecm_rmse_mv=ecm[t].rmse_mv, ecm_simulated_mv=start_rmse,
                                  at_bounds=res.at_bounds if source == "fractional fit" else [], source=source,
-                                 overpotential_rms_mv=overpotential_rms_mv(prof, segs))
+                                 overpotential_rms_mv=overpotential_rms_mv(prof, segs),
+                                 ocv_measured=test_rows is not None)
         rep.temperatures.append(outcome)
         rep.say(f"  {t:g} °C: R_ohm {pt.r_ohm * 1e3:.1f} mΩ, R_ct {pt.r_ct * 1e3:.1f} mΩ, m {pt.m:.2f}, "
                 f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}"
@@ -762,8 +774,5 @@ def check_fit_quality(report: FitReport) -> None:
     bad = [(t, t.problem()) for t in report.temperatures if t.problem() is not None]
     if not bad:
         return
-    what = "; ".join(f"{t.temp_c:g} °C: {why}" for t, why in bad)
-    raise FitQualityError(
-        f"{what}. Nothing written. Data that would help at that temperature: an OCV test (a C/20 discharge "
-        "and charge, or rests of an hour or more at five or more SOC levels) given with --ocv or among the "
-        "recordings, or an HPPC test; --force writes the profile anyway")
+    what = "; ".join(f"{t.temp_c:g} °C: {why}. Data that would help there: {t.data_hint()}" for t, why in bad)
+    raise FitQualityError(f"{what}. Nothing written; --force writes the profile anyway")
