@@ -305,9 +305,14 @@ def main(argv: list[str] | None = None) -> int:
     opt = RunOptions(tuple(shlex.split(a.fit_flags)), a.profile_tag, a.refit, tuple(e for e in a.estimators.split(",") if e),
                      a.settings, a.current_bias_c, a.tag, ocv_ambients, a.fit_drive)
     step = fit_cell if a.command == "fit" else run_cell
+    failed = []
     for cell in cells:
-        print(f"{cell}: {step(cell, ambients, a.workdir, opt)}", flush=True)
-    return 0
+        try:
+            print(f"{cell}: {step(cell, ambients, a.workdir, opt)}", flush=True)
+        except subprocess.CalledProcessError as exc:  # socd said why on stderr; the other cells still run
+            failed.append(cell)
+            print(f"{cell}: `{' '.join(exc.cmd[:2])}` exited {exc.returncode} (its message above)", file=sys.stderr)
+    return 2 if failed else 0
 
 
 if __name__ == "__main__":
