@@ -76,6 +76,8 @@ class DemoResult:
     per_cell_rmse_pct: list[float]
     #: per cell at the end: (estimated capacity / the cell's true capacity - 1), %
     capacity_err_pct: list[float]
+    #: per cell at the end: the capacity's σ as the service publishes it, % of the estimate (0 when frozen)
+    capacity_std_pct: list[float]
     capacity_spread: float
     #: per cell: (the cell's true capacity / the profile's - 1), %, as the seeded spread drew it
     true_capacity_pct: list[float]
@@ -311,6 +313,7 @@ def run_demo(
     counters = daemon.counters()
     capacity_now = daemon.estimator.capacity_ah
     capacity_err = (capacity_now / pack.capacity_ah - 1.0) * 100.0
+    capacity_std = daemon.estimator.health().capacity_std_ah / capacity_now * 100.0
     result = DemoResult(
         cells=cells,
         recording=recording_path.name,
@@ -327,6 +330,7 @@ def run_demo(
         soc_rmse_after_600s_pct=None if rmse_late is None else round(rmse_late, 4),
         per_cell_rmse_pct=[round(float(x), 4) for x in per_cell],
         capacity_err_pct=[round(float(x), 3) for x in capacity_err],
+        capacity_std_pct=[round(float(x), 3) for x in capacity_std],
         capacity_spread=capacity_spread,
         true_capacity_pct=[round(100 * (float(x) / profile.effective_capacity_ah - 1.0), 3) for x in pack.capacity_ah],
         final_soc_pct=[round(100 * float(x), 3) for x in (soc[-1] if len(soc) else [])],

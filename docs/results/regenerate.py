@@ -220,14 +220,16 @@ def latency_table(*names: str) -> Callable[[Path], str]:
 def demo_capacity_table(*names: str) -> Callable[[Path], str]:
     """One row per ``socd demo --json`` run: the online capacity and each cell's SOC error."""
     def row(n: str, d: dict) -> str:
-        cap, rmse = d["capacity_err_pct"], d["per_cell_rmse_pct"]
+        cap, rmse, std = d["capacity_err_pct"], d["per_cell_rmse_pct"], d["capacity_std_pct"]
         median = statistics.median(d["true_capacity_pct"])
+        covered = sum(abs(e) <= 2 * s for e, s in zip(cap, std))
         return (f"| `{n}` | {d['cells']} | {100 * d['capacity_spread']:g} % | {median:+.2f} % | {d['seconds_replayed']:,.0f} | "
-                f"{min(cap):+.2f} to {max(cap):+.2f} | {min(rmse):.2f}-{max(rmse):.2f} | "
+                f"{min(cap):+.2f} to {max(cap):+.2f} | {min(std):.2f}-{max(std):.2f} | {covered}/{len(cap)} | "
+                f"{min(rmse):.2f}-{max(rmse):.2f} | "
                 f"{'yes' if max(map(abs, cap)) <= 1.5 and max(rmse) <= 0.7 else 'no'} |")
     return json_rows_table(
         "| run | cells | capacity spread σ | median cell's capacity vs the profile's | replayed, s "
-        "| capacity error per cell, % | SOC RMSE per cell, % "
+        "| capacity error per cell, % | its published σ, % | cells within 2σ | SOC RMSE per cell, % "
         "| both targets (±1.5 %, ≤ 0.7 %) |", row, names)
 
 

@@ -29,7 +29,9 @@ so the SOC σ includes what the capacity is not sure of.
   capacity by 1.5-2 % SOC over one drive, which the absolute mode reads as a 2-3 %
   capacity error in every cell.  Relative to the pack median that drift cancels, and
   the capacities are learned relative to the median cell, whose own capacity stays at the
-  profile's.  For the same reason ``σ²_e`` is then the innovation variance without the SOC
+  profile's.  The pack's common level is therefore not observed: the σ published
+  (:attr:`CapacityEstimator.capacity_std_ah`) adds the prior's relative σ for it to the learned
+  variance, which is that of the cell against the median.  For the same reason ``σ²_e`` is then the innovation variance without the SOC
   filter's current-dependent and learned model-error terms (its state spread and the constant
   voltage noise only): the model error those terms stand for is the part that cancels.  A
   one-cell pack learns nothing in this mode.
@@ -80,6 +82,8 @@ class CapacityEstimator:
         self.inflation = float(inflation)
         self.walk = float(walk_rel_per_sqrt_s)
         self.bounds = (1.0 / (1.0 + bounds_rel), 1.0 / (1.0 - bounds_rel))
+        #: variance of the pack's common level, which the pack-relative mode never learns
+        self.common_var = init_std_rel ** 2 if mode == "pack-relative" else 0.0
         self.state = CapacityState(np.ones(self.n), np.full(self.n, init_std_rel ** 2), np.zeros(self.n))
 
     # -- what the SOC filter uses ---------------------------------------------------------
@@ -89,8 +93,10 @@ class CapacityEstimator:
 
     @property
     def capacity_std_ah(self) -> np.ndarray:
-        """σ of the capacity, first order: ``Q_nom / φ² · σ_φ``."""
-        return self.nominal_ah * np.sqrt(np.maximum(self.state.var, 0.0)) / self.state.phi ** 2
+        """σ of the capacity, first order: ``Q_nom / φ² · σ_φ``, with ``σ_φ²`` the learned variance
+        plus, in the pack-relative mode, the unobserved common level's (the module docstring)."""
+        var = np.maximum(self.state.var, 0.0) + self.common_var
+        return self.nominal_ah * np.sqrt(var) / self.state.phi ** 2
 
     def soc_process_var(self, current_a: np.ndarray, dt_s: float) -> np.ndarray:
         """SOC variance one step adds through the capacity's uncertainty."""
