@@ -25,16 +25,17 @@ so the SOC σ includes what the capacity is not sure of.
 
 - ``"pack-relative"`` (default): the innovation of each cell minus the pack's median
   innovation.  Cells of one pack share the profile, and the profile's model error is
-  common to them; measured on the demo pack, that error alone drifts a cell of nominal
-  capacity by 1.5-2 % SOC over one drive, which the absolute mode reads as a 2-3 %
-  capacity error in every cell.  Relative to the pack median that drift cancels, and
-  the capacities are learned relative to the median cell, whose own capacity stays at the
+  common to them: along a discharge it moves the voltage as a capacity error would
+  (``research.capacity_bias`` measures it band by band of SOC), and the absolute mode
+  reads it as one in every cell.  Relative to the pack median it cancels, and the
+  capacities are learned relative to the median cell, whose own capacity stays at the
   profile's.  The pack's common level is therefore not observed: the σ published
-  (:attr:`CapacityEstimator.capacity_std_ah`) adds the prior's relative σ for it to the learned
-  variance, which is that of the cell against the median.  For the same reason ``σ²_e`` is then the innovation variance without the SOC
-  filter's current-dependent and learned model-error terms (its state spread and the constant
-  voltage noise only): the model error those terms stand for is the part that cancels.  A
-  one-cell pack learns nothing in this mode.
+  (:attr:`CapacityEstimator.capacity_std_ah`) adds the prior's relative σ for it to the
+  learned variance, which is that of the cell against the median.  For the same reason
+  ``σ²_e`` is then the innovation variance without the SOC filter's current-dependent and
+  learned model-error terms (its state spread and the constant voltage noise only): the
+  model error those terms stand for is the part that cancels.  A one-cell pack learns
+  nothing in this mode.
 - ``"absolute"``: each cell's own innovation.
 - ``"off"``: frozen at the profile's capacity (the filter then runs exactly as before).
 
