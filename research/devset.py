@@ -399,11 +399,17 @@ def current_rule() -> dict[str, float]:
     return now
 
 
-def rule_grid(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False) -> list[dict[str, float]]:
-    """Every rule of :data:`RULE_GRID` (:data:`WIDE_GRID` with ``wide``; and of :data:`REQUIREMENT_GRID`
-    with ``with_requirement``, of :data:`REST_LENGTH_GRID` with ``with_rest_length``)."""
-    axes = {**(WIDE_GRID if wide else RULE_GRID), **(REQUIREMENT_GRID if with_requirement else {}),
+def rule_axes(with_requirement: bool = False, wide: bool = False,
+              with_rest_length: bool = False) -> dict[str, tuple[float, ...]]:
+    """The values searched per rule: :data:`RULE_GRID` (:data:`WIDE_GRID` with ``wide``), and
+    :data:`REQUIREMENT_GRID` with ``with_requirement``, :data:`REST_LENGTH_GRID` with ``with_rest_length``."""
+    return {**(WIDE_GRID if wide else RULE_GRID), **(REQUIREMENT_GRID if with_requirement else {}),
             **(REST_LENGTH_GRID if with_rest_length else {})}
+
+
+def rule_grid(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False) -> list[dict[str, float]]:
+    """Every rule of :func:`rule_axes` with the same switches."""
+    axes = rule_axes(with_requirement, wide, with_rest_length)
     keys = list(axes)
     return [dict(zip(keys, values)) for values in itertools.product(*(axes[k] for k in keys))]
 
@@ -791,7 +797,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _parse_holds(ap: argparse.ArgumentParser, holds: Sequence[str]) -> dict[str, float]:
     """``--hold RULE=VALUE`` options as a dict; an unknown rule or a value off its grid is an error."""
-    axes = {**WIDE_GRID, **REQUIREMENT_GRID, **REST_LENGTH_GRID}
+    axes = rule_axes(with_requirement=True, wide=True, with_rest_length=True)
     out = {}
     for h in holds:
         key, _, value = h.partition("=")
