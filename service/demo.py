@@ -311,9 +311,9 @@ def run_demo(
     else:
         rmse, rmse_late, per_cell = float("nan"), None, np.full(cells, np.nan)
     counters = daemon.counters()
-    capacity_now = daemon.estimator.capacity_ah
-    capacity_err = (capacity_now / pack.capacity_ah - 1.0) * 100.0
-    capacity_std = daemon.estimator.health().capacity_std_ah / capacity_now * 100.0
+    health = daemon.estimator.health()
+    capacity_err = (health.capacity_ah / pack.capacity_ah - 1.0) * 100.0
+    capacity_std = health.capacity_std_ah / health.capacity_ah * 100.0
     result = DemoResult(
         cells=cells,
         recording=recording_path.name,
