@@ -43,6 +43,7 @@ BAD_VALUES = [
     (["fit", "r.csv", "--capacity-ah", "2", "--full-at", "-3", "-o", "x.toml"], "--full-at"),
     (["fit", "r.csv", "--capacity-ah", "-2", "-o", "x.toml"], "--capacity-ah"),
     (["fit", "r.csv", "--capacity-ah", "2", "--memory-length", "0", "-o", "x.toml"], "--memory-length"),
+    (["fit", "r.csv", "--capacity-ah", "2", "--starts", "0", "-o", "x.toml"], "--starts"),
     (["bench", "--cells", "abc"], "--cells"),
     (["bench", "--steps", "3"], "--steps"),
     (["demo", "--speed", "-1"], "--speed"),

@@ -625,6 +625,36 @@ def test_a_kinetics_fit_never_ends_worse_than_its_2rc_start(tmp_path: Path, nmc_
     ch.check_fit_quality(report)
 
 
+def test_several_starts_keep_the_search_that_fits_best(nmc_recording, monkeypatch) -> None:
+    """``starts`` runs one search per seed and keeps the point that fits the segments best, whichever
+    seed found it. The search on seed 7 is replaced by one ending far off; the real search runs on
+    seed 8 and its point is kept."""
+    import service.characterisation.characterise as ch
+    from service.cell.fitting import FitResult
+    from service.recording import load_recording
+
+    real_fit = ch.fit_parameters
+    seeds = []
+
+    def first_far_off(prof, segs, **kw):
+        seeds.append(kw["seed"])
+        if kw["seed"] == 7:
+            bad = kw["x0"].model_copy(update={"r_ohm": kw["x0"].r_ohm * 3.0})
+            return FitResult(point=bad, hysteresis=None, rmse_mv=1e3, n_evaluations=1)
+        return real_fit(prof, segs, **kw)
+
+    monkeypatch.setattr(ch, "fit_parameters", first_far_off)
+    rec = nmc_recording(name="starts", duration_s=2400, seed=4, soc0=0.95)
+    profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=False, max_seconds=5,
+                                      seed=7, starts=2)
+    (t,) = report.temperatures
+    assert seeds == [7, 8]
+    assert t.source == "fractional fit", t.source
+    assert t.rmse_mv <= t.ecm_rmse_mv * 1.05 + 0.5
+    lines = [x for x in report.lines if "search " in x and " of 2 " in x]
+    assert len(lines) == 2 and "(seed 7)" in lines[0] and "(seed 8)" in lines[1], lines
+
+
 def test_on_2rc_submodel_is_orders_one_and_linear_kinetics() -> None:
     from service.cell.fitting import LINEAR_I0_A
     from service.cell.profile import ParameterPoint

@@ -302,6 +302,7 @@ def characterise(
     memory_length: int = 16,
     name: str = "cell",
     seed: int = 0,
+    starts: int = 1,
     slow_branch: bool = False,
     ocv_branch: str = "mean",
     rest_anchor: bool | None = None,
@@ -327,7 +328,10 @@ def characterise(
     read at temperatures beyond theirs (:func:`ocv_rows_by_temperature`).  ``ocv_between_rests``: how
     a rest-anchored joint OCV is read between rests close in SOC (:func:`reads_through_rests`); ``None``
     (the default) reads it the :data:`DEFAULT_OCV_BETWEEN_RESTS` way where there is such an OCV and
-    leaves any other OCV alone, while a choice named where there is none is an error."""
+    leaves any other OCV alone, while a choice named where there is none is an error.  ``starts``:
+    global searches per temperature, seeded ``seed``, ``seed + 1``, ...; the point that fits the
+    temperature's segments best is kept (the searches end on different points where the data pin the
+    parameters down poorly)."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
     rep = report if report is not None else FitReport()
@@ -479,16 +483,25 @@ def characterise(
                       else kinetics_resolvable([part for part, _ in groups[t]], capacity_ah, t, rep))
         start = ecm_start_point(ecm[t], t)
         law_t = temperature_law_resolvable(segs, t, rep)
-        res = fit_parameters(prof, segs, memory_length=memory_length, fit_hysteresis=fit_hysteresis and t == ref_t,
-                             fit_kinetics=kinetics_t, max_seconds=max_seconds, seed=seed, x0=start,
-                             warmer=warmer, colder=colder, min_order=min_order, max_tau_df_s=max_tau_df_s,
-                             temperature_law=law_t, law_ref_temp_c=t)
-        # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
-        pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": t}), res.point.i0_a,
-                                   prof.min_r_ohm_scale(t))
+        best = None
+        for j in range(max(1, starts)):
+            res_j = fit_parameters(prof, segs, memory_length=memory_length,
+                                   fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
+                                   max_seconds=max_seconds, seed=seed + j, x0=start, warmer=warmer, colder=colder,
+                                   min_order=min_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
+                                   law_ref_temp_c=t)
+            # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
+            pt_j = lift_to_kinetic_floor(res_j.point.model_copy(update={"temp_c": t}), res_j.point.i0_a,
+                                         prof.min_r_ohm_scale(t))
+            rmse_j = segments_rmse_mv(prof, pt_j, res_j.hysteresis or prof.hysteresis, segs, memory_length,
+                                      res_j.ea_j_mol)
+            if starts > 1:
+                rep.say(f"  {t:g} °C: search {j + 1} of {starts} (seed {seed + j}) fits to {rmse_j:.2f} mV")
+            if best is None or rmse_j < best[2]:
+                best = (res_j, pt_j, rmse_j)
+        res, pt, rmse = best
         hyst_t = res.hysteresis or prof.hysteresis
         ea_t = res.ea_j_mol
-        rmse = segments_rmse_mv(prof, pt, hyst_t, segs, memory_length, ea_t)
         # the 2-RC fit's point read as this model reads a point (the OCV as stored, the fractional
         # time step, no hysteresis): the bar the fit is held to, both read the same way
         ecm_point = ecm_start_point(ecm[t], t, linear_kinetics=kinetics_t)

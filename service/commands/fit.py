@@ -113,6 +113,12 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="write the profile even when a temperature's fit is poor (RMSE above 50 mV) or worse than "
                    "the textbook 2-RC fit of the same data; without it such a fit exits 2 and writes nothing")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
+    p.add_argument("--starts", type=positive_int, default=1,
+                   help="global searches per temperature, seeded --seed, --seed+1, ...; the one that fits the "
+                        "recordings best is kept (default 1). Several make the profile depend less on the seed, "
+                        "at that many times the fit's run time; on the Panasonic HPPC files 4 starts end on the "
+                        "same profile from any seed, but that profile does not read the cold drives better "
+                        "(docs/results/characterisation.md, hppc_seed_spread)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", help="profile to write (.toml or .json)")
@@ -161,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
                                        max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S, ocv_beyond=args.ocv_beyond,
                                        ocv_between_rests=args.ocv_between_rests,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
-                                       report=report)
+                                       starts=args.starts, report=report)
         if not args.force:
             check_fit_quality(report)
     except ValueError as exc:
