@@ -645,7 +645,7 @@ def test_several_starts_keep_the_search_that_fits_best(nmc_recording, monkeypatc
 
     monkeypatch.setattr(ch, "fit_parameters", first_far_off)
     rec = nmc_recording(name="starts", duration_s=2400, seed=4, soc0=0.95)
-    profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=False, max_seconds=5,
+    _profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=False, max_seconds=5,
                                       seed=7, starts=2)
     (t,) = report.temperatures
     assert seeds == [7, 8]

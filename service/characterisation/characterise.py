@@ -500,7 +500,6 @@ def characterise(
             if best is None or rmse_j < best[2]:
                 best = (res_j, pt_j, rmse_j)
         res, pt, rmse = best
-        hyst_t = res.hysteresis or prof.hysteresis
         ea_t = res.ea_j_mol
         # the 2-RC fit's point read as this model reads a point (the OCV as stored, the fractional
         # time step, no hysteresis): the bar the fit is held to, both read the same way
