@@ -150,6 +150,38 @@ def group_means(out: Path, name: str, groups: tuple[tuple[str, str], ...],
     return means
 
 
+def fit_rmse_by_temperature(log: str) -> dict[str, float]:
+    """The fit RMSE ``socd fit`` logged for each temperature's kept point (``[fit]   T °C: R_ohm ...
+    fit RMSE X mV`` lines), keyed by the temperature as logged."""
+    found = {}
+    for line in log.splitlines():
+        m = re.match(r"\[fit\]\s+(-?\d+(?:\.\d+)?) °C: R_ohm .*?fit RMSE ([\d.]+) mV", line)
+        if m:
+            found[m.group(1)] = float(m.group(2))
+    return found
+
+
+def seed_spread_table(runs: tuple[tuple[str, str], ...], temps: tuple[str, ...],
+                      groups: tuple[tuple[str, str], ...]) -> Callable[[Path], str]:
+    """One row per fit (label, path stem under ``out/`` of its ``.json`` evaluation and ``.fitlog``):
+    ``fomiukf``'s mean SOC RMSE after 600 s per group of drives, then the fit RMSE its log gives
+    at each temperature."""
+    def render(out: Path) -> str:
+        head = ("| fit | " + " | ".join(f"drives {label}" for label, _ in groups) + " | "
+                + " | ".join(f"fit RMSE {t} °C [mV]" for t in temps) + " |")
+        lines = [head, "|---|" + "---|" * (len(groups) + len(temps))]
+        for label, stem in runs:
+            means = ["-" if m is None else f"{m:.2f}" for m in group_means(out, f"{stem}.json", groups)]
+            log = out / f"{stem}.fitlog"
+            if not log.is_file():
+                raise RegenerateError(f"{log}: missing (run the table's commands first)")
+            rmse = fit_rmse_by_temperature(log.read_text())
+            lines.append(f"| {label} | " + " | ".join(means) + " | "
+                         + " | ".join(f"{rmse[t]:.1f}" if t in rmse else "-" for t in temps) + " |")
+        return "\n".join(lines)
+    return render
+
+
 def fit_file_rule_table(out: Path) -> str:
     """Per characterisation and temperature: ``fomiukf`` on the fit file(s) and on the held-out files
     with the fractional profile and with its 2-RC point, which of the two the fit file picks, and
@@ -1000,6 +1032,22 @@ done""",
     Table("unseen_cell", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
 python -m research.unseen_cell run --refit""", unseen_table("unseen_cell"), 15, ("needs:pybamm",)),
+    Table("hppc_seed_spread", "characterisation.md", REAL + """\
+mkdir -p out/seeds
+PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e trise)"
+seed_fit() {  # NAME SEED FIT-FLAGS...: the HPPC-alone fit at one seed (its log kept), scored on the drives
+  n=$1; s=$2; shift 2
+  socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --seed $s "$@" \\
+      -o out/seeds/$n.toml > out/seeds/$n.fitlog 2>&1
+  socd evaluate --cell out/seeds/$n.toml $PANX --estimator fomiukf --no-bar -q --json out/seeds/$n.json
+}
+for s in 0 1 2 3 4 5; do seed_fit pan_s$s $s; done
+for s in 0 2; do seed_fit pank4_s$s $s --starts 4; done""",
+          seed_spread_table(tuple((f"seed {s}", f"seeds/pan_s{s}") for s in range(6))
+                            + tuple((f"`--starts 4` from seed {s} (seeds {s}-{s + 3})", f"seeds/pank4_s{s}") for s in (0, 2)),
+                            ("10", "0", "-10", "-20"),
+                            (("10 °C", r"_10C_"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"), ("−20 °C", r"_m20C_"))),
+          70),
     Table("unseen_cell_lfp", "characterisation.md", """\
 W=out/unseen_lfp
 python -m research.unseen_cell build --cells Prada2013 --ambients 25 --workdir $W
