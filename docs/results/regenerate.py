@@ -1045,8 +1045,9 @@ for s in 0 1 2 3 4 5; do seed_fit pan_s$s $s; done
 for s in 0 2; do seed_fit pank4_s$s $s --starts 4; done""",
           seed_spread_table(tuple((f"seed {s}", f"seeds/pan_s{s}") for s in range(6))
                             + tuple((f"`--starts 4` from seed {s} (seeds {s}-{s + 3})", f"seeds/pank4_s{s}") for s in (0, 2)),
-                            ("10", "0", "-10", "-20"),
-                            (("10 °C", r"_10C_"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"), ("−20 °C", r"_m20C_"))),
+                            ("25", "10", "0", "-10", "-20"),
+                            (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"),
+                             ("−20 °C", r"_m20C_"))),
           70),
     Table("unseen_cell_lfp", "characterisation.md", """\
 W=out/unseen_lfp
