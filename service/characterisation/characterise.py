@@ -46,6 +46,7 @@ from service.cell.current_steps import (
 from service.cell.fitting import (
     LAW_UPDATE_K,
     LINEAR_I0_A,
+    FitResult,
     FitSegment,
     fit_parameters,
     last_current_direction,
@@ -483,23 +484,11 @@ def characterise(
                       else kinetics_resolvable([part for part, _ in groups[t]], capacity_ah, t, rep))
         start = ecm_start_point(ecm[t], t)
         law_t = temperature_law_resolvable(segs, t, rep)
-        best = None
-        for j in range(max(1, starts)):
-            res_j = fit_parameters(prof, segs, memory_length=memory_length,
-                                   fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
-                                   max_seconds=max_seconds, seed=seed + j, x0=start, warmer=warmer, colder=colder,
-                                   min_order=min_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
-                                   law_ref_temp_c=t)
-            # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
-            pt_j = lift_to_kinetic_floor(res_j.point.model_copy(update={"temp_c": t}), res_j.point.i0_a,
-                                         prof.min_r_ohm_scale(t))
-            rmse_j = segments_rmse_mv(prof, pt_j, res_j.hysteresis or prof.hysteresis, segs, memory_length,
-                                      res_j.ea_j_mol)
-            if starts > 1:
-                rep.say(f"  {t:g} °C: search {j + 1} of {starts} (seed {seed + j}) fits to {rmse_j:.2f} mV")
-            if best is None or rmse_j < best[2]:
-                best = (res_j, pt_j, rmse_j)
-        res, pt, rmse = best
+        res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length=memory_length,
+                                       fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
+                                       max_seconds=max_seconds, x0=start, warmer=warmer, colder=colder,
+                                       min_order=min_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
+                                       law_ref_temp_c=t)
         ea_t = res.ea_j_mol
         # the 2-RC fit's point read as this model reads a point (the OCV as stored, the fractional
         # time step, no hysteresis): the bar the fit is held to, both read the same way
@@ -552,6 +541,26 @@ def characterise(
     })
     rep.stage("done", n_stages, n_stages)
     return CellProfile.model_validate(profile.model_dump()), rep
+
+
+def best_of_starts(prof: CellProfile, segs: list[FitSegment], temp_c: float, seed: int, starts: int,
+                   rep: FitReport, **fit_options) -> tuple[FitResult, ParameterPoint, float]:
+    """``starts`` searches (:func:`fit_parameters` with ``fit_options``) seeded ``seed``, ``seed + 1``,
+    ...: the result, its point relabelled to ``temp_c`` and that point's RMSE over ``segs`` (mV), of
+    the one that fits ``segs`` best.  With several, the log gives each search's RMSE."""
+    best = None
+    for j in range(max(1, starts)):
+        res = fit_parameters(prof, segs, seed=seed + j, **fit_options)
+        # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
+        pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": temp_c}), res.point.i0_a,
+                                   prof.min_r_ohm_scale(temp_c))
+        rmse = segments_rmse_mv(prof, pt, res.hysteresis or prof.hysteresis, segs, fit_options["memory_length"],
+                                res.ea_j_mol)
+        if starts > 1:
+            rep.say(f"  {temp_c:g} °C: search {j + 1} of {starts} (seed {seed + j}) fits to {rmse:.2f} mV")
+        if best is None or rmse < best[2]:
+            best = (res, pt, rmse)
+    return best
 
 
 def fitted_memory_span_s(segments: list[FitSegment], memory_length: int, rep: FitReport) -> float | None:
