@@ -1049,6 +1049,24 @@ for s in 0 2; do seed_fit pank4_s$s $s --starts 4; done""",
                             (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"),
                              ("−20 °C", r"_m20C_"))),
           70),
+    Table("starts_other_cells", "characterisation.md", REAL + f"""\
+mkdir -p out/starts
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+E="--estimator fomiukf -q"
+socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --starts 4 -q -o out/starts/calce_k4.toml
+socd evaluate --cell out/starts/calce_k4.toml {CALCE} $E --json out/starts/calce_k4.json
+socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
+    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --starts 4 -q -o out/starts/a123_k4.toml
+socd evaluate --cell out/starts/a123_k4.toml {A123} $E --json out/starts/a123_k4.json
+socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv --capacity-ah 2.77 --starts 4 \\
+    -q -o out/starts/panus06_k4.toml
+socd evaluate --cell out/starts/panus06_k4.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json out/starts/panus06_k4.json""",
+          lambda out: runs_table(tuple(row for cell, label in (("calce", "CALCE, DST file"), ("a123", "A123, DST file"),
+                                                               ("panus06", "Panasonic, OCV test + US06"))
+                                       for row in ((f"{label}, default", f"fitopt/{cell}{'s0' if cell == 'a123' else ''}_auto.json"),
+                                                   (f"{label}, `--starts 4`", f"starts/{cell}_k4.json"))),
+                                 (("CALCE 25 °C", r"calce20r"), ("A123 20 °C", r"calce_a123")) + PAN_GROUPS)(out),
+          40, ("needs:loco_fit_options",)),
     Table("unseen_cell_lfp", "characterisation.md", """\
 W=out/unseen_lfp
 python -m research.unseen_cell build --cells Prada2013 --ambients 25 --workdir $W
