@@ -1065,7 +1065,8 @@ socd evaluate --cell out/starts/panus06_k4.toml $(echo $PANX | tr ' ' '\\n' | gr
                                                                ("panus06", "Panasonic, OCV test + US06"))
                                        for row in ((f"{label}, default", f"fitopt/{cell}{'s0' if cell == 'a123' else ''}_auto.json"),
                                                    (f"{label}, `--starts 4`", f"starts/{cell}_k4.json"))),
-                                 (("CALCE 25 °C", r"calce20r"), ("A123 20 °C", r"calce_a123")) + PAN_GROUPS)(out),
+                                 (("CALCE 25 °C", r"calce20r"), ("A123 20 °C", r"calce_a123"))
+                                 + tuple((f"Panasonic {label}", "pan18650pf" + pattern) for label, pattern in PAN_GROUPS))(out),
           40, ("needs:loco_fit_options",)),
     Table("unseen_cell_lfp", "characterisation.md", """\
 W=out/unseen_lfp
