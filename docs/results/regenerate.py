@@ -162,15 +162,19 @@ def fit_rmse_by_temperature(log: str) -> dict[str, float]:
 
 
 def seed_spread_table(runs: tuple[tuple[str, str], ...], temps: tuple[str, ...],
-                      groups: tuple[tuple[str, str], ...]) -> Callable[[Path], str]:
+                      groups: tuple[tuple[str, str], ...], averaged: int = 0) -> Callable[[Path], str]:
     """One row per fit (label, path stem under ``out/`` of its ``.json`` evaluation and ``.fitlog``):
     ``fomiukf``'s mean SOC RMSE after 600 s per group of drives, then the fit RMSE its log gives
-    at each temperature."""
+    at each temperature; with ``averaged``, a row of the first that many runs' group means averaged."""
     def render(out: Path) -> str:
         head = ("| fit | " + " | ".join(f"drives {label}" for label, _ in groups) + " | "
                 + " | ".join(f"fit RMSE {t} °C [mV]" for t in temps) + " |")
         lines = [head, "|---|" + "---|" * (len(groups) + len(temps))]
-        for label, stem in runs:
+        for k, (label, stem) in enumerate(runs):
+            if averaged and k == averaged:
+                per_run = [group_means(out, f"{st}.json", groups) for _, st in runs[:averaged]]
+                cells = [f"{sum(col) / len(col):.2f}" if None not in col else "-" for col in zip(*per_run)]
+                lines.append(f"| mean of the {averaged} rows above | " + " | ".join(cells) + " |" + " - |" * len(temps))
             means = ["-" if m is None else f"{m:.2f}" for m in group_means(out, f"{stem}.json", groups)]
             log = out / f"{stem}.fitlog"
             if not log.is_file():
@@ -1047,7 +1051,7 @@ for s in 0 2; do seed_fit pank4_s$s $s --starts 4; done""",
                             + tuple((f"`--starts 4` from seed {s} (seeds {s}-{s + 3})", f"seeds/pank4_s{s}") for s in (0, 2)),
                             ("25", "10", "0", "-10", "-20"),
                             (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"),
-                             ("−20 °C", r"_m20C_"))),
+                             ("−20 °C", r"_m20C_")), averaged=6),
           70),
     Table("starts_other_cells", "characterisation.md", REAL + f"""\
 mkdir -p out/starts
