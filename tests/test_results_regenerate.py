@@ -144,3 +144,32 @@ def test_a_table_waits_for_the_tables_it_needs(regen):
     b = regen.Table("b", "x.md", "true", None, 1, ("needs:a",))
     with pytest.raises(regen.RegenerateError, match="cycle"):
         regen.waves([a, b])
+
+
+def test_seed_spread_table_reads_the_fit_logs_and_the_evaluations(regen, tmp_path, nmc_recording):
+    """Two real ``socd fit`` runs (seeds 0 and 1, their logs kept as the table's script keeps them) and
+    ``socd evaluate`` on each: the table gives each run's SOC RMSE after 600 s and the fit RMSE its log
+    printed, and the averaged row is the mean of the runs' figures."""
+    rec = nmc_recording(name="spread", duration_s=2400, seed=4, soc0=0.95)
+    (tmp_path / "seeds").mkdir()
+    for s in (0, 1):
+        stem = tmp_path / "seeds" / f"s{s}"
+        done = subprocess.run([sys.executable, "-m", "service.cli", "fit", str(rec.path), "--capacity-ah", "2.0",
+                               "--max-seconds", "3", "--force", "--seed", str(s), "-o", f"{stem}.toml"],
+                              cwd=ROOT, capture_output=True, text=True, check=False)
+        assert done.returncode == 0, done.stderr
+        Path(f"{stem}.fitlog").write_text(done.stdout + done.stderr)
+        socd("evaluate", "--cell", f"{stem}.toml", str(rec.path), "--estimator", "fomiukf", "--no-bar", "--quiet",
+             "--json", f"{stem}.json")
+    table = regen.seed_spread_table((("seed 0", "seeds/s0"), ("seed 1", "seeds/s1")), ("25",),
+                                    (("all", r"spread"),), averaged=2)(tmp_path)
+    lines = table.splitlines()
+    assert len(lines) == 5 and lines[1].count("|") == lines[0].count("|")
+    soc = []
+    for s, line in zip((0, 1), lines[2:4]):
+        logged = regen.fit_rmse_by_temperature((tmp_path / "seeds" / f"s{s}.fitlog").read_text())
+        (rmse,) = logged.values()
+        got = json.loads((tmp_path / "seeds" / f"s{s}.json").read_text())["results"][0]["soc_rmse_after_600s_pct"]
+        soc.append(got)
+        assert line == f"| seed {s} | {got:.2f} | {rmse:.1f} |"
+    assert lines[4] == f"| mean of the 2 rows above | {sum(soc) / 2:.2f} | - |"

@@ -165,24 +165,26 @@ def seed_spread_table(runs: tuple[tuple[str, str], ...], temps: tuple[str, ...],
                       groups: tuple[tuple[str, str], ...], averaged: int = 0) -> Callable[[Path], str]:
     """One row per fit (label, path stem under ``out/`` of its ``.json`` evaluation and ``.fitlog``):
     ``fomiukf``'s mean SOC RMSE after 600 s per group of drives, then the fit RMSE its log gives
-    at each temperature; with ``averaged``, a row of the first that many runs' group means averaged."""
+    at each temperature; with ``averaged``, after the first that many runs a row of their group means
+    averaged."""
     def render(out: Path) -> str:
         head = ("| fit | " + " | ".join(f"drives {label}" for label, _ in groups) + " | "
                 + " | ".join(f"fit RMSE {t} °C [mV]" for t in temps) + " |")
-        lines = [head, "|---|" + "---|" * (len(groups) + len(temps))]
-        for k, (label, stem) in enumerate(runs):
-            if averaged and k == averaged:
-                per_run = [group_means(out, f"{st}.json", groups) for _, st in runs[:averaged]]
-                cells = [f"{sum(col) / len(col):.2f}" if None not in col else "-" for col in zip(*per_run)]
-                lines.append(f"| mean of the {averaged} rows above | " + " | ".join(cells) + " |" + " - |" * len(temps))
+        rows = []
+        for label, stem in runs:
             means = ["-" if m is None else f"{m:.2f}" for m in group_means(out, f"{stem}.json", groups)]
             log = out / f"{stem}.fitlog"
             if not log.is_file():
                 raise RegenerateError(f"{log}: missing (run the table's commands first)")
             rmse = fit_rmse_by_temperature(log.read_text())
-            lines.append(f"| {label} | " + " | ".join(means) + " | "
-                         + " | ".join(f"{rmse[t]:.1f}" if t in rmse else "-" for t in temps) + " |")
-        return "\n".join(lines)
+            rows.append(f"| {label} | " + " | ".join(means) + " | "
+                        + " | ".join(f"{rmse[t]:.1f}" if t in rmse else "-" for t in temps) + " |")
+        if averaged:
+            per_run = [group_means(out, f"{stem}.json", groups) for _, stem in runs[:averaged]]
+            cells = [f"{sum(col) / len(col):.2f}" if None not in col else "-" for col in zip(*per_run)]
+            rows.insert(averaged, f"| mean of the {averaged} rows above | " + " | ".join(cells) + " |"
+                        + " - |" * len(temps))
+        return "\n".join([head, "|---|" + "---|" * (len(groups) + len(temps)), *rows])
     return render
 
 
