@@ -117,7 +117,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="global searches per temperature, seeded --seed, --seed+1, ...; the one that fits the "
                         "recordings best is kept (default 1). Several make the profile depend less on the seed, "
                         "at that many times the fit's run time; on the Panasonic HPPC files 4 starts end on the "
-                        "same profile from any seed, but that profile does not read the cold drives better "
+                        "same profile from seed 0 and from seed 2, but that profile does not read the cold drives better "
                         "(docs/results/characterisation.md, hppc_seed_spread)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
