@@ -170,9 +170,10 @@ def seed_spread_table(runs: tuple[tuple[str, str], ...], temps: tuple[str, ...],
     def render(out: Path) -> str:
         head = ("| fit | " + " | ".join(f"drives {label}" for label, _ in groups) + " | "
                 + " | ".join(f"fit RMSE {t} °C [mV]" for t in temps) + " |")
-        rows = []
+        rows, per_run = [], []
         for label, stem in runs:
-            means = ["-" if m is None else f"{m:.2f}" for m in group_means(out, f"{stem}.json", groups)]
+            per_run.append(group_means(out, f"{stem}.json", groups))
+            means = ["-" if m is None else f"{m:.2f}" for m in per_run[-1]]
             log = out / f"{stem}.fitlog"
             if not log.is_file():
                 raise RegenerateError(f"{log}: missing (run the table's commands first)")
@@ -180,8 +181,7 @@ def seed_spread_table(runs: tuple[tuple[str, str], ...], temps: tuple[str, ...],
             rows.append(f"| {label} | " + " | ".join(means) + " | "
                         + " | ".join(f"{rmse[t]:.1f}" if t in rmse else "-" for t in temps) + " |")
         if averaged:
-            per_run = [group_means(out, f"{stem}.json", groups) for _, stem in runs[:averaged]]
-            cells = [f"{sum(col) / len(col):.2f}" if None not in col else "-" for col in zip(*per_run)]
+            cells = [f"{sum(col) / len(col):.2f}" if None not in col else "-" for col in zip(*per_run[:averaged])]
             rows.insert(averaged, f"| mean of the {averaged} rows above | " + " | ".join(cells) + " |"
                         + " - |" * len(temps))
         return "\n".join([head, "|---|" + "---|" * (len(groups) + len(temps)), *rows])
@@ -1067,10 +1067,12 @@ socd evaluate --cell out/starts/a123_k4.toml {A123} $E --json out/starts/a123_k4
 socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv --capacity-ah 2.77 --starts 4 \\
     -q -o out/starts/panus06_k4.toml
 socd evaluate --cell out/starts/panus06_k4.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json out/starts/panus06_k4.json""",
-          lambda out: runs_table(tuple(row for cell, label in (("calce", "CALCE, DST file"), ("a123", "A123, DST file"),
-                                                               ("panus06", "Panasonic, OCV test + US06"))
-                                       for row in ((f"{label}, default", f"fitopt/{cell}{'s0' if cell == 'a123' else ''}_auto.json"),
-                                                   (f"{label}, `--starts 4`", f"starts/{cell}_k4.json"))),
+          lambda out: runs_table((("CALCE, DST file, default", "fitopt/calce_auto.json"),
+                                  ("CALCE, DST file, `--starts 4`", "starts/calce_k4.json"),
+                                  ("A123, DST file, default", "fitopt/a123s0_auto.json"),
+                                  ("A123, DST file, `--starts 4`", "starts/a123_k4.json"),
+                                  ("Panasonic, OCV test + US06, default", "fitopt/panus06_auto.json"),
+                                  ("Panasonic, OCV test + US06, `--starts 4`", "starts/panus06_k4.json")),
                                  (("CALCE 25 °C", r"calce20r"), ("A123 20 °C", r"calce_a123"))
                                  + tuple((f"Panasonic {label}", "pan18650pf" + pattern) for label, pattern in PAN_GROUPS))(out),
           40, ("needs:loco_fit_options",)),

@@ -484,7 +484,7 @@ def characterise(
                       else kinetics_resolvable([part for part, _ in groups[t]], capacity_ah, t, rep))
         start = ecm_start_point(ecm[t], t)
         law_t = temperature_law_resolvable(segs, t, rep)
-        res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length=memory_length,
+        res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length,
                                        fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
                                        max_seconds=max_seconds, x0=start, warmer=warmer, colder=colder,
                                        min_order=min_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
@@ -544,18 +544,17 @@ def characterise(
 
 
 def best_of_starts(prof: CellProfile, segs: list[FitSegment], temp_c: float, seed: int, starts: int,
-                   rep: FitReport, **fit_options) -> tuple[FitResult, ParameterPoint, float]:
-    """``starts`` searches (:func:`fit_parameters` with ``fit_options``) seeded ``seed``, ``seed + 1``,
+                   rep: FitReport, memory_length: int, **fit_options) -> tuple[FitResult, ParameterPoint, float]:
+    """``starts`` searches (:func:`fit_parameters` with ``memory_length`` and ``fit_options``) seeded ``seed``, ``seed + 1``,
     ...: the result, its point relabelled to ``temp_c`` and that point's RMSE over ``segs`` (mV), of
     the one that fits ``segs`` best.  With several, the log gives each search's RMSE."""
     best = None
     for j in range(max(1, starts)):
-        res = fit_parameters(prof, segs, seed=seed + j, **fit_options)
+        res = fit_parameters(prof, segs, memory_length=memory_length, seed=seed + j, **fit_options)
         # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
         pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": temp_c}), res.point.i0_a,
                                    prof.min_r_ohm_scale(temp_c))
-        rmse = segments_rmse_mv(prof, pt, res.hysteresis or prof.hysteresis, segs, fit_options["memory_length"],
-                                res.ea_j_mol)
+        rmse = segments_rmse_mv(prof, pt, res.hysteresis or prof.hysteresis, segs, memory_length, res.ea_j_mol)
         if starts > 1:
             rep.say(f"  {temp_c:g} °C: search {j + 1} of {starts} (seed {seed + j}) fits to {rmse:.2f} mV")
         if best is None or rmse < best[2]:
