@@ -114,10 +114,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "the textbook 2-RC fit of the same data; without it such a fit exits 2 and writes nothing")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
     p.add_argument("--starts", type=positive_int, default=1,
-                   help="global searches per temperature, seeded --seed, --seed+1, ...; the one that fits the "
-                        "recordings best is kept (default 1). Several make the profile depend less on the seed, "
-                        "at that many times the fit's run time; on the Panasonic HPPC files 4 starts end on the "
-                        "same profile from seed 0 and from seed 2, but that profile does not read the cold drives better "
+                   help="global searches per temperature, seeded --seed, --seed+1, ... (default 1). Of those that fit "
+                        "the recordings within 5 %% + 0.5 mV of the best, the one whose point polarises least after "
+                        "10 minutes at 1C is kept: pulse tests leave the slow branch's DC resistance loosely bound, "
+                        "and the searches then differ in what the data do not determine. The log gives each "
+                        "search's RMSE and polarisation. Costs that many times the fit's run time "
                         "(docs/results/characterisation.md, hppc_seed_spread)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
