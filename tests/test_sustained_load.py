@@ -36,3 +36,5 @@ def test_of_the_searches_that_fit_alike_the_least_polarised_is_kept() -> None:
     # one that fits clearly worse is not kept however little it polarises
     assert least_polarised_near_best([20.0, 22.0], [300.0, 100.0]) == 0
     assert least_polarised_near_best([15.0], [80.0]) == 0
+    # polarisations within a millivolt are the same prediction: the better fit of those is kept
+    assert least_polarised_near_best([20.5, 20.0, 20.2], [313.0, 313.2, 340.0]) == 1

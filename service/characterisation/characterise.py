@@ -119,6 +119,9 @@ POOR_FIT_SHARE = 0.5
 #: the fractional fit may be worse than the textbook 2-RC fit of the same data by this much
 #: (relative, and absolute mV) before the temperature is refused
 ECM_TOLERANCE = (0.05, 0.5)
+#: two searches' polarisations under the sustained load closer than this [mV] are the same prediction
+#: (the order of a cell-voltage measurement's noise, far below any fit's RMSE)
+POLARISATION_TIE_MV = 1.0
 #: how far outside [0, 1] the SOC counted through a characterisation recording may go (a
 #: capacity a few percent off, a full point a little early) before the fit is refused
 COUNTED_SOC_MARGIN = 0.1
@@ -577,14 +580,16 @@ def best_of_starts(prof: CellProfile, segs: list[FitSegment], temp_c: float, see
 
 def least_polarised_near_best(rmse_mv: list[float], polarisation_mv: list[float]) -> int:
     """Index of the search to keep: of those whose RMSE is not :func:`worse_than` the best's, the one
-    whose point polarises least under a sustained load (:mod:`.sustained_load`).
+    whose point polarises least under a sustained load (:mod:`.sustained_load`); polarisations within
+    :data:`POLARISATION_TIE_MV` of the least are the same prediction, and the best fit among them is kept.
 
     Searches that fit the recordings equally well but differ under a long steady load differ in what
     the recordings do not determine (a pulse test's slow branch); the least polarised one adds the
     least of it."""
     best = min(rmse_mv)
     near = [j for j, r in enumerate(rmse_mv) if not worse_than(r, best)]
-    return min(near, key=lambda j: polarisation_mv[j])
+    least = min(polarisation_mv[j] for j in near)
+    return min((j for j in near if polarisation_mv[j] <= least + POLARISATION_TIE_MV), key=lambda j: rmse_mv[j])
 
 
 def fitted_memory_span_s(segments: list[FitSegment], memory_length: int, rep: FitReport) -> float | None:

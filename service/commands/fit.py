@@ -116,7 +116,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--starts", type=positive_int, default=1,
                    help="global searches per temperature, seeded --seed, --seed+1, ... (default 1). Of those that fit "
                         "the recordings within 5 %% + 0.5 mV of the best, the one whose point polarises least after "
-                        "10 minutes at 1C is kept: pulse tests leave the slow branch's DC resistance loosely bound, "
+                        "10 minutes at 1C is kept (of those within 1 mV of the least, the best fit): pulse tests leave the slow branch's DC resistance loosely bound, "
                         "and the searches then differ in what the data do not determine. The log gives each "
                         "search's RMSE and polarisation. Costs that many times the fit's run time "
                         "(docs/results/characterisation.md, hppc_seed_spread)")
