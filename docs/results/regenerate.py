@@ -1076,6 +1076,13 @@ socd evaluate --cell out/starts/panus06_k4.toml $(echo $PANX | tr ' ' '\\n' | gr
                                  (("CALCE 25 °C", r"calce20r"), ("A123 20 °C", r"calce_a123"))
                                  + tuple((f"Panasonic {label}", "pan18650pf" + pattern) for label, pattern in PAN_GROUPS))(out),
           40, ("needs:loco_fit_options",)),
+    Table("starts_pulse_cells", "characterisation.md", """\
+# the default rows are unseen_cell_hppc's
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_k4 --fit-flags="--starts 4" --refit""",
+          runs_table(tuple((f"`{c}`, {label}", f"unseen_cell/{c}_hppc{tag}_eval.json")
+                           for c in UNSEEN_CELLS for label, tag in (("default", ""), ("`--starts 4`", "_k4"))),
+                     UNSEEN_GROUPS),
+          25, ("needs:unseen_cell_hppc", "needs:pybamm")),
     Table("unseen_cell_lfp", "characterisation.md", """\
 W=out/unseen_lfp
 python -m research.unseen_cell build --cells Prada2013 --ambients 25 --workdir $W
