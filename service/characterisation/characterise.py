@@ -821,7 +821,7 @@ def say_rest_alignment(rep: FitReport, temp_c: float, grid: np.ndarray, base_ocv
 
 def check_fit_quality(report: FitReport) -> None:
     """Raise :class:`FitQualityError` naming every temperature whose fit must not be used."""
-    bad = [(t, t.problem()) for t in report.temperatures if t.problem() is not None]
+    bad = [(t, why) for t in report.temperatures if (why := t.problem()) is not None]
     if not bad:
         return
     what = "; ".join(f"{t.temp_c:g} °C: {why}. Data that would help there: {t.data_hint()}" for t, why in bad)
