@@ -1,4 +1,4 @@
-"""What decides between searches that fit equally well: the polarisation under a sustained load."""
+"""What searches that fit equally well can still disagree on: the polarisation under a sustained load."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from service.cell.profile import HysteresisSpec, ParameterPoint, load_profile
-from service.characterisation.characterise import least_polarised_near_best
+from service.characterisation.characterise import polarisation_spread_mv
 from service.characterisation.sustained_load import SUSTAINED_C_RATE, sustained_polarisation_mv
 
 PROFILE = Path(__file__).resolve().parents[1] / "service" / "assets" / "configs" / "cells" / "panasonic_18650pf.toml"
@@ -30,11 +30,8 @@ def test_a_settled_point_polarises_by_its_dc_resistance() -> None:
     assert high - low == pytest.approx(1000 * current * 0.04, rel=0.03)
 
 
-def test_of_the_searches_that_fit_alike_the_least_polarised_is_kept() -> None:
-    # the second fits within the tolerance of the best (5 % + 0.5 mV) and polarises least
-    assert least_polarised_near_best([20.0, 20.9, 30.0], [300.0, 250.0, 100.0]) == 1
-    # one that fits clearly worse is not kept however little it polarises
-    assert least_polarised_near_best([20.0, 22.0], [300.0, 100.0]) == 0
-    assert least_polarised_near_best([15.0], [80.0]) == 0
-    # polarisations within a millivolt are the same prediction: the better fit of those is kept
-    assert least_polarised_near_best([20.5, 20.0, 20.2], [313.0, 313.2, 340.0]) == 1
+def test_the_spread_counts_only_the_searches_that_fit_alike() -> None:
+    # the second fits within the tolerance of the best (5 % + 0.5 mV); the third does not
+    assert polarisation_spread_mv([20.0, 20.9, 30.0], [300.0, 250.0, 100.0]) == pytest.approx(50.0)
+    assert polarisation_spread_mv([20.0, 22.0], [300.0, 100.0]) == 0.0
+    assert polarisation_spread_mv([15.0], [80.0]) == 0.0

@@ -119,9 +119,6 @@ POOR_FIT_SHARE = 0.5
 #: the fractional fit may be worse than the textbook 2-RC fit of the same data by this much
 #: (relative, and absolute mV) before the temperature is refused
 ECM_TOLERANCE = (0.05, 0.5)
-#: two searches' polarisations under the sustained load closer than this [mV] are the same prediction
-#: (the order of a cell-voltage measurement's noise, far below any fit's RMSE)
-POLARISATION_TIE_MV = 1.0
 #: how far outside [0, 1] the SOC counted through a characterisation recording may go (a
 #: capacity a few percent off, a full point a little early) before the fit is refused
 COUNTED_SOC_MARGIN = 0.1
@@ -554,10 +551,10 @@ def characterise(
 def best_of_starts(prof: CellProfile, segs: list[FitSegment], temp_c: float, seed: int, starts: int,
                    rep: FitReport, memory_length: int, **fit_options) -> tuple[FitResult, ParameterPoint, float]:
     """``starts`` searches (:func:`fit_parameters` with ``memory_length`` and ``fit_options``) seeded ``seed``, ``seed + 1``,
-    ...: the result, its point relabelled to ``temp_c`` and that point's RMSE over ``segs`` (mV) of the
-    one kept. Of the searches that fit ``segs`` within :data:`ECM_TOLERANCE` of the best, that is the
-    one with the least polarisation under a sustained load (:func:`least_polarised_near_best`). With
-    several, the log gives each search's RMSE and polarisation."""
+    ...: the result, its point relabelled to ``temp_c`` and that point's RMSE over ``segs`` (mV), of
+    the one that fits ``segs`` best. With several, the log gives each search's RMSE and the
+    polarisation its point predicts under a sustained load (:mod:`.sustained_load`), and a notice when
+    the searches that fit alike predict it further apart than the fit's RMSE."""
     fits = []
     for j in range(max(1, starts)):
         res = fit_parameters(prof, segs, memory_length=memory_length, seed=seed + j, **fit_options)
@@ -566,30 +563,29 @@ def best_of_starts(prof: CellProfile, segs: list[FitSegment], temp_c: float, see
                                    prof.min_r_ohm_scale(temp_c))
         rmse = segments_rmse_mv(prof, pt, res.hysteresis or prof.hysteresis, segs, memory_length, res.ea_j_mol)
         fits.append((res, pt, rmse))
+    keep = min(range(len(fits)), key=lambda j: fits[j][2])
     if len(fits) == 1:
-        return fits[0]
+        return fits[keep]
     polarisation = [sustained_polarisation_mv(prof, pt, res.hysteresis or prof.hysteresis, memory_length)
                     for res, pt, _ in fits]
-    keep = least_polarised_near_best([rmse for *_, rmse in fits], polarisation)
+    load = f"after {SUSTAINED_S / 60:g} min at {SUSTAINED_C_RATE:g}C"
     for j, ((_, _, rmse), pol) in enumerate(zip(fits, polarisation)):
         rep.say(f"  {temp_c:g} °C: search {j + 1} of {len(fits)} (seed {seed + j}) fits to {rmse:.2f} mV; "
-                f"{pol:.0f} mV polarisation after {SUSTAINED_S / 60:g} min at {SUSTAINED_C_RATE:g}C"
-                + (" (kept)" if j == keep else ""))
+                f"{pol:.0f} mV polarisation {load}" + (" (kept)" if j == keep else ""))
+    spread = polarisation_spread_mv([rmse for *_, rmse in fits], polarisation)
+    if spread > fits[keep][2]:
+        rep.say(f"  {temp_c:g} °C: searches that fit alike predict polarisations {spread:.0f} mV apart {load}, more "
+                f"than the fit's {fits[keep][2]:.1f} mV RMSE: the recordings leave the slow polarisation open here "
+                "(a drive cycle or a long constant-current discharge at this temperature would pin it)", notice=True)
     return fits[keep]
 
 
-def least_polarised_near_best(rmse_mv: list[float], polarisation_mv: list[float]) -> int:
-    """Index of the search to keep: of those whose RMSE is not :func:`worse_than` the best's, the one
-    whose point polarises least under a sustained load (:mod:`.sustained_load`); polarisations within
-    :data:`POLARISATION_TIE_MV` of the least are the same prediction, and the best fit among them is kept.
-
-    Searches that fit the recordings equally well but differ under a long steady load differ in what
-    the recordings do not determine (a pulse test's slow branch); the least polarised one adds the
-    least of it."""
+def polarisation_spread_mv(rmse_mv: list[float], polarisation_mv: list[float]) -> float:
+    """How far apart [mV] the searches whose RMSE is not :func:`worse_than` the best's predict the
+    polarisation under a sustained load: what the recordings fit alike and do not determine."""
     best = min(rmse_mv)
-    near = [j for j, r in enumerate(rmse_mv) if not worse_than(r, best)]
-    least = min(polarisation_mv[j] for j in near)
-    return min((j for j in near if polarisation_mv[j] <= least + POLARISATION_TIE_MV), key=lambda j: rmse_mv[j])
+    near = [p for r, p in zip(rmse_mv, polarisation_mv) if not worse_than(r, best)]
+    return max(near) - min(near)
 
 
 def fitted_memory_span_s(segments: list[FitSegment], memory_length: int, rep: FitReport) -> float | None:

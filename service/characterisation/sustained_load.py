@@ -1,5 +1,5 @@
-"""The polarisation a fitted point gives under a sustained load: what decides between searches that
-fit the recordings equally well.
+"""The polarisation a fitted point gives under a sustained load: what searches that fit the
+recordings equally well can still disagree on.
 
 Pulse tests fix the fast dynamics and leave the slow branch's DC resistance loosely bound: two
 searches can fit an HPPC test to within a fraction of a millivolt and still predict voltages tens of

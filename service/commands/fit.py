@@ -114,11 +114,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "the textbook 2-RC fit of the same data; without it such a fit exits 2 and writes nothing")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
     p.add_argument("--starts", type=positive_int, default=1,
-                   help="global searches per temperature, seeded --seed, --seed+1, ... (default 1). Of those that fit "
-                        "the recordings within 5 %% + 0.5 mV of the best, the one whose point polarises least after "
-                        "10 minutes at 1C is kept (of those within 1 mV of the least, the best fit): pulse tests leave the slow branch's DC resistance loosely bound, "
-                        "and the searches then differ in what the data do not determine. The log gives each "
-                        "search's RMSE and polarisation. Costs that many times the fit's run time "
+                   help="global searches per temperature, seeded --seed, --seed+1, ...; the one that fits the "
+                        "recordings best is kept (default 1). The log gives each search's RMSE and the "
+                        "polarisation its point predicts after 10 minutes at 1C, and a notice where searches that "
+                        "fit alike predict it further apart than the fit's RMSE (pulse tests leave the slow "
+                        "branch loosely bound). Costs that many times the fit's run time "
                         "(docs/results/characterisation.md, hppc_seed_spread)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
