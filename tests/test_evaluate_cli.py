@@ -653,6 +653,9 @@ def test_several_starts_keep_the_search_that_fits_best(nmc_recording, monkeypatc
     assert t.rmse_mv <= t.ecm_rmse_mv * 1.05 + 0.5
     lines = [x for x in report.lines if "search " in x and " of 2 " in x]
     assert len(lines) == 2 and "(seed 7)" in lines[0] and "(seed 8)" in lines[1], lines
+    # each search's steady-load polarisation beside its RMSE, and the kept one marked
+    assert all("mV polarisation after 10 min at 1C" in x for x in lines), lines
+    assert lines[1].endswith("(kept)") and not lines[0].endswith("(kept)"), lines
 
 
 def test_on_2rc_submodel_is_orders_one_and_linear_kinetics() -> None:

@@ -25,8 +25,8 @@ def sustained_polarisation_mv(template: CellProfile, point: ParameterPoint, hyst
                               memory_length: int) -> float:
     """OCV at the counted SOC minus the model's voltage [mV] after :data:`SUSTAINED_S` seconds of
     :data:`SUSTAINED_C_RATE` discharge from rest at :data:`SUSTAINED_SOC0`, simulated at 1 s steps with
-    ``point`` (Zeng Eq. 3-4: ohmic, both CPE branches and the Butler-Volmer term) at its temperature
-    and ``template``'s OCV and capacity."""
+    ``point`` at its temperature (the model :func:`simulate_batch` runs for a fit: ohmic drop, both CPE
+    branches, the Butler-Volmer term) and ``template``'s OCV and capacity."""
     prof = template.model_copy(update={"parameters": [point.model_copy(update={"temp_c": 25.0})],
                                        "hysteresis": hysteresis})
     time_s = np.arange(SUSTAINED_S + 1, dtype=float)
