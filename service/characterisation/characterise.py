@@ -95,6 +95,7 @@ from service.characterisation.relaxation import measure_slow_relaxation
 from service.characterisation.sustained_load import (
     SUSTAINED_C_RATE,
     SUSTAINED_S,
+    one_point_profile,
     sustained_polarisation_mv,
 )
 from service.recording import Recording
@@ -766,8 +767,7 @@ def segments_rmse_mv(template: CellProfile, point: ParameterPoint, hysteresis: H
     """RMSE [mV] of the fractional model with ``point`` over whole ``segments``; with ``ea_j_mol``,
     scaled from the point's temperature along the recorded one as it was fitted
     (:mod:`service.cell.temperature_law`)."""
-    prof = template.model_copy(update={"parameters": [point.model_copy(update={"temp_c": 25.0})],
-                                       "hysteresis": hysteresis})
+    prof = one_point_profile(template, point, hysteresis)
     sq, n = 0.0, 0
     for s in segments:
         u_h0 = s.u_h0 + s.u_h0_branch * hysteresis.u_h_max_v

@@ -21,14 +21,20 @@ SUSTAINED_S = 600
 SUSTAINED_SOC0 = 0.6
 
 
+def one_point_profile(template: CellProfile, point: ParameterPoint, hysteresis: HysteresisSpec) -> CellProfile:
+    """``template`` with ``point`` (labelled 25 °C) as its only parameter point and ``hysteresis``: the
+    profile a fit simulates one candidate point with, at whatever temperature it is asked for."""
+    return template.model_copy(update={"parameters": [point.model_copy(update={"temp_c": 25.0})],
+                                       "hysteresis": hysteresis})
+
+
 def sustained_polarisation_mv(template: CellProfile, point: ParameterPoint, hysteresis: HysteresisSpec,
                               memory_length: int) -> float:
     """OCV at the counted SOC minus the model's voltage [mV] after :data:`SUSTAINED_S` seconds of
     :data:`SUSTAINED_C_RATE` discharge from rest at :data:`SUSTAINED_SOC0`, simulated at 1 s steps with
     ``point`` at its temperature (the model :func:`simulate_batch` runs for a fit: ohmic drop, both CPE
     branches, the Butler-Volmer term) and ``template``'s OCV and capacity."""
-    prof = template.model_copy(update={"parameters": [point.model_copy(update={"temp_c": 25.0})],
-                                       "hysteresis": hysteresis})
+    prof = one_point_profile(template, point, hysteresis)
     time_s = np.arange(SUSTAINED_S + 1, dtype=float)
     current_a = np.full_like(time_s, SUSTAINED_C_RATE * prof.effective_capacity_ah)
     current_a[0] = 0.0
