@@ -200,9 +200,14 @@ def _candidate_from_json(doc: dict) -> Candidate:
 def signature_stats(sig: dict) -> dict[str, dict]:
     """What the signature rules of :data:`SIGNATURE_RULES` read from a diagnosis's signatures
     (``Diagnosis.signatures``): the kinetics step fit's exchange current and its 95 % upper bound,
-    and the diffusion relaxation ratio and its z."""
+    the diffusion relaxation ratio and its z, and the hysteresis signatures' statistics (the rest
+    ends' half-gap fit and the direction state in the base residual)."""
     kin, rel, temp = sig.get("kinetics", {}), sig.get("diffusion", {}), sig.get("temperature", {})
-    return {"kinetics": {"i0_upper_c": kin.get("i0_upper_c"), "resolved": bool(kin.get("resolved", False))},
+    branch = sig.get("hysteresis", {})
+    direction = branch.get("direction", {})
+    return {"hysteresis": {k: branch.get(k) for k in ("n_rests", "statistic", "half_gap_v", "spread", "relaxation")}
+            | {"direction_z": direction.get("statistic"), "direction_half_gap_v": direction.get("half_gap_v")},
+            "kinetics": {"i0_upper_c": kin.get("i0_upper_c"), "resolved": bool(kin.get("resolved", False))},
             "diffusion": {"statistic": rel.get("statistic") if "z" in rel else None, "z": rel.get("z")},
             "temperature": {"opening_c": temp.get("opening_temp_c"), "coldest_c": temp.get("coldest_temp_c"),
                             "nominal_c": temp.get("nominal_ambient_c")}}
@@ -376,13 +381,21 @@ WIDE_GRID: dict[str, tuple[float, ...]] = {
 #: nominates kinetics below it and the extension's fitted exchange current must lie below it) and
 #: the relaxation signature's ratio and z (service.diagnosis.signatures.RELAX_MIN_RATIO, RELAX_MIN_Z), and
 #: with ``rules --search-rest-length`` the shortest rest it reads (RELAX_REST_MIN_S)
-SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "relax_rest_min_s", "diffusion_signature")
+SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "relax_rest_min_s", "diffusion_signature",
+                   "branch_min_z", "branch_min_half_gap_v", "direction_min_z")
 #: a structural rule the search leaves alone unless asked (``rules --search-requirement``): whether a
 #: fit-only diffusion is refused never (0), where its relaxation signature read rests and did not
 #: fire (1, the product), or always (2): the index into service.diagnosis.effects.SIGNATURE_NEEDED
 REQUIREMENT_GRID: dict[str, tuple[float, ...]] = {"diffusion_signature": (0.0, 1.0, 2.0)}
 #: ``rules --search-rest-length``: the relaxation signature's shortest rest, searched with the rest
 REST_LENGTH_GRID: dict[str, tuple[float, ...]] = {"relax_rest_min_s": RELAX_REST_GRID}
+#: ``rules --search-hysteresis``: the hysteresis signatures' levels (service.diagnosis.signatures
+#: BRANCH_MIN_Z, BRANCH_MIN_HALF_GAP_V, DIRECTION_MIN_Z), searched with the rest
+HYSTERESIS_GRID: dict[str, tuple[float, ...]] = {
+    "branch_min_z": (3.0, 5.0, 8.0),
+    "branch_min_half_gap_v": (0.002, 0.003, 0.004, 0.006),
+    "direction_min_z": (4.0, 5.0, 6.0, 8.0, 12.0),
+}
 
 
 def current_rule() -> dict[str, float]:
@@ -395,28 +408,35 @@ def current_rule() -> dict[str, float]:
     now = {k: getattr(opt, k) for k in RULE_GRID if k not in SIGNATURE_RULES}
     now.update(kinetics_max_i0_c=KINETICS_MAX_I0_C, relax_min_ratio=signatures.RELAX_MIN_RATIO,
                relax_min_z=signatures.RELAX_MIN_Z, relax_rest_min_s=signatures.RELAX_REST_MIN_S,
-               diffusion_signature=float(SIGNATURE_NEEDED.index(EFFECTS["diffusion"].needs_signature)))
+               diffusion_signature=float(SIGNATURE_NEEDED.index(EFFECTS["diffusion"].needs_signature)),
+               branch_min_z=signatures.BRANCH_MIN_Z, branch_min_half_gap_v=signatures.BRANCH_MIN_HALF_GAP_V,
+               direction_min_z=signatures.DIRECTION_MIN_Z)
     return now
 
 
 def rule_axes(with_requirement: bool = False, wide: bool = False,
-              with_rest_length: bool = False) -> dict[str, tuple[float, ...]]:
+              with_rest_length: bool = False, with_hysteresis: bool = False) -> dict[str, tuple[float, ...]]:
     """The values searched per rule: :data:`RULE_GRID` (:data:`WIDE_GRID` with ``wide``), and
-    :data:`REQUIREMENT_GRID` with ``with_requirement``, :data:`REST_LENGTH_GRID` with ``with_rest_length``."""
+    :data:`REQUIREMENT_GRID` with ``with_requirement``, :data:`REST_LENGTH_GRID` with ``with_rest_length``,
+    :data:`HYSTERESIS_GRID` with ``with_hysteresis``."""
     return {**(WIDE_GRID if wide else RULE_GRID), **(REQUIREMENT_GRID if with_requirement else {}),
-            **(REST_LENGTH_GRID if with_rest_length else {})}
+            **(REST_LENGTH_GRID if with_rest_length else {}), **(HYSTERESIS_GRID if with_hysteresis else {})}
 
 
-def rule_grid(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False) -> list[dict[str, float]]:
+def rule_grid(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False,
+              with_hysteresis: bool = False) -> list[dict[str, float]]:
     """Every rule of :func:`rule_axes` with the same switches."""
-    axes = rule_axes(with_requirement, wide, with_rest_length)
+    axes = rule_axes(with_requirement, wide, with_rest_length, with_hysteresis)
     keys = list(axes)
     return [dict(zip(keys, values)) for values in itertools.product(*(axes[k] for k in keys))]
 
 
-def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[str, float]) -> list[Candidate]:
+def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[str, float],
+                          confirmation: bool = False) -> list[Candidate]:
     """``cands`` with the evidence class and plausibility the signature levels in ``rule`` give
-    (a level not in ``rule`` keeps the class the diagnosis ran with)."""
+    (a level not in ``rule`` keeps the class the diagnosis ran with).  ``confirmation``: the
+    candidates of the confirmation split, whose hysteresis class its own signatures decided (the
+    evidence keeps only the first split's, so that class stays as the diagnosis left it)."""
     out = []
     for c in cands:
         if c.name == "kinetics" and "kinetics_max_i0_c" in rule:
@@ -438,8 +458,28 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
                          and sig["z"] >= rule.get("relax_min_z", RELAX_MIN_Z))
             c = replace(c, evidence="nominated" if nominated else "fit",
                         fixed_reasons=_signature_requirement(c, nominated, read, rule))
+        elif (c.name == "hysteresis" and not confirmation and HYSTERESIS_GRID.keys() & rule.keys()
+              and "hysteresis" in ev.signatures):
+            c = replace(c, evidence=hysteresis_evidence(ev.signatures["hysteresis"], rule))
         out.append(c)
     return out
+
+
+def hysteresis_evidence(sig: dict, rule: dict[str, float]) -> str:
+    """The hysteresis candidate's evidence class at ``rule``'s signature levels (a level not in it
+    keeps the product's), as :func:`~service.diagnosis.signatures.rest_branch_offset` and
+    :func:`~service.diagnosis.signatures.direction_offset` decide it: ``direct`` when the rest ends
+    measure the half-gap, ``nominated`` when the direction state in the base residual does, else ``fit``."""
+    from service.diagnosis import signatures as s
+
+    min_gap = rule.get("branch_min_half_gap_v", s.BRANCH_MIN_HALF_GAP_V)
+    branch = ((sig.get("n_rests") or 0) >= s.BRANCH_MIN_RESTS and sig.get("half_gap_v") is not None
+              and sig["statistic"] >= rule.get("branch_min_z", s.BRANCH_MIN_Z) and sig["half_gap_v"] >= min_gap
+              and sig["spread"] <= s.BRANCH_MAX_SPREAD and sig["relaxation"] <= s.BRANCH_MAX_RELAXATION)
+    direction = (sig.get("direction_z") is not None and sig.get("direction_half_gap_v") is not None
+                 and sig["direction_z"] >= rule.get("direction_min_z", s.DIRECTION_MIN_Z)
+                 and sig["direction_half_gap_v"] >= min_gap)
+    return "direct" if branch else "nominated" if direction else "fit"
 
 
 def _signature_requirement(c: Candidate, nominated: bool, read: bool, rule: dict[str, float]) -> list[str]:
@@ -491,7 +531,8 @@ def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]
         again = [replace(c, evidence="nominated", measured=c.evidence == "direct",
                          fixed_reasons=[r for r in c.fixed_reasons if not r.startswith(SIGNATURE_REQUIRED)])
                  if c.name in unread or c.evidence == "direct" else c
-                 for c in _with_signature_rules([c for c in ev.confirm_candidates if c.name in retry], ev, rule)]
+                 for c in _with_signature_rules([c for c in ev.confirm_candidates if c.name in retry], ev, rule,
+                                                confirmation=True)]
         confirmed = [c for c in _judge(again, ev.confirm_noise_mv, opt) if c.significant and c.evidence == "nominated"]
         if confirmed:
             return confirmed[0].name, confirmed[0]
@@ -536,7 +577,7 @@ def _distance_to_default(rule: dict[str, float], now: dict[str, float]) -> float
     """Grid steps from the product's current rule (the tie-break: move no further than needed)."""
     steps = 0.0
     for k, v in rule.items():
-        grid = RULE_GRID.get(k, (v,))
+        grid = {**RULE_GRID, **HYSTERESIS_GRID}.get(k, (v,))
         current = now.get(k, v)
         steps += abs(grid.index(v) - grid.index(current)) if v in grid and current in grid else float(v != current)
     return steps
@@ -734,6 +775,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-rest-length", action="store_true",
                     help="rules: search also the shortest rest the diffusion relaxation signature reads "
                          "(60, 120, 300, 500 s; the product reads 500 s)")
+    ap.add_argument("--search-hysteresis", action="store_true",
+                    help="rules: search also the hysteresis signatures' levels (the rest ends' z and half-gap, the "
+                         "direction state's z; evidence diagnosed before these were kept keeps its classes)")
     ap.add_argument("--hold", action="append", default=[], metavar="RULE=VALUE",
                     help="rules: search only the rules with RULE at VALUE, e.g. relax_rest_min_s=500 (a level held "
                          "for every fold, to compare it with the one the search chooses); repeatable")
@@ -775,7 +819,7 @@ def main(argv: list[str] | None = None) -> int:
         _complete(ev, args.labelled / f"{ev.stem}.csv",
                   json.loads((args.labelled / f"{ev.stem}.meta.json").read_text())["capacity_ah"])
         ev.cell = set_cell(labels.get(ev.stem, {}).get("cell", ev.cell), cells)
-    grid = rule_grid(args.search_requirement, args.wide_grid, args.search_rest_length)
+    grid = rule_grid(args.search_requirement, args.wide_grid, args.search_rest_length, args.search_hysteresis)
     if args.diffusion_signature is not None and not args.search_requirement:
         grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
     grid = [r for r in grid if all(r.get(k) == v for k, v in held.items())]

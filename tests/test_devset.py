@@ -229,6 +229,27 @@ def test_signature_levels_move_nomination_and_plausibility():
     assert decide(ev, {"kinetics_max_i0_c": 0.15})[0] == "none"
 
 
+def test_hysteresis_levels_move_its_evidence_class():
+    """The direction state's z of 6 nominates hysteresis at a level of 4, not at the product's 8, and
+    its 8 % gain then clears the nominated bar; rest ends whose half-gap clears the z level measure it
+    directly, and a half-gap under the level measures nothing."""
+    from research.devset import hysteresis_evidence
+
+    hys = _cand("hysteresis", 0.08, before=30.0)  # a 2.4 mV drop clears the absolute bar
+    ev = _ev("A", "hysteresis", [hys])
+    ev.signatures = {"hysteresis": {"n_rests": 0, "statistic": 0.0, "half_gap_v": None, "spread": None,
+                                    "relaxation": None, "direction_z": 6.0, "direction_half_gap_v": 0.005}}
+    assert decide(ev, {"direction_min_z": 8.0})[0] == "none"
+    assert decide(ev, {"direction_min_z": 4.0})[0] == "hysteresis"
+    assert decide(ev, {"direction_min_z": 4.0, "branch_min_half_gap_v": 0.006})[0] == "none"
+    rests = {"n_rests": 5, "statistic": 6.0, "half_gap_v": 0.005, "spread": 0.05, "relaxation": 0.2,
+             "direction_z": None, "direction_half_gap_v": None}
+    assert hysteresis_evidence(rests, {"branch_min_z": 5.0}) == "direct"
+    assert hysteresis_evidence(rests, {"branch_min_z": 8.0}) == "fit"
+    assert hysteresis_evidence({**rests, "n_rests": 3}, {"branch_min_z": 3.0}) == "fit", "too few rests to read"
+    assert hysteresis_evidence(rests, {"branch_min_half_gap_v": 0.006}) == "fit"
+
+
 def test_the_ambient_margin_is_the_nearest_recording_on_each_side_of_the_level():
     from research.devset import ambient_margin
 
