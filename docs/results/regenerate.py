@@ -1248,6 +1248,12 @@ python -m research.devset rules --workdir out/devset --json out/devset_rules.jso
 # the set and its evidence are devset_rules'
 python -m research.devset rules --workdir out/devset --wide-grid --json out/devset_rules_wide.json""",
           devset_summary_table("devset_rules_wide.json"), 5, ("needs:devset_rules", "needs:pybamm")),
+    Table("devset_hysteresis_levels", "diagnose.md", """\
+# the set and its evidence are devset_rules'; the other rules held at the product's values
+H="--hold min_rel_gain=0.25 --hold min_rel_gain_nominated=0.05 --hold min_abs_gain_noise=1 --hold min_delta_bic=0"
+H="$H --hold kinetics_max_i0_c=0.15 --hold relax_min_ratio=0.15 --hold relax_min_z=5"
+python -m research.devset rules --workdir out/devset --search-hysteresis $H --json out/devset_hysteresis_levels.json""",
+          devset_summary_table("devset_hysteresis_levels.json"), 2, ("needs:devset_rules", "needs:pybamm")),
     Table("validate", "diagnose.md", "python -m research.validate --seeds 3 --workdir out/validate --json out/validate.json",
           validate_table("validate.json"), 8),
     Table("roundtrip", "diagnose.md", "python -m research.roundtrip --workdir out/roundtrip --json out/roundtrip.json",
