@@ -203,14 +203,17 @@ def signature_stats(sig: dict) -> dict[str, dict]:
     the diffusion relaxation ratio and its z, and the hysteresis signatures' statistics (the rest
     ends' half-gap fit and the direction state in the base residual)."""
     kin, rel, temp = sig.get("kinetics", {}), sig.get("diffusion", {}), sig.get("temperature", {})
-    branch = sig.get("hysteresis", {})
-    direction = branch.get("direction", {})
-    return {"hysteresis": {k: branch.get(k) for k in ("n_rests", "statistic", "half_gap_v", "spread", "relaxation")}
-            | {"direction_z": direction.get("statistic"), "direction_half_gap_v": direction.get("half_gap_v")},
-            "kinetics": {"i0_upper_c": kin.get("i0_upper_c"), "resolved": bool(kin.get("resolved", False))},
-            "diffusion": {"statistic": rel.get("statistic") if "z" in rel else None, "z": rel.get("z")},
-            "temperature": {"opening_c": temp.get("opening_temp_c"), "coldest_c": temp.get("coldest_temp_c"),
-                            "nominal_c": temp.get("nominal_ambient_c")}}
+    out = {"kinetics": {"i0_upper_c": kin.get("i0_upper_c"), "resolved": bool(kin.get("resolved", False))},
+           "diffusion": {"statistic": rel.get("statistic") if "z" in rel else None, "z": rel.get("z")},
+           "temperature": {"opening_c": temp.get("opening_temp_c"), "coldest_c": temp.get("coldest_temp_c"),
+                           "nominal_c": temp.get("nominal_ambient_c")}}
+    if "hysteresis" in sig:  # read with the base model's residual: a diagnosis has it, the recording alone not
+        branch = sig["hysteresis"]
+        direction = branch.get("direction", {})
+        out["hysteresis"] = ({k: branch.get(k) for k in ("n_rests", "statistic", "half_gap_v", "spread", "relaxation")}
+                             | {"direction_z": direction.get("statistic"),
+                                "direction_half_gap_v": direction.get("half_gap_v")})
+    return out
 
 
 def rest_key(min_rest_s: float) -> str:

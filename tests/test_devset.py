@@ -248,6 +248,11 @@ def test_hysteresis_levels_move_its_evidence_class():
     assert hysteresis_evidence(rests, {"branch_min_z": 8.0}) == "fit"
     assert hysteresis_evidence({**rests, "n_rests": 3}, {"branch_min_z": 3.0}) == "fit", "too few rests to read"
     assert hysteresis_evidence(rests, {"branch_min_half_gap_v": 0.006}) == "fit"
+    del ev.signatures["hysteresis"]  # evidence cached before the statistics were kept keeps its class
+    assert decide(ev, {"direction_min_z": 4.0})[0] == "none"
+    from research.devset import signature_stats
+
+    assert "hysteresis" not in signature_stats({"diffusion": {}}), "the recording alone does not read it"
 
 
 def test_the_ambient_margin_is_the_nearest_recording_on_each_side_of_the_level():
