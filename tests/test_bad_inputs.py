@@ -209,6 +209,20 @@ def test_fit_refuses_bad_ocv_tables(tmp_path: Path, capsys, table: str) -> None:
     assert not prof.exists()
 
 
+def test_fit_refuses_ocv_smoothing_with_a_given_ocv_table(tmp_path: Path, capsys) -> None:
+    """--ocv-smoothing smooths a jointly fitted OCV: named with a table it would do nothing, so it is
+    refused in one line and nothing is written."""
+    ocv = tmp_path / "ocv.csv"
+    soc = np.linspace(0, 1, 11)
+    ocv.write_text("soc,ocv_v\n" + "\n".join(f"{s},{3.0 + 1.2 * s}" for s in soc) + "\n")
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    prof = tmp_path / "cell.toml"
+    code, err = run_cli(capsys, ["fit", str(rec), "--capacity-ah", "2.9", "--ocv", str(ocv), "-o", str(prof),
+                                 "--ocv-smoothing", "1", "--max-seconds", "1"])
+    assert_one_line_error(code, err, "--ocv-smoothing")
+    assert not prof.exists()
+
+
 def test_header_only_csv_prints_no_numpy_warning(tmp_path: Path, capsys) -> None:
     path = BAD_RECORDINGS["header_only.csv"](tmp_path)
     code, err = run_cli(capsys, ["evaluate", str(path), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet"])

@@ -78,6 +78,19 @@ def test_joint_ocv_is_monotone_and_close_where_the_data_went():
     assert fit.rmse_mv < 3.0
 
 
+def test_the_smoothing_weight_smooths_the_joint_ocv():
+    """A larger weight on the second-difference penalty leaves a joint OCV with less curvature
+    (``socd fit --ocv-smoothing``), still monotone; the default stays close to the true curve."""
+    segs = [segment(6000, seed=s, noise_v=0.004, soc0=0.98 - 0.3 * s) for s in range(3)]
+    rough = {}
+    for w in (0.01, 10.0):
+        fit = fit_ecm2rc(segs, CAPACITY_AH, smooth_weight=w)
+        assert np.all(np.diff(fit.ocv_v) >= 0.0)
+        visited = (fit.ocv_soc > 0.2) & (fit.ocv_soc < 0.95)
+        rough[w] = float(np.sum(np.diff(fit.ocv_v[visited], 2) ** 2))
+    assert rough[10.0] < 0.5 * rough[0.01]
+
+
 def test_huber_weights_hold_against_outliers():
     seg = segment()
     v = seg.voltage_v.copy()

@@ -70,7 +70,12 @@ from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
 from service.cell.truth import truth_and_start
-from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
+from service.characterisation.ecm2rc_fit import (
+    OCV_SMOOTH_WEIGHT,
+    TAU2_BOUNDS_S,
+    Ecm2RcFit,
+    fit_ecm2rc,
+)
 from service.characterisation.ocv_choices import (
     DEFAULT_OCV_BETWEEN_RESTS,
     NEAR_REFERENCE_K,
@@ -317,6 +322,7 @@ def characterise(
     max_tau_df_s: float = MAX_TAU_DF_S,
     ocv_beyond: str = "hold",
     ocv_between_rests: str | None = None,
+    ocv_smoothing: float | None = None,
     report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
@@ -335,7 +341,9 @@ def characterise(
     read at temperatures beyond theirs (:func:`ocv_rows_by_temperature`).  ``ocv_between_rests``: how
     a rest-anchored joint OCV is read between rests close in SOC (:func:`reads_through_rests`); ``None``
     (the default) reads it the :data:`DEFAULT_OCV_BETWEEN_RESTS` way where there is such an OCV and
-    leaves any other OCV alone, while a choice named where there is none is an error.  ``starts``:
+    leaves any other OCV alone, while a choice named where there is none is an error.
+    ``ocv_smoothing``: the smoothness weight of a jointly fitted OCV (:func:`fit_ecm2rc`; ``None``:
+    :data:`OCV_SMOOTH_WEIGHT`), an error where the OCV is given.  ``starts``:
     global searches per temperature, seeded ``seed``, ``seed + 1``, ...; the point that fits the
     temperature's segments best is kept (the searches end on different points where the data pin the
     parameters down poorly)."""
@@ -350,6 +358,10 @@ def characterise(
         given = "--no-rest-anchor" if rest_anchor is False else "an OCV table or test"
         raise ValueError(f"--ocv-between-rests {ocv_between_rests} reads between the rests of a jointly fitted, "
                          f"rest-anchored OCV; with {given} there is none")
+    if ocv_smoothing is not None and (ocv_table is not None or ocv_tests):
+        raise ValueError(f"--ocv-smoothing {ocv_smoothing:g} smooths a jointly fitted OCV; with an OCV table or test "
+                         "given there is none")
+    smooth_weight = OCV_SMOOTH_WEIGHT if ocv_smoothing is None else ocv_smoothing
     dynamic = [(r, fa) for r, fa in zip(recordings, full_at) if not is_ocv_test(r, capacity_ah)]
     if not dynamic:
         raise ValueError("socd fit needs at least one dynamic recording (drive cycle or HPPC) to fit the model")
@@ -442,7 +454,7 @@ def characterise(
             ecm[t] = fit_ecm2rc(segs, capacity_ah, ocv_soc=grid, ocv_v=ocv_rows[t])
         else:
             prior = None if t == ref_t else ecm[ref_t].ocv_v
-            ecm[t] = fit_ecm2rc(segs, capacity_ah, prior_v=prior)
+            ecm[t] = fit_ecm2rc(segs, capacity_ah, prior_v=prior, smooth_weight=smooth_weight)
         f = ecm[t]
         rep.say(f"textbook 2-RC at {t:g} °C: R0 {f.r0 * 1e3:.1f} mΩ, R1 {f.r1 * 1e3:.1f} mΩ / τ1 {f.tau1_s:.1f} s, "
                 f"R2 {f.r2 * 1e3:.1f} mΩ / τ2 {f.tau2_s:.0f} s; fit RMSE {f.rmse_mv:.1f} mV"

@@ -46,6 +46,10 @@ MIN_TAU_RATIO = 2.0
 R_MAX_OHM = 2.0
 #: OCV knots on [0, 1] when the OCV is fitted
 OCV_KNOTS = 81
+#: weight of the second-difference penalty on a jointly fitted OCV (``socd fit --ocv-smoothing``).
+#: Larger weights give a smoother table with fewer flat steps; 1 reads the Panasonic HPPC-alone
+#: drives worse with both filters (``joint_ocv_smoothing`` in docs/results/characterisation.md)
+OCV_SMOOTH_WEIGHT = 0.01
 #: Huber threshold in robust standard deviations (the usual 95 %-efficiency constant)
 HUBER_K = 1.345
 #: re-weighting passes of the Huber fit
@@ -267,7 +271,7 @@ def fit_ecm2rc(
     ocv_soc: np.ndarray | None = None,
     ocv_v: np.ndarray | None = None,
     prior_v: np.ndarray | None = None,
-    smooth_weight: float = 0.01,
+    smooth_weight: float = OCV_SMOOTH_WEIGHT,
     prior_weight: float = 0.002,
 ) -> Ecm2RcFit:
     """Fit the textbook 2-RC model to ``segments`` (each starting relaxed, SOC0 known).

@@ -8,6 +8,7 @@ from pathlib import Path
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
+from service.characterisation.ecm2rc_fit import OCV_SMOOTH_WEIGHT
 from service.characterisation.ocv_choices import (
     NEAR_REFERENCE_K,
     OCV_BETWEEN_RESTS,
@@ -105,6 +106,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "onto them (joint), through the rests where the temperature's rests have settled (settled) or "
                    "everywhere (interpolate); naming one with an OCV table or test or --no-rest-anchor is an error "
                    "(docs/results/characterisation.md, cell_options.md)")
+    p.add_argument("--ocv-smoothing", type=positive_float, default=None, metavar="W",
+                   help="with no OCV table or test: the weight of the smoothness penalty on the jointly fitted OCV "
+                   f"(default {OCV_SMOOTH_WEIGHT:g}). A larger W gives a smoother table with fewer flat steps where the "
+                   "monotone bound holds it up; W = 1 read the Panasonic HPPC-alone drives worse "
+                   "(docs/results/characterisation.md); naming it with an OCV table or test is an error")
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
                         "says whether the bound cut one (its end point then depends on the machine's load)")
     p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
@@ -166,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
                                        slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
                                        short_charge=args.short_charge,
                                        max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S, ocv_beyond=args.ocv_beyond,
-                                       ocv_between_rests=args.ocv_between_rests,
+                                       ocv_between_rests=args.ocv_between_rests, ocv_smoothing=args.ocv_smoothing,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
                                        starts=args.starts, report=report)
         if not args.force:
