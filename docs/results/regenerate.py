@@ -1076,6 +1076,31 @@ socd evaluate --cell out/starts/panus06_k4.toml $(echo $PANX | tr ' ' '\\n' | gr
                                  (("CALCE 25 °C", r"calce20r"), ("A123 20 °C", r"calce_a123"))
                                  + tuple((f"Panasonic {label}", "pan18650pf" + pattern) for label, pattern in PAN_GROUPS))(out),
           40, ("needs:loco_fit_options",)),
+    Table("joint_ocv_smoothing", "characterisation.md", REAL + f"""\
+mkdir -p out/smooth
+E="--estimator fomiukf -q"
+HPPC="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv) --capacity-ah 2.77 --full-at 0"
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+for w in 1 0.01; do   # the Panasonic pulse-test fits take minutes: both at once
+  (socd fit $HPPC --ocv-smoothing $w -q -o out/smooth/pan_hppc_$w.toml
+   socd evaluate --cell out/smooth/pan_hppc_$w.toml $PANX $E --json out/smooth/pan_hppc_$w.json) &
+done
+for w in 0.01 0.1 1; do
+  socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --ocv-smoothing $w -q -o out/smooth/calce_$w.toml
+  socd evaluate --cell out/smooth/calce_$w.toml {CALCE} $E --json out/smooth/calce_$w.json
+done
+wait""",
+          lambda out: "\n\n".join(
+              f"{title}:\n\n" + runs_table(tuple((f"{cell}, `--ocv-smoothing {w}`{' (default)' if w == '0.01' else ''}",
+                                                  f"smooth/{tag}_{w}.json")
+                                                 for cell, tag, ws in (("CALCE, DST file", "calce", ("0.01", "0.1", "1")),
+                                                                       ("Panasonic, HPPC alone", "pan_hppc", ("0.01", "1")))
+                                                 for w in ws),
+                                           (("CALCE 25 °C", r"calce20r"),) + PAN_GROUPS, estimator)(out)
+              for title, estimator in (("`fomiukf` on the profile", "fomiukf"),
+                                       ("`ecm2rc-ekf` on the profile's 2-RC fit, whose OCV is the same joint table",
+                                        "ecm2rc-ekf"))),
+          12),
     Table("starts_pulse_cells", "characterisation.md", """\
 # the default rows are unseen_cell_hppc's
 python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_k4 --fit-flags="--starts 4" --refit""",
