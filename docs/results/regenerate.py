@@ -1096,7 +1096,9 @@ wait""",
                                                  for cell, tag, ws in (("CALCE, DST file", "calce", ("0.01", "0.1", "1")),
                                                                        ("Panasonic, HPPC alone", "pan_hppc", ("0.01", "1")))
                                                  for w in ws),
-                                           (("CALCE 25 °C", r"calce20r"),) + PAN_GROUPS, estimator)(out)
+                                           (("CALCE 25 °C", r"calce20r"),)
+                                           + tuple((f"Panasonic {label}", "pan18650pf" + pattern)
+                                                   for label, pattern in PAN_GROUPS), estimator)(out)
               for title, estimator in (("`fomiukf` on the profile", "fomiukf"),
                                        ("`ecm2rc-ekf` on the profile's 2-RC fit, whose OCV is the same joint table",
                                         "ecm2rc-ekf"))),
