@@ -70,15 +70,11 @@ from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
 from service.cell.truth import truth_and_start
-from service.characterisation.ecm2rc_fit import (
-    OCV_SMOOTH_WEIGHT,
-    TAU2_BOUNDS_S,
-    Ecm2RcFit,
-    fit_ecm2rc,
-)
+from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_choices import (
     DEFAULT_OCV_BETWEEN_RESTS,
     NEAR_REFERENCE_K,
+    OCV_SMOOTH_WEIGHT,
     REST_INTERP_MAX_GAP,
 )
 from service.characterisation.ocv_sources import (

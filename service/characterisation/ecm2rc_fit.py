@@ -36,6 +36,7 @@ from scipy.optimize import lsq_linear, minimize
 from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment
 from service.cell.ocv import EXTRAPOLATION_SPAN, OcvTable
+from service.characterisation.ocv_choices import OCV_SMOOTH_WEIGHT
 
 #: time-constant bounds of the two RC branches [s]
 TAU1_BOUNDS_S = (1.0, 100.0)
@@ -46,10 +47,6 @@ MIN_TAU_RATIO = 2.0
 R_MAX_OHM = 2.0
 #: OCV knots on [0, 1] when the OCV is fitted
 OCV_KNOTS = 81
-#: weight of the second-difference penalty on a jointly fitted OCV (``socd fit --ocv-smoothing``).
-#: Larger weights give a smoother table with fewer flat steps; 1 reads the Panasonic HPPC-alone
-#: drives worse with both filters (``joint_ocv_smoothing`` in docs/results/characterisation.md)
-OCV_SMOOTH_WEIGHT = 0.01
 #: Huber threshold in robust standard deviations (the usual 95 %-efficiency constant)
 HUBER_K = 1.345
 #: re-weighting passes of the Huber fit

@@ -18,3 +18,8 @@ OCV_BETWEEN_RESTS = ("near-reference", "joint", "settled", "interpolate")
 #: the default, chosen leave-one-cell-out over the Panasonic cell and the three PyBaMM cells fitted from
 #: pulse tests alone (docs/results/characterisation.md, table ``loco_ocv_between_rests``)
 DEFAULT_OCV_BETWEEN_RESTS = "near-reference"
+#: weight of the second-difference penalty on a jointly fitted OCV (``socd fit --ocv-smoothing``;
+#: :func:`service.characterisation.ecm2rc_fit.fit_ecm2rc`). Larger weights give a smoother table with
+#: fewer flat steps; 1 reads the Panasonic HPPC-alone drives worse with both filters
+#: (``joint_ocv_smoothing`` in docs/results/characterisation.md)
+OCV_SMOOTH_WEIGHT = 0.01

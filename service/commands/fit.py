@@ -8,10 +8,10 @@ from pathlib import Path
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
-from service.characterisation.ecm2rc_fit import OCV_SMOOTH_WEIGHT
 from service.characterisation.ocv_choices import (
     NEAR_REFERENCE_K,
     OCV_BETWEEN_RESTS,
+    OCV_SMOOTH_WEIGHT,
     REST_INTERP_MAX_GAP,
 )
 from service.cli import UserError
