@@ -109,7 +109,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--ocv-smoothing", type=positive_float, default=None, metavar="W",
                    help="with no OCV table or test: the weight of the smoothness penalty on the jointly fitted OCV "
                    f"(default {OCV_SMOOTH_WEIGHT:g}). A larger W gives a smoother table with fewer flat steps where the "
-                   "monotone bound holds it up; W = 1 read the Panasonic HPPC-alone drives worse "
+                   "monotone bound holds it up; W = 1 read the Panasonic HPPC-alone drives at 25 °C worse with both filters "
                    "(docs/results/characterisation.md); naming it with an OCV table or test is an error")
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
                         "says whether the bound cut one (its end point then depends on the machine's load)")
