@@ -477,11 +477,11 @@ def hysteresis_evidence(sig: dict, rule: dict[str, float]) -> str:
 
     min_gap = rule.get("branch_min_half_gap_v", s.BRANCH_MIN_HALF_GAP_V)
     branch = ((sig.get("n_rests") or 0) >= s.BRANCH_MIN_RESTS and sig.get("half_gap_v") is not None
-              and sig["statistic"] >= rule.get("branch_min_z", s.BRANCH_MIN_Z) and sig["half_gap_v"] >= min_gap
-              and sig["spread"] <= s.BRANCH_MAX_SPREAD and sig["relaxation"] <= s.BRANCH_MAX_RELAXATION)
+              and s.branch_nominates(sig["statistic"], sig["half_gap_v"], sig["spread"], sig["relaxation"],
+                                     rule.get("branch_min_z", s.BRANCH_MIN_Z), min_gap))
     direction = (sig.get("direction_z") is not None and sig.get("direction_half_gap_v") is not None
-                 and sig["direction_z"] >= rule.get("direction_min_z", s.DIRECTION_MIN_Z)
-                 and sig["direction_half_gap_v"] >= min_gap)
+                 and s.direction_nominates(sig["direction_z"], sig["direction_half_gap_v"],
+                                           rule.get("direction_min_z", s.DIRECTION_MIN_Z), min_gap))
     return "direct" if branch else "nominated" if direction else "fit"
 
 

@@ -544,9 +544,24 @@ def rest_branch_offset(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     z = half_gap / se
     out.update(statistic=round(z, 2), half_gap_v=half_gap, half_gap_se_v=se, rate=rate, soc0=round(float(fit.x[0]), 4),
                spread=round(spread, 3), relaxation=round(relaxation, 3), rest_end_s=[float(time_s[k]) for k in idx],
-               nominated=bool(z >= BRANCH_MIN_Z and half_gap >= BRANCH_MIN_HALF_GAP_V and spread <= BRANCH_MAX_SPREAD
-                              and relaxation <= BRANCH_MAX_RELAXATION))
+               nominated=branch_nominates(z, half_gap, spread, relaxation))
     return out
+
+
+def branch_nominates(z: float, half_gap_v: float, spread: float, relaxation: float,
+                     min_z: float = BRANCH_MIN_Z, min_half_gap_v: float = BRANCH_MIN_HALF_GAP_V) -> bool:
+    """Whether the rest ends' half-gap fit (:func:`rest_branch_offset`, read from at least
+    :data:`BRANCH_MIN_RESTS` rests) measures a hysteresis, at the levels given (``research.devset``
+    replays other levels through this)."""
+    return bool(z >= min_z and half_gap_v >= min_half_gap_v and spread <= BRANCH_MAX_SPREAD
+                and relaxation <= BRANCH_MAX_RELAXATION)
+
+
+def direction_nominates(z: float, half_gap_v: float, min_z: float = DIRECTION_MIN_Z,
+                        min_half_gap_v: float = BRANCH_MIN_HALF_GAP_V) -> bool:
+    """Whether the direction state in the base residual (:func:`direction_offset`) nominates a
+    hysteresis, at the levels given."""
+    return bool(z >= min_z and half_gap_v >= min_half_gap_v)
 
 
 def opening_temperature_c(time_s: np.ndarray, temperature_c: np.ndarray) -> float:
@@ -686,5 +701,5 @@ def direction_offset(time_s: np.ndarray, current_a: np.ndarray, residual_v: np.n
     z = half_gap / se
     out.update(statistic=round(z, 2), half_gap_v=half_gap, half_gap_se_v=se, rate=rate, tau_int=round(tau, 1),
                n_samples=int(e.size),
-               nominated=bool(z >= DIRECTION_MIN_Z and half_gap >= BRANCH_MIN_HALF_GAP_V))
+               nominated=direction_nominates(z, half_gap))
     return out
