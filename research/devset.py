@@ -576,11 +576,15 @@ def tally(evs: Sequence[Evidence], rule: dict[str, float]) -> Tally:
     return t
 
 
+#: the axes whose steps :func:`_distance_to_default` counts (a rule on no axis here counts 1 when moved)
+STEP_AXES: dict[str, tuple[float, ...]] = {**RULE_GRID, **HYSTERESIS_GRID}
+
+
 def _distance_to_default(rule: dict[str, float], now: dict[str, float]) -> float:
     """Grid steps from the product's current rule (the tie-break: move no further than needed)."""
     steps = 0.0
     for k, v in rule.items():
-        grid = {**RULE_GRID, **HYSTERESIS_GRID}.get(k, (v,))
+        grid = STEP_AXES.get(k, (v,))
         current = now.get(k, v)
         steps += abs(grid.index(v) - grid.index(current)) if v in grid and current in grid else float(v != current)
     return steps
