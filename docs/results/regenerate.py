@@ -571,6 +571,22 @@ class Table:
     tags: tuple[str, ...] = field(default=())
 
 
+#: the HPPC-alone fit of the Panasonic cell at one seed, scored on its drives (hppc_seed_spread*)
+SEED_FIT = """\
+mkdir -p out/seeds
+PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e trise)"
+seed_fit() {  # NAME SEED FIT-FLAGS...: the HPPC-alone fit at one seed (its log kept), scored on the drives
+  n=$1; s=$2; shift 2
+  socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --seed $s "$@" \\
+      -o out/seeds/$n.toml > out/seeds/$n.fitlog 2>&1
+  socd evaluate --cell out/seeds/$n.toml $PANX --estimator fomiukf --no-bar -q --json out/seeds/$n.json
+}
+"""
+SEED_TEMPS = ("25", "10", "0", "-10", "-20")
+SEED_GROUPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"),
+               ("−20 °C", r"_m20C_"))
+
+
 TABLES: tuple[Table, ...] = (
     Table("profiles", "soc_accuracy.md", REAL + f"""\
 {PAN_FIT} --kinetics -o configs/cells/panasonic_18650pf.toml
@@ -1038,23 +1054,18 @@ done""",
     Table("unseen_cell", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
 python -m research.unseen_cell run --refit""", unseen_table("unseen_cell"), 15, ("needs:pybamm",)),
-    Table("hppc_seed_spread", "characterisation.md", REAL + """\
-mkdir -p out/seeds
-PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e trise)"
-seed_fit() {  # NAME SEED FIT-FLAGS...: the HPPC-alone fit at one seed (its log kept), scored on the drives
-  n=$1; s=$2; shift 2
-  socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --seed $s "$@" \\
-      -o out/seeds/$n.toml > out/seeds/$n.fitlog 2>&1
-  socd evaluate --cell out/seeds/$n.toml $PANX --estimator fomiukf --no-bar -q --json out/seeds/$n.json
-}
+    Table("hppc_seed_spread", "characterisation.md", REAL + SEED_FIT + """\
 for s in 0 1 2 3 4 5; do seed_fit pan_s$s $s; done
 for s in 0 2; do seed_fit pank4_s$s $s --starts 4; done""",
           seed_spread_table(tuple((f"seed {s}", f"seeds/pan_s{s}") for s in range(6))
                             + tuple((f"`--starts 4` from seed {s} (seeds {s}-{s + 3})", f"seeds/pank4_s{s}") for s in (0, 2)),
-                            ("25", "10", "0", "-10", "-20"),
-                            (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"),
-                             ("−20 °C", r"_m20C_")), averaged=6),
+                            SEED_TEMPS, SEED_GROUPS, averaged=6),
           70),
+    Table("hppc_seed_spread_monotone", "characterisation.md", REAL + SEED_FIT + """\
+for s in 0 1 2 3 4 5; do seed_fit mono_s$s $s --monotone; done""",
+          seed_spread_table(tuple((f"seed {s}, `--monotone`", f"seeds/mono_s{s}") for s in range(6)),
+                            SEED_TEMPS, SEED_GROUPS, averaged=6),
+          25),
     Table("starts_other_cells", "characterisation.md", REAL + f"""\
 mkdir -p out/starts
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
