@@ -19,6 +19,7 @@ from service.validation import (
     InputFileError,
     RecordingBounds,
     check_increasing,
+    check_time_steps,
     check_values,
     read_text,
 )
@@ -115,6 +116,10 @@ def _load(path: Path, bounds: RecordingBounds | None) -> Recording:
             f"{path}: missing column(s) {', '.join(missing)}; header is {','.join(header)[:120] or '(empty)'}"
         )
     cols = list(REQUIRED_COLUMNS) + (["soc_true"] if "soc_true" in header else [])
+    twice = [c for c in cols if header.count(c) > 1]
+    if twice:
+        raise InputFileError(f"{path}: column {twice[0]} appears {header.count(twice[0])} times in the header; "
+                             "which one to read is not clear")
     idx = [header.index(c) for c in cols]
     try:
         with warnings.catch_warnings():
@@ -127,6 +132,7 @@ def _load(path: Path, bounds: RecordingBounds | None) -> Recording:
     check_values(path, {c: data[:, k] for k, c in enumerate(cols)}, bounds)
     t = data[:, 0]
     check_increasing(path, t)
+    check_time_steps(path, t, data[:, 1])
     return Recording(
         path=path,
         time_s=t,

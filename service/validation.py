@@ -51,9 +51,11 @@ def read_text(path: str | Path, what: str) -> str:
     if nul >= 0:
         raise InputFileError(f"{path}: not a text file ({what} expected): NUL byte at {nul}")
     try:
-        return data.decode("utf-8-sig")
+        text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise InputFileError(f"{path}: not a UTF-8 text {what} (invalid byte at {exc.start})") from None
+    # any line ending (CRLF from Windows, a bare CR from old Mac tools) reads as one
+    return text.replace("\r\n", "\n").replace("\r", "\n")
 
 
 def check_text_file(path: str | Path, what: str, chunk_bytes: int = 1 << 20) -> str:
@@ -153,6 +155,30 @@ def check_increasing(path: str | Path, t: np.ndarray, field: str = "time_s", fir
     if step.size and (step <= 0).any():
         k = int(np.argmax(step <= 0)) + 1
         raise InputFileError(f"{path}: row {k + first_row}: {field} does not increase ({t[k - 1]:g} then {t[k]:g})")
+
+
+#: s: the longest step between two samples of one recording (a week's pause; longer is two
+#: recordings joined, or a corrupt time column)
+MAX_TIME_STEP_S = 7 * 86400.0
+#: s and A: a step longer than an hour over which a current is held (each sample's current is held
+#: over the interval before it) counts charge no sample saw: a logger that stopped under load
+MAX_LOADED_STEP_S = 3600.0
+HELD_CURRENT_A = 0.01
+
+
+def check_time_steps(path: str | Path, t: np.ndarray, current_a: np.ndarray, first_row: int = 2) -> None:
+    """No pause longer than :data:`MAX_TIME_STEP_S`, and none longer than :data:`MAX_LOADED_STEP_S`
+    with a current held over it; else the first row where there is one."""
+    step = np.diff(np.asarray(t, dtype=float))
+    held = np.abs(np.asarray(current_a, dtype=float)[1:])
+    bad = (step > MAX_TIME_STEP_S) | ((step > MAX_LOADED_STEP_S) & (held > HELD_CURRENT_A))
+    if not bad.any():
+        return
+    k = int(np.argmax(bad))
+    what = (f"{held[k]:g} A held over it would count {held[k] * step[k] / 3600:.3g} Ah that no sample saw"
+            if held[k] > HELD_CURRENT_A else f"longer than {MAX_TIME_STEP_S / 86400:g} days")
+    raise InputFileError(f"{path}: row {k + 1 + first_row}: time_s jumps by {step[k]:g} s ({what}): "
+                         "split the recording there")
 
 
 #: the header python-can writes (and its CSV reader expects) in a CSV log
