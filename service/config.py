@@ -297,6 +297,17 @@ class ZenohConfig(_Section):
         "them at Zenoh's default. Relative paths resolve against the socd config file's directory.",
     )
 
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        """Zenoh's endpoint form ``<protocol>/<address>`` (``tcp/127.0.0.1:7447``), checked here so
+        ``socd check`` names a bad one instead of the session failing when ``socd run`` opens it."""
+        for e in v:
+            proto, _, address = e.partition("/")
+            if not proto or not address or not proto.replace("-", "").isalnum():
+                raise ValueError(f"{e!r} is not a Zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)")
+        return v
+
     @field_validator("key_prefix", "pack_id")
     @classmethod
     def _key_chunk(cls, v: str) -> str:

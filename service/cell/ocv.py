@@ -154,7 +154,29 @@ OCV_COLUMNS = ("ocv_v", "ocv_avg_v", "ocv_discharge_v", "ocv_charge_v")
 
 
 #: plausibility of an OCV table's values: SOC as a fraction or in percent, a cell's OCV in volts
-OCV_BOUNDS: dict[str, tuple[float, float]] = {"soc": (0.0, 100.0), **{c: (0.0, 6.0) for c in OCV_COLUMNS}}
+#: V: the range a lithium cell's open-circuit voltage lies in
+OCV_V_RANGE = (0.0, 6.0)
+OCV_BOUNDS: dict[str, tuple[float, float]] = {"soc": (0.0, 100.0), **{c: OCV_V_RANGE for c in OCV_COLUMNS}}
+
+
+#: V: how far an OCV table may fall as SOC rises (measurement noise on a flat plateau); a larger
+#: fall is a reversed column, a wrong column or a corrupt table, which the monotone fit would
+#: otherwise flatten into a silently wrong OCV
+OCV_MAX_FALL_V = 0.010
+
+
+def ocv_fall_problem(soc: np.ndarray, ocv_v: np.ndarray) -> str | None:
+    """What is wrong where an OCV row falls by more than :data:`OCV_MAX_FALL_V` as SOC rises
+    (``soc`` increasing), or None."""
+    ocv_v = np.asarray(ocv_v, dtype=float)
+    peak = np.maximum.accumulate(ocv_v)
+    fall = peak - ocv_v
+    k = int(np.argmax(fall))
+    if fall[k] <= OCV_MAX_FALL_V:
+        return None
+    j = int(np.argmax(ocv_v[: k + 1] >= peak[k]))
+    return (f"the OCV falls by {1000 * fall[k]:.0f} mV from SOC {soc[j]:g} to {soc[k]:g} "
+            f"(more than {1000 * OCV_MAX_FALL_V:.0f} mV): an OCV rises with SOC; is the column reversed or the wrong one?")
 
 
 def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
@@ -194,7 +216,7 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
             out.append(v)
     soc_a, ocv_a = np.array(soc), np.array(ocv)
     if soc_a.size < 2:
-        raise ValueError(f"{path}: OCV table has fewer than 2 usable rows")
+        raise ValueError(f"{path}: OCV table has fewer than 2 rows with both soc and {col}")
     if soc_a.max() > 1.5:
         soc_a = soc_a / 100.0
     order = np.argsort(soc_a)
@@ -202,6 +224,8 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
     if (np.diff(soc_a) <= 0).any():
         k = int(np.argmax(np.diff(soc_a) <= 0))
         raise ValueError(f"{path}: soc {soc_a[k]:g} appears twice: the table must have one OCV per SOC")
+    if (problem := ocv_fall_problem(soc_a, ocv_a)) is not None:
+        raise ValueError(f"{path}: {col}: {problem}")
     return soc_a, ocv_a
 
 

@@ -24,17 +24,21 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from service.cell.ocv import OcvTable
+from service.cell.ocv import OCV_V_RANGE, OcvTable, ocv_fall_problem
 from service.cell.soc_dependence import SocScaleTable
+from service.validation import RecordingBounds
 
 SCHEMA_VERSION = 1
+#: °C: the temperatures a profile's points may sit at (the range a recording's may lie in)
+TEMP_RANGE_C = RecordingBounds().temperature_c
 GAS_CONSTANT = 8.314462618  # J/(mol K)
 FARADAY = 96485.33212  # C/mol
 KELVIN = 273.15
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # a NaN or infinite number in a profile is a corrupt file, never a value
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class OcvSpec(_Strict):
@@ -48,16 +52,26 @@ class OcvSpec(_Strict):
     def _shape(self) -> OcvSpec:
         if len(self.ocv_v) != len(self.temps_c):
             raise ValueError(f"ocv_v has {len(self.ocv_v)} rows but temps_c has {len(self.temps_c)}")
+        soc = np.array(self.soc)
+        if soc.size < 2 or np.any(np.diff(soc) <= 0) or soc[0] < 0.0 or soc[-1] > 1.0:
+            raise ValueError("soc must be at least 2 strictly increasing fractions in [0, 1]")
+        if np.any(np.diff(self.temps_c) <= 0):
+            raise ValueError(f"temps_c must be strictly increasing, got {self.temps_c}")
         for k, row in enumerate(self.ocv_v):
             if len(row) != len(self.soc):
                 raise ValueError(f"ocv_v row {k} has {len(row)} values, soc has {len(self.soc)}")
+            if not all(OCV_V_RANGE[0] < v <= OCV_V_RANGE[1] for v in row):
+                raise ValueError(f"ocv_v row {k} ({self.temps_c[k]:g} °C) holds a voltage outside "
+                                 f"({OCV_V_RANGE[0]:g}, {OCV_V_RANGE[1]:g}] V")
+            if (problem := ocv_fall_problem(soc, np.array(row))) is not None:
+                raise ValueError(f"ocv_v row {k} ({self.temps_c[k]:g} °C): {problem}")
         return self
 
 
 class ParameterPoint(_Strict):
     """MTS-FOM parameters at one temperature (Zeng Fig. 1).  C's are CPE coefficients."""
 
-    temp_c: float = 25.0
+    temp_c: float = Field(25.0, ge=TEMP_RANGE_C[0], le=TEMP_RANGE_C[1])
     r_ohm: float = Field(gt=0, description="ohmic resistance, ohm")
     r_ct: float = Field(gt=0, description="charge-transfer resistance, ohm")
     c_dl: float = Field(gt=0, description="double-layer CPE coefficient, F s^(m-1)")
@@ -191,7 +205,7 @@ def sorted_by_temperature(points: list, what: str) -> list:
 class Ecm2RcPoint(_Strict):
     """Textbook 2-RC parameters at one temperature (``V = OCV - R0 I - U1 - U2``)."""
 
-    temp_c: float = 25.0
+    temp_c: float = Field(25.0, ge=TEMP_RANGE_C[0], le=TEMP_RANGE_C[1])
     r0: float = Field(gt=0, description="ohmic resistance, ohm")
     r1: float = Field(ge=0, description="fast RC branch resistance, ohm")
     tau1_s: float = Field(gt=0, description="fast RC branch time constant, s")
@@ -242,7 +256,8 @@ class Ecm2RcSpec(_Strict):
 class CellProfile(_Strict):
     """Everything known about one cell type; loaded by estimators and the service."""
 
-    schema_version: int = SCHEMA_VERSION
+    schema_version: int = Field(SCHEMA_VERSION, ge=1, le=SCHEMA_VERSION,
+                                description="profile format; a later one is from a newer socd, which this one cannot read")
     name: str = "cell"
     capacity_ah: float = Field(gt=0)
     #: the G-L short memory the parameters were fitted with, in seconds (``L`` samples × the fit
@@ -468,7 +483,8 @@ def load_profile(path: str | Path) -> CellProfile:
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
         raise ProfileError(f"{path}: not valid {'TOML' if path.suffix == '.toml' else 'JSON'}: {exc}") from exc
     try:
-        return CellProfile.model_validate(raw)
+        # strict: a number written as a string or a boolean is a mistake, not a value
+        return CellProfile.model_validate(raw, strict=True)
     except ValidationError as exc:
         first = exc.errors()[0]
         field = ".".join(str(p) for p in first["loc"])
