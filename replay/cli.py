@@ -29,15 +29,19 @@ from replay.pack import SpreadSpec, pack_frames
 from replay.player import LOG_SUFFIXES, log_format, play, read_log
 from service.bus.cli_args import BusConfigError, add_bus_arguments, bus_flags_given, resolve_bus
 from service.commands.common_args import (
+    SEED,
     add_cell_argument,
     add_common_arguments,
     add_soc0_argument,
     bus_gap,
     finite_float,
     non_negative_float,
+    output_file,
     positive_int,
     probability,
     progress_enabled,
+    refuse_overwriting_inputs,
+    relative_sigma,
     setup_logging,
     stuck_cell,
 )
@@ -64,17 +68,17 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
                       help="cell profile for the OCV table (default: the config's cell_profile)")
     add_soc0_argument(g, old_start_soc_alias=True,
                       help="SOC at the first sample, 0..1 (default: from the first rest voltage)")
-    g.add_argument("--spread-capacity", type=non_negative_float, default=0.0, metavar="REL",
+    g.add_argument("--spread-capacity", type=relative_sigma, default=0.0, metavar="REL",
                    help="σ of capacity (relative)")
-    g.add_argument("--spread-resistance", type=non_negative_float, default=0.0, metavar="REL",
+    g.add_argument("--spread-resistance", type=relative_sigma, default=0.0, metavar="REL",
                    help="σ of R_ohm (relative)")
     g.add_argument("--spread-soc", type=non_negative_float, default=0.0, metavar="SOC",
                    help="σ of start SOC (absolute)")
     g.add_argument("--spread-temperature", type=non_negative_float, default=0.0, metavar="DEGC",
                    help="σ of per-sensor temperature offset")
-    g.add_argument("--seed", type=int, default=0, help="seed of the spread and the faults (default 0)")
+    g.add_argument("--seed", type=SEED, default=0, help="seed of the spread and the faults (default 0)")
     g.add_argument("--time-offset", type=finite_float, default=0.0, metavar="S", help="add to frame timestamps")
-    g.add_argument("--truth-out", metavar="FILE.csv", help="write per-cell truth SOC")
+    g.add_argument("--truth-out", metavar="FILE.csv", type=output_file(), help="write per-cell truth SOC")
 
     g = p.add_argument_group("pacing")
     g.add_argument("--speed", type=non_negative_float, default=None, help="1 = real time (default), 10 = ten times "
@@ -98,7 +102,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
                    help="no frames from T0 for DURATION s (repeatable)")
 
     g = p.add_argument_group("output")
-    g.add_argument("--record", metavar="OUT", help="write the frames to a python-can log "
+    g.add_argument("--record", metavar="OUT", type=output_file(), help="write the frames to a python-can log "
                    "(" + ", ".join(LOG_SUFFIXES) + "); with no bus flags only the log is written")
     g.add_argument("--no-send", action="store_true", help="do not open a bus")
     add_common_arguments(p, progress=True, old_no_progress_alias=True, bounds=True)
@@ -119,7 +123,10 @@ def is_cell_recording(path: Path) -> bool:
             first = fh.readline(65536).decode("utf-8-sig", errors="replace")
     except OSError:
         return False
-    header = next(csv.reader([first]), [])
+    try:
+        header = next(csv.reader(first.splitlines()[:1]), [])
+    except csv.Error:
+        return False
     return {"time_s", "current_a", "voltage_v"} <= {h.strip() for h in header}
 
 
@@ -140,8 +147,12 @@ def run(args: argparse.Namespace) -> int:
     from service.validation import InputFileError, check_can_log
 
     path = Path(args.input)
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder, not a recording or CAN log")
     if not path.is_file():
         raise UserError(f"{path}: no such file")
+    for flag, out in (("--record", args.record), ("--truth-out", args.truth_out)):
+        refuse_overwriting_inputs(out, [path, getattr(args, "cell", None)], flag)
     mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
     if mf4_files and not installed("asammdf"):
         raise UserError(f"{mf4_files[0]}: MF4 {install_hint('asammdf')}")
@@ -162,6 +173,9 @@ def run(args: argparse.Namespace) -> int:
         from service.recording import load_recording
 
         recording = load_recording(path)
+        length_s = float(recording.time_s[-1] - recording.time_s[0])
+        if args.start is not None and args.start >= length_s:
+            raise UserError(f"--start {args.start:g} s is past the end of {path} ({length_s:g} s long)")
         profile_path = Path(args.cell) if args.cell else config.cell_profile
         try:
             profile = load_profile(profile_path)

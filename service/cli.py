@@ -94,6 +94,12 @@ def main(argv: list[str] | None = None) -> int:
         # shell tool does on SIGPIPE; point stdout at /dev/null so the exit flush cannot fail again
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as exc:
+        # a file the command could not write or read (permissions, a full disk, a special file
+        # system): the path and the reason, not a traceback
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"socd {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

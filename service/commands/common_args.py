@@ -27,8 +27,9 @@ import argparse
 import json
 import logging
 import math
+import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -95,6 +96,15 @@ probability = float_in(0.0, 1.0, "a probability")
 soc_fraction = float_in(0.0, 1.0, "a SOC fraction")
 
 
+def relative_sigma(text: str) -> float:
+    """σ of a cell's relative capacity or resistance, in [0, 1/3): spreads are clipped at ±3σ, so a
+    larger σ gives a cell no (or a negative) capacity or resistance."""
+    x = non_negative_float(text)
+    if x >= 1 / 3:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1/3) (a cell 3σ below would have none left), got {text}")
+    return x
+
+
 def positive_int(text: str) -> int:
     n = _int(text)
     if n < 1:
@@ -120,6 +130,10 @@ def int_range(lo: int, hi: int) -> Callable[[str], int]:
 
     parse.__name__ = f"int {lo}..{hi}"
     return parse
+
+
+#: a seed numpy's generators take
+SEED = int_range(0, 2**32 - 1)
 
 
 def stuck_cell(text: str) -> tuple[int, float]:
@@ -172,6 +186,67 @@ def full_at(text: str) -> str:
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(f"expected a time in s (>= 0) or 'auto', got {text!r}") from None
     return text
+
+
+def _writable_place(path: Path) -> str | None:
+    """Why nothing can be written at ``path`` (None if it can): the nearest existing folder above
+    it must be a folder this user may write in (missing folders are made when writing)."""
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"{parent} is not a folder"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"no permission to write in {parent}"
+    return None
+
+
+#: the image formats matplotlib's Agg backend writes (``--plot``)
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".svgz", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".eps", ".ps")
+PROFILE_SUFFIXES = (".toml", ".json")
+
+
+def output_file(*suffixes: str) -> Callable[[str], str]:
+    """A file to write (``-`` passes through for stdout): not an existing folder, in a place this
+    user may write; with ``suffixes``, one of them (``.toml``, ``.json``...).  Checked before the
+    command runs, so a long fit or diagnosis does not end in a write that fails."""
+    def parse(text: str) -> str:
+        if text == "-":
+            return text
+        path = Path(text)
+        if path.is_dir():
+            raise argparse.ArgumentTypeError(f"{text} is a folder; give a file name")
+        if suffixes and path.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"{text}: expected a {' or '.join(suffixes)} file")
+        why = _writable_place(path)
+        if why:
+            raise argparse.ArgumentTypeError(f"cannot write {text}: {why}")
+        return text
+    return parse
+
+
+def output_dir(text: str) -> str:
+    """A folder to write files into (made if missing): not an existing file."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file; give a folder")
+    why = _writable_place(path / "x")
+    if why:
+        raise argparse.ArgumentTypeError(f"cannot write into {text}: {why}")
+    return text
+
+
+def refuse_overwriting_inputs(output: str | Path | None, inputs: Sequence[str | Path | None], flag: str) -> None:
+    """Raise :class:`UserError` where ``output`` is one of the command's own input files: writing
+    it would destroy the data the command was given."""
+    if output is None or str(output) == "-":
+        return
+    out = Path(output).resolve()
+    for given in inputs:
+        if given is not None and Path(given).resolve() == out:
+            from service.errors import UserError
+
+            raise UserError(f"{flag} {output} is one of the input files; write the result elsewhere")
 
 
 # ---------------------------------------------------------------------------------------
@@ -259,7 +334,7 @@ def add_log_level_argument(parser: Any, default: str = "warning") -> None:
 
 
 def add_json_argument(parser: Any, what: str = "the results") -> None:
-    parser.add_argument("--json", metavar="OUT", default=None,
+    parser.add_argument("--json", metavar="OUT", default=None, type=output_file(),
                         help=f"write {what} as JSON to OUT ('-' = stdout; the text summary then goes to stderr)")
 
 

@@ -7,12 +7,16 @@ from pathlib import Path
 
 from service.cli import UserError
 from service.commands.common_args import (
+    PLOT_SUFFIXES,
+    SEED,
     add_cell_argument,
     add_common_arguments,
     add_soc0_argument,
     int_range,
     non_negative_float,
+    output_file,
     positive_float,
+    relative_sigma,
     setup_logging,
     text_stream,
     write_json,
@@ -43,12 +47,12 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                            "drive, which starts fully charged; else estimated from the first rest voltage)")
     add_cell_argument(parser, help="cell profile the service estimates with and the pack is built from "
                       "(default: the bundled Panasonic 18650PF profile)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the per-cell spread (default 0)")
-    parser.add_argument("--spread-capacity", type=non_negative_float, default=0.02, metavar="SIGMA",
+    parser.add_argument("--seed", type=SEED, default=0, help="seed of the per-cell spread (default 0)")
+    parser.add_argument("--spread-capacity", type=relative_sigma, default=0.02, metavar="SIGMA",
                         help="σ of the cells' relative capacity, clipped at 3σ (default 0.02 = 2 %%)")
     parser.add_argument("--freeze-capacity", action="store_true",
                         help="estimate with the profile's capacity (estimator.capacity_estimation = 'off')")
-    parser.add_argument("--plot", type=Path, default=None, metavar="FILE",
+    parser.add_argument("--plot", type=lambda t: Path(output_file(*PLOT_SUFFIXES)(t)), default=None, metavar="FILE",
                         help=f"PNG of SOC vs truth (default {DEFAULT_PLOT} where matplotlib, of the "
                              "'fit' extra, is installed)")
     add_common_arguments(parser, json_out="the figures")
@@ -67,9 +71,6 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(f"--speed must be >= 0, got {args.speed}")
     if args.seconds is not None and args.seconds <= 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
-    if not 0 <= args.spread_capacity < 1 / 3:
-        raise UserError(f"--spread-capacity must be in [0, 1/3) (a cell 3σ below would have no capacity), "
-                        f"got {args.spread_capacity}")
     if args.recording is not None and not args.recording.is_file():
         raise UserError(f"{args.recording}: no such recording")
     plot = args.plot

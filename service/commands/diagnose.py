@@ -21,14 +21,19 @@ from pathlib import Path
 
 from service.cli import UserError
 from service.commands.common_args import (
+    PROFILE_SUFFIXES,
+    SEED,
     add_cell_argument,
     add_common_arguments,
     add_fit_period_argument,
     add_soc0_argument,
     float_in,
     json_to_stdout,
+    output_dir,
+    output_file,
     positive_float,
     progress_enabled,
+    refuse_overwriting_inputs,
     setup_logging,
     write_json,
 )
@@ -47,8 +52,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     add_cell_argument(src, help="cell profile (TOML/JSON) to start from")
     src.add_argument("--ocv", help="OCV(SOC) table CSV (soc + ocv_v/ocv_avg_v/...); needs --capacity-ah")
     p.add_argument("--capacity-ah", type=positive_float, help="capacity in Ah (with --ocv)")
-    p.add_argument("--report", help="write report.md and PNG plots into this directory")
-    p.add_argument("--save-profile", help="write the extended cell profile here (.json or .toml): the verdict's "
+    p.add_argument("--report", type=output_dir, help="write report.md and PNG plots into this directory")
+    p.add_argument("--save-profile", type=output_file(*PROFILE_SUFFIXES), help="write the extended cell profile here (.json or .toml): the verdict's "
                    "extension, or the base model alone when the verdict is none")
     p.add_argument("--save-effect", metavar="NAME",
                    help="with --save-profile: save this candidate's extension instead of the verdict's, even when "
@@ -62,7 +67,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="the ambient a nominal recording is in (default 25 °C); a recording that opens 5 K or more "
                    "away from it and whose temperature then moves by 2 K or more has its temperature effect "
                    "nominated; 'none' judges the temperature only by how well a constant ambient explains it")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     add_fit_period_argument(p, what="the diagnosis (its rules were chosen on 1 s recordings)")
     add_common_arguments(p, progress=True, json_out="the result", bounds=True)
     p.set_defaults(func=run)
@@ -95,6 +100,9 @@ def _profile_from_args(args):
     from service.diagnosis.pipeline import table_profile
 
     if args.cell:
+        if args.capacity_ah is not None:
+            raise UserError("--capacity-ah goes with --ocv; with --cell the profile's capacity is used "
+                            "(edit capacity_ah in the profile to change it)")
         try:
             return load_profile(args.cell), False
         except ProfileError as exc:
@@ -125,6 +133,9 @@ def run(args: argparse.Namespace) -> int:
     from service.recording import load_recording
 
     setup_logging(args)
+    inputs = [args.recording, args.ocv, getattr(args, "cell", None)]
+    refuse_overwriting_inputs(args.save_profile, inputs, "--save-profile")
+    refuse_overwriting_inputs(args.json, inputs, "--json")
     profile, fit_base = _profile_from_args(args)
     averaged = to_fit_period([load_recording(args.recording)], args.fit_period)
     rec = averaged[0].recording
@@ -134,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--fit-fraction must be in [0.2, 0.9], got {args.fit_fraction:g}")
     effects = tuple(EFFECTS)
     if args.effects:
-        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+        effects = tuple(dict.fromkeys(e.strip() for e in args.effects.split(",") if e.strip()))
         bad = [e for e in effects if e not in EFFECTS]
         if bad:
             raise UserError(f"--effects: unknown effect(s) {', '.join(bad)}; choose from {', '.join(EFFECTS)}")

@@ -18,6 +18,7 @@ from service.commands.common_args import (
     add_common_arguments,
     finite_float,
     full_at,
+    output_dir,
     progress_enabled,
     setup_logging,
     text_stream,
@@ -72,8 +73,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--settings", metavar="TOML",
                    help="pipeline settings (EstimatorSettings fields, top level or under [estimator]) to "
                         "override; an [ecm2rc_ekf] table sets the 2-RC EKF's tuning (EkfTuning fields)")
-    p.add_argument("--plots", metavar="DIR", help="write PNG plots per recording")
-    p.add_argument("--traces", metavar="DIR",
+    p.add_argument("--plots", metavar="DIR", type=output_dir, help="write PNG plots per recording")
+    p.add_argument("--traces", metavar="DIR", type=output_dir,
                    help="write <recording>_traces.csv per recording: time, truth, measured voltage and each "
                         "estimator's SOC and predicted voltage over the scored part (to look into a figure)")
     add_common_arguments(p, progress=True, json_out="the results", bounds=True)
@@ -146,6 +147,11 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     full = per_recording(args.full_at, len(args.recordings), "--full-at")
     recordings = [load_recording(p) for p in args.recordings]  # validate all before the long work
+    names_seen = [r.name for r in recordings]
+    if (args.traces or args.plots) and len(set(names_seen)) < len(names_seen):
+        twice = next(n for n in names_seen if names_seen.count(n) > 1)
+        raise UserError(f"two recordings are named {twice}: their --traces / --plots files would overwrite "
+                        "each other; rename one, or run them apart")
     results: list[EstimatorScore] = []
     total = sum(len(r) for r in recordings) * len(estimators)
     bar = open_progress(progress_enabled(args), "evaluate", total, unit="samples")

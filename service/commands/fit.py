@@ -16,12 +16,17 @@ from service.characterisation.ocv_choices import (
 )
 from service.cli import UserError
 from service.commands.common_args import (
+    PROFILE_SUFFIXES,
+    SEED,
     add_common_arguments,
     add_fit_period_argument,
     full_at,
+    output_dir,
+    output_file,
     positive_float,
     positive_int,
     progress_enabled,
+    refuse_overwriting_inputs,
     setup_logging,
 )
 from service.commands.progress import open_progress
@@ -126,10 +131,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         "fit alike predict it further apart than the fit's RMSE (pulse tests leave the slow "
                         "branch loosely bound). Costs that many times the fit's run time "
                         "(docs/results/characterisation.md, hppc_seed_spread)")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=SEED, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
-    p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", help="profile to write (.toml or .json)")
-    p.add_argument("--plots", metavar="DIR",
+    p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", type=output_file(*PROFILE_SUFFIXES), help="profile to write (.toml or .json)")
+    p.add_argument("--plots", metavar="DIR", type=output_dir,
                    help="write PNGs to DIR: each drive or pulse recording with the measured voltage, the fitted "
                    "fractional model and the textbook 2-RC model along it (parameters following the recorded "
                    "temperature) and their residuals, and the profile's OCV(SOC, T); written only when the "
@@ -148,6 +153,8 @@ def run(args: argparse.Namespace) -> int:
     )
 
     setup_logging(args)
+    refuse_overwriting_inputs(args.output, [*args.recordings, args.ocv], "-o")
+    refuse_overwriting_inputs(args.plots, [*args.recordings, args.ocv], "--plots")
     if not args.capacity_ah > 0:
         raise UserError(f"--capacity-ah must be > 0, got {args.capacity_ah}")
     averaged = to_fit_period([load_recording(p) for p in args.recordings], args.fit_period)

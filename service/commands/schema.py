@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from service.cli import UserError
-from service.commands.common_args import add_common_arguments, setup_logging
+from service.commands.common_args import add_common_arguments, output_dir, setup_logging
 
 EXAMPLE_PACK = "pack0"
 EXAMPLE_PREFIX = "bms"
@@ -29,7 +29,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         help="write the JSON Schemas of the Zenoh payloads and an example payload of each",
         description=__doc__.split("\n\n")[0],
     )
-    p.add_argument("-o", "--output", type=Path, metavar="DIR",
+    p.add_argument("-o", "--output", type=lambda t: Path(output_dir(t)), metavar="DIR",
                    help="write <name>.schema.json and <name>.example.json here (default: one JSON document on stdout)")
     add_common_arguments(p)
     p.set_defaults(func=run)
