@@ -57,6 +57,9 @@ BAD_RECORDINGS = {
     "nan_voltage.csv": lambda t: _with(t, "nan_voltage.csv", 3, 2, "nan"),
     "mv_voltage.csv": lambda t: _with(t, "mv_voltage.csv", 3, 2, "3700"),
     "time_back.csv": lambda t: _with(t, "time_back.csv", 10, 0, "2"),
+    # the logger stopped for two hours with 1 A flowing: the held current would count 2 Ah no sample saw
+    "loaded_gap.csv": lambda t: _recording(t, "loaded_gap.csv", "\n".join(
+        f"{t_s},1.0,{3.7 - 0.001 * k},25.0" for k, t_s in enumerate([*range(30), *range(7230, 7260)]))),
 }
 
 BAD_LOGS = {
@@ -152,7 +155,7 @@ def test_binary_config_file(tmp_path: Path, capsys, command: str) -> None:
 
 
 @pytest.mark.parametrize("name", ["huge_temp.csv", "huge_current.csv", "huge_time.csv", "header_only.csv",
-                                  "binary.csv", "nan_voltage.csv"])
+                                  "binary.csv", "nan_voltage.csv", "loaded_gap.csv"])
 def test_evaluate_and_fit_refuse_bad_recordings(tmp_path: Path, capsys, name: str) -> None:
     path = BAD_RECORDINGS[name](tmp_path)
     out = tmp_path / "out.json"
@@ -259,3 +262,171 @@ def test_binary_profile_or_settings(tmp_path: Path, capsys, which: str) -> None:
         argv += ["--settings", str(binary)]
     code, err = run_cli(capsys, argv)
     assert_one_line_error(code, err, str(binary))
+
+
+def test_a_long_rest_between_samples_is_read(tmp_path: Path) -> None:
+    """An OCV test logs nothing for hours while the cell rests (no current held): that is a
+    recording, not a gap; the same pause under load is refused (``loaded_gap.csv``)."""
+    from service.recording import load_recording
+
+    times = [*range(30), *range(50000, 50030)]
+    path = _recording(tmp_path, "rest_gap.csv", "\n".join(
+        f"{t},{0.0 if 29 <= k <= 30 else 1.0},{3.7 - 0.001 * k},25.0" for k, t in enumerate(times)))
+    assert len(load_recording(path)) == 60
+
+
+def test_line_endings_of_any_kind_read_alike(tmp_path: Path) -> None:
+    from service.recording import load_recording
+
+    text = HEADER + "\n" + GOOD_ROWS + "\n"
+    for name, ending in (("lf.csv", "\n"), ("crlf.csv", "\r\n"), ("cr.csv", "\r")):
+        (tmp_path / name).write_bytes(text.replace("\n", ending).encode())
+    ref = load_recording(tmp_path / "lf.csv")
+    for name in ("crlf.csv", "cr.csv"):
+        rec = load_recording(tmp_path / name)
+        assert np.array_equal(rec.voltage_v, ref.voltage_v) and np.array_equal(rec.time_s, ref.time_s)
+
+
+def _profile_with(tmp: Path, name: str, old: str, new: str) -> Path:
+    text = Path(DEFAULT_CELL_PROFILE).read_text()
+    assert old in text, old
+    path = tmp / name
+    path.write_text(text.replace(old, new, 1))
+    return path
+
+
+def _ocv_rows(text: str) -> str:
+    """The first OCV row of the bundled profile's TOML (``ocv_v = [[...], ...]``)."""
+    start = text.index("ocv_v = [") + len("ocv_v = [")
+    return text[start:text.index("]", start) + 1]
+
+
+@pytest.mark.parametrize("case", ["nan_ocv", "reversed_ocv", "capacity_as_text", "capacity_true",
+                                  "newer_schema", "hot_point"])
+def test_evaluate_refuses_a_corrupt_profile_naming_it(tmp_path: Path, capsys, case: str) -> None:
+    """A profile whose numbers cannot be right is refused on load, with the file and the field, by
+    every command that reads one, instead of running on a silently wrong model."""
+    text = Path(DEFAULT_CELL_PROFILE).read_text()
+    row = _ocv_rows(text)
+    values = [v.strip() for v in row.strip().strip("[]").split(",") if v.strip()]
+    edits = {
+        "nan_ocv": (row, "[nan, " + ", ".join(values[1:]) + "]"),
+        "reversed_ocv": (row, "[" + ", ".join(reversed(values)) + "]"),
+        "capacity_as_text": ("capacity_ah = ", 'capacity_ah = "2.9"\nx_ = '),
+        "capacity_true": ("capacity_ah = ", "capacity_ah = true\nx_ = "),
+        "newer_schema": ("schema_version = 1", "schema_version = 99"),
+        "hot_point": ("temp_c = ", "temp_c = 500.0\nx_ = "),
+    }
+    old, new = edits[case]
+    path = _profile_with(tmp_path, f"{case}.toml", old, new)
+    if case in ("capacity_as_text", "capacity_true", "hot_point"):  # drop the displaced original value
+        path.write_text("\n".join(ln for ln in path.read_text().splitlines() if not ln.startswith("x_ = ")) + "\n")
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(path), "--quiet"])
+    assert_one_line_error(code, err, str(path))
+    field = {"nan_ocv": "ocv.ocv_v", "reversed_ocv": "falls", "capacity_as_text": "capacity_ah",
+             "capacity_true": "capacity_ah", "newer_schema": "schema_version", "hot_point": "temp_c"}[case]
+    assert field in err, err
+
+
+def test_fit_refuses_a_reversed_ocv_column(tmp_path: Path, capsys) -> None:
+    """A table whose OCV falls as SOC rises (a reversed or wrong column) would be flattened by the
+    monotone fit into a constant OCV; it is refused, naming the table and the column."""
+    ocv = tmp_path / "ocv_reversed.csv"
+    soc = np.linspace(0, 1, 11)
+    ocv.write_text("soc,ocv_v\n" + "\n".join(f"{s},{4.2 - 1.2 * s}" for s in soc) + "\n")
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    prof = tmp_path / "cell.toml"
+    code, err = run_cli(capsys, ["fit", str(rec), "--capacity-ah", "2.9", "--ocv", str(ocv), "-o", str(prof),
+                                 "--max-seconds", "1"])
+    assert_one_line_error(code, err, str(ocv))
+    assert "falls" in err and not prof.exists()
+
+
+def test_fit_never_writes_over_its_own_input(tmp_path: Path, capsys) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    before = rec.read_bytes()
+    twin = tmp_path / "ok.json"
+    twin.write_bytes(before)
+    code, err = run_cli(capsys, ["fit", str(twin), "--capacity-ah", "2.9", "-o", str(twin), "--max-seconds", "1"])
+    assert_one_line_error(code, err, "is one of the input files")
+    assert twin.read_bytes() == before
+
+
+@pytest.mark.parametrize("flag", ["-o", "--plots"])
+def test_fit_checks_where_it_writes_before_fitting(tmp_path: Path, capsys, flag: str) -> None:
+    """An output that cannot be written is an argument error before the fit runs; with ``--plots``
+    pointing at a file, no profile is written either."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    folder = tmp_path / "a_folder.toml"
+    folder.mkdir()
+    prof = tmp_path / "cell.toml"
+    argv = ["fit", str(rec), "--capacity-ah", "2.9", "--max-seconds", "1"]
+    argv += ["-o", str(folder)] if flag == "-o" else ["-o", str(prof), "--plots", str(rec)]
+    code, err = run_cli(capsys, argv)
+    assert code == 2 and f"argument {flag}" in err and "Traceback" not in err, err
+    assert not prof.exists() and not list(tmp_path.glob("*.tmp"))
+
+
+@pytest.mark.parametrize("argv", [
+    ["evaluate", "REC", "--cell", "CELL", "--json", "FOLDER"],
+    ["evaluate", "REC", "--cell", "CELL", "--traces", "REC"],
+    ["diagnose", "REC", "--cell", "CELL", "--save-profile", "FOLDER"],
+    ["diagnose", "REC", "--cell", "CELL", "--save-profile", "cell.txt"],
+    ["demo", "--seconds", "10", "--plot", "soc.txt"],
+    ["replay", "REC", "--no-send", "--cells", "8", "--spread-capacity", "0.5"],
+])
+def test_output_and_spread_flags_are_checked_as_arguments(tmp_path: Path, capsys, argv: list[str]) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    (tmp_path / "folder").mkdir()
+    subs = {"REC": str(rec), "CELL": str(DEFAULT_CELL_PROFILE), "FOLDER": str(tmp_path / "folder"),
+            "cell.txt": str(tmp_path / "cell.txt"), "soc.txt": str(tmp_path / "soc.txt")}
+    code, err = run_cli(capsys, [subs.get(a, a) for a in argv])
+    assert code == 2 and "error: argument" in err and "Traceback" not in err, err
+
+
+def test_diagnose_refuses_a_capacity_it_would_ignore(tmp_path: Path, capsys) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--capacity-ah", "3"])
+    assert_one_line_error(code, err, "--capacity-ah goes with --ocv")
+
+
+def test_config_names_a_bad_zenoh_endpoint(tmp_path: Path, capsys) -> None:
+    cfg = _config_file(tmp_path, Path(DEFAULT_INPUT_DBC), '[zenoh]\nlisten = ["not-an-endpoint"]\n')
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert code == 2 and "not-an-endpoint" in err and "Traceback" not in err, err
+
+
+def test_a_column_named_twice_is_refused(tmp_path: Path, capsys) -> None:
+    path = _recording(tmp_path, "two_voltages.csv", "\n".join(r + ",3.0" for r in GOOD_ROWS.split("\n")),
+                      header=HEADER + ",voltage_v")
+    code, err = run_cli(capsys, ["evaluate", str(path), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet"])
+    assert_one_line_error(code, err, str(path))
+    assert "voltage_v appears 2 times" in err
+
+
+def test_replay_start_past_the_end_is_refused(tmp_path: Path, capsys) -> None:
+    path = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, _replay_argv(path, tmp_path, "--start", "100"))
+    assert_one_line_error(code, err, "past the end")
+    assert not (tmp_path / "out.asc").exists()
+
+
+def test_evaluate_refuses_traces_that_would_overwrite_each_other(tmp_path: Path, capsys) -> None:
+    (tmp_path / "b").mkdir()
+    one = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    two = _recording(tmp_path / "b", "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["evaluate", str(one), str(two), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet",
+                                 "--traces", str(tmp_path / "traces")])
+    assert_one_line_error(code, err, "two recordings are named ok")
+    assert not (tmp_path / "traces").exists()
+
+
+@pytest.mark.parametrize("command", ["fit", "diagnose", "demo", "replay"])
+def test_a_negative_seed_is_an_argument_error(tmp_path: Path, capsys, command: str) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    argv = {"fit": ["fit", str(rec), "--capacity-ah", "2.9", "-o", str(tmp_path / "c.toml")],
+            "diagnose": ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE)],
+            "demo": ["demo", "--seconds", "10"], "replay": _replay_argv(rec, tmp_path)}[command]
+    code, err = run_cli(capsys, [*argv, "--seed", "-1"])
+    assert code == 2 and "argument --seed" in err and "Traceback" not in err, err
