@@ -430,3 +430,14 @@ def test_a_negative_seed_is_an_argument_error(tmp_path: Path, capsys, command: s
             "demo": ["demo", "--seconds", "10"], "replay": _replay_argv(rec, tmp_path)}[command]
     code, err = run_cli(capsys, [*argv, "--seed", "-1"])
     assert code == 2 and "argument --seed" in err and "Traceback" not in err, err
+
+
+def test_evaluate_refuses_a_truth_that_cannot_be(tmp_path: Path, capsys) -> None:
+    """A current logged in mA counts a thousand times the charge: the truth SOC leaves [0, 1] within a
+    minute and every score against it would be meaningless, so the recording is refused."""
+    rows = "\n".join(f"{t},{1000.0 if t % 20 < 10 else 0.0},{3.7 - 0.001 * t},25.0" for t in range(60))
+    path = _recording(tmp_path, "milliamps.csv", rows)
+    code, err = run_cli(capsys, ["evaluate", str(path), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet",
+                                 "--estimator", "coulomb"])
+    assert_one_line_error(code, err, str(path))
+    assert "current's unit" in err

@@ -37,6 +37,24 @@ def find_full_charge(rec: Recording) -> int:
     return int(in_phase[-1])
 
 
+#: how far a charge count may leave [0, 1] (a fraction of the capacity: a capacity a few percent off,
+#: a full point a little early); further, the capacity, the current's unit or the full-charge point is
+#: wrong for the recording (scored by ``socd evaluate``; refused by ``socd fit``)
+COUNTED_SOC_MARGIN = 0.1
+
+
+def check_counted_truth(rec: Recording, truth: np.ndarray, capacity_ah: float) -> None:
+    """Raise :class:`UserError` where a truth counted with ``capacity_ah`` leaves [0, 1] by more than
+    :data:`COUNTED_SOC_MARGIN`: every score against it would be meaningless (a current in mA reads
+    as a thousand times the charge)."""
+    lo, hi = float(np.min(truth)), float(np.max(truth))
+    if lo < -COUNTED_SOC_MARGIN or hi > 1.0 + COUNTED_SOC_MARGIN:
+        where = f"{lo:.2f}" if lo < -COUNTED_SOC_MARGIN else f"{hi:.2f}"
+        raise UserError(f"{rec.path}: the truth SOC counted from the full-charge point with {capacity_ah:g} Ah "
+                        f"reaches {where}: the current's unit, the capacity or the full-charge point (--full-at) "
+                        "is wrong for this recording")
+
+
 def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
     """The part of ``rec`` to score and its truth SOC.
 

@@ -69,7 +69,7 @@ from service.cell.profile import (
 from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
-from service.cell.truth import truth_and_start
+from service.cell.truth import COUNTED_SOC_MARGIN, truth_and_start
 from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_choices import (
     DEFAULT_OCV_BETWEEN_RESTS,
@@ -121,9 +121,6 @@ POOR_FIT_SHARE = 0.5
 #: the fractional fit may be worse than the textbook 2-RC fit of the same data by this much
 #: (relative, and absolute mV) before the temperature is refused
 ECM_TOLERANCE = (0.05, 0.5)
-#: how far outside [0, 1] the SOC counted through a characterisation recording may go (a
-#: capacity a few percent off, a full point a little early) before the fit is refused
-COUNTED_SOC_MARGIN = 0.1
 #: a temperature group whose samples span this much [K] (10th-90th percentile) fits the
 #: resistances' activation energy too: over 3 K at 40 kJ/mol they change by about 15 %, well
 #: above what a fit resolves; a chamber-held pulse test spans about 1 K

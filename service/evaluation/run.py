@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from service.cell.profile import CellProfile
-from service.cell.truth import truth_and_start
+from service.cell.truth import check_counted_truth, truth_and_start
 from service.estimators.base import EstimateTrace, Estimator
 from service.evaluation.metrics import Scores, score
 from service.recording import Recording
@@ -74,6 +74,8 @@ def evaluate_recordings(
     capacity = profile.effective_capacity_ah
     for rec, fa in zip(recordings, full):
         part, truth = truth_and_start(rec, capacity, fa)
+        if part.soc_true is None:
+            check_counted_truth(part, truth, capacity)
         soc0 = wrong_start(float(truth[0]), init_soc_error)
         # the samples up to the start: the start sample's own interval is spent here, and
         # the scored part's first step has dt = 0 (Recording.dt_s), so nothing is counted twice
