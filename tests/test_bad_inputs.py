@@ -429,3 +429,12 @@ def test_evaluate_refuses_a_truth_that_cannot_be(tmp_path: Path, capsys) -> None
                                  "--estimator", "coulomb"])
     assert_one_line_error(code, err, str(path))
     assert "current's unit" in err
+
+
+def test_evaluate_never_writes_its_json_over_a_recording(tmp_path: Path, capsys) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    before = rec.read_bytes()
+    code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet",
+                                 "--json", str(rec)])
+    assert_one_line_error(code, err, "is one of the input files")
+    assert rec.read_bytes() == before

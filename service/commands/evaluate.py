@@ -20,6 +20,7 @@ from service.commands.common_args import (
     full_at,
     output_dir,
     progress_enabled,
+    refuse_overwriting_inputs,
     setup_logging,
     text_stream,
     write_json,
@@ -146,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
     except UnknownEstimator as exc:
         raise UserError(str(exc)) from exc
     full = per_recording(args.full_at, len(args.recordings), "--full-at")
+    refuse_overwriting_inputs(args.json, [*args.recordings, args.cell, args.settings], "--json")
     recordings = [load_recording(p) for p in args.recordings]  # validate all before the long work
     names_seen = [r.name for r in recordings]
     if (args.traces or args.plots) and len(set(names_seen)) < len(names_seen):

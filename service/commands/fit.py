@@ -154,7 +154,6 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging(args)
     refuse_overwriting_inputs(args.output, [*args.recordings, args.ocv], "-o")
-    refuse_overwriting_inputs(args.plots, [*args.recordings, args.ocv], "--plots")
     if not args.capacity_ah > 0:
         raise UserError(f"--capacity-ah must be > 0, got {args.capacity_ah}")
     averaged = to_fit_period([load_recording(p) for p in args.recordings], args.fit_period)
