@@ -256,8 +256,8 @@ class Ecm2RcSpec(_Strict):
 class CellProfile(_Strict):
     """Everything known about one cell type; loaded by estimators and the service."""
 
-    schema_version: int = Field(SCHEMA_VERSION, ge=1, le=SCHEMA_VERSION,
-                                description="profile format; a later one is from a newer socd, which this one cannot read")
+    schema_version: int = Field(SCHEMA_VERSION, description="profile format; a later one is from a newer socd, "
+                                "which this one cannot read")
     name: str = "cell"
     capacity_ah: float = Field(gt=0)
     #: the G-L short memory the parameters were fitted with, in seconds (``L`` samples × the fit
@@ -271,6 +271,14 @@ class CellProfile(_Strict):
     #: the textbook 2-RC model fitted from the same recordings (``ecm2rc-ekf`` runs on it)
     ecm2rc: Ecm2RcSpec | None = None
     notes: dict[str, str] = {}
+
+    @field_validator("schema_version")
+    @classmethod
+    def _known_version(cls, v: int) -> int:
+        if not 1 <= v <= SCHEMA_VERSION:
+            raise ValueError(f"schema_version {v} is not one this socd reads (1..{SCHEMA_VERSION}): "
+                             "a profile from a newer socd, or a corrupt file")
+        return v
 
     @field_validator("parameters")
     @classmethod
