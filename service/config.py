@@ -282,6 +282,14 @@ class OutputConfig(_Section):
     queue_size: int = Field(256, ge=1)
 
 
+def key_chunk_problem(v: str) -> str | None:
+    """Why ``v`` cannot be part of a Zenoh key expression (a prefix or a pack id), or None: no
+    wildcards, no empty chunk, no leading or trailing slash."""
+    if not v or set(v) & set("*$?#") or v.startswith("/") or v.endswith("/") or "//" in v:
+        return f"{v!r} is not a valid key-expression part (no wildcards, no empty or leading/trailing '/')"
+    return None
+
+
 class ZenohConfig(_Section):
     mode: Literal["peer", "client", "router"] = "peer"
     listen: list[str] = ["tcp/127.0.0.1:7447"]
@@ -311,9 +319,8 @@ class ZenohConfig(_Section):
     @field_validator("key_prefix", "pack_id")
     @classmethod
     def _key_chunk(cls, v: str) -> str:
-        bad = set(v) & set("*$?#")
-        if bad or v.startswith("/") or v.endswith("/") or "//" in v:
-            raise ValueError(f"{v!r} is not a valid key-expression part")
+        if (problem := key_chunk_problem(v)) is not None:
+            raise ValueError(problem)
         return v
 
 

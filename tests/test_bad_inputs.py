@@ -438,3 +438,15 @@ def test_evaluate_never_writes_its_json_over_a_recording(tmp_path: Path, capsys)
                                  "--json", str(rec)])
     assert_one_line_error(code, err, "is one of the input files")
     assert rec.read_bytes() == before
+
+
+@pytest.mark.parametrize("argv", [
+    ["watch", "--once", "--prefix", ""],
+    ["watch", "--once", "--pack", "a//b"],
+    ["bench", "--latency", "--seconds", "1e12"],
+])
+def test_watch_and_bench_check_their_flags(capsys, argv: list[str]) -> None:
+    """A key part Zenoh refuses (a traceback from zenoh before) and a benchmark length that would
+    allocate terabytes are argument errors naming the flag."""
+    code, err = run_cli(capsys, argv)
+    assert code == 2 and f"argument {argv[2]}" in err and "Traceback" not in err, err

@@ -138,6 +138,13 @@ def test_decode_rejects_pickles(tmp_path: Path) -> None:
     assert decode_checkpoint(b"").reason == "corrupt"
 
 
+def test_decode_rejects_a_header_size_past_any_integer() -> None:
+    from service.daemon.checkpoint import MAGIC
+
+    res = decode_checkpoint(MAGIC + b'{"meta": {}, "sha256": "x", "payload_bytes": 1e400}\n')
+    assert res.reason == "corrupt" and "bad header" in res.detail
+
+
 # -- the daemon's reaction ---------------------------------------------------------------
 def _profile_path() -> Path:
     return DEFAULT_CELL_PROFILE  # the bundled Panasonic NCR18650PF profile
@@ -165,7 +172,7 @@ def _sample(n: int, t: float, v: float = 3.6):
                       fresh=np.ones(n, dtype=bool))
 
 
-@pytest.mark.parametrize("damage", ["corrupt", "mismatch_cells", "mismatch_profile"])
+@pytest.mark.parametrize("damage", ["corrupt", "mismatch_cells", "mismatch_profile", "text_state"])
 def test_daemon_flags_unusable_checkpoint_and_starts_from_ocv(tmp_path: Path, damage: str) -> None:
     from service.daemon.daemon import Daemon
 
@@ -181,6 +188,10 @@ def test_daemon_flags_unusable_checkpoint_and_starts_from_ocv(tmp_path: Path, da
             data = bytearray(path.read_bytes())
             data[-30] ^= 0xFF
             path.write_bytes(bytes(data))
+        elif damage == "text_state":  # checksummed, right shapes, but text where the filter keeps numbers
+            state = d.estimator.get_state()
+            state["ukf_x"] = np.full(state["ukf_x"].shape, "a")
+            save_checkpoint(path, state, n_cells=8, profile_sha256=d.profile_sha256)
         elif damage == "mismatch_cells":
             save_checkpoint(path, d.estimator.get_state(), n_cells=9, profile_sha256=d.profile_sha256)
         else:

@@ -16,8 +16,8 @@ from service.commands.bench_drive import pack_drive
 from service.commands.common_args import (
     add_cell_argument,
     add_common_arguments,
+    float_in,
     int_range,
-    positive_float,
     positive_int,
     setup_logging,
     text_stream,
@@ -45,10 +45,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--latency", action="store_true",
                    help="instead: run the service (virtual CAN bus in, Zenoh on tcp/127.0.0.1 out) in real time and "
                         "report frame-to-Zenoh-put and frame-to-subscriber p50/p99")
-    p.add_argument("--rate-hz", type=positive_float, default=10.0, help="--latency: samples per second (default 10)")
-    p.add_argument("--seconds", type=positive_float, default=60.0,
+    p.add_argument("--rate-hz", type=float_in(0.01, 1000.0, "a rate in Hz"), default=10.0, help="--latency: samples per second (default 10)")
+    p.add_argument("--seconds", type=float_in(0.1, 86400.0, "a duration in s"), default=60.0,
                    help="--latency: seconds measured, after the warm-up (default 60)")
-    p.add_argument("--warmup", type=positive_float, default=5.0, metavar="S",
+    p.add_argument("--warmup", type=float_in(0.0, 3600.0, "a duration in s"), default=5.0, metavar="S",
                    help="--latency: seconds run before measuring (default 5)")
     p.add_argument("--simulate", action="store_true",
                    help="instead: candidate-samples/s of the model simulated along a recording, as socd fit and "

@@ -37,6 +37,15 @@ from service.commands.common_args import (
 )
 
 PLOT_EVERY_S = 2.0
+
+
+def _key_chunk(text: str) -> str:
+    """A key prefix or pack id as the service's config takes it (:func:`service.config.key_chunk_problem`)."""
+    from service.config import key_chunk_problem
+
+    if (problem := key_chunk_problem(text)) is not None:
+        raise argparse.ArgumentTypeError(problem)
+    return text
 HISTORY = 3600
 SORT_KEYS = ("cell", "soc", "sigma", "voltage")
 #: characters one ``cell SOC σ V`` group takes in the grid (columns plus padding), and one
@@ -55,8 +64,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT",
                         help="Zenoh endpoint of the service (default tcp/127.0.0.1:7447)")
-    parser.add_argument("--prefix", default="bms", help="key prefix (default bms)")
-    parser.add_argument("--pack", default="pack0", help="pack id (default pack0)")
+    parser.add_argument("--prefix", default="bms", type=_key_chunk, help="key prefix (default bms)")
+    parser.add_argument("--pack", default="pack0", type=_key_chunk, help="pack id (default pack0)")
     parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE.json5",
                         help="a Zenoh JSON5 config (TLS, auth, ...); --connect applies where it sets no endpoints")
     parser.add_argument("--plot", type=lambda t: Path(output_file(*PLOT_SUFFIXES)(t)), default=None, metavar="FILE.png",

@@ -191,7 +191,7 @@ def decode_checkpoint(data: bytes, name: str = "checkpoint") -> LoadResult:
         meta, digest, size = header["meta"], header["sha256"], int(header["payload_bytes"])
         if not isinstance(meta, dict):
             raise TypeError("meta is not an object")
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, OverflowError) as exc:
         return LoadResult("corrupt", f"{name}: bad header: {exc}")
     payload = data[end + 1:]
     if len(payload) != size:

@@ -443,6 +443,8 @@ class PackEstimator:
             arr = np.asarray(state[key])
             if arr.shape != shape:
                 raise ValueError(f"estimator state '{key}' has shape {arr.shape}, expected {shape}")
+            if arr.dtype.kind not in "biuf":  # text or complex numbers: not a state this filter wrote
+                raise ValueError(f"estimator state '{key}' is not real numbers ({arr.dtype})")
             if arr.dtype.kind == "f" and not np.isfinite(arr).all():
                 raise ValueError(f"estimator state '{key}' holds non-finite values")
             return arr.copy()
