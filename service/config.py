@@ -58,7 +58,8 @@ class ConfigError(Exception):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=False)
+    # a NaN or infinite setting (a period, a scale, a noise level) is a mistake, never a value
+    model_config = ConfigDict(extra="forbid", validate_assignment=False, allow_inf_nan=False)
 
 
 # ---------------------------------------------------------------------------------------
@@ -345,6 +346,14 @@ def default_checkpoint_path() -> Path:
 
 class CheckpointConfig(_Section):
     path: Path = Field(default_factory=default_checkpoint_path)
+
+    @field_validator("path")
+    @classmethod
+    def _a_file(cls, v: Path) -> Path:
+        """A folder here would be moved aside as an unusable checkpoint at start-up."""
+        if str(v) in ("", ".") or v.is_dir():
+            raise ValueError(f"{str(v) or '(empty)'} is a folder; give the checkpoint's file path")
+        return v
     interval_s: float = Field(30.0, gt=0)
     max_age_s: float = Field(
         10.0, gt=0, description="a restored state older than this (checkpoint time to first new "

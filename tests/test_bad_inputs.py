@@ -450,3 +450,17 @@ def test_watch_and_bench_check_their_flags(capsys, argv: list[str]) -> None:
     allocate terabytes are argument errors naming the flag."""
     code, err = run_cli(capsys, argv)
     assert code == 2 and f"argument {argv[2]}" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("extra", [
+    '[checkpoint]\npath = "FOLDER"\n',  # a folder was moved aside as an "unusable checkpoint" at start-up
+    "[estimator]\nukf_kappa = nan\n",  # reset the filter at every step
+    "[estimator]\nvoltage_noise_v = inf\n",
+    "[output]\ncan_period_s = inf\n",
+])
+def test_config_refuses_settings_that_cannot_be(tmp_path: Path, capsys, extra: str) -> None:
+    (tmp_path / "folder").mkdir()
+    cfg = _config_file(tmp_path, Path(DEFAULT_INPUT_DBC), extra.replace("FOLDER", str(tmp_path / "folder")))
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert code == 2 and "Traceback" not in err, err
+    assert (tmp_path / "folder").is_dir()

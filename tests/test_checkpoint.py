@@ -172,7 +172,8 @@ def _sample(n: int, t: float, v: float = 3.6):
                       fresh=np.ones(n, dtype=bool))
 
 
-@pytest.mark.parametrize("damage", ["corrupt", "mismatch_cells", "mismatch_profile", "text_state"])
+@pytest.mark.parametrize("damage", ["corrupt", "mismatch_cells", "mismatch_profile", "text_state", "soc_outside",
+                                    "negative_variance"])
 def test_daemon_flags_unusable_checkpoint_and_starts_from_ocv(tmp_path: Path, damage: str) -> None:
     from service.daemon.daemon import Daemon
 
@@ -188,9 +189,15 @@ def test_daemon_flags_unusable_checkpoint_and_starts_from_ocv(tmp_path: Path, da
             data = bytearray(path.read_bytes())
             data[-30] ^= 0xFF
             path.write_bytes(bytes(data))
-        elif damage == "text_state":  # checksummed, right shapes, but text where the filter keeps numbers
+        elif damage in ("text_state", "soc_outside", "negative_variance"):
+            # checksummed, right shapes, but values this filter never writes
             state = d.estimator.get_state()
-            state["ukf_x"] = np.full(state["ukf_x"].shape, "a")
+            if damage == "text_state":
+                state["ukf_x"] = np.full(state["ukf_x"].shape, "a")
+            elif damage == "soc_outside":
+                state["ukf_x"][:, d.estimator.ukf.i_soc] = 7.0
+            else:
+                state["ukf_P"] = -np.abs(state["ukf_P"])
             save_checkpoint(path, state, n_cells=8, profile_sha256=d.profile_sha256)
         elif damage == "mismatch_cells":
             save_checkpoint(path, d.estimator.get_state(), n_cells=9, profile_sha256=d.profile_sha256)

@@ -18,7 +18,6 @@ from service.commands.common_args import (
     add_common_arguments,
     float_in,
     int_range,
-    positive_int,
     setup_logging,
     text_stream,
     write_json,
@@ -36,11 +35,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "to one CPU. Inputs are a simulated drive (1 s steps) so the numbers do not depend on files."
         ),
     )
-    p.add_argument("--cells", type=positive_int, default=None,
+    p.add_argument("--cells", type=int_range(1, 100_000), default=None,
                    help="cells in the pack (default 200); --simulate: parameter candidates (default 20)")
-    p.add_argument("--steps", type=int_range(10, 10**7), default=None,
+    p.add_argument("--steps", type=int_range(10, 10**6), default=None,
                    help="time steps for the pack run (default 400; --simulate: 10000)")
-    p.add_argument("--reference-steps", type=int_range(2, 10**7), default=None,
+    p.add_argument("--reference-steps", type=int_range(2, 10**5), default=None,
                    help="time steps for the per-cell loop (default 40; --simulate: stepping the model, 1000)")
     p.add_argument("--latency", action="store_true",
                    help="instead: run the service (virtual CAN bus in, Zenoh on tcp/127.0.0.1 out) in real time and "

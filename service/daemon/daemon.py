@@ -311,7 +311,10 @@ class Daemon:
         return res.reason
 
     def _quarantine(self, path: Path, reason: str) -> None:
-        # Keep the evidence: the next save would overwrite it.
+        # Keep the evidence: the next save would overwrite it.  Only a file is moved: a folder
+        # at the checkpoint path is never ours to rename (the config refuses one).
+        if not path.is_file():
+            return
         target = path.with_name(f"{path.name}.{reason}-{int(time.time())}")
         try:
             path.replace(target)

@@ -43,6 +43,9 @@ Identification = Literal["multi", "single", "none"]
 FAST_NAMES = ["r_ohm", "r_ct", "c_dl", "m", "u_df"]
 TEMP_REFRESH_C = 0.5
 STATE_VERSION = 1
+#: the filter keeps its SOC mean in [0, 1] (fomiukf.SOC_LIMITS); a restored SOC further out than
+#: this is not a state it wrote
+RESTORED_SOC_MARGIN = 0.01
 
 
 class PackEstimator:
@@ -458,6 +461,12 @@ class PackEstimator:
             raise ValueError(f"estimator state's memory_length {length} is outside 1..{MAX_MEMORY_LENGTH}")
         x = need("ukf_x", u.x.shape)
         P = need("ukf_P", u.P.shape)
+        # a state this filter wrote keeps SOC near [0, 1] and a covariance with a non-negative diagonal
+        soc = x[:, u.i_soc]
+        if np.any((soc < -RESTORED_SOC_MARGIN) | (soc > 1.0 + RESTORED_SOC_MARGIN)):
+            raise ValueError(f"estimator state's SOC reaches {soc.min():.3g}..{soc.max():.3g}, outside [0, 1]")
+        if np.any(np.diagonal(P, axis1=-2, axis2=-1) < 0):
+            raise ValueError("estimator state's covariance has a negative variance")
         hist = need("ukf_hist", u.hist.shape[:-1] + (length,))
         var_hist = need("ukf_var_hist", u.var_hist.shape[:-1] + (length,))
         innov = need("ukf_innovations", u.innovations.shape)
@@ -489,6 +498,8 @@ class PackEstimator:
         if self.capacity is not None and all(k in state for k in CapacityEstimator.STATE_KEYS):
             capacity = tuple(need(k, (self.n,)) for k in CapacityEstimator.STATE_KEYS)
         resets = need("reset_count", self.reset_count.shape).astype(int)
+        if np.any(resets < 0):
+            raise ValueError("estimator state's reset_count is negative")
         ocv_init = need("ocv_initialised", self.ocv_initialised.shape).astype(bool)
         # states written before the surface deficit was kept: a relaxed surface
         surface = need("surface_deficit", (self.n,)) if "surface_deficit" in state else np.zeros(self.n)

@@ -22,7 +22,8 @@ def current_sigma_a(noise_a: float | None, noise_c: float, capacity_ah: np.ndarr
 
 
 class EstimatorSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # a NaN or infinite setting is a mistake (a NaN UKF weight reset the filter at every step)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     memory_length: int = Field(
         16, ge=1, le=MAX_MEMORY_LENGTH,
@@ -144,7 +145,8 @@ class EstimatorSettings(BaseModel):
         "estimate, so at 1 the OCV is read across ± 2 σ of SOC (a secant over a flat plateau); chosen "
         "leave-one-cell-out against 0.5 and 0.2 (docs/results/tuning.md)")
     ukf_beta: float = Field(2.0, ge=0)
-    ukf_kappa: float = Field(0.0)
+    # n + kappa must stay > 0 for the sigma points (n >= 3 states: two branches and SOC)
+    ukf_kappa: float = Field(0.0, ge=-2.0, le=100.0)
     param_process_rel: float = Field(1e-4, ge=0, description="relative σ per step of parameter random walk (fast)")
     param_init_std_rel: float = Field(
         0.02, gt=0, le=1, description="the fast identifier's prior σ of the resistances and C_dl, relative to "
