@@ -24,6 +24,8 @@ import functools
 import logging
 import math
 import os
+import re
+import string
 import tomllib
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -132,6 +134,10 @@ class TemperatureMap(_Section):
     cells: list[int] = Field(min_length=1)
 
 
+#: the widest field a signal-name pattern may format (``{number:03d}`` is 3)
+MAX_PATTERN_WIDTH = 16
+
+
 class MappingConfig(_Section):
     """Which DBC signals feed the estimator.
 
@@ -191,6 +197,11 @@ class MappingConfig(_Section):
     def _pattern(cls, v: str | None) -> str | None:
         if v is not None:
             try:
+                # a field width like {number:0999999999d} would build a gigabyte per name
+                widths = [int(d) for _, _, spec, _ in string.Formatter().parse(v) if spec
+                          for d in re.findall(r"\d+", spec)]
+                if any(w > MAX_PATTERN_WIDTH for w in widths):
+                    raise ValueError(f"a field width over {MAX_PATTERN_WIDTH}")
                 a, b = v.format(index=0, number=1), v.format(index=1, number=2)
             except (KeyError, IndexError, ValueError) as exc:
                 raise ValueError(f"pattern {v!r} must use only {{index}} and/or {{number}}: {exc}") from None
@@ -283,6 +294,18 @@ class OutputConfig(_Section):
     queue_size: int = Field(256, ge=1)
 
 
+def endpoint_problem(e: str) -> str | None:
+    """Why ``e`` is not a Zenoh endpoint ``<protocol>/<address>`` with a port in 0..65535
+    (``tcp/127.0.0.1:7447``), or None."""
+    proto, _, address = e.partition("/")
+    if not proto or not address or not proto.replace("-", "").isalnum():
+        return f"{e!r} is not a Zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)"
+    _, sep, port = address.rpartition(":")
+    if sep and port.isdigit() and int(port) > 65535:
+        return f"{e!r}: port {port} is outside 0..65535"
+    return None
+
+
 def key_chunk_problem(v: str) -> str | None:
     """Why ``v`` cannot be part of a Zenoh key expression (a prefix or a pack id), or None: no
     wildcards, no empty chunk, no leading or trailing slash."""
@@ -309,12 +332,11 @@ class ZenohConfig(_Section):
     @field_validator("listen", "connect")
     @classmethod
     def _endpoints(cls, v: list[str]) -> list[str]:
-        """Zenoh's endpoint form ``<protocol>/<address>`` (``tcp/127.0.0.1:7447``), checked here so
-        ``socd check`` names a bad one instead of the session failing when ``socd run`` opens it."""
+        """Checked here so ``socd check`` names a bad endpoint instead of the session failing when
+        ``socd run`` opens it (:func:`endpoint_problem`)."""
         for e in v:
-            proto, _, address = e.partition("/")
-            if not proto or not address or not proto.replace("-", "").isalnum():
-                raise ValueError(f"{e!r} is not a Zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)")
+            if (problem := endpoint_problem(e)) is not None:
+                raise ValueError(problem)
         return v
 
     @field_validator("key_prefix", "pack_id")
@@ -567,7 +589,7 @@ def load_config(path: str | Path | None = None, *, check_files: bool = True) -> 
     """
     path = find_config(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a BOM from a Windows editor is not TOML
     except OSError as exc:
         raise ConfigError(
             f"{path}: cannot read config: {exc.strerror or exc} "

@@ -464,3 +464,25 @@ def test_config_refuses_settings_that_cannot_be(tmp_path: Path, capsys, extra: s
     code, err = run_cli(capsys, ["check", "--config", str(cfg)])
     assert code == 2 and "Traceback" not in err, err
     assert (tmp_path / "folder").is_dir()
+
+
+@pytest.mark.parametrize("extra", [
+    '[zenoh]\nlisten = ["tcp/127.0.0.1:70000"]\n',
+    '[mapping]\ncell_voltage_pattern = "BMS_Cell{number:0999999999d}_V"\n',  # hung socd check building names
+])
+def test_config_refuses_a_port_or_pattern_that_cannot_work(tmp_path: Path, capsys, extra: str) -> None:
+    cfg = _config_file(tmp_path, Path(DEFAULT_INPUT_DBC), extra)
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert code == 2 and ("70000" in err or "field width" in err) and "Traceback" not in err, err
+
+
+def test_config_with_a_byte_order_mark_is_read(tmp_path: Path, capsys) -> None:
+    cfg = _config_file(tmp_path, Path(DEFAULT_INPUT_DBC))
+    cfg.write_bytes(b"\xef\xbb\xbf" + cfg.read_bytes())
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert code == 0, err
+
+
+def test_watch_checks_its_endpoint(capsys) -> None:
+    code, err = run_cli(capsys, ["watch", "--once", "--connect", "tcp/127.0.0.1:99999"])
+    assert code == 2 and "argument --connect" in err and "99999" in err, err

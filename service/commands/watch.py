@@ -39,6 +39,15 @@ from service.commands.common_args import (
 PLOT_EVERY_S = 2.0
 
 
+def _endpoint(text: str) -> str:
+    """A Zenoh endpoint as the service's config takes it (:func:`service.config.endpoint_problem`)."""
+    from service.config import endpoint_problem
+
+    if (problem := endpoint_problem(text)) is not None:
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
 def _key_chunk(text: str) -> str:
     """A key prefix or pack id as the service's config takes it (:func:`service.config.key_chunk_problem`)."""
     from service.config import key_chunk_problem
@@ -62,7 +71,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         help="live table of a pack's SOC from Zenoh",
         description="Show each cell's SOC, σ, voltage and flags as the service publishes them on Zenoh.",
     )
-    parser.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT",
+    parser.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT", type=_endpoint,
                         help="Zenoh endpoint of the service (default tcp/127.0.0.1:7447)")
     parser.add_argument("--prefix", default="bms", type=_key_chunk, help="key prefix (default bms)")
     parser.add_argument("--pack", default="pack0", type=_key_chunk, help="pack id (default pack0)")
@@ -309,6 +318,7 @@ def write_plot(path: Path, view: PackView, title: str) -> None:
     ax.grid(alpha=0.3)
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.tmp.png")
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(tmp, dpi=100)
     plt.close(fig)
     os.replace(tmp, path)  # a viewer never sees a half-written PNG
