@@ -253,7 +253,8 @@ def run(args: argparse.Namespace) -> int:
     if failed is not None:
         if args.record:
             Path(args.record).unlink(missing_ok=True)  # nothing written on failure
-        raise UserError(f"{path}: replay stopped: {str(failed).splitlines()[0] if str(failed) else type(failed).__name__}")
+        why = str(failed).splitlines()[0] if str(failed) else type(failed).__name__
+        raise UserError(f"{path}: replay stopped: {why} (input DBC {config.dbc.input})")
     print(f"socd replay: {stats.frames_sent} frames sent, {stats.frames_failed} failed, "
           f"{stats.span_s:.1f} s of recording in {stats.duration_s:.1f} s"
           + (f", faults {stats.faults}" if stats.faults else ""), file=sys.stderr)

@@ -262,7 +262,10 @@ class FrameBuilder:
             r = ranges.get(n)
             if r is not None:
                 values[n] = r[0] if v < r[0] else r[1] if v > r[1] else v
-        data = m.encode(values, scaling=True, padding=False, strict=False)
+        try:
+            data = m.encode(values, scaling=True, padding=False, strict=False)
+        except (ValueError, OverflowError) as exc:  # a signal too narrow for its own declared range
+            raise ValueError(f"message {m.name} cannot carry its values ({exc})") from None
         return can.Message(timestamp=ts, arbitration_id=m.frame_id, is_extended_id=bool(m.is_extended_frame),
                            data=data, is_fd=len(data) > 8)
 

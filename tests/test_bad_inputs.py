@@ -486,3 +486,18 @@ def test_config_with_a_byte_order_mark_is_read(tmp_path: Path, capsys) -> None:
 def test_watch_checks_its_endpoint(capsys) -> None:
     code, err = run_cli(capsys, ["watch", "--once", "--connect", "tcp/127.0.0.1:99999"])
     assert code == 2 and "argument --connect" in err and "99999" in err, err
+
+
+def test_replay_names_the_dbc_when_a_signal_cannot_carry_its_values(tmp_path: Path, capsys) -> None:
+    """A cell-voltage signal one bit wide cannot carry 3.7 V: the replay stops naming the message and
+    the input DBC (it blamed the recording before), and writes no log."""
+    text = DEFAULT_INPUT_DBC.read_text()
+    old = "SG_ BMS_Cell001_V m0 : 12|13@1+"
+    assert old in text
+    dbc = tmp_path / "narrow.dbc"
+    dbc.write_text(text.replace(old, "SG_ BMS_Cell001_V m0 : 12|1@1+"))
+    cfg = _config_file(tmp_path, dbc)
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--config", str(cfg), "--cells", "8"))
+    assert_one_line_error(code, err, str(dbc))
+    assert "BMS_CellVoltages" in err and not (tmp_path / "out.asc").exists()
