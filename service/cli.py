@@ -36,7 +36,9 @@ SUBCOMMANDS: dict[str, str] = {
 
 def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: BaseException) -> None:
     reason = missing_extra(exc) or f"unavailable because its module failed to import: {exc}"
-    parser = subparsers.add_parser(name, help=f"(unavailable: {reason})")
+    # a module that failed half-way may have added its parser already: reuse it (a second one
+    # with the same name is an argparse error that would take every other command down with it)
+    parser = subparsers.choices.get(name) or subparsers.add_parser(name, help=f"(unavailable: {reason})")
 
     def _fail(_args: argparse.Namespace) -> int:
         print(f"socd {name}: {reason}", file=sys.stderr)

@@ -219,3 +219,27 @@ def test_docker_health_check_is_the_checkpoint_age(tmp_path):
     old = time.time() - 180
     os.utime(checkpoint, (old, old))
     assert not healthy()  # not rewritten for three minutes
+
+
+def test_a_command_that_fails_half_way_through_its_parser_leaves_the_others_working(monkeypatch, capsys):
+    """A module whose ``add_subparser`` raises after adding its parser (a broken install) gets the
+    stand-in on that parser; every other command still parses."""
+    import types
+
+    from service import cli
+
+    def half_built(subparsers):
+        subparsers.add_parser("schema")
+        raise NameError("name 'float_in' is not defined")
+
+    real_import = importlib.import_module
+
+    def import_half_built(name: str, *args):
+        if name == cli.SUBCOMMANDS["schema"]:
+            return types.SimpleNamespace(add_subparser=half_built)
+        return real_import(name, *args)
+
+    monkeypatch.setattr(importlib, "import_module", import_half_built)
+    assert cli.main(["schema"]) == 3
+    assert "float_in" in capsys.readouterr().err
+    assert cli.main(["check", "--help"]) == 0
