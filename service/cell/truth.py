@@ -43,13 +43,20 @@ def find_full_charge(rec: Recording) -> int:
 COUNTED_SOC_MARGIN = 0.1
 
 
+def counted_soc_excursion(counted: np.ndarray) -> str | None:
+    """The reading (``"-0.35"``) where a charge count leaves [0, 1] by more than
+    :data:`COUNTED_SOC_MARGIN`, or None."""
+    lo, hi = float(np.min(counted)), float(np.max(counted))
+    if lo < -COUNTED_SOC_MARGIN:
+        return f"{lo:.2f}"
+    return f"{hi:.2f}" if hi > 1.0 + COUNTED_SOC_MARGIN else None
+
+
 def check_counted_truth(rec: Recording, truth: np.ndarray, capacity_ah: float) -> None:
     """Raise :class:`UserError` where a truth counted with ``capacity_ah`` leaves [0, 1] by more than
     :data:`COUNTED_SOC_MARGIN`: every score against it would be meaningless (a current in mA reads
     as a thousand times the charge)."""
-    lo, hi = float(np.min(truth)), float(np.max(truth))
-    if lo < -COUNTED_SOC_MARGIN or hi > 1.0 + COUNTED_SOC_MARGIN:
-        where = f"{lo:.2f}" if lo < -COUNTED_SOC_MARGIN else f"{hi:.2f}"
+    if (where := counted_soc_excursion(truth)) is not None:
         raise UserError(f"{rec.path}: the truth SOC counted from the full-charge point with {capacity_ah:g} Ah "
                         f"reaches {where}: the current's unit, the capacity or the full-charge point (--full-at) "
                         "is wrong for this recording")

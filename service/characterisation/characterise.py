@@ -69,7 +69,7 @@ from service.cell.profile import (
 from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
-from service.cell.truth import COUNTED_SOC_MARGIN, truth_and_start
+from service.cell.truth import counted_soc_excursion, truth_and_start
 from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_choices import (
     DEFAULT_OCV_BETWEEN_RESTS,
@@ -632,12 +632,10 @@ def check_excitation(temp_c: float, segments: list[FitSegment], recordings: list
 
 def check_counted_soc(part: Recording, capacity_ah: float, soc0: float) -> None:
     """The models count charge with ``capacity_ah`` from ``soc0``: a count that leaves [0, 1] by
-    more than :data:`COUNTED_SOC_MARGIN` means the capacity or the full-charge point is wrong,
+    more than :data:`service.cell.truth.COUNTED_SOC_MARGIN` means the capacity or the full-charge point is wrong,
     and a fit on it would bend the OCV to match (refused, naming the recording)."""
     counted = coulomb_soc(part.time_s, part.current_a, capacity_ah, soc0)
-    lo, hi = float(np.min(counted)), float(np.max(counted))
-    if lo < -COUNTED_SOC_MARGIN or hi > 1.0 + COUNTED_SOC_MARGIN:
-        where = f"{lo:.2f}" if lo < -COUNTED_SOC_MARGIN else f"{hi:.2f}"
+    if (where := counted_soc_excursion(counted)) is not None:
         raise FitQualityError(
             f"{part.path}: SOC counted with --capacity-ah {capacity_ah:g} from {soc0:.2f} at the start reaches "
             f"{where}: the capacity is wrong for this cell or the full-charge point (--full-at) is; nothing written")
