@@ -225,6 +225,11 @@ def output_file(*suffixes: str) -> Callable[[str], str]:
     return parse
 
 
+def plot_file(text: str) -> Path:
+    """An image to write (``--plot``): :func:`output_file` in one of :data:`PLOT_SUFFIXES`."""
+    return Path(output_file(*PLOT_SUFFIXES)(text))
+
+
 def output_dir(text: str) -> str:
     """A folder to write files into (made if missing): not an existing file."""
     path = Path(text)

@@ -7,14 +7,13 @@ from pathlib import Path
 
 from service.cli import UserError
 from service.commands.common_args import (
-    PLOT_SUFFIXES,
     SEED,
     add_cell_argument,
     add_common_arguments,
     add_soc0_argument,
     int_range,
     non_negative_float,
-    output_file,
+    plot_file,
     positive_float,
     relative_sigma,
     setup_logging,
@@ -52,7 +51,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         help="σ of the cells' relative capacity, clipped at 3σ (default 0.02 = 2 %%)")
     parser.add_argument("--freeze-capacity", action="store_true",
                         help="estimate with the profile's capacity (estimator.capacity_estimation = 'off')")
-    parser.add_argument("--plot", type=lambda t: Path(output_file(*PLOT_SUFFIXES)(t)), default=None, metavar="FILE",
+    parser.add_argument("--plot", type=plot_file, default=None, metavar="FILE",
                         help=f"PNG of SOC vs truth (default {DEFAULT_PLOT} where matplotlib, of the "
                              "'fit' extra, is installed)")
     add_common_arguments(parser, json_out="the figures")

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from service.cli import UserError
 from service.commands.common_args import add_common_arguments, output_dir, setup_logging
 
 EXAMPLE_PACK = "pack0"
@@ -29,7 +28,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         help="write the JSON Schemas of the Zenoh payloads and an example payload of each",
         description=__doc__.split("\n\n")[0],
     )
-    p.add_argument("-o", "--output", type=lambda t: Path(output_dir(t)), metavar="DIR",
+    p.add_argument("-o", "--output", type=output_dir, metavar="DIR",
                    help="write <name>.schema.json and <name>.example.json here (default: one JSON document on stdout)")
     add_common_arguments(p)
     p.set_defaults(func=run)
@@ -113,9 +112,7 @@ def run(args: argparse.Namespace) -> int:
                for d in docs}
         print(json.dumps(doc, indent=1))
         return 0
-    out: Path = args.output
-    if out.exists() and not out.is_dir():
-        raise UserError(f"-o {out}: exists and is not a directory")
+    out = Path(args.output)  # an existing file was refused as the argument (output_dir)
     out.mkdir(parents=True, exist_ok=True)
     for d in docs:
         (out / f"{d.name}.schema.json").write_text(json.dumps(d.schema(), indent=1) + "\n")

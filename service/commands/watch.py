@@ -29,9 +29,8 @@ from typing import Any, TextIO
 
 from service.cli import UserError
 from service.commands.common_args import (
-    PLOT_SUFFIXES,
     add_common_arguments,
-    output_file,
+    plot_file,
     positive_float,
     setup_logging,
 )
@@ -77,7 +76,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--pack", default="pack0", type=_key_chunk, help="pack id (default pack0)")
     parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE.json5",
                         help="a Zenoh JSON5 config (TLS, auth, ...); --connect applies where it sets no endpoints")
-    parser.add_argument("--plot", type=lambda t: Path(output_file(*PLOT_SUFFIXES)(t)), default=None, metavar="FILE.png",
+    parser.add_argument("--plot", type=plot_file, default=None, metavar="FILE.png",
                         help=f"keep a PNG of SOC over time up to date (every {PLOT_EVERY_S:g} s)")
     parser.add_argument("--once", action="store_true", help="print one table (from the snapshot) and exit")
     parser.add_argument("--timeout", type=positive_float, default=5.0, metavar="S",
