@@ -33,6 +33,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
+from service.errors import UserError
+
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
@@ -249,8 +251,6 @@ def refuse_overwriting_inputs(output: str | Path | None, inputs: Sequence[str | 
     out = Path(output).resolve()
     for given in inputs:
         if given is not None and Path(given).resolve() == out:
-            from service.errors import UserError
-
             raise UserError(f"{flag} {output} is one of the input files; write the result elsewhere")
 
 
