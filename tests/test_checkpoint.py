@@ -425,7 +425,9 @@ def test_kill9_then_restart_resumes_from_checkpoint(tmp_path: Path) -> None:
         soc_std_pct = np.array([watcher.soc[i][1] for i in range(n_cells)])
         # exactly the checkpointed estimate (to the wire's 0.01 % resolution), not an OCV start
         np.testing.assert_allclose(soc_pct, np.clip(100 * saved_soc, 0, 100), atol=0.011)
-        np.testing.assert_allclose(soc_std_pct, 100 * saved_std, atol=0.011)
+        # the σ published: the filter's own and the considered errors' part, both checkpointed
+        published_std = np.minimum(np.sqrt(saved_std**2 + saved.state["consider_entries"][0]), 0.5)
+        np.testing.assert_allclose(soc_std_pct, 100 * published_std, atol=0.011)
 
         # the pack speaks again: estimation continues from there with a small σ
         stop_replay.clear()

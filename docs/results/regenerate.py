@@ -862,6 +862,17 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference hold 
                                           + tuple((f"k = {k}", f"cn/panhppc_fr{k}_b0.json") for k in (4, 8, 12)),
                                           PAN_GROUPS)(out),
           30, ("needs:loco_defaults",)),
+    Table("sigma_calibration", "tuning.md", REAL + """\
+# the profiles are the char_* tables' (out/s25/); the 10 °C trise files are not tuned for (DESIGN §7)
+S=""; for fa in DST_50soc@10015 FUDS_80soc@9999 FUDS_50soc@5080 US06_50soc@10160 US06_80soc@9984; do
+  S="$S calce=out/s25/calce.toml:$C/calce20r_25C_${fa%@*}.csv@${fa#*@}"; done
+S="$S a123=out/s25/a123.toml:$A/calce_a123_20C_FUDS.csv@4478 a123=out/s25/a123.toml:$A/calce_a123_20C_US06.csv@4436"
+PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e trise)"
+for f in $PANX; do S="$S panasonic=out/s25/pan_hppc.toml:$f"; done
+for f in $(echo $PANX | tr ' ' '\\n' | grep -v US06); do S="$S panasonic=out/s25/pan_us06.toml:$f"; done
+python -m research.sigma_calibration --bias 0 --bias 0.01 --jobs 2 --json out/sigma_calibration.json $S
+""", lambda out: "\n".join(_read(out, "sigma_calibration.json")["table"]), 15,
+          ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc", "needs:char_pan_us06")),
     Table("loco_ocv_error", "tuning.md",
           loco_sweep("ocv_error_std_v", "oe", ("0.01", "0.02"), "0"),
           lambda out: nested_table("loco_ocv_error.json")(out)

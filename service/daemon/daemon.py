@@ -577,12 +577,14 @@ class Daemon:
             or time.monotonic() - self._last_sample_mono > self.config.mapping.stale_after_s
         )
         ocv_started = np.asarray(getattr(est, "ocv_initialised", np.zeros(self.n, bool)), dtype=bool)
+        # convergence is the filter's own σ; the σ published also holds what the filter does not model
+        filter_std = np.asarray(getattr(est, "filter_soc_std", est.soc_std))
         flags["ocv_init"] = (not self.initialised and not self.restored) or bool(
-            self.initialised and np.any(ocv_started & (np.asarray(est.soc_std) > OCV_CONVERGED_STD))
+            self.initialised and np.any(ocv_started & (filter_std > OCV_CONVERGED_STD))
         )
         # an aged restored state stays flagged until the filter has pulled every cell back in
         flags["state_aged"] = flags.get("state_aged", False) or (
-            self._state_aged and bool(np.any(np.asarray(est.soc_std) > OCV_CONVERGED_STD)))
+            self._state_aged and bool(np.any(filter_std > OCV_CONVERGED_STD)))
         clamped = getattr(est, "param_clamped", None)
         flags["param_clamped"] = bool(np.any(clamped)) if clamped is not None else False
         if self.publisher is None:

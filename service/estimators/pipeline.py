@@ -32,6 +32,7 @@ from service.cell.soc_dependence import scaled_resistances
 from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.base import EstimateTrace
 from service.estimators.capacity import CapacityEstimator
+from service.estimators.consider import MAX_REPORTED_SOC_STD, ConsiderCovariance
 from service.estimators.fomiukf import FoMiUkf
 from service.estimators.parameter_ekf import PARAMETERS, ParameterEkf, apply_corrections
 from service.estimators.settings import EstimatorSettings
@@ -98,6 +99,8 @@ class PackEstimator:
             self.capacity = CapacityEstimator(
                 self.n, profile.effective_capacity_ah, s.capacity_estimation, s.capacity_init_std_rel,
                 s.capacity_bounds_rel, s.capacity_innovation_inflation, s.capacity_walk_rel_per_sqrt_s)
+        #: the SOC error from what the filter does not model, for the σ published (soc_std)
+        self.consider = ConsiderCovariance.from_settings(self.n, s)
         self.reset_count = np.zeros(self.n, dtype=int)
         self.ocv_initialised = np.zeros(self.n, dtype=bool)
         self.steps = 0
@@ -261,6 +264,7 @@ class PackEstimator:
             self.fast.reset(cells)
         if self.capacity is not None:
             self.capacity.restart(cells)
+        self.consider.restart(cells)
         self.ocv_initialised[cells] = False
 
     def widen_soc_std(self, extra_std: float | np.ndarray, max_std: float = 0.5) -> None:
@@ -354,6 +358,7 @@ class PackEstimator:
                                          self.cell_ocv.slope(soc_now), ukf.gain[:, ukf.i_soc], usable,
                                          ukf.innovation_var_own)
             ukf.x[:, ukf.i_soc] = np.clip(ukf.x[:, ukf.i_soc] + shift, 0.0, 1.0)
+        self.consider.step(dt, *self.consider_inputs(act))
         if self.fast is not None:
             x_id = ukf.x_single if self.settings.identifier_sees == "single" else ukf.x
             soc_post = x_id[:, ukf.i_soc]
@@ -405,8 +410,23 @@ class PackEstimator:
     def soc(self) -> np.ndarray:
         return self.ukf.soc
 
+    def consider_inputs(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """SOC, the SOC gain of this sample's update (0 where a cell took no voltage) and the OCV
+        slope there: what :meth:`ConsiderCovariance.step` propagates the unmodelled errors with."""
+        ukf = self.ukf
+        soc_surface = ukf.soc if self.surface is None else ukf.soc - self.surface_deficit
+        gain = np.where(active, ukf.gain[:, ukf.i_soc], 0.0)
+        return ukf.soc, gain, self.cell_ocv.slope(soc_surface)
+
     @property
     def soc_std(self) -> np.ndarray:
+        """The SOC σ published: the filter's own and what the errors it does not model add
+        (:mod:`service.estimators.consider`)."""
+        return np.minimum(np.sqrt(self.ukf.soc_std**2 + self.consider.soc_var), MAX_REPORTED_SOC_STD)
+
+    @property
+    def filter_soc_std(self) -> np.ndarray:
+        """The SOC filter's own σ, which gates the identifiers and the service's convergence flags."""
         return self.ukf.soc_std
 
     @property
@@ -436,6 +456,7 @@ class PackEstimator:
             st.update(slow_z=self.slow.z, slow_P=self.slow.P, slow_ring=self.slow.ring, slow_moved=self.slow.moved)
         if self.capacity is not None:
             st.update(self.capacity.get_state())
+        st.update(self.consider.get_state())
         return {k: np.array(v, copy=True) for k, v in st.items()}
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
@@ -497,6 +518,11 @@ class PackEstimator:
         capacity = None
         if self.capacity is not None and all(k in state for k in CapacityEstimator.STATE_KEYS):
             capacity = tuple(need(k, (self.n,)) for k in CapacityEstimator.STATE_KEYS)
+        # the considered errors' covariance (states written before it existed: the priors, c = 0)
+        consider = ((need("consider_entries", self.consider.entries.shape), need("consider_last_soc", (self.n,)))
+                    if "consider_entries" in state else None)
+        if consider is not None and np.any(consider[0][[0, 3, 5]] < 0):  # cc, oo, bb
+            raise ValueError("estimator state's considered covariance has a negative variance")
         resets = need("reset_count", self.reset_count.shape).astype(int)
         if np.any(resets < 0):
             raise ValueError("estimator state's reset_count is negative")
@@ -521,6 +547,10 @@ class PackEstimator:
             self.slow.start[:] = 0
         if capacity is not None:
             self.capacity.set_state(capacity)
+        if consider is not None:
+            self.consider.set_state(*consider)
+        else:
+            self.consider.restart(np.ones(self.n, dtype=bool))
 
 
 def with_memory_for(profile: CellProfile, settings: EstimatorSettings,
