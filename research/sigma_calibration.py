@@ -134,8 +134,9 @@ def report(scores: list[Score]) -> tuple[list[str], dict]:
     crps, cover, sigma = (cell_means(scores, f) for f in ("crps_pct", "within_2sigma_pct", "median_sigma_pct"))
     cells = sorted(crps)
     off = (0.0, 0.0)
-    lines = ["| held-out cell | chosen on the other cells (V, C) | in 2σ, % | median σ, % | CRPS, % "
-             "| filter's own σ: in 2σ, % | median σ, % | CRPS, % |", "|---|---|---|---|---|---|---|---|"]
+    header = ("| held-out cell | chosen on the other cells (V, C) | in 2σ, % | median σ, % | CRPS, % "
+              "| filter's own σ: in 2σ, % | median σ, % | CRPS, % |")
+    lines = [header, "|---|---|---|---|---|---|---|---|"]
     held = {}
     for c in cells:
         v = choose(crps, [o for o in cells if o != c])
@@ -143,8 +144,9 @@ def report(scores: list[Score]) -> tuple[list[str], dict]:
         lines.append(f"| {c} | {v[0]:g} V, {v[1]:g} C | {cover[c][v]:.1f} | {sigma[c][v]:.2f} | {crps[c][v]:.3f} "
                      f"| {cover[c][off]:.1f} | {sigma[c][off]:.2f} | {crps[c][off]:.3f} |")
     default = choose(crps, cells)
-    lines += ["", f"Chosen on every cell (the default): `reported_ocv_error_v = {default[0]:g}`, "
-              f"`reported_current_offset_c = {default[1]:g}`.", "",
+    chosen = (f"Chosen on every cell (the default): `reported_ocv_error_v = {default[0]:g}`, "
+              f"`reported_current_offset_c = {default[1]:g}`.")
+    lines += ["", chosen, "",
               "Each cell at every grid value (in 2σ % / CRPS %):", "",
               "| OCV error, V | offset, C | " + " | ".join(cells) + " |", "|---|---|" + "---|" * len(cells)]
     for v in sorted(crps[cells[0]]):

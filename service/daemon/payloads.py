@@ -48,7 +48,9 @@ class _Payload(BaseModel):
 class CellSoc(_Payload):
     cell: int = Field(ge=0)
     soc_pct: float | None = Field(description="state of charge, %; null before the first estimate")
-    soc_std_pct: float | None = Field(description="1-σ uncertainty of soc_pct, %")
+    soc_std_pct: float | None = Field(
+        description="1-σ uncertainty of soc_pct, %: the filter's own and what an OCV-table error and a current-sensor "
+        "offset it does not model add (estimator.reported_ocv_error_v, reported_current_offset_c)")
     voltage_v: float | None = Field(description="last measured terminal voltage, V")
     v_pred_v: float | None = Field(None, description="model-predicted terminal voltage, V")
     stale: bool = Field(description="inputs older than mapping.stale_after_s: estimate not updated")

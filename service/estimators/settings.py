@@ -140,14 +140,14 @@ class EstimatorSettings(BaseModel):
         "(ρ = exp(-|ΔSOC| / length) per step)"
     )
     reported_ocv_error_v: float = Field(
-        0.03, ge=0, le=1, description="σ of the OCV table's error (V) that the published SOC σ allows for, "
+        0.01, ge=0, le=1, description="σ of the OCV table's error (V) that the published SOC σ allows for, "
         "correlated over ocv_error_soc_length of SOC; the filter does not estimate it, so SOC is unchanged "
         "(a consider analysis, service/estimators/consider.py). 0 with the rest: the filter's own σ, "
         "which on the shared cells covered 5-25 % of errors at 2σ. Chosen leave-one-cell-out "
         "(docs/results/tuning.md)"
     )
     reported_current_offset_c: float = Field(
-        0.02, ge=0, le=1, description="σ of a current-sensor offset (fraction of 1C) that the published SOC σ "
+        0.01, ge=0, le=1, description="σ of a current-sensor offset (fraction of 1C) that the published SOC σ "
         "allows for, the same way; e.g. a sensor's datasheet offset over the cell's 1C"
     )
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
