@@ -168,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
 
     total = None
+    pack = None
     if is_cell_recording(path):
         from service.cell.profile import ProfileError, load_profile
         from service.recording import load_recording
@@ -255,6 +256,10 @@ def run(args: argparse.Namespace) -> int:
             Path(args.record).unlink(missing_ok=True)  # nothing written on failure
         why = str(failed).splitlines()[0] if str(failed) else type(failed).__name__
         raise UserError(f"{path}: replay stopped: {why} (input DBC {config.dbc.input})")
+    if pack is not None and pack.clipped:
+        what = ", ".join(f"{name} {n}x" for name, n in pack.clipped.most_common())
+        print(f"socd replay: warning: values beyond their signal's minimum/maximum in {config.dbc.input} were "
+              f"sent clipped to it: {what}", file=sys.stderr)
     print(f"socd replay: {stats.frames_sent} frames sent, {stats.frames_failed} failed, "
           f"{stats.span_s:.1f} s of recording in {stats.duration_s:.1f} s"
           + (f", faults {stats.faults}" if stats.faults else ""), file=sys.stderr)

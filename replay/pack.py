@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import csv
 import re
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,6 +71,9 @@ class PackRecording:
     delta_r_ohm: np.ndarray  # [N]
     sensor_temperature_c: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # [T, S]
     source: str = ""
+    #: measured values (cell voltages, temperatures, current) beyond their input-DBC signal's declared
+    #: minimum/maximum, sent clipped to it, per signal; counted as the frames are built (lazy: as played)
+    clipped: Counter = field(default_factory=Counter)
 
     @property
     def n_cells(self) -> int:
@@ -181,6 +185,11 @@ class _Template:
     pack_voltage: list[str]
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
 
+    @property
+    def measured(self) -> set[str]:
+        """The signals carrying the pack's measured values (clipping them is counted)."""
+        return {n for n, _ in self.volts} | {n for n, _ in self.temps} | ({self.current} if self.current else set())
+
 
 class FrameBuilder:
     """Turns pack values into BMS frames with the config's mapping and input DBC."""
@@ -200,6 +209,8 @@ class FrameBuilder:
         self.current_templates: list[_Template] = []
         self._counts: dict[int, int] = {}
         self._mods: dict[int, int] = {}
+        #: measured values clipped to their signal's range, per signal
+        self.clipped: Counter = Counter()
         for m in self.db.messages:
             names = [s.name for s in m.signals]
             mapped = [n for n in names if n in volt_of or n in temp_of or n in (mp.current_signal, time_name)]
@@ -242,7 +253,7 @@ class FrameBuilder:
                         sig = m.get_signal_by_name(n)
                         lo = sig.minimum if sig.minimum is not None else None
                         t.fixed[n] = 0.0 if lo is None or lo <= 0 else lo
-                for sig in m.signals:
+                for sig in m.signals:  # a value beyond the bits themselves stops the replay (_frame)
                     if sig.minimum is not None and sig.maximum is not None and sig.maximum > sig.minimum:
                         t.ranges[sig.name] = (float(sig.minimum), float(sig.maximum))
                 (self.current_templates if t.current else self.time_templates if t.time else self.templates).append(t)
@@ -260,8 +271,10 @@ class FrameBuilder:
         ranges = t.ranges
         for n, v in values.items():
             r = ranges.get(n)
-            if r is not None:
-                values[n] = r[0] if v < r[0] else r[1] if v > r[1] else v
+            if r is not None and not r[0] <= v <= r[1]:
+                values[n] = r[0] if v < r[0] else r[1]
+                if n in t.measured:
+                    self.clipped[n] += 1
         try:
             data = m.encode(values, scaling=True, padding=False, strict=False)
         except (ValueError, OverflowError) as exc:  # a signal too narrow for its own declared range
@@ -334,6 +347,7 @@ def pack_frames(
         extra = np.repeat(pack.sensor_temperature_c[:, :1], n_sensors - pack.sensor_temperature_c.shape[1], 1)
         pack.sensor_temperature_c = np.hstack([pack.sensor_temperature_c, extra])
     builder = FrameBuilder(config, db)
+    pack.clipped = builder.clipped
     frames = iter_pack_frames(pack, builder)
     return (frames if lazy else list(frames)), pack
 

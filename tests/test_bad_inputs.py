@@ -379,6 +379,16 @@ def test_diagnose_refuses_a_capacity_it_would_ignore(tmp_path: Path, capsys) -> 
     assert_one_line_error(code, err, "--capacity-ah goes with --ocv")
 
 
+def test_diagnose_refuses_a_current_in_milliamps(tmp_path: Path, capsys) -> None:
+    """A recording logged in mA, within the ±1000 plausible for amps, moves a thousand times the charge:
+    more than the whole cell between its highest and lowest counted point, whatever the start."""
+    rows = "\n".join(f"{t},{800.0 if t < 100 else -500.0},{3.7 - 0.001 * t},25.0" for t in range(150))
+    rec = _recording(tmp_path, "milliamps.csv", rows)
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet"])
+    assert_one_line_error(code, err, str(rec))
+    assert "the current's unit or the capacity" in err, err
+
+
 def test_config_names_a_bad_zenoh_endpoint(tmp_path: Path, capsys) -> None:
     cfg = _config_file(tmp_path, Path(DEFAULT_INPUT_DBC), '[zenoh]\nlisten = ["not-an-endpoint"]\n')
     code, err = run_cli(capsys, ["check", "--config", str(cfg)])
@@ -501,3 +511,24 @@ def test_replay_names_the_dbc_when_a_signal_cannot_carry_its_values(tmp_path: Pa
     code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--config", str(cfg), "--cells", "8"))
     assert_one_line_error(code, err, str(dbc))
     assert "BMS_CellVoltages" in err and not (tmp_path / "out.asc").exists()
+
+
+def test_replay_counts_values_it_clips_to_a_signals_declared_range(tmp_path: Path, capsys) -> None:
+    """A DBC whose current signal declares ±0.5 A gets the recording's 1 A clipped; the replay says
+    so with the count per signal instead of sending the clipped current silently."""
+    text = DEFAULT_INPUT_DBC.read_text()
+    old = "[-1638.4|1638.35]"
+    assert old in text
+    dbc = tmp_path / "clipped.dbc"
+    dbc.write_text(text.replace(old, "[-0.5|0.5]", 1))
+    cfg = _config_file(tmp_path, dbc)
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--config", str(cfg), "--cells", "8"))
+    amps = sum(1 for t in range(60) if t % 20 < 10)
+    assert code == 0, err
+    assert f"BMS_PackCurrent {amps}x" in err and str(dbc) in err, err
+    assert (tmp_path / "out.asc").exists()
+    # the shipped DBC carries the same recording without a word about clipping
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--config", str(_config_file(tmp_path, DEFAULT_INPUT_DBC)),
+                                             "--cells", "8"))
+    assert code == 0 and "clipped" not in err, err

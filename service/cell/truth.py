@@ -62,6 +62,19 @@ def check_counted_truth(rec: Recording, truth: np.ndarray, capacity_ah: float) -
                         "is wrong for this recording")
 
 
+def check_counted_span(rec: Recording, capacity_ah: float) -> None:
+    """Raise :class:`UserError` where the charge counted along ``rec`` with ``capacity_ah`` spans more
+    than the whole cell (by :data:`COUNTED_SOC_MARGIN`) between its highest and lowest point, whatever
+    SOC it started at: the current's unit (mA) or the capacity is wrong. For a recording with no
+    full-charge point to count a truth from (``socd diagnose``)."""
+    counted = coulomb_soc(rec.time_s, rec.current_a, capacity_ah, 0.0)
+    span = float(np.max(counted) - np.min(counted))
+    if span > 1.0 + COUNTED_SOC_MARGIN:
+        raise UserError(f"{rec.path}: the charge counted with {capacity_ah:g} Ah moves the SOC across "
+                        f"{span:.2f} of the cell between its highest and lowest point: the current's unit "
+                        "or the capacity is wrong for this recording")
+
+
 def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
     """The part of ``rec`` to score and its truth SOC.
 
