@@ -532,3 +532,13 @@ def test_replay_counts_values_it_clips_to_a_signals_declared_range(tmp_path: Pat
     code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--config", str(_config_file(tmp_path, DEFAULT_INPUT_DBC)),
                                              "--cells", "8"))
     assert code == 0 and "clipped" not in err, err
+
+
+def test_fit_with_a_capacity_a_thousand_times_too_large_names_it(tmp_path: Path, capsys) -> None:
+    """Every C-rate rule reads the current through the capacity: the refusal shows the C-rate it read."""
+    calce = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "calce_inr18650_20r"
+    rec = calce / "calce20r_25C_DST_80soc.csv"
+    out = tmp_path / "cell.toml"
+    code, err = run_cli(capsys, ["fit", str(rec), "--full-at", "3303", "--capacity-ah", "2000", "-q", "-o", str(out)])
+    assert code == 2 and "--capacity-ah 2000" in err and "0.002C" in err, err
+    assert not out.exists()

@@ -441,7 +441,8 @@ def characterise(
         segs = segs_at[t]
         if not segs:
             raise FitQualityError(f"no stretch of the recordings at {t:g} °C starts from a known state above SOC "
-                                  f"{MIN_FIT_SOC:g} with current on it: nothing to fit there")
+                                  f"{MIN_FIT_SOC:g} with current on it: nothing to fit there"
+                                  + peak_c_rate_note(groups[t], capacity_ah))
         check_excitation(t, segs, groups[t], capacity_ah)
         if test_rows is not None:
             ecm[t] = fit_ecm2rc(segs, capacity_ah, ocv_soc=grid, ocv_v=ocv_rows[t])
@@ -627,7 +628,15 @@ def check_excitation(temp_c: float, segments: list[FitSegment], recordings: list
         raise FitQualityError(
             f"{names}: at {temp_c:g} °C the recordings hold {changes} change(s) of the current by "
             f"{CHANGE_MIN_C:g}C or more in {seconds:.0f} s; fitting the dynamics needs {MIN_CURRENT_CHANGES} in "
-            f"{MIN_FITTED_S:g} s or more (a drive cycle, an HPPC or a pulse test); nothing written")
+            f"{MIN_FITTED_S:g} s or more (a drive cycle, an HPPC or a pulse test){peak_c_rate_note(recordings, capacity_ah)}; "
+            "nothing written")
+
+
+def peak_c_rate_note(recordings: list[tuple[Recording, np.ndarray]], capacity_ah: float) -> str:
+    """`` (the largest current there is 4.1 A, 0.21C of --capacity-ah 20)``: every C-rate rule reads the
+    current through the capacity, so a capacity given wrong shows here first."""
+    peak = max((float(np.max(np.abs(part.current_a))) for part, _ in recordings if len(part)), default=0.0)
+    return f" (the largest current there is {peak:.3g} A, {peak / capacity_ah:.2g}C of --capacity-ah {capacity_ah:g})"
 
 
 def check_counted_soc(part: Recording, capacity_ah: float, soc0: float) -> None:
