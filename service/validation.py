@@ -187,6 +187,8 @@ PYTHON_CAN_CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data
 TEXT_LOG_SUFFIXES = (".asc", ".csv", ".log", ".trc")
 #: a CAN timestamp beyond this (s; epoch time is ~1.7e9) is corrupt
 MAX_LOG_TIMESTAMP_S = 1e11
+#: a frame this far (s) before an earlier frame of the log is out of order, not jitter between channels
+MAX_LOG_STEP_BACK_S = 1.0
 
 
 def check_can_log(path: str | Path, suffixes: Sequence[str],
@@ -195,7 +197,8 @@ def check_can_log(path: str | Path, suffixes: Sequence[str],
 
     Catches what python-can's readers raise on files they cannot parse (``ValueError``,
     ``struct.error``, ``UnicodeDecodeError``, ...), an empty or unparsable text log that
-    reads as zero frames, and non-finite timestamps.  A ``.gz`` log is read through
+    reads as zero frames, non-finite timestamps, and timestamps that go back by more than
+    :data:`MAX_LOG_STEP_BACK_S` (the player would send such frames at once, out of time).  A ``.gz`` log is read through
     ``frames`` (the caller's reader; default ``can.LogReader``) and its text is not
     checked before decompression.
     """
@@ -226,6 +229,7 @@ def check_can_log(path: str | Path, suffixes: Sequence[str],
     else:
         read_bytes_check(path, f"{suffix[1:]} CAN log")
     n = 0
+    latest = -math.inf
     error: InputFileError | None = None
     # A reader that fails half-way may leave an object whose __del__ raises again (asammdf's
     # MDF4 does), which Python would print as "Exception ignored in ..." at some later
@@ -245,6 +249,12 @@ def check_can_log(path: str | Path, suffixes: Sequence[str],
                 if not math.isfinite(ts) or abs(ts) > MAX_LOG_TIMESTAMP_S:
                     error = InputFileError(f"{path}: frame {n}: timestamp {ts!r} is not a plausible time")
                     break
+                if ts < latest - MAX_LOG_STEP_BACK_S:
+                    error = InputFileError(
+                        f"{path}: frame {n}: timestamp {ts:.6f} s is {latest - ts:.3g} s before an earlier frame's: "
+                        "the log is out of order (logs joined end to end?); sort it by time or replay its parts apart")
+                    break
+                latest = max(latest, ts)
         except Exception as exc:  # noqa: BLE001 - python-can's readers raise many kinds on bad files
             where = f"frame {n + 1}" if n else "start"
             detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
