@@ -7,8 +7,8 @@ Two errors break that and are not filter states by default:
   stays put, so a few hundred samples of it shrink the filter's σ as if they were independent;
 - a current-sensor offset, ``b`` (fraction of 1C): the coulomb count drifts with it.
 
-The filter's own σ then settles far below its error (on the shared cells 2σ covered 5-25 %
-of the samples). This module carries the covariance of the SOC error those two cause,
+The filter's own σ then settles far below its error (docs/results/tuning.md measures how far).
+This module carries the covariance of the SOC error those two cause,
 ``c``, beside the filter, with the gains the filter actually used (Simon, *Optimal State
 Estimation*, §7.4, the "consider" covariance of a filter that ignores some parameters):
 
@@ -39,6 +39,8 @@ from service.estimators.settings import EstimatorSettings
 #: the covariance's distinct entries, in the order :attr:`ConsiderCovariance.entries` holds them
 ENTRIES = ("cc", "co", "cb", "oo", "ob", "bb")
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+#: the rows of :attr:`ConsiderCovariance.entries` that are variances (never negative)
+VARIANCE_ENTRIES = tuple(ENTRIES.index(e) for e in ("cc", "oo", "bb"))
 #: the largest SOC σ published: wider says nothing more about a quantity bounded to [0, 1]
 MAX_REPORTED_SOC_STD = 0.5
 

@@ -32,7 +32,7 @@ from service.cell.soc_dependence import scaled_resistances
 from service.cell.units import SECONDS_PER_HOUR
 from service.estimators.base import EstimateTrace
 from service.estimators.capacity import CapacityEstimator
-from service.estimators.consider import MAX_REPORTED_SOC_STD, ConsiderCovariance
+from service.estimators.consider import MAX_REPORTED_SOC_STD, VARIANCE_ENTRIES, ConsiderCovariance
 from service.estimators.fomiukf import FoMiUkf
 from service.estimators.parameter_ekf import PARAMETERS, ParameterEkf, apply_corrections
 from service.estimators.settings import EstimatorSettings
@@ -521,7 +521,7 @@ class PackEstimator:
         # the considered errors' covariance (states written before it existed: the priors, c = 0)
         consider = ((need("consider_entries", self.consider.entries.shape), need("consider_last_soc", (self.n,)))
                     if "consider_entries" in state else None)
-        if consider is not None and np.any(consider[0][[0, 3, 5]] < 0):  # cc, oo, bb
+        if consider is not None and np.any(consider[0][list(VARIANCE_ENTRIES)] < 0):
             raise ValueError("estimator state's considered covariance has a negative variance")
         resets = need("reset_count", self.reset_count.shape).astype(int)
         if np.any(resets < 0):

@@ -143,7 +143,7 @@ class EstimatorSettings(BaseModel):
         0.01, ge=0, le=1, description="σ of the OCV table's error (V) that the published SOC σ allows for, "
         "correlated over ocv_error_soc_length of SOC; the filter does not estimate it, so SOC is unchanged "
         "(a consider analysis, service/estimators/consider.py). 0 with the rest: the filter's own σ, "
-        "which on the shared cells covered 5-25 % of errors at 2σ. Chosen leave-one-cell-out "
+        "which counts every voltage sample as independent evidence. Chosen leave-one-cell-out "
         "(docs/results/tuning.md)"
     )
     reported_current_offset_c: float = Field(
