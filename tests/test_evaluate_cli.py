@@ -405,10 +405,10 @@ def test_fit_plots_show_both_models_along_each_recording(tmp_path: Path, nmc_rec
 
 
 # -- the summary under the table ------------------------------------------------------------------
-def _score(recording: str, estimator: str, late: float | None) -> EstimatorScore:
+def _score(recording: str, estimator: str, late: float | None, within: float | None = None) -> EstimatorScore:
     return EstimatorScore(recording=recording, estimator=estimator, us_per_step=1.0, soc_rmse_pct=1.0,
                           soc_mae_pct=1.0, soc_max_pct=1.0, soc_rmse_after_600s_pct=late, convergence_s=None,
-                          v_rmse_mv=None, soc_within_2sigma_pct=None)
+                          v_rmse_mv=None, soc_within_2sigma_pct=within)
 
 
 def test_summary_mean_worst_and_recordings_below_the_bar() -> None:
@@ -427,6 +427,14 @@ def test_summary_mean_worst_and_recordings_below_the_bar() -> None:
     (only,) = summarise([_score("c", "coulomb", None)], None)
     assert only.mean_rmse_after_600s_pct is None and only.below_bar is None
     assert "no recording runs past 600 s" in summary_lines([only], None)[1]
+
+
+def test_summary_says_how_often_the_published_sigma_covers_the_error() -> None:
+    results = [_score("a", "fomiukf", 1.0, 90.0), _score("b", "fomiukf", 2.0, 80.0), _score("a", "coulomb", 5.0)]
+    fo, cc = summarise(results, None)
+    assert fo.mean_within_2sigma_pct == pytest.approx(85.0) and cc.mean_within_2sigma_pct is None
+    lines = summary_lines([fo, cc], None)
+    assert lines[1].endswith("its σ covers 85 % at 2σ") and "covers" not in lines[2]
 
 
 def test_evaluate_prints_and_writes_the_summary_over_recordings(tmp_path: Path, nmc_recording, nmc_profile_file,

@@ -1,5 +1,6 @@
 """Per-estimator summary of a scored set of recordings (DESIGN §7): mean and worst SOC RMSE after
-the first 600 s, and on how many recordings an estimator is below the textbook bar.
+the first 600 s, on how many recordings an estimator is below the textbook bar, and how often the
+σ it publishes covers its error.
 
 This is the figure a held-out check reads ("mean / worst"), so ``socd evaluate`` prints it under
 its table and writes it to its JSON.
@@ -31,6 +32,9 @@ class EstimatorSummary:
     #: itself, or when no bar ran); ``compared`` is how many recordings both have a figure on
     below_bar: int | None
     compared: int | None
+    #: mean over the recordings of the share of samples after 600 s within twice the σ the estimator
+    #: publishes (95 % for an honest σ); None for an estimator without a σ (coulomb counting)
+    mean_within_2sigma_pct: float | None = None
 
 
 def summarise(results: Sequence[EstimatorScore], bar: str | None) -> list[EstimatorSummary]:
@@ -53,8 +57,14 @@ def summarise(results: Sequence[EstimatorScore], bar: str | None) -> list[Estima
             mean_rmse_after_600s_pct=float(np.mean([r.soc_rmse_after_600s_pct for r in late])) if late else None,
             worst_rmse_after_600s_pct=None if worst is None else worst.soc_rmse_after_600s_pct,
             worst_recording=None if worst is None else worst.recording,
-            below_bar=below, compared=compared))
+            below_bar=below, compared=compared,
+            mean_within_2sigma_pct=_mean_or_none([r.soc_within_2sigma_pct for r in late])))
     return out
+
+
+def _mean_or_none(values: Sequence[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return float(np.mean(known)) if known else None
 
 
 def summary_lines(summaries: Sequence[EstimatorSummary], bar: str | None) -> list[str]:
@@ -71,5 +81,7 @@ def summary_lines(summaries: Sequence[EstimatorSummary], bar: str | None) -> lis
                 f"over {s.scored} (worst: {s.worst_recording})")
         if s.below_bar is not None:
             line += f"; below the {bar} bar on {s.below_bar} of {s.compared}"
+        if s.mean_within_2sigma_pct is not None:
+            line += f"; its σ covers {s.mean_within_2sigma_pct:.0f} % at 2σ"
         lines.append(line)
     return lines
