@@ -73,6 +73,9 @@ class DemoResult:
     soc_mae_pct: float
     soc_max_err_pct: float
     soc_rmse_after_600s_pct: float | None
+    #: share of the samples after 600 s (all cells) whose error is within twice the σ the service
+    #: published with them (95 % for an honest σ)
+    soc_within_2sigma_pct: float | None
     per_cell_rmse_pct: list[float]
     #: per cell at the end: (estimated capacity / the cell's true capacity - 1), %
     capacity_err_pct: list[float]
@@ -217,6 +220,7 @@ def run_demo(
 
     t_hist: list[float] = []
     soc_hist: list[np.ndarray] = []
+    std_hist: list[np.ndarray] = []
     zenoh_counts: Counter[str] = Counter()
     can_seen: Counter[str] = Counter()
     replay_stats: list[Any] = []
@@ -237,7 +241,8 @@ def run_demo(
         out_notifier = can.Notifier(out_bus, [on_out], timeout=0.1)
         sub_session = None
         daemon = Daemon(config, daemon_bus, profile=profile, install_signal_handlers=False)
-        daemon.step_listeners.append(lambda s: (t_hist.append(s.t_s), soc_hist.append(daemon.estimator.soc.copy())))
+        daemon.step_listeners.append(lambda s: (t_hist.append(s.t_s), soc_hist.append(daemon.estimator.soc.copy()),
+                                                std_hist.append(np.array(daemon.estimator.soc_std, dtype=float))))
         stop = asyncio.Event()
         run_task = asyncio.create_task(daemon.run(stop))
         stop_replay = threading.Event()
@@ -300,6 +305,7 @@ def run_demo(
 
     t = np.asarray(t_hist)
     soc = np.asarray(soc_hist).reshape(len(t_hist), cells) if t_hist else np.zeros((0, cells))
+    std = np.asarray(std_hist).reshape(len(t_hist), cells) if t_hist else np.zeros((0, cells))
     idx = np.clip(np.searchsorted(pack.time_s, t), 0, len(pack.time_s) - 1)
     truth = pack.truth_soc[idx] if len(t) else np.zeros((0, cells))
     err = (soc - truth) * 100.0
@@ -307,9 +313,10 @@ def run_demo(
         rmse = float(np.sqrt(np.mean(err ** 2)))
         late = t - pack.time_s[0] >= 600.0
         rmse_late = float(np.sqrt(np.mean(err[late] ** 2))) if late.any() else None
+        within = float(100.0 * np.mean(np.abs(err[late]) <= 200.0 * std[late])) if late.any() else None
         per_cell = np.sqrt(np.mean(err ** 2, axis=0))
     else:
-        rmse, rmse_late, per_cell = float("nan"), None, np.full(cells, np.nan)
+        rmse, rmse_late, within, per_cell = float("nan"), None, None, np.full(cells, np.nan)
     counters = daemon.counters()
     health = daemon.estimator.health()
     capacity_err = (health.capacity_ah / pack.capacity_ah - 1.0) * 100.0
@@ -328,6 +335,7 @@ def run_demo(
         soc_mae_pct=round(float(np.mean(np.abs(err))) if err.size else float("nan"), 4),
         soc_max_err_pct=round(float(np.max(np.abs(err))) if err.size else float("nan"), 4),
         soc_rmse_after_600s_pct=None if rmse_late is None else round(rmse_late, 4),
+        soc_within_2sigma_pct=None if within is None else round(within, 2),
         per_cell_rmse_pct=[round(float(x), 4) for x in per_cell],
         capacity_err_pct=[round(float(x), 3) for x in capacity_err],
         capacity_std_pct=[round(float(x), 3) for x in capacity_std],
@@ -346,7 +354,7 @@ def run_demo(
         counters=counters,
         faults=dict(replay_stats[0].faults) if replay_stats else {},
     )
-    traces = {"t_s": t - (pack.time_s[0] if len(pack.time_s) else 0.0), "soc": soc, "truth": truth}
+    traces = {"t_s": t - (pack.time_s[0] if len(pack.time_s) else 0.0), "soc": soc, "truth": truth, "std": std}
     return result, traces
 
 
@@ -377,6 +385,11 @@ def write_plot(path: Path, traces: dict[str, np.ndarray], result: DemoResult) ->
     ax1.set_ylabel("SOC, % (solid: estimate, dashed: truth)")
     ax1.set_title(f"socd demo: {result.cells} cells, {result.recording}; "
                   f"SOC RMSE {result.soc_rmse_pct:.2f} %")
+    std = traces.get("std")
+    if std is not None and len(t):  # the band the service publishes: ±2σ, the median over the cells
+        band = 200 * np.median(std, axis=1)
+        ax2.fill_between(t, -band, band, color="0.85", lw=0, label="±2σ published (median cell)")
+        ax2.legend(loc="upper right", fontsize=8)
     ax2.set_ylabel("error, %")
     ax2.set_xlabel("recording time, s")
     ax2.axhline(0, color="k", lw=0.5)
@@ -404,7 +417,9 @@ def summary_text(r: DemoResult) -> str:
          f"({r.frames_per_s:.0f} frames/s, CPU {r.cpu_pct:.0f} % of one core)"),
         f"frames in {r.frames_in}, rejected {r.frames_rejected}; estimator steps {r.steps}",
         f"SOC error vs truth: RMSE {r.soc_rmse_pct:.2f} %, MAE {r.soc_mae_pct:.2f} %, max {r.soc_max_err_pct:.2f} %"
-        + (f", RMSE after 600 s {r.soc_rmse_after_600s_pct:.2f} %" if r.soc_rmse_after_600s_pct is not None else ""),
+        + (f", RMSE after 600 s {r.soc_rmse_after_600s_pct:.2f} %" if r.soc_rmse_after_600s_pct is not None else "")
+        + (f", within its published 2σ {r.soc_within_2sigma_pct:.0f} % of the time after 600 s"
+           if r.soc_within_2sigma_pct is not None else ""),
         "per cell RMSE %: " + " ".join(f"{x:.2f}" for x in r.per_cell_rmse_pct)
         + (f"  (worst: cell {worst})" if r.per_cell_rmse_pct else ""),
         "per cell capacity error %: " + " ".join(f"{x:+.2f}" for x in r.capacity_err_pct)
