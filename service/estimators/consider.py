@@ -8,9 +8,9 @@ Two errors break that and are not filter states by default:
 - a current-sensor offset, ``b`` (fraction of 1C): the coulomb count drifts with it.
 
 The filter's own σ then settles far below its error (docs/results/tuning.md measures how far).
-This module carries the covariance of the SOC error those two cause,
-``c``, beside the filter, with the gains the filter actually used (Simon, *Optimal State
-Estimation*, §7.4, the "consider" covariance of a filter that ignores some parameters):
+This module carries the covariance of the SOC error those two cause, ``c``, beside the filter,
+with the gains the filter actually used: Schmidt's "consider" analysis, the true covariance of a
+filter that leaves some parameters out of its state:
 
     predict:  c ← c + (Δt / 3600) · b                      (Zeng Eq. 4 with the offset)
               o ← φ o + √(1 - φ²) σ_o w,  φ = exp(-|ΔSOC| / L)
@@ -38,6 +38,7 @@ from service.estimators.settings import EstimatorSettings
 
 #: the covariance's distinct entries, in the order :attr:`ConsiderCovariance.entries` holds them
 ENTRIES = ("cc", "co", "cb", "oo", "ob", "bb")
+_OO, _BB = ENTRIES.index("oo"), ENTRIES.index("bb")
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 #: the rows of :attr:`ConsiderCovariance.entries` that are variances (never negative)
 VARIANCE_ENTRIES = tuple(ENTRIES.index(e) for e in ("cc", "oo", "bb"))
@@ -75,8 +76,8 @@ class ConsiderCovariance:
         self.offset_var = np.broadcast_to(np.asarray(current_offset_c, float) ** 2, (self.n,)).copy()
         self.soc_length = float(ocv_error_soc_length)
         self.entries = np.zeros((len(ENTRIES), self.n))
-        self.entries[3] = self.ocv_var
-        self.entries[5] = self.offset_var
+        self.entries[_OO] = self.ocv_var
+        self.entries[_BB] = self.offset_var
         #: the SOC at the previous step (−1: none yet)
         self.last_soc = np.full(self.n, -1.0)
 
@@ -100,7 +101,7 @@ class ConsiderCovariance:
         """One sample: the offset's drift over ``dt_s``, the table error's decorrelation as the
         SOC moves, then the filter's update with SOC gain ``soc_gain [N]`` (0 where a cell took
         no voltage) at OCV slope ``ocv_slope [N]`` (V per unit SOC).  Written out entry by entry
-        (the covariance is symmetric): a 3×3 product per cell costs more than the rest together."""
+        (the covariance is symmetric), which is cheaper than a 3×3 matrix product per cell."""
         cc, co, cb, oo, ob, bb = self.entries
         g = max(float(dt_s), 0.0) / SECONDS_PER_HOUR  # c += g·b
         cc, co, cb = cc + 2.0 * g * cb + g * g * bb, co + g * ob, cb + g * bb
