@@ -77,7 +77,7 @@ def parse_spec(text: str) -> Spec:
 
 
 def crps_gaussian(err: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """CRPS of N(0, σ²) at ``err`` (Gneiting & Raftery 2007, Eq. 21)."""
+    """CRPS of N(0, σ²) at ``err``, in closed form (Gneiting & Raftery 2007)."""
     z = err / sigma
     pdf = np.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
     cdf = 0.5 * (1 + erf(z / math.sqrt(2)))
