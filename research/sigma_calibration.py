@@ -36,6 +36,7 @@ from service.cell.profile import load_profile
 from service.cell.truth import truth_and_start
 from service.estimators.consider import MAX_REPORTED_SOC_STD, ConsiderCovariance
 from service.estimators.pipeline import PackEstimator, fomiukf, sample_period_s
+from service.estimators.settings import EstimatorSettings
 from service.evaluation.run import wrong_start
 from service.recording import load_recording
 
@@ -130,6 +131,20 @@ def choose(crps: dict[str, dict[tuple[float, float], float]], cells: list[str]) 
     return min(values, key=lambda v: statistics.fmean(crps[c][v] for c in cells))
 
 
+def shipped_lines(crps: dict, cover: dict, sigma: dict) -> list[str]:
+    """Each cell at the values ``EstimatorSettings()`` ships, beside the filter's own σ."""
+    s = EstimatorSettings()
+    v, off = (s.reported_ocv_error_v, s.reported_current_offset_c), (0.0, 0.0)
+    cells = sorted(crps)
+    if any(v not in crps[c] for c in cells):
+        return [f"The shipped values ({v[0]:g} V, {v[1]:g} C) are not on the grid."]
+    lines = [f"Each cell at the shipped values ({v[0]:g} V, {v[1]:g} C):", "",
+             "| cell | in 2σ, % | median σ, % | CRPS, % | filter's own σ: in 2σ, % | CRPS, % |", "|---|---|---|---|---|---|"]
+    lines += [f"| {c} | {cover[c][v]:.1f} | {sigma[c][v]:.2f} | {crps[c][v]:.3f} | {cover[c][off]:.1f} "
+              f"| {crps[c][off]:.3f} |" for c in cells]
+    return lines
+
+
 def report(scores: list[Score]) -> tuple[list[str], dict]:
     crps, cover, sigma = (cell_means(scores, f) for f in ("crps_pct", "within_2sigma_pct", "median_sigma_pct"))
     cells = sorted(crps)
@@ -144,14 +159,20 @@ def report(scores: list[Score]) -> tuple[list[str], dict]:
         lines.append(f"| {c} | {v[0]:g} V, {v[1]:g} C | {cover[c][v]:.1f} | {sigma[c][v]:.2f} | {crps[c][v]:.3f} "
                      f"| {cover[c][off]:.1f} | {sigma[c][off]:.2f} | {crps[c][off]:.3f} |")
     default = choose(crps, cells)
-    chosen = (f"Chosen on every cell (the default): `reported_ocv_error_v = {default[0]:g}`, "
+    chosen = (f"Chosen on every cell here: `reported_ocv_error_v = {default[0]:g}`, "
               f"`reported_current_offset_c = {default[1]:g}`.")
-    lines += ["", chosen, "",
+    lines += ["", chosen, "", *shipped_lines(crps, cover, sigma), "",
               "Each cell at every grid value (in 2σ % / CRPS %):", "",
               "| OCV error, V | offset, C | " + " | ".join(cells) + " |", "|---|---|" + "---|" * len(cells)]
     for v in sorted(crps[cells[0]]):
         lines.append(f"| {v[0]:g} | {v[1]:g} | " + " | ".join(f"{cover[c][v]:.1f} / {crps[c][v]:.3f}" for c in cells) + " |")
     return lines, {"held_out": {c: list(v) for c, v in held.items()}, "default": list(default)}
+
+
+def markdown(json_path: Path) -> str:
+    """The report again from a ``--json`` file (docs/results/regenerate.py renders it so)."""
+    doc = json.loads(Path(json_path).read_text())
+    return "\n".join(report([Score(**s) for s in doc["scores"]])[0])
 
 
 def main(argv: list[str] | None = None) -> int:

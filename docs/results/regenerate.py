@@ -871,7 +871,7 @@ PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e trise
 for f in $PANX; do S="$S panasonic=out/s25/pan_hppc.toml:$f"; done
 for f in $(echo $PANX | tr ' ' '\\n' | grep -v US06); do S="$S panasonic=out/s25/pan_us06.toml:$f"; done
 python -m research.sigma_calibration --bias 0 --bias 0.01 --jobs 2 --json out/sigma_calibration.json $S
-""", lambda out: "\n".join(_read(out, "sigma_calibration.json")["table"]), 15,
+""", lambda out: tool("sigma_calibration").markdown(out / "sigma_calibration.json"), 15,
           ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc", "needs:char_pan_us06")),
     Table("loco_ocv_error", "tuning.md",
           loco_sweep("ocv_error_std_v", "oe", ("0.01", "0.02"), "0"),
