@@ -873,6 +873,14 @@ for f in $(echo $PANX | tr ' ' '\\n' | grep -v US06); do S="$S panasonic=out/s25
 python -m research.sigma_calibration --bias 0 --bias 0.01 --jobs 2 --json out/sigma_calibration.json $S
 """, lambda out: tool("sigma_calibration").markdown(out / "sigma_calibration.json"), 15,
           ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc", "needs:char_pan_us06")),
+    Table("sigma_calibration_unseen", "tuning.md", """\
+# the profiles and drives are research.unseen_cell's (each cell's OCV tests and one US06 per ambient fitted)
+S=""; for c in Chen2020 Mohtat2020 Marquis2019; do
+  for f in $(ls out/unseen_cell/${c}_{25C,10C,0C}_*.csv | grep -v -e US06 -e HPPC -e _ocv); do
+    S="$S $c=out/unseen_cell/$c.toml:$f"; done; done
+python -m research.sigma_calibration --bias 0 --bias 0.01 --jobs 2 --json out/sigma_calibration_unseen.json $S
+""", lambda out: tool("sigma_calibration").markdown(out / "sigma_calibration_unseen.json"), 15,
+          ("needs:unseen_cell", "needs:pybamm")),
     Table("loco_ocv_error", "tuning.md",
           loco_sweep("ocv_error_std_v", "oe", ("0.01", "0.02"), "0"),
           lambda out: nested_table("loco_ocv_error.json")(out)
