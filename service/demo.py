@@ -179,6 +179,7 @@ def run_demo(
     from service.config import DEFAULT_CELL_PROFILE
     from service.daemon.daemon import Daemon
     from service.daemon.zenoh_pub import zenoh_config
+    from service.evaluation.metrics import within_2sigma_pct
     from service.recording import load_recording
 
     if recording_path is None:
@@ -313,7 +314,7 @@ def run_demo(
         rmse = float(np.sqrt(np.mean(err ** 2)))
         late = t - pack.time_s[0] >= 600.0
         rmse_late = float(np.sqrt(np.mean(err[late] ** 2))) if late.any() else None
-        within = float(100.0 * np.mean(np.abs(err[late]) <= 200.0 * std[late])) if late.any() else None
+        within = within_2sigma_pct(err[late], std[late]) if late.any() else None
         per_cell = np.sqrt(np.mean(err ** 2, axis=0))
     else:
         rmse, rmse_late, within, per_cell = float("nan"), None, None, np.full(cells, np.nan)

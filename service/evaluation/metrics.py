@@ -47,6 +47,12 @@ def convergence_time(time_s: np.ndarray, err_pct: np.ndarray, band: float = CONV
     return float(t[np.argmax(ok)])
 
 
+def within_2sigma_pct(err_pct: np.ndarray, soc_std: np.ndarray) -> float:
+    """Share (%) of the samples whose SOC error (in %) lies within twice the σ published with them
+    (a fraction): 95 % for an honest Gaussian σ."""
+    return float(100.0 * np.mean(np.abs(err_pct) <= 200.0 * soc_std))
+
+
 def score(time_s: np.ndarray, soc_est: np.ndarray, soc_true: np.ndarray,
           v_pred: np.ndarray | None = None, v_meas: np.ndarray | None = None,
           soc_std: np.ndarray | None = None) -> Scores:
@@ -57,7 +63,7 @@ def score(time_s: np.ndarray, soc_est: np.ndarray, soc_true: np.ndarray,
         v_rmse = float(1000.0 * np.sqrt(np.mean((v_pred - v_meas) ** 2)))
     within = None
     if soc_std is not None and after.any():
-        within = float(100.0 * np.mean(np.abs(err[after]) <= 200.0 * soc_std[after]))
+        within = within_2sigma_pct(err[after], soc_std[after])
     return Scores(
         soc_rmse_pct=float(np.sqrt(np.mean(err**2))),
         soc_mae_pct=float(np.mean(np.abs(err))),
