@@ -1,4 +1,5 @@
-"""PNG plots of an evaluation: SOC vs truth, SOC error, voltage residual, parameters."""
+"""PNG plots of an evaluation: SOC vs truth, SOC error with each estimator's published ±2σ, voltage
+residual, parameters."""
 
 from __future__ import annotations
 
@@ -24,12 +25,15 @@ def plot_recording(path: Path, name: str, time_s: np.ndarray, truth: np.ndarray,
     axes[0].plot(t_h, 100 * truth, "k", lw=2, label="truth")
     for est, tr in traces.items():
         axes[0].plot(t_h, 100 * tr.soc, lw=1, label=est)
-        axes[1].plot(t_h, 100 * (tr.soc - truth), lw=1, label=est)
+        line, = axes[1].plot(t_h, 100 * (tr.soc - truth), lw=1, label=est)
+        if tr.soc_std is not None:  # the ±2σ band the estimator publishes, in its colour
+            band = 200 * tr.soc_std
+            axes[1].fill_between(t_h, -band, band, color=line.get_color(), alpha=0.12, lw=0)
         if tr.v_pred is not None:
             axes[2].plot(t_h, 1000 * (v_meas - tr.v_pred), lw=0.6, label=est)
     axes[0].set_ylabel("SOC [%]")
     axes[0].legend(fontsize=8, ncol=4)
-    axes[1].set_ylabel("SOC error [%]")
+    axes[1].set_ylabel("SOC error [%] (shaded: ±2σ published)")
     axes[1].axhline(2, color="grey", ls=":")
     axes[1].axhline(-2, color="grey", ls=":")
     axes[1].set_ylim(-10, 10)
