@@ -12,13 +12,14 @@ from research.sigma_calibration import Score, crps_gaussian, main, parse_spec, r
 
 def test_crps_matches_its_definition_by_quadrature() -> None:
     # CRPS = ∫ (F(y) - 1{y >= x})² dy for the Gaussian forecast F
+    from scipy.integrate import trapezoid
     from scipy.stats import norm
 
     for err, sigma in ((0.3, 1.0), (-2.0, 0.5), (0.0, 0.01)):
         y = np.linspace(-20 * sigma - abs(err), 20 * sigma + abs(err), 200001)
         integrand = (norm.cdf(y, scale=sigma) - (y >= err)) ** 2
         assert crps_gaussian(np.array([err]), np.array([sigma]))[0] == pytest.approx(
-            np.trapezoid(integrand, y), rel=1e-3)
+            trapezoid(integrand, y), rel=1e-3)
 
 
 def test_a_sigma_that_fits_the_errors_scores_better_than_one_too_narrow_or_too_wide() -> None:
