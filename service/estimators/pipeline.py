@@ -352,7 +352,7 @@ class PackEstimator:
             ukf.P[:, ukf.i_soc, ukf.i_soc] += self.capacity.soc_process_var(i - params.current_bias_a, dt)
         ukf.update(v, i, temp, params, act, self.cell_ocv, surface)
         if self.capacity is not None:
-            soc_now = ukf.soc if surface is None else ukf.soc - surface
+            soc_now = self.surface_soc()
             usable = act & (ukf.soc_std < self.settings.identify_below_soc_std)
             shift = self.capacity.update(i - params.current_bias_a, dt, ukf.innovation, ukf.innovation_var,
                                          self.cell_ocv.slope(soc_now), ukf.gain[:, ukf.i_soc], usable,
@@ -410,13 +410,17 @@ class PackEstimator:
     def soc(self) -> np.ndarray:
         return self.ukf.soc
 
+    def surface_soc(self) -> np.ndarray:
+        """The SOC filter's SOC at the particle surface, where the OCV is read (bulk SOC without the
+        solid-diffusion extension)."""
+        return self.ukf.soc if self.surface is None else self.ukf.soc - self.surface_deficit
+
     def consider_inputs(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """SOC, the SOC gain of this sample's update (0 where a cell took no voltage) and the OCV
         slope there: what :meth:`ConsiderCovariance.step` propagates the unmodelled errors with."""
         ukf = self.ukf
-        soc_surface = ukf.soc if self.surface is None else ukf.soc - self.surface_deficit
         gain = np.where(active, ukf.gain[:, ukf.i_soc], 0.0)
-        return ukf.soc, gain, self.cell_ocv.slope(soc_surface)
+        return ukf.soc, gain, self.cell_ocv.slope(self.surface_soc())
 
     @property
     def soc_std(self) -> np.ndarray:
