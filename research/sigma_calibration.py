@@ -37,6 +37,7 @@ from service.cell.truth import truth_and_start
 from service.estimators.consider import MAX_REPORTED_SOC_STD, ConsiderCovariance
 from service.estimators.pipeline import PackEstimator, fomiukf, sample_period_s
 from service.estimators.settings import EstimatorSettings
+from service.evaluation.metrics import within_2sigma_pct
 from service.evaluation.run import wrong_start
 from service.recording import load_recording
 
@@ -110,7 +111,7 @@ def score_recording(job: tuple[Spec, float]) -> list[Score]:
     rmse = 100 * float(np.sqrt(np.mean(err**2)))
     name = Path(spec.recording).stem
     return [Score(spec.cell, name, bias_c, o, b, 100 * float(np.mean(crps_gaussian(err, sigma[:, g]))),
-                  100 * float(np.mean(np.abs(err) <= 2 * sigma[:, g])), 100 * float(np.median(sigma[:, g])), rmse)
+                  within_2sigma_pct(100 * err, sigma[:, g]), 100 * float(np.median(sigma[:, g])), rmse)
             for g, (o, b) in enumerate(grid)]
 
 

@@ -54,7 +54,7 @@ def summarise(results: Sequence[EstimatorScore], bar: str | None) -> list[Estima
             below = sum(a < b for a, b in pairs)
         out.append(EstimatorSummary(
             estimator=name, recordings=len(mine), scored=len(late),
-            mean_rmse_after_600s_pct=float(np.mean([r.soc_rmse_after_600s_pct for r in late])) if late else None,
+            mean_rmse_after_600s_pct=_mean_or_none([r.soc_rmse_after_600s_pct for r in late]),
             worst_rmse_after_600s_pct=None if worst is None else worst.soc_rmse_after_600s_pct,
             worst_recording=None if worst is None else worst.recording,
             below_bar=below, compared=compared,
