@@ -73,11 +73,10 @@ class ConsiderCovariance:
                  ocv_error_soc_length: float) -> None:
         self.n = int(n_cells)
         self.ocv_var = np.broadcast_to(np.asarray(ocv_error_v, float) ** 2, (self.n,)).copy()
-        self.offset_var = np.broadcast_to(np.asarray(current_offset_c, float) ** 2, (self.n,)).copy()
         self.soc_length = float(ocv_error_soc_length)
         self.entries = np.zeros((len(ENTRIES), self.n))
         self.entries[_OO] = self.ocv_var
-        self.entries[_BB] = self.offset_var
+        self.entries[_BB] = np.asarray(current_offset_c, float) ** 2  # constant: no walk to keep it for
         #: the SOC at the previous step (−1: none yet)
         self.last_soc = np.full(self.n, -1.0)
 
