@@ -575,6 +575,9 @@ def test_fit_refuses_a_recording_no_model_follows_and_writes_nothing(tmp_path: P
     assert not out.exists()
     assert main(["fit", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "-o", str(out)]) == 0
     assert out.exists()
+    err = capsys.readouterr().err
+    assert "warning: --force writes a fit it would refuse: 25 °C: fit RMSE" in err and "Nothing written" not in err
+    assert "% of the" in err and "mV RMS overpotential" in err  # the fit log says how much it left
 
 
 @pytest.mark.parametrize("what", ["few_seconds", "constant_current"])

@@ -196,3 +196,21 @@ def test_fit_reports_the_alignment_and_flags_one_at_its_bound() -> None:
         held_at = max(true_scale, ALIGN_SCALE_BOUNDS[0])  # the bound holds a scale beyond it
         assert f"{2.0 / held_at:.3f} Ah" in rep.lines[0]
         assert any("at its bound" in line for line in rep.lines) == flagged
+
+
+def test_fit_refuses_a_capacity_above_what_its_ocv_test_moved(tmp_path: Path, nmc_recording, capsys) -> None:
+    """The OCV test's C/20 discharge took out the cell's capacity; told 15 % more, every SOC the
+    profile counts would drift by that, and no fit RMSE shows it. The command names the test and the
+    charge it measured, exits 2 and writes nothing; --force fits it, and 3 % more (a tester's count, a
+    charge just short of full) is fitted without it."""
+    test = write_ocv_test(tmp_path / "ocv25.csv", 25.0, 0.0)
+    drive = nmc_recording(name="drive", duration_s=1800, seed=5, soc0=0.95)
+    out = tmp_path / "cell.toml"
+    fit = ["fit", str(test), str(drive.path), "--max-seconds", "3", "-q", "-o", str(out)]
+    assert main([*fit, "--capacity-ah", f"{1.15 * NMC_CAPACITY_AH:g}"]) == 2
+    err = capsys.readouterr().err
+    assert "ocv25: --capacity-ah" in err and "15% more than the" in err and f"{NMC_CAPACITY_AH:.4g} Ah" in err
+    assert "Traceback" not in err and not out.exists()
+    assert main([*fit, "--capacity-ah", f"{1.15 * NMC_CAPACITY_AH:g}", "--force"]) == 0 and out.exists()
+    out.unlink()
+    assert main([*fit, "--capacity-ah", f"{1.03 * NMC_CAPACITY_AH:g}"]) == 0, capsys.readouterr().err

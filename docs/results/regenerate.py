@@ -587,6 +587,13 @@ SEED_GROUPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), (
                ("−20 °C", r"_m20C_"))
 
 
+def fit_quality_table(out: Path) -> str:
+    """``research.fit_quality``'s table from its summary."""
+    from research.fit_quality import JobResult, table
+
+    return table([JobResult(**d) for d in json.loads((out / "fit_quality" / "fit_quality.json").read_text())])
+
+
 TABLES: tuple[Table, ...] = (
     Table("profiles", "soc_accuracy.md", REAL + f"""\
 {PAN_FIT} --kinetics -o configs/cells/panasonic_18650pf.toml
@@ -1156,6 +1163,12 @@ socd evaluate --cell $W/Prada2013_force_2rc.toml $(ls $W/Prada2013_25C_*.csv | g
               + runs_table((("fractional point", "unseen_lfp/Prada2013_force_eval.json"),
                             ("its 2-RC point", "unseen_lfp/Prada2013_force_2rc_eval.json")),
                            (("25 °C", r"_25C_"),))(out))), 5, ("needs:pybamm",)),
+    Table("fit_quality", "characterisation.md", """\
+python -m research.unseen_cell build --jobs 2
+python -m research.unseen_cell build --cells Prada2013 --ambients 25 --workdir out/unseen_lfp
+rm -f out/fit_quality/fit_quality.json
+python -m research.fit_quality run --jobs 2""", fit_quality_table, 40,
+          ("needs:unseen_cell", "needs:unseen_cell_lfp", "needs:pybamm")),
     Table("unseen_cell_cold", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2 --cells Chen2020,Mohtat2020 --ambients -10
 python -m research.unseen_cell run --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10 --profile-tag _m10 --refit""",

@@ -84,6 +84,7 @@ from service.characterisation.ocv_sources import (
     alignment_at_bound,
     interpolate_between_rests,
     is_ocv_test,
+    check_capacity_against_test,
     ocv_from_test,
     ocv_row_from_rests,
     ocv_rows_by_temperature,
@@ -165,6 +166,12 @@ class TemperatureFit:
     ecm_simulated_mv: float | None = None
     #: the OCV at this temperature came from a table or an OCV test, not a joint fit
     ocv_measured: bool = False
+
+    @property
+    def unexplained_share(self) -> float:
+        """The fit RMSE as a share of the RMS overpotential: 0 explains every millivolt the OCV
+        leaves, 1 explains none of it."""
+        return self.rmse_mv / max(self.overpotential_rms_mv, 1e-9)
 
     def problem(self) -> str | None:
         bound = max(POOR_FIT_MV, POOR_FIT_SHARE * self.overpotential_rms_mv)
@@ -316,6 +323,7 @@ def characterise(
     ocv_beyond: str = "hold",
     ocv_between_rests: str | None = None,
     ocv_smoothing: float | None = None,
+    force_capacity: bool = False,
     report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
@@ -335,6 +343,8 @@ def characterise(
     a rest-anchored joint OCV is read between rests close in SOC (:func:`reads_through_rests`); ``None``
     (the default) reads it the :data:`DEFAULT_OCV_BETWEEN_RESTS` way where there is such an OCV and
     leaves any other OCV alone, while a choice named where there is none is an error.
+    ``force_capacity``: fit with ``capacity_ah`` even where a room-temperature OCV test moved
+    less charge than that (:func:`check_capacity_against_test`, ``socd fit --force``).
     ``ocv_smoothing``: the smoothness weight of a jointly fitted OCV (:func:`fit_ecm2rc`; ``None``:
     :data:`OCV_SMOOTH_WEIGHT`), an error where the OCV is given.  ``starts``:
     global searches per temperature, seeded ``seed``, ``seed + 1``, ...; the point that fits the
@@ -368,6 +378,8 @@ def characterise(
         by_t: dict[float, list[np.ndarray]] = defaultdict(list)
         for r in ocv_tests:
             curve = ocv_from_test(r, capacity_ah, grid, short_charge)
+            if not force_capacity:
+                check_capacity_against_test(r.name, curve, float(np.median(r.temperature_c)), capacity_ah)
             by_t[temperature_group(r)].append(curve.ocv_v)
             if curve.charge_reach < 1.0:
                 rep.say(f"OCV: {r.name}'s charge stopped short of full, at {100 * curve.charge_reach:.1f} % of the "
@@ -536,6 +548,7 @@ def characterise(
                 + (f", Ea {ea_t / 1000:.0f} kJ/mol over the group's temperatures" if ea_t is not None else "")
                 + f"; fit RMSE {rmse:.1f} mV (textbook 2-RC {ecm[t].rmse_mv:.1f} mV, {start_rmse:.1f} mV as this "
                   "model simulates its point)"
+                + f", {outcome.unexplained_share:.0%} of the {outcome.overpotential_rms_mv:.0f} mV RMS overpotential"
                 + {"2-RC start": " from the 2-RC start point",
                    "2-RC fit": " (the search ended on the 2-RC submodel: orders 1, linear kinetics; the 2-RC "
                                "fit's own point is kept)"}.get(source, "")

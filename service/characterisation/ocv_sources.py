@@ -79,6 +79,8 @@ class OcvTestCurve:
     ocv_v: np.ndarray
     charge_reach: float = 1.0
     short_charge: bool = False
+    #: the charge the test's slow discharge took out, else its one slow charge put in [Ah]
+    branch_ah: float = float("nan")
 
 
 @dataclass
@@ -144,16 +146,40 @@ def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = 
     if len(branches) == 1:
         ((sign, b),) = branches.items()
         soc = 1.0 - b.q_ah / b.q_ah[-1] if sign > 0 else b.q_ah / b.q_ah[-1]
-        return OcvTestCurve(grid, make_monotone(_on_grid(grid, soc, b.voltage_v)))
+        return OcvTestCurve(grid, make_monotone(_on_grid(grid, soc, b.voltage_v)), branch_ah=float(b.q_ah[-1]))
     dis, chg = branches[1.0], branches[-1.0]
     v_dis = _on_grid(grid, 1.0 - dis.q_ah / dis.q_ah[-1], dis.voltage_v)
     short_mean = 0.5 * (v_dis + _on_grid(grid, chg.q_ah / dis.q_ah[-1], chg.voltage_v))
     reach = _charge_reach(rec, capacity_ah, dis, chg, grid, v_dis, short_mean)
     if short_charge and reach < 1.0:
         top = _above_reach(grid, reach, v_dis, short_mean, rec.voltage_v[dis.first - 1])
-        return OcvTestCurve(grid, make_monotone(np.where(grid <= reach, short_mean, top)), reach, True)
+        return OcvTestCurve(grid, make_monotone(np.where(grid <= reach, short_mean, top)), reach, True,
+                            float(dis.q_ah[-1]))
     mean = 0.5 * (v_dis + _on_grid(grid, chg.q_ah / chg.q_ah[-1], chg.voltage_v))
-    return OcvTestCurve(grid, make_monotone(mean), reach)
+    return OcvTestCurve(grid, make_monotone(mean), reach, branch_ah=float(dis.q_ah[-1]))
+
+
+#: a capacity more than this fraction above what a room-temperature OCV test's slow branch moved is
+#: refused: a cell gives less charge at a drive's rates than at C/20, not more, so such a capacity is
+#: a wrong number (SOC then drifts by the difference over every discharge). The margin is a tester's
+#: counting error plus a charge that stops a little short of full.
+CAPACITY_ABOVE_TEST_TOL = 0.05
+#: the tests :func:`check_capacity_against_test` reads are within this many K of 25 °C (a cold test
+#: gives less charge than the cell holds at room temperature)
+ROOM_TEMPERATURE_SPAN_C = 10.0
+
+
+def check_capacity_against_test(name: str, curve: OcvTestCurve, temp_c: float, capacity_ah: float) -> None:
+    """Raise ``ValueError`` when ``capacity_ah`` is more than :data:`CAPACITY_ABOVE_TEST_TOL` above
+    the charge a room-temperature OCV test's slow branch moved."""
+    if abs(temp_c - 25.0) > ROOM_TEMPERATURE_SPAN_C or not np.isfinite(curve.branch_ah):
+        return
+    if capacity_ah > (1.0 + CAPACITY_ABOVE_TEST_TOL) * curve.branch_ah:
+        raise ValueError(
+            f"{name}: --capacity-ah {capacity_ah:g} is {capacity_ah / curve.branch_ah - 1:.0%} more than the "
+            f"{curve.branch_ah:.4g} Ah this OCV test's slow branch moved at {temp_c:.0f} °C; a cell gives less at a "
+            f"drive's rates than at C/20, not more. Give the capacity the cell delivers (e.g. --capacity-ah "
+            f"{curve.branch_ah:.4g}); --force fits with the one given")
 
 
 #: the branches' mean offset where a short charge stopped is read over this SOC window below it

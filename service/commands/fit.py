@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from service.cell.ocv import load_ocv_csv
@@ -121,8 +122,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
     add_fit_period_argument(p, what="the fit")
     p.add_argument("--force", action="store_true",
-                   help="write the profile even when a temperature's fit is poor (RMSE above 50 mV) or worse than "
-                   "the textbook 2-RC fit of the same data; without it such a fit exits 2 and writes nothing")
+                   help="write the profile even when a temperature's fit is poor (it leaves more than 50 mV and "
+                   "half the RMS overpotential) or worse than the textbook 2-RC fit of the same data, or when "
+                   "--capacity-ah is more than 5 %% above the charge a room-temperature OCV test moved; without it "
+                   "such a fit exits 2 and writes nothing")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
     p.add_argument("--starts", type=positive_int, default=1,
                    help="global searches per temperature, seeded --seed, --seed+1, ...; the one that fits the "
@@ -147,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
     from service.characterisation.block_average import describe, to_fit_period
     from service.characterisation.characterise import (
         MAX_TAU_DF_S,
+        FitQualityError,
         FitReport,
         characterise,
         check_fit_quality,
@@ -180,9 +184,14 @@ def run(args: argparse.Namespace) -> int:
                                        max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S, ocv_beyond=args.ocv_beyond,
                                        ocv_between_rests=args.ocv_between_rests, ocv_smoothing=args.ocv_smoothing,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
-                                       starts=args.starts, report=report)
-        if not args.force:
+                                       starts=args.starts, force_capacity=args.force, report=report)
+        try:
             check_fit_quality(report)
+        except FitQualityError as exc:
+            if not args.force:
+                raise
+            why = str(exc).removesuffix(". Nothing written; --force writes the profile anyway")
+            print(f"socd fit: warning: --force writes a fit it would refuse: {why}", file=sys.stderr)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     finally:

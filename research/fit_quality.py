@@ -1,0 +1,242 @@
+"""Where `socd fit`'s poor-fit refusal should sit: fits that make good profiles beside fits of bad input.
+
+``socd fit`` refuses a temperature whose fit leaves too much of the voltage unexplained
+(:meth:`service.characterisation.characterise.TemperatureFit.problem`).  That rule is only right if
+it passes the fits of every cell we have, fitted as a user would, and refuses the fits of input a
+user gets wrong.  This module runs both kinds with ``--force`` (so every profile is written), reads
+from each fit log every temperature's fit RMSE, the textbook 2-RC fit's and the RMS overpotential
+the dynamics had to explain, and scores each profile with ``socd evaluate`` on recordings it was
+not fitted on, beside the textbook 2-RC EKF:
+
+* *user fits*: the four shared cells as ``docs/results/characterisation.md`` fits them, and the
+  PyBaMM cells of :mod:`research.unseen_cell` (OCV test + US06 per ambient; the LFP cell at 25 °C);
+* *bad input*: the same PyBaMM fits told a capacity 15 % too large, a US06 whose voltage reads
+  20 mV high (a sensor offset), and the shared cells fitted with another cell's OCV table.  The
+  PyBaMM recordings carry ``soc_true``, so a wrong capacity does not move the truth they are
+  scored against.
+
+    python -m research.fit_quality run [--jobs 2] [--workdir out/fit_quality] [--only NAME,...]
+    python -m research.fit_quality table [--workdir out/fit_quality]
+
+Needs the recordings of ``research.unseen_cell build`` (``out/unseen_cell``, and the LFP cell's
+``--cells Prada2013 --ambients 25 --workdir out/unseen_lfp``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import statistics
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from service.characterisation.characterise import TemperatureFit
+
+REAL = Path("../shared/data/real")
+PAN, CALCE, A123, OCV = REAL / "panasonic_18650pf", REAL / "calce_inr18650_20r", REAL / "calce_a123", REAL / "ocv"
+UNSEEN, UNSEEN_LFP = Path("out/unseen_cell"), Path("out/unseen_lfp")
+DEFAULT_WORKDIR = Path("out/fit_quality")
+PAN_TEMPS = ("25C", "10C", "0C", "m10C", "m20C")
+PYBAMM_DRIVES = ("HWFETa", "HWFETb", "LA92", "NN", "Cycle1", "Cycle2", "Cycle3", "Cycle4")
+CALCE_SCORED = {"DST_50soc": 10015, "FUDS_80soc": 9999, "FUDS_50soc": 5080, "US06_50soc": 10160, "US06_80soc": 9984}
+#: how far the bad-input jobs move what the user tells `socd fit`
+CAPACITY_ERROR = 1.15
+VOLTAGE_OFFSET_V = 0.020
+
+_LINE = re.compile(r"\[fit\]\s+(-?[\d.]+) °C: R_ohm .*?fit RMSE ([\d.]+) mV \(textbook 2-RC ([\d.]+) mV, ([\d.]+) mV as "
+                   r"this model simulates its point\).*?, \d+% of the ([\d.]+) mV RMS overpotential")
+
+
+@dataclass(frozen=True)
+class FitJob:
+    """One ``socd fit`` (always with ``--force``) and the recordings its profile is scored on."""
+
+    name: str
+    kind: str  # "user fit" or "bad input"
+    what: str
+    fit_args: tuple[str, ...]
+    scored: tuple[str, ...]
+    evaluate_args: tuple[str, ...] = ()
+
+
+@dataclass
+class JobResult:
+    name: str
+    kind: str
+    what: str
+    temperatures: list[dict] = field(default_factory=list)
+    #: mean SOC RMSE after 600 s per estimator over the scored recordings, %; None: not scored
+    soc_rmse_pct: dict[str, float] = field(default_factory=dict)
+    #: the one line `socd fit` refused with (the figures are then the ``--force`` run's)
+    refused: str | None = None
+
+
+def _pybamm_job(cell: str, ambients: tuple[float, ...], workdir: Path, kind: str, what: str,
+                capacity_scale: float = 1.0, fit_dir: Path | None = None, suffix: str = "") -> FitJob:
+    tags = [f"{'m' if t < 0 else ''}{abs(t):g}C" for t in ambients]
+    capacity = json.loads((workdir / f"{cell}_{tags[0]}_ocv.json").read_text())["capacity_ah"]
+    src = fit_dir or workdir
+    fit = [str(workdir / f"{cell}_{t}_ocv.csv") for t in tags] + [str(src / f"{cell}_{t}_US06.csv") for t in tags]
+    scored = tuple(str(workdir / f"{cell}_{t}_{d}.csv") for t in tags for d in PYBAMM_DRIVES)
+    return FitJob(f"{cell}{suffix}", kind, what, (*fit, "--capacity-ah", f"{capacity * capacity_scale:.4f}"), scored)
+
+
+def jobs(workdir: Path) -> list[FitJob]:
+    """Every fit the table reads; bad-input recordings are written under ``workdir``."""
+    pan_drives = tuple(str(p) for t in PAN_TEMPS for p in sorted(PAN.glob(f"pan18650pf_{t}_*.csv"))
+                       if "HPPC" not in p.name and "US06" not in p.name)
+    pan_us06 = tuple(str(PAN / f"pan18650pf_{t}_US06.csv") for t in PAN_TEMPS)
+    calce_fit = (str(CALCE / "calce20r_25C_DST_80soc.csv"), "--full-at", "3303", "--capacity-ah", "1.999")
+    calce_scored = tuple(str(CALCE / f"calce20r_25C_{n}.csv") for n in CALCE_SCORED)
+    calce_eval = tuple(a for fa in CALCE_SCORED.values() for a in ("--full-at", str(fa)))
+    out = [
+        FitJob("panasonic_ocv_us06", "user fit", "Panasonic: OCV test + US06 per temperature",
+               (str(OCV / "ocv_pan18650pf_25C.csv"), *pan_us06, "--capacity-ah", "2.77"), pan_drives),
+        FitJob("panasonic_hppc", "user fit", "Panasonic: the five HPPC tests alone",
+               (*(str(PAN / f"pan18650pf_{t}_HPPC.csv") for t in PAN_TEMPS), "--capacity-ah", "2.77", "--full-at", "0"),
+               pan_drives + pan_us06),
+        FitJob("calce", "user fit", "CALCE 20R: DST 80 % alone", calce_fit, calce_scored, calce_eval),
+        FitJob("a123", "user fit", "A123: DST with its charge OCV table and --hysteresis",
+               (str(A123 / "calce_a123_20C_DST.csv"), "--full-at", "4815", "--capacity-ah", "1.041", "--hysteresis",
+                "--ocv", str(OCV / "ocv_a123_20C_charge_soc_table.csv")),
+               (str(A123 / "calce_a123_20C_FUDS.csv"), str(A123 / "calce_a123_20C_US06.csv")),
+               ("--full-at", "4478", "--full-at", "4436")),
+    ]
+    for cell in ("Chen2020", "Mohtat2020", "Marquis2019"):
+        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "user fit", f"PyBaMM {cell}: OCV test + US06 per ambient"))
+    out.append(_pybamm_job("Prada2013", (25.0,), UNSEEN_LFP, "user fit", "PyBaMM Prada2013 (LFP): OCV test + US06"))
+    for cell in ("Chen2020", "Mohtat2020", "Marquis2019"):
+        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "bad input",
+                               f"PyBaMM {cell}, told a capacity {CAPACITY_ERROR - 1:.0%} too large",
+                               capacity_scale=CAPACITY_ERROR, suffix="_capacity_high"))
+        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "bad input",
+                               f"PyBaMM {cell}, told a capacity {1 - 1 / CAPACITY_ERROR:.0%} too small",
+                               capacity_scale=1.0 / CAPACITY_ERROR, suffix="_capacity_low"))
+        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "bad input",
+                               f"PyBaMM {cell}, its US06 voltage {VOLTAGE_OFFSET_V * 1000:.0f} mV high",
+                               fit_dir=workdir / "offset", suffix="_voltage_offset"))
+    out += [
+        FitJob("calce_pan_ocv", "bad input", "CALCE 20R: DST 80 % with the Panasonic OCV table",
+               (*calce_fit, "--ocv", str(OCV / "ocv_pan18650pf_25C_soc_table.csv")), calce_scored, calce_eval),
+        FitJob("panasonic_a123_ocv", "bad input", "Panasonic: US06 per temperature with the A123 OCV table",
+               (*pan_us06, "--capacity-ah", "2.77", "--ocv", str(OCV / "ocv_a123_20C_charge_soc_table.csv")),
+               pan_drives),
+    ]
+    return out
+
+
+def write_offset_recordings(workdir: Path) -> None:
+    """The PyBaMM US06 recordings with the voltage read :data:`VOLTAGE_OFFSET_V` high."""
+    from service.recording import load_recording, save_recording
+
+    dest = workdir / "offset"
+    dest.mkdir(parents=True, exist_ok=True)
+    for src in sorted(UNSEEN.glob("*_US06.csv")):
+        target = dest / src.name
+        if target.exists():
+            continue
+        rec = load_recording(src)
+        cols = [rec.time_s, rec.current_a, rec.voltage_v + VOLTAGE_OFFSET_V, rec.temperature_c]
+        save_recording(target, np.column_stack(cols), fmt="%.5f")
+
+
+def read_fit_log(text: str) -> list[dict]:
+    """Each temperature's figures from a ``socd fit`` log, with the product rule's verdict on them."""
+    rows = []
+    for m in _LINE.finditer(text):
+        t, rmse, ecm, simulated, eta = (float(x) for x in m.groups())
+        fit = TemperatureFit(temp_c=t, rmse_mv=rmse, ecm_rmse_mv=ecm, ecm_simulated_mv=simulated, at_bounds=[],
+                             source="", overpotential_rms_mv=eta)
+        rows.append({"temp_c": t, "rmse_mv": rmse, "ecm_rmse_mv": ecm, "ecm_simulated_mv": simulated,
+                     "overpotential_rms_mv": eta, "unexplained_share": fit.unexplained_share,
+                     "refused_by": fit.problem()})
+    return rows
+
+
+def run_job(job: FitJob, workdir: Path) -> JobResult:
+    res = JobResult(job.name, job.kind, job.what)
+    profile, log = workdir / f"{job.name}.toml", workdir / f"{job.name}.fitlog"
+    for force in ((), ("--force",)):
+        fit = subprocess.run(["socd", "fit", *job.fit_args, *force, "-o", str(profile)], capture_output=True,
+                             text=True, check=False)
+        log.write_text(fit.stdout + fit.stderr)
+        if fit.returncode == 0:
+            break
+        res.refused = (fit.stderr.strip().splitlines() or ["(no message)"])[-1].removeprefix("socd fit: error: ")
+    res.temperatures = read_fit_log(fit.stderr)
+    if fit.returncode != 0:
+        return res
+    scores = workdir / f"{job.name}_eval.json"
+    subprocess.run(["socd", "evaluate", "--cell", str(profile), *job.scored, *job.evaluate_args,
+                    "--estimator", "fomiukf", "--estimator", "ecm2rc-ekf", "-q", "--json", str(scores)],
+                   check=True, stdout=subprocess.DEVNULL)
+    per: dict[str, list[float]] = {}
+    for r in json.loads(scores.read_text())["results"]:
+        per.setdefault(r["estimator"], []).append(r["soc_rmse_after_600s_pct"])
+    res.soc_rmse_pct = {e: statistics.fmean(v) for e, v in per.items()}
+    return res
+
+
+def table(results: list[JobResult]) -> str:
+    """One row per fitted temperature: the figures the refusal reads and what the profile then scores."""
+    head = ("| fit | kind | `socd fit` | °C | fit RMSE [mV] | 2-RC fit [mV] | RMS overpotential [mV] | share left "
+            "| `fomiukf` mean [%] | `ecm2rc-ekf` mean [%] |")
+    lines = [head, "|" + "---|" * 10]
+    for r in results:
+        soc = [f"{r.soc_rmse_pct[e]:.2f}" if e in r.soc_rmse_pct else "-" for e in ("fomiukf", "ecm2rc-ekf")]
+        verdict = "writes it" if r.refused is None else f"refuses: {refusal_kind(r.refused)}"
+        rows = r.temperatures or [None]
+        for i, t in enumerate(rows):
+            figures = ("- | - | - | - | -" if t is None else f"{t['temp_c']:g} | {t['rmse_mv']:.1f} | {t['ecm_rmse_mv']:.1f} | "
+                       f"{t['overpotential_rms_mv']:.0f} | {t['unexplained_share']:.2f}")
+            first = i == 0
+            lines.append(f"| {r.what if first else ''} | {r.kind if first else ''} | {verdict if first else ''} | "
+                         f"{figures} | {soc[0] if first else ''} | {soc[1] if first else ''} |")
+    return "\n".join(lines)
+
+
+def refusal_kind(message: str) -> str:
+    """What a ``socd fit`` refusal was about, in a few words."""
+    if "RMS overpotential" in message:
+        return "poor fit"
+    if "textbook 2-RC fit" in message:
+        return "worse than the 2-RC fit"
+    if "OCV test's slow branch moved" in message:
+        return "capacity above the OCV test's"
+    return message
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m research.fit_quality", description=__doc__.split("\n\n")[0])
+    ap.add_argument("command", choices=("run", "table"))
+    ap.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
+    ap.add_argument("--jobs", type=int, default=1, help="fits at once (run)")
+    ap.add_argument("--only", help="job names, comma-separated (run)")
+    a = ap.parse_args(argv)
+    a.workdir.mkdir(parents=True, exist_ok=True)
+    summary = a.workdir / "fit_quality.json"
+    if a.command == "table":
+        print(table([JobResult(**d) for d in json.loads(summary.read_text())]))
+        return 0
+    write_offset_recordings(a.workdir)
+    todo = [j for j in jobs(a.workdir) if a.only is None or j.name in a.only.split(",")]
+    done = {d["name"]: d for d in json.loads(summary.read_text())} if summary.exists() else {}
+    order = [j.name for j in jobs(a.workdir)]
+    with ThreadPoolExecutor(max_workers=max(1, a.jobs)) as ex:
+        for res in ex.map(lambda j: run_job(j, a.workdir), todo):
+            done[res.name] = asdict(res)
+            print(f"{res.name}: {res.refused or res.soc_rmse_pct}", flush=True)
+            summary.write_text(json.dumps(sorted(done.values(), key=lambda d: order.index(d["name"])
+                                                 if d["name"] in order else len(order)), indent=1))
+    print(table([JobResult(**d) for d in json.loads(summary.read_text())]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
