@@ -17,6 +17,7 @@ not fitted on, beside the textbook 2-RC EKF:
 
     python -m research.fit_quality run [--jobs 2] [--workdir out/fit_quality] [--only NAME,...]
     python -m research.fit_quality table [--workdir out/fit_quality]
+    python -m research.fit_quality capacity [--jobs 2]   # the PyBaMM fits told a capacity 0-15 % too large
 
 Needs the recordings of ``research.unseen_cell build`` (``out/unseen_cell``, and the LFP cell's
 ``--cells Prada2013 --ambients 25 --workdir out/unseen_lfp``).
@@ -212,28 +213,66 @@ def refusal_kind(message: str) -> str:
     return message
 
 
+#: capacity errors of the ``capacity`` sweep (1.0: the OCV test's own discharge, as ``research.unseen_cell``)
+CAPACITY_SWEEP = (1.0, 1.03, 1.05, 1.08, 1.15)
+SWEEP_CELLS = ("Chen2020", "Mohtat2020", "Marquis2019")
+
+
+def capacity_jobs() -> list[FitJob]:
+    """The PyBaMM cells' user fits told each capacity of :data:`CAPACITY_SWEEP`."""
+    return [_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "capacity", f"{scale:g}", capacity_scale=scale,
+                        suffix=f"_capacity_x{scale:g}") for scale in CAPACITY_SWEEP for cell in SWEEP_CELLS]
+
+
+def capacity_table(results: list[JobResult]) -> str:
+    """`fomiukf`'s mean SOC RMSE against the capacity error, per cell, and what `socd fit` did."""
+    by = {(r.name.split("_capacity_x")[0], r.what): r for r in results}
+    lines = ["| `--capacity-ah` over the OCV test's discharge | " + " | ".join(f"`{c}`" for c in SWEEP_CELLS)
+             + " | `socd fit` |", "|" + "---|" * (len(SWEEP_CELLS) + 2)]
+    for scale in CAPACITY_SWEEP:
+        cells = [by.get((c, f"{scale:g}")) for c in SWEEP_CELLS]
+        soc = [f"{r.soc_rmse_pct['fomiukf']:.2f} %" if r is not None and "fomiukf" in r.soc_rmse_pct else "-"
+               for r in cells]
+        refusals = {refusal_kind(r.refused) for r in cells if r is not None and r.refused is not None}
+        verdict = "refuses: " + ", ".join(sorted(refusals)) if refusals else "writes it"
+        lines.append(f"| {scale - 1:+.0%} | " + " | ".join(soc) + f" | {verdict} |")
+    return "\n".join(lines)
+
+
+def run_jobs(todo: list[FitJob], summary: Path, workdir: Path, n_jobs: int) -> list[JobResult]:
+    """Run ``todo`` (``n_jobs`` at once), keeping every result in ``summary`` as it comes."""
+    done = {d["name"]: d for d in json.loads(summary.read_text())} if summary.exists() else {}
+    order = [j.name for j in todo]
+    with ThreadPoolExecutor(max_workers=max(1, n_jobs)) as ex:
+        for res in ex.map(lambda j: run_job(j, workdir), todo):
+            done[res.name] = asdict(res)
+            print(f"{res.name}: {res.refused or res.soc_rmse_pct}", flush=True)
+            summary.write_text(json.dumps(sorted(done.values(), key=lambda d: order.index(d["name"])
+                                                 if d["name"] in order else len(order)), indent=1))
+    return [JobResult(**d) for d in json.loads(summary.read_text())]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m research.fit_quality", description=__doc__.split("\n\n")[0])
-    ap.add_argument("command", choices=("run", "table"))
+    ap.add_argument("command", choices=("run", "table", "capacity", "capacity-table"),
+                    help="run: the user fits and bad input; capacity: the PyBaMM fits told a capacity "
+                    f"{', '.join(f'{x - 1:+.0%}' for x in CAPACITY_SWEEP)} off".replace("%", "%%") + "; *-table: print a summary's table")
     ap.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
     ap.add_argument("--jobs", type=int, default=1, help="fits at once (run)")
     ap.add_argument("--only", help="job names, comma-separated (run)")
     a = ap.parse_args(argv)
     a.workdir.mkdir(parents=True, exist_ok=True)
-    summary = a.workdir / "fit_quality.json"
-    if a.command == "table":
-        print(table([JobResult(**d) for d in json.loads(summary.read_text())]))
+    if a.command.startswith("capacity"):
+        summary = a.workdir / "capacity_sweep.json"
+        results = ([JobResult(**d) for d in json.loads(summary.read_text())] if a.command == "capacity-table"
+                   else run_jobs(capacity_jobs(), summary, a.workdir, a.jobs))
+        print(capacity_table(results))
         return 0
-    write_offset_recordings(a.workdir)
-    todo = [j for j in jobs(a.workdir) if a.only is None or j.name in a.only.split(",")]
-    done = {d["name"]: d for d in json.loads(summary.read_text())} if summary.exists() else {}
-    order = [j.name for j in jobs(a.workdir)]
-    with ThreadPoolExecutor(max_workers=max(1, a.jobs)) as ex:
-        for res in ex.map(lambda j: run_job(j, a.workdir), todo):
-            done[res.name] = asdict(res)
-            print(f"{res.name}: {res.refused or res.soc_rmse_pct}", flush=True)
-            summary.write_text(json.dumps(sorted(done.values(), key=lambda d: order.index(d["name"])
-                                                 if d["name"] in order else len(order)), indent=1))
+    summary = a.workdir / "fit_quality.json"
+    if a.command == "run":
+        write_offset_recordings(a.workdir)
+        todo = [j for j in jobs(a.workdir) if a.only is None or j.name in a.only.split(",")]
+        run_jobs(todo, summary, a.workdir, a.jobs)
     print(table([JobResult(**d) for d in json.loads(summary.read_text())]))
     return 0
 

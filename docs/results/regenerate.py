@@ -594,6 +594,13 @@ def fit_quality_table(out: Path) -> str:
     return table([JobResult(**d) for d in json.loads((out / "fit_quality" / "fit_quality.json").read_text())])
 
 
+def fit_quality_capacity_table(out: Path) -> str:
+    """``research.fit_quality capacity``'s table from its summary."""
+    from research.fit_quality import JobResult, capacity_table
+
+    return capacity_table([JobResult(**d) for d in json.loads((out / "fit_quality" / "capacity_sweep.json").read_text())])
+
+
 TABLES: tuple[Table, ...] = (
     Table("profiles", "soc_accuracy.md", REAL + f"""\
 {PAN_FIT} --kinetics -o configs/cells/panasonic_18650pf.toml
@@ -1169,6 +1176,10 @@ python -m research.unseen_cell build --cells Prada2013 --ambients 25 --workdir o
 rm -f out/fit_quality/fit_quality.json
 python -m research.fit_quality run --jobs 2""", fit_quality_table, 40,
           ("needs:unseen_cell", "needs:unseen_cell_lfp", "needs:pybamm")),
+    Table("fit_quality_capacity", "characterisation.md", """\
+python -m research.unseen_cell build --jobs 2
+rm -f out/fit_quality/capacity_sweep.json
+python -m research.fit_quality capacity --jobs 2""", fit_quality_capacity_table, 25, ("needs:unseen_cell", "needs:pybamm")),
     Table("unseen_cell_cold", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2 --cells Chen2020,Mohtat2020 --ambients -10
 python -m research.unseen_cell run --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10 --profile-tag _m10 --refit""",
