@@ -212,5 +212,6 @@ def test_fit_refuses_a_capacity_above_what_its_ocv_test_moved(tmp_path: Path, nm
     assert "ocv25: --capacity-ah" in err and "15% more than the" in err and f"{NMC_CAPACITY_AH:.4g} Ah" in err
     assert "Traceback" not in err and not out.exists()
     assert main([*fit, "--capacity-ah", f"{1.15 * NMC_CAPACITY_AH:g}", "--force"]) == 0 and out.exists()
+    assert "--force fits with --capacity-ah" in capsys.readouterr().err  # said, even with -q
     out.unlink()
     assert main([*fit, "--capacity-ah", f"{1.03 * NMC_CAPACITY_AH:g}"]) == 0, capsys.readouterr().err

@@ -82,7 +82,7 @@ from service.characterisation.ocv_sources import (
     REST_MIN_S,
     RestPoint,
     alignment_at_bound,
-    check_capacity_against_test,
+    capacity_above_test,
     interpolate_between_rests,
     is_ocv_test,
     ocv_from_test,
@@ -344,7 +344,7 @@ def characterise(
     (the default) reads it the :data:`DEFAULT_OCV_BETWEEN_RESTS` way where there is such an OCV and
     leaves any other OCV alone, while a choice named where there is none is an error.
     ``force_capacity``: fit with ``capacity_ah`` even where a room-temperature OCV test moved
-    less charge than that (:func:`check_capacity_against_test`, ``socd fit --force``).
+    less charge than that (:func:`capacity_above_test`, ``socd fit --force``; the fit log says so).
     ``ocv_smoothing``: the smoothness weight of a jointly fitted OCV (:func:`fit_ecm2rc`; ``None``:
     :data:`OCV_SMOOTH_WEIGHT`), an error where the OCV is given.  ``starts``:
     global searches per temperature, seeded ``seed``, ``seed + 1``, ...; the point that fits the
@@ -378,8 +378,11 @@ def characterise(
         by_t: dict[float, list[np.ndarray]] = defaultdict(list)
         for r in ocv_tests:
             curve = ocv_from_test(r, capacity_ah, grid, short_charge)
-            if not force_capacity:
-                check_capacity_against_test(r.name, curve, float(np.median(r.temperature_c)), capacity_ah)
+            wrong = capacity_above_test(r.name, curve, float(np.median(r.temperature_c)), capacity_ah)
+            if wrong is not None:
+                if not force_capacity:
+                    raise ValueError(f"{wrong}; --force fits with the one given")
+                rep.say(f"--force fits with --capacity-ah {capacity_ah:g} although {wrong}", notice=True)
             by_t[temperature_group(r)].append(curve.ocv_v)
             if curve.charge_reach < 1.0:
                 rep.say(f"OCV: {r.name}'s charge stopped short of full, at {100 * curve.charge_reach:.1f} % of the "

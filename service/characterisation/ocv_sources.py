@@ -164,22 +164,22 @@ def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = 
 #: a wrong number (SOC then drifts by the difference over every discharge). The margin is a tester's
 #: counting error plus a charge that stops a little short of full.
 CAPACITY_ABOVE_TEST_TOL = 0.05
-#: the tests :func:`check_capacity_against_test` reads are within this many K of 25 °C (a cold test
+#: the tests :func:`capacity_above_test` reads are within this many K of 25 °C (a cold test
 #: gives less charge than the cell holds at room temperature)
 ROOM_TEMPERATURE_SPAN_C = 10.0
 
 
-def check_capacity_against_test(name: str, curve: OcvTestCurve, temp_c: float, capacity_ah: float) -> None:
-    """Raise ``ValueError`` when ``capacity_ah`` is more than :data:`CAPACITY_ABOVE_TEST_TOL` above
-    the charge a room-temperature OCV test's slow branch moved."""
+def capacity_above_test(name: str, curve: OcvTestCurve, temp_c: float, capacity_ah: float) -> str | None:
+    """What is wrong when ``capacity_ah`` is more than :data:`CAPACITY_ABOVE_TEST_TOL` above the
+    charge a room-temperature OCV test's slow branch moved; None when it is not."""
     if abs(temp_c - 25.0) > ROOM_TEMPERATURE_SPAN_C or not np.isfinite(curve.branch_ah):
-        return
-    if capacity_ah > (1.0 + CAPACITY_ABOVE_TEST_TOL) * curve.branch_ah:
-        raise ValueError(
-            f"{name}: --capacity-ah {capacity_ah:g} is {capacity_ah / curve.branch_ah - 1:.0%} more than the "
+        return None
+    if capacity_ah <= (1.0 + CAPACITY_ABOVE_TEST_TOL) * curve.branch_ah:
+        return None
+    return (f"{name}: --capacity-ah {capacity_ah:g} is {capacity_ah / curve.branch_ah - 1:.0%} more than the "
             f"{curve.branch_ah:.4g} Ah this OCV test's slow branch moved at {temp_c:.0f} °C; a cell gives less at a "
             f"drive's rates than at C/20, not more. Give the capacity the cell delivers (e.g. --capacity-ah "
-            f"{curve.branch_ah:.4g}); --force fits with the one given")
+            f"{curve.branch_ah:.4g})")
 
 
 #: the branches' mean offset where a short charge stopped is read over this SOC window below it
