@@ -33,11 +33,12 @@ import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
 
-from service.characterisation.characterise import TemperatureFit
+from service.characterisation.characterise import POOR_FIT_SHARE, TemperatureFit
 
 REAL = Path("../shared/data/real")
 PAN, CALCE, A123, OCV = REAL / "panasonic_18650pf", REAL / "calce_inr18650_20r", REAL / "calce_a123", REAL / "ocv"
@@ -59,7 +60,10 @@ class FitJob:
     """One ``socd fit`` (always with ``--force``) and the recordings its profile is scored on."""
 
     name: str
-    kind: str  # "user fit" or "bad input"
+    #: "user fit"; "bad input" (a rule should refuse it); "sensor offset" (the drive's voltage alone
+    #: offset: it moves the fit by less than cells differ, so no bar on the fit can refuse it, and it
+    #: is shown beside the bar, not counted by it)
+    kind: str
     what: str
     fit_args: tuple[str, ...]
     scored: tuple[str, ...]
@@ -119,7 +123,7 @@ def jobs(workdir: Path) -> list[FitJob]:
         out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "bad input",
                                f"PyBaMM {cell}, told a capacity {1 - 1 / CAPACITY_ERROR:.0%} too small",
                                capacity_scale=1.0 / CAPACITY_ERROR, suffix="_capacity_low"))
-        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "bad input",
+        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "sensor offset",
                                f"PyBaMM {cell}, its US06 voltage {VOLTAGE_OFFSET_V * 1000:.0f} mV high",
                                fit_dir=workdir / "offset", suffix="_voltage_offset"))
     out += [
@@ -211,6 +215,61 @@ def refusal_kind(message: str) -> str:
     if "OCV test's slow branch moved" in message:
         return "capacity above the OCV test's"
     return message
+
+
+def job_cell(name: str) -> str:
+    """The cell a job's recordings come from (the unit a bar is held out by)."""
+    return name.split("_")[0]
+
+
+def largest_share(r: JobResult) -> float:
+    return max((t["unexplained_share"] for t in r.temperatures), default=float("nan"))
+
+
+def share_errors(results: list[JobResult], bar: float) -> tuple[int, int]:
+    """User fits the share rule alone would refuse at ``bar``, and bad inputs no rule refuses at it
+    (:func:`share_judged` are the bad inputs it is judged on)."""
+    user = [r for r in results if r.kind == "user fit"]
+    return (sum(largest_share(r) > bar for r in user), sum(largest_share(r) <= bar for r in share_judged(results)))
+
+
+def share_judged(results: list[JobResult]) -> list[JobResult]:
+    """The bad inputs the share rule is judged on: those the capacity rule does not refuse first."""
+    return [r for r in results if r.kind == "bad input"
+            and not (r.refused and refusal_kind(r.refused) == "capacity above the OCV test's")]
+
+
+def choose_share_bar(results: list[JobResult]) -> float:
+    """The bar with the fewest errors of :func:`share_errors` (a user fit refused or a bad input
+    written, counted alike): the middle of the widest span of bars that reach that fewest."""
+    edges = sorted({round(largest_share(r), 4) for r in results if r.temperatures} | {0.0, 1.0})
+    mids = [(a + b) / 2 for a, b in pairwise(edges)]
+    cost = [sum(share_errors(results, m)) for m in mids]
+    best = min(cost)
+    spans = [(edges[i], edges[i + 1]) for i, c in enumerate(cost) if c == best]
+    lo, hi = max(spans, key=lambda ab: ab[1] - ab[0])
+    return (lo + hi) / 2
+
+
+def share_bar_table(results: list[JobResult], product_bar: float = POOR_FIT_SHARE) -> str:
+    """The bar chosen on every job, and on all but each cell's jobs with that cell's jobs read at it."""
+    rows = ["| chosen on | bar | user fits refused | bad input written (of those the capacity rule lets through) |",
+            "|---|---|---|---|"]
+    n_user = sum(r.kind == "user fit" for r in results)
+    n_bad = len(share_judged(results))
+    for label, bar in (("the product's bar", product_bar), ("every job", choose_share_bar(results))):
+        user, bad = share_errors(results, bar)
+        rows.append(f"| {label} | {bar:.2f} | {user}/{n_user} | {bad}/{n_bad} |")
+    held_user = held_bad = 0
+    for cell in dict.fromkeys(job_cell(r.name) for r in results):
+        inside = [r for r in results if job_cell(r.name) == cell]
+        bar = choose_share_bar([r for r in results if job_cell(r.name) != cell])
+        user, bad = share_errors(inside, bar)
+        held_user, held_bad = held_user + user, held_bad + bad
+        rows.append(f"| all but `{cell}`, read on `{cell}` | {bar:.2f} | {user}/{sum(r.kind == 'user fit' for r in inside)} "
+                    f"| {bad}/{len(share_judged(inside))} |")
+    rows.append(f"| **each cell held out, summed** | - | **{held_user}/{n_user}** | **{held_bad}/{n_bad}** |")
+    return "\n".join(rows)
 
 
 #: capacity errors of the ``capacity`` sweep (1.0: the OCV test's own discharge, as ``research.unseen_cell``)

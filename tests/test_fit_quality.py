@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from research.fit_quality import read_fit_log, refusal_kind
+from research.fit_quality import JobResult, choose_share_bar, read_fit_log, refusal_kind, share_bar_table, share_errors
 from service.cli import main
 from tests.conftest import NMC_CAPACITY_AH
 
@@ -36,3 +36,25 @@ def test_the_fit_log_gives_each_temperatures_figures_and_the_products_verdict(tm
 ])
 def test_a_refusal_is_named_by_what_it_was_about(message: str, kind: str) -> None:
     assert refusal_kind(message) == kind
+
+
+def _job(name: str, kind: str, shares: list[float], refused: str | None = None) -> JobResult:
+    return JobResult(name, kind, name, [{"unexplained_share": x} for x in shares], refused=refused)
+
+
+def test_the_share_bar_sits_between_the_user_fits_and_the_bad_input_it_must_refuse() -> None:
+    """User fits leave at most 0.5 of the overpotential, the bad input at least 0.7 (its largest
+    temperature): the bar is the middle, 0.6. A bad input the capacity rule refused first, with a
+    share among the user fits', does not pull it down. Held out, a cell whose user fit sits above
+    every other cell's is refused at the others' bar, and the summed row says so."""
+    results = [_job("A_user", "user fit", [0.1, 0.2]), _job("B_user", "user fit", [0.5]),
+               _job("A_ocv", "bad input", [0.4, 0.7]), _job("C_ocv", "bad input", [0.9]),
+               _job("A_capacity", "bad input", [0.15], refused="x: --capacity-ah 2 is 15% more than the 1.7 Ah this "
+                    "OCV test's slow branch moved at 25 °C"),
+               _job("A_offset", "sensor offset", [0.2])]
+    assert choose_share_bar(results) == pytest.approx(0.6)
+    assert share_errors(results, 0.6) == (0, 0)
+    assert share_errors(results, 0.45) == (1, 0) and share_errors(results, 0.8) == (0, 1)
+    text = share_bar_table(results, 0.6)
+    assert "| all but `B`, read on `B` | 0.45 | 1/1 | 0/0 |" in text
+    assert "**1/2**" in text

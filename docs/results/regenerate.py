@@ -589,9 +589,12 @@ SEED_GROUPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), (
 
 def fit_quality_table(out: Path) -> str:
     """``research.fit_quality``'s table from its summary."""
-    from research.fit_quality import JobResult, table
+    from research.fit_quality import JobResult, share_bar_table, table
 
-    return table([JobResult(**d) for d in json.loads((out / "fit_quality" / "fit_quality.json").read_text())])
+    results = [JobResult(**d) for d in json.loads((out / "fit_quality" / "fit_quality.json").read_text())]
+    return (table(results) + "\n\nThe poor-fit share bar, chosen as `research.fit_quality` chooses it (fewest user fits "
+            "refused plus bad inputs written, the middle of the widest span of bars that reach it):\n\n"
+            + share_bar_table(results))
 
 
 def fit_quality_capacity_table(out: Path) -> str:

@@ -116,9 +116,11 @@ SOC_RESISTANCE_POINTS = 21
 MAX_TAU_DF_S = TAU2_BOUNDS_S[1]
 #: a temperature's fit is poor, and refused, when its RMSE [mV] is above both this (Zeng's bound on
 #: the voltage error) and POOR_FIT_SHARE of the RMS overpotential it has to explain (a hard drive in
-#: the cold moves the voltage by a volt; a fit that leaves a tenth of that is still a model of it)
+#: the cold moves the voltage by a volt; a fit that leaves a tenth of that is still a model of it).
+#: The share is the one that passes every user fit and refuses every bad input of
+#: ``research.fit_quality`` (the middle of the span that does, rounded; docs/results/characterisation.md)
 POOR_FIT_MV = 50.0
-POOR_FIT_SHARE = 0.5
+POOR_FIT_SHARE = 0.6
 #: the fractional fit may be worse than the textbook 2-RC fit of the same data by this much
 #: (relative, and absolute mV) before the temperature is refused
 ECM_TOLERANCE = (0.05, 0.5)

@@ -123,7 +123,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     add_fit_period_argument(p, what="the fit")
     p.add_argument("--force", action="store_true",
                    help="write the profile even when a temperature's fit is poor (it leaves more than 50 mV and "
-                   "half the RMS overpotential) or worse than the textbook 2-RC fit of the same data, or when "
+                   "60 %% of the RMS overpotential) or worse than the textbook 2-RC fit of the same data, or when "
                    "--capacity-ah is more than 5 %% above the charge a room-temperature OCV test moved; without it "
                    "such a fit exits 2 and writes nothing")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
