@@ -7,7 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from research.fit_quality import JobResult, choose_share_bar, read_fit_log, refusal_kind, share_bar_table, share_errors
+from research.fit_quality import (
+    JobResult,
+    choose_share_bar,
+    read_fit_log,
+    refusal_kind,
+    share_bar_table,
+    share_errors,
+)
 from service.cli import main
 from tests.conftest import NMC_CAPACITY_AH
 
