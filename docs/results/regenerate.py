@@ -114,16 +114,6 @@ def unseen_table(folder: str, cells: tuple[str, ...] = (), tag: str = "",
     return render
 
 
-def refusal_line(log: str) -> Callable[[Path], str]:
-    """The ``socd fit: error:`` line a run logged to ``out/<log>``, quoted."""
-    def render(out: Path) -> str:
-        lines = [x for x in (out / log).read_text().splitlines() if x.startswith("socd fit: error:")]
-        if not lines:
-            raise RegenerateError(f"{out / log}: socd fit did not refuse (no 'socd fit: error:' line)")
-        return f"`socd fit` with no other flag (`{log}`):\n\n> {lines[-1]}"
-    return render
-
-
 def runs_table(runs: tuple[tuple[str, str], ...], groups: tuple[tuple[str, str], ...],
                estimator: str = "fomiukf") -> Callable[[Path], str]:
     """One row per ``socd evaluate --json`` run (label, file), one column per group of recordings
@@ -1160,18 +1150,16 @@ python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_k4 --fit
     Table("unseen_cell_lfp", "characterisation.md", """\
 W=out/unseen_lfp
 python -m research.unseen_cell build --cells Prada2013 --ambients 25 --workdir $W
-rm -f $W/Prada2013.toml   # the issue's first command, no other flag; socd fit's message goes to the log
-python -m research.unseen_cell fit --cells Prada2013 --ambients 25 --workdir $W > $W/fit_default.log 2>&1 || true
-python -m research.unseen_cell run --cells Prada2013 --ambients 25 --workdir $W --refit --fit-flags=--force --profile-tag _force
-python -m research.two_rc_point $W/Prada2013_force.toml $W/Prada2013_force_2rc.toml
-socd evaluate --cell $W/Prada2013_force_2rc.toml $(ls $W/Prada2013_25C_*.csv | grep -v -e US06 -e _ocv -e HPPC) \\
-    --estimator fomiukf --no-bar -q --json $W/Prada2013_force_2rc_eval.json""",
+python -m research.unseen_cell run --cells Prada2013 --ambients 25 --workdir $W --refit   # the issue's two commands
+python -m research.two_rc_point $W/Prada2013.toml $W/Prada2013_2rc.toml
+socd evaluate --cell $W/Prada2013_2rc.toml $(ls $W/Prada2013_25C_*.csv | grep -v -e US06 -e _ocv -e HPPC) \\
+    --estimator fomiukf --no-bar -q --json $W/Prada2013_2rc_eval.json""",
           lambda out: "\n\n".join((
-              refusal_line("unseen_lfp/fit_default.log")(out),
-              "With `--force`:\n\n" + unseen_table("unseen_lfp", ("Prada2013",), "_force", (("25 °C", r"_25C_"),))(out),
+              "`socd fit` with no other flag, then `socd evaluate`:\n\n"
+              + unseen_table("unseen_lfp", ("Prada2013",), "", (("25 °C", r"_25C_"),))(out),
               "`fomiukf` on the same profile's 2-RC point (`research.two_rc_point`), mean SOC RMSE after 600 s, %:\n\n"
-              + runs_table((("fractional point", "unseen_lfp/Prada2013_force_eval.json"),
-                            ("its 2-RC point", "unseen_lfp/Prada2013_force_2rc_eval.json")),
+              + runs_table((("fractional point", "unseen_lfp/Prada2013_eval.json"),
+                            ("its 2-RC point", "unseen_lfp/Prada2013_2rc_eval.json")),
                            (("25 °C", r"_25C_"),))(out))), 5, ("needs:pybamm",)),
     Table("fit_quality", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
