@@ -201,17 +201,20 @@ def test_fit_reports_the_alignment_and_flags_one_at_its_bound() -> None:
 def test_fit_refuses_a_capacity_above_what_its_ocv_test_moved(tmp_path: Path, nmc_recording, capsys) -> None:
     """The OCV test's C/20 discharge took out the cell's capacity; told 15 % more, every SOC the
     profile counts would drift by that, and no fit RMSE shows it. The command names the test and the
-    charge it measured, exits 2 and writes nothing; --force fits it, and 3 % more (a tester's count, a
-    charge just short of full) is fitted without it."""
+    charge it measured, exits 2 and writes nothing; --force fits it, saying so. 3 % more (a tester's
+    count, a charge just short of full) is fitted with a notice, 3 % less without a word."""
     test = write_ocv_test(tmp_path / "ocv25.csv", 25.0, 0.0)
     drive = nmc_recording(name="drive", duration_s=1800, seed=5, soc0=0.95)
     out = tmp_path / "cell.toml"
     fit = ["fit", str(test), str(drive.path), "--max-seconds", "3", "-q", "-o", str(out)]
     assert main([*fit, "--capacity-ah", f"{1.15 * NMC_CAPACITY_AH:g}"]) == 2
     err = capsys.readouterr().err
-    assert "ocv25: --capacity-ah" in err and "15% more than the" in err and f"{NMC_CAPACITY_AH:.4g} Ah" in err
+    assert "ocv25: --capacity-ah" in err and "15.0% more than the" in err and f"{NMC_CAPACITY_AH:.4g} Ah" in err
     assert "Traceback" not in err and not out.exists()
     assert main([*fit, "--capacity-ah", f"{1.15 * NMC_CAPACITY_AH:g}", "--force"]) == 0 and out.exists()
     assert "--force fits with --capacity-ah" in capsys.readouterr().err  # said, even with -q
     out.unlink()
-    assert main([*fit, "--capacity-ah", f"{1.03 * NMC_CAPACITY_AH:g}"]) == 0, capsys.readouterr().err
+    assert main([*fit, "--capacity-ah", f"{1.03 * NMC_CAPACITY_AH:g}"]) == 0
+    assert "notice: ocv25: --capacity-ah" in capsys.readouterr().err  # each percent costs SOC: said, even with -q
+    assert main([*fit, "--capacity-ah", f"{0.97 * NMC_CAPACITY_AH:g}"]) == 0
+    assert "OCV test's slow branch" not in capsys.readouterr().err  # less than C/20 gave is what drives give

@@ -346,7 +346,8 @@ def characterise(
     (the default) reads it the :data:`DEFAULT_OCV_BETWEEN_RESTS` way where there is such an OCV and
     leaves any other OCV alone, while a choice named where there is none is an error.
     ``force_capacity``: fit with ``capacity_ah`` even where a room-temperature OCV test moved
-    less charge than that (:func:`capacity_above_test`, ``socd fit --force``; the fit log says so).
+    less charge than that by more than the tolerance (:func:`capacity_above_test`, ``socd fit --force``;
+    the fit log says so, as it does for any excess above the notice level).
     ``ocv_smoothing``: the smoothness weight of a jointly fitted OCV (:func:`fit_ecm2rc`; ``None``:
     :data:`OCV_SMOOTH_WEIGHT`), an error where the OCV is given.  ``starts``:
     global searches per temperature, seeded ``seed``, ``seed + 1``, ...; the point that fits the
@@ -380,11 +381,12 @@ def characterise(
         by_t: dict[float, list[np.ndarray]] = defaultdict(list)
         for r in ocv_tests:
             curve = ocv_from_test(r, capacity_ah, grid, short_charge)
-            wrong = capacity_above_test(r.name, curve, float(np.median(r.temperature_c)), capacity_ah)
-            if wrong is not None:
-                if not force_capacity:
-                    raise ValueError(f"{wrong}; --force fits with the one given")
-                rep.say(f"--force fits with --capacity-ah {capacity_ah:g} although {wrong}", notice=True)
+            above = capacity_above_test(r.name, curve, float(np.median(r.temperature_c)), capacity_ah)
+            if above is not None and above.refused and not force_capacity:
+                raise ValueError(f"{above.text}; --force fits with the one given")
+            if above is not None:
+                lead = f"--force fits with --capacity-ah {capacity_ah:g} although " if above.refused else "notice: "
+                rep.say(lead + above.text, notice=True)
             by_t[temperature_group(r)].append(curve.ocv_v)
             if curve.charge_reach < 1.0:
                 rep.say(f"OCV: {r.name}'s charge stopped short of full, at {100 * curve.charge_reach:.1f} % of the "

@@ -124,8 +124,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true",
                    help="write the profile even when a temperature's fit is poor (it leaves more than 50 mV and "
                    "60 %% of the RMS overpotential) or worse than the textbook 2-RC fit of the same data, or when "
-                   "--capacity-ah is more than 5 %% above the charge a room-temperature OCV test moved; without it "
-                   "such a fit exits 2 and writes nothing")
+                   "--capacity-ah is more than 5 %% above the charge a room-temperature OCV test moved (above 1 %% the "
+                   "log gives a notice); without it such a fit exits 2 and writes nothing")
     p.add_argument("--name", default=None, help="profile name (default: the output file's stem)")
     p.add_argument("--starts", type=positive_int, default=1,
                    help="global searches per temperature, seeded --seed, --seed+1, ...; the one that fits the "
