@@ -3,17 +3,21 @@
 ``socd fit`` refuses a temperature whose fit leaves too much of the voltage unexplained
 (:meth:`service.characterisation.characterise.TemperatureFit.problem`).  That rule is only right if
 it passes the fits of every cell we have, fitted as a user would, and refuses the fits of input a
-user gets wrong.  This module runs both kinds with ``--force`` (so every profile is written), reads
-from each fit log every temperature's fit RMSE, the textbook 2-RC fit's and the RMS overpotential
-the dynamics had to explain, and scores each profile with ``socd evaluate`` on recordings it was
-not fitted on, beside the textbook 2-RC EKF:
+user gets wrong.  This module runs both kinds as a user would (what ``socd fit`` says is kept),
+then with ``--force`` where it refused, so every profile is written; it reads from each fit log
+every temperature's fit RMSE, the textbook 2-RC fit's and the RMS overpotential the dynamics had to
+explain, and scores each profile with ``socd evaluate`` on recordings it was not fitted on, beside
+the textbook 2-RC EKF.  :func:`choose_share_bar` picks the poor-fit share bar from them, and
+:func:`share_bar_table` reads that choice with each cell held out.  The kinds of fit:
 
 * *user fits*: the four shared cells as ``docs/results/characterisation.md`` fits them, and the
   PyBaMM cells of :mod:`research.unseen_cell` (OCV test + US06 per ambient; the LFP cell at 25 °C);
-* *bad input*: the same PyBaMM fits told a capacity 15 % too large, a US06 whose voltage reads
-  20 mV high (a sensor offset), and the shared cells fitted with another cell's OCV table.  The
-  PyBaMM recordings carry ``soc_true``, so a wrong capacity does not move the truth they are
-  scored against.
+* *bad input*: the same PyBaMM fits told a capacity 15 % too large or 13 % too small, and the shared
+  cells fitted with another cell's OCV table;
+* *sensor offset*: the PyBaMM fits with their US06 voltage 20 mV high (shown, not counted by the bar).
+
+The PyBaMM recordings carry ``soc_true``, so a wrong capacity does not move the truth they are
+scored against.
 
     python -m research.fit_quality run [--jobs 2] [--workdir out/fit_quality] [--only NAME,...]
     python -m research.fit_quality table [--workdir out/fit_quality]
@@ -57,7 +61,8 @@ _LINE = re.compile(r"\[fit\]\s+(-?[\d.]+) °C: R_ohm .*?fit RMSE ([\d.]+) mV \(t
 
 @dataclass(frozen=True)
 class FitJob:
-    """One ``socd fit`` (always with ``--force``) and the recordings its profile is scored on."""
+    """One ``socd fit`` (run as given, then with ``--force`` where it refuses) and the recordings its
+    profile is scored on."""
 
     name: str
     #: "user fit"; "bad input" (a rule should refuse it); "sensor offset" (the drive's voltage alone
