@@ -574,3 +574,49 @@ def test_fit_with_a_capacity_a_thousand_times_too_large_names_it(tmp_path: Path,
     code, err = run_cli(capsys, ["fit", str(rec), "--full-at", "3303", "--capacity-ah", "2000", "-q", "-o", str(out)])
     assert code == 2 and "--capacity-ah 2000" in err and "0.002C" in err, err
     assert not out.exists()
+
+
+BUNDLED_US06 = Path(__file__).resolve().parents[1] / "service" / "data" / "pan18650pf_25C_US06.csv"
+
+
+@pytest.mark.parametrize("command", ["fit", "evaluate", "diagnose"])
+def test_a_current_logged_with_charge_positive_is_refused(tmp_path: Path, capsys, command: str) -> None:
+    """The bundled US06 with its current negated (a logger that counts charge positive): the voltage
+    jumps up at every large current step, which a cell's ohmic drop never does in socd's convention.
+    Each command says so in one line; ``socd diagnose``, which has no full point to count from, ran
+    on it before and blamed the model."""
+    from service.recording import load_recording, save_recording
+
+    rec = load_recording(BUNDLED_US06)
+    flipped = save_recording(tmp_path / "flipped.csv", np.column_stack(
+        [rec.time_s, -rec.current_a, rec.voltage_v, rec.temperature_c]))
+    argv = {"fit": ["fit", str(flipped), "--capacity-ah", "2.77", "-o", str(tmp_path / "cell.toml")],
+            "evaluate": ["evaluate", "--cell", str(DEFAULT_CELL_PROFILE), str(flipped), "-q"],
+            "diagnose": ["diagnose", str(flipped), "--cell", str(DEFAULT_CELL_PROFILE)]}[command]
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, "flipped.csv: the voltage jumps up where the current steps up")
+    assert "negate current_a" in err and not (tmp_path / "cell.toml").exists()
+
+
+def test_no_shared_recording_looks_logged_charge_positive() -> None:
+    """The sign test on every shared real and labelled recording: none is flagged, and each drive with
+    its current negated is (an OCV test's few steps are left alone)."""
+    from dataclasses import replace
+
+    from service.cell.truth import SIGN_AGREEMENT, SIGN_MIN_STEPS, current_sign_steps
+    from service.recording import load_recording
+
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    files = sorted(shared.glob("real/*/*.csv")) + sorted(shared.glob("synthetic/*.csv"))
+    if not files:
+        pytest.skip("../shared/data is not here")
+    flagged = 0
+    for path in files:
+        if "soc_table" in path.name or (path.parent.name == "synthetic" and path.stem.endswith("_ocv")):
+            continue  # OCV tables beside the recordings
+        rec = load_recording(path)
+        up, steps = current_sign_steps(rec)
+        assert steps < SIGN_MIN_STEPS or up <= SIGN_AGREEMENT * steps, path.name
+        up, steps = current_sign_steps(replace(rec, current_a=-rec.current_a))
+        flagged += steps >= SIGN_MIN_STEPS and up > SIGN_AGREEMENT * steps
+    assert flagged >= 60, flagged

@@ -52,6 +52,46 @@ def counted_soc_excursion(counted: np.ndarray) -> str | None:
     return f"{hi:.2f}" if hi > 1.0 + COUNTED_SOC_MARGIN else None
 
 
+#: a current step counts towards the sign test when it moves by this share of the largest current
+SIGN_STEP_SHARE = 0.2
+#: steps the sign test needs before it says anything
+SIGN_MIN_STEPS = 20
+#: the share of those steps whose voltage moves with the current that says charge is logged positive:
+#: on every shared, labelled, development and PyBaMM recording it is at most 0.07 on a drive and about
+#: 0.5 on a C/20 OCV test (its steps are sensor noise); a drive with its current negated reads 0.94 or more
+SIGN_AGREEMENT = 0.8
+
+
+def current_sign_steps(rec: Recording) -> tuple[int, int]:
+    """``(up, steps)``: of the current's steps by :data:`SIGN_STEP_SHARE` of its largest value or more,
+    how many move the voltage the same way. A cell's ohmic drop moves it the other way in socd's
+    convention (discharge positive)."""
+    d_i, d_v = np.diff(rec.current_a), np.diff(rec.voltage_v)
+    peak = float(np.max(np.abs(rec.current_a))) if len(rec) else 0.0
+    steps = np.abs(d_i) > SIGN_STEP_SHARE * peak if peak > 0.0 else np.zeros(d_i.size, dtype=bool)
+    return int(np.count_nonzero(d_v[steps] / d_i[steps] > 0.0)), int(np.count_nonzero(steps))
+
+
+def check_current_sign(rec: Recording) -> None:
+    """Raise :class:`UserError` where the voltage moves with the current at more than
+    :data:`SIGN_AGREEMENT` of :data:`SIGN_MIN_STEPS` or more large steps: the current was logged with
+    charge positive, and every count, fit and estimate on it would run the wrong way."""
+    up, steps = current_sign_steps(rec)
+    if steps >= SIGN_MIN_STEPS and up > SIGN_AGREEMENT * steps:
+        raise UserError(f"{rec.path}: the voltage jumps up where the current steps up at {up} of its {steps} large "
+                        "current steps: charge looks logged positive, and socd counts discharge positive (negate "
+                        "current_a)")
+
+
+def count_hint(rec: Recording) -> str:
+    """The span and sample step the time column gives, for a refusal of a charge count that left
+    [0, 1] (a time in ms reads a thousand times too long)."""
+    if len(rec) < 2:
+        return ""
+    span_h = float(rec.time_s[-1] - rec.time_s[0]) / 3600.0
+    return f" (it spans {span_h:.3g} h at a median step of {float(np.median(np.diff(rec.time_s))):.3g} s)"
+
+
 def check_counted_truth(rec: Recording, truth: np.ndarray, capacity_ah: float) -> None:
     """Raise :class:`UserError` where a truth counted with ``capacity_ah`` leaves [0, 1] by more than
     :data:`COUNTED_SOC_MARGIN`: every score against it would be meaningless (a current in mA reads
@@ -59,7 +99,7 @@ def check_counted_truth(rec: Recording, truth: np.ndarray, capacity_ah: float) -
     if (where := counted_soc_excursion(truth)) is not None:
         raise UserError(f"{rec.path}: the truth SOC counted from the full-charge point with {capacity_ah:g} Ah "
                         f"reaches {where}: the current's unit, the capacity or the full-charge point (--full-at) "
-                        "is wrong for this recording")
+                        f"is wrong for this recording{count_hint(rec)}")
 
 
 def check_counted_span(rec: Recording, capacity_ah: float) -> None:
@@ -72,7 +112,7 @@ def check_counted_span(rec: Recording, capacity_ah: float) -> None:
     if span > 1.0 + COUNTED_SOC_MARGIN:
         raise UserError(f"{rec.path}: the charge counted with {capacity_ah:g} Ah moves the SOC across "
                         f"{span:.2f} of the cell between its highest and lowest point: the current's unit "
-                        "or the capacity is wrong for this recording")
+                        f"or the capacity is wrong for this recording{count_hint(rec)}")
 
 
 def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
@@ -81,6 +121,7 @@ def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | N
     ``full_at``: seconds of the full-charge point, ``"auto"`` to detect the end of the
     CC-CV charge, or ``None`` (the file's start; with ``soc_true`` the recorded truth).
     """
+    check_current_sign(rec)
     if full_at is None:
         start = 0
     elif full_at == "auto":

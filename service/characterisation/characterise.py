@@ -69,7 +69,7 @@ from service.cell.profile import (
 from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
-from service.cell.truth import counted_soc_excursion, truth_and_start
+from service.cell.truth import count_hint, counted_soc_excursion, truth_and_start
 from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_choices import (
     DEFAULT_OCV_BETWEEN_RESTS,
@@ -667,7 +667,8 @@ def check_counted_soc(part: Recording, capacity_ah: float, soc0: float) -> None:
     if (where := counted_soc_excursion(counted)) is not None:
         raise FitQualityError(
             f"{part.path}: SOC counted with --capacity-ah {capacity_ah:g} from {soc0:.2f} at the start reaches "
-            f"{where}: the capacity is wrong for this cell or the full-charge point (--full-at) is; nothing written")
+            f"{where}: the capacity is wrong for this cell or the full-charge point (--full-at) is{count_hint(part)}; "
+            "nothing written")
 
 
 def kinetics_resolvable(recordings: list[Recording], capacity_ah: float, temp_c: float, rep: FitReport) -> bool:
