@@ -150,6 +150,15 @@ class FitQualityError(ValueError):
     went wrong and what data would help."""
 
 
+class PoorFitError(FitQualityError):
+    """A fit :func:`check_fit_quality` refuses and ``socd fit --force`` writes anyway: ``problems``
+    names each temperature, what went wrong there and what data would help."""
+
+    def __init__(self, problems: str) -> None:
+        super().__init__(f"{problems}. Nothing written; --force writes the profile anyway")
+        self.problems = problems
+
+
 @dataclass(frozen=True)
 class TemperatureFit:
     """How one temperature's fit went: both models' RMSE [mV] on the same segments."""
@@ -849,9 +858,9 @@ def say_rest_alignment(rep: FitReport, temp_c: float, grid: np.ndarray, base_ocv
 
 
 def check_fit_quality(report: FitReport) -> None:
-    """Raise :class:`FitQualityError` naming every temperature whose fit must not be used."""
+    """Raise :class:`PoorFitError` naming every temperature whose fit must not be used."""
     bad = [(t, why) for t in report.temperatures if (why := t.problem()) is not None]
     if not bad:
         return
     what = "; ".join(f"{t.temp_c:g} °C: {why}. Data that would help there: {t.data_hint()}" for t, why in bad)
-    raise FitQualityError(f"{what}. Nothing written; --force writes the profile anyway")
+    raise PoorFitError(what)

@@ -150,8 +150,8 @@ def run(args: argparse.Namespace) -> int:
     from service.characterisation.block_average import describe, to_fit_period
     from service.characterisation.characterise import (
         MAX_TAU_DF_S,
-        FitQualityError,
         FitReport,
+        PoorFitError,
         characterise,
         check_fit_quality,
     )
@@ -187,11 +187,10 @@ def run(args: argparse.Namespace) -> int:
                                        starts=args.starts, force_capacity=args.force, report=report)
         try:
             check_fit_quality(report)
-        except FitQualityError as exc:
+        except PoorFitError as exc:
             if not args.force:
                 raise
-            why = str(exc).removesuffix(". Nothing written; --force writes the profile anyway")
-            print(f"socd fit: warning: --force writes a fit it would refuse: {why}", file=sys.stderr)
+            print(f"socd fit: warning: --force writes a fit it would refuse: {exc.problems}", file=sys.stderr)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     finally:
