@@ -165,7 +165,7 @@ def ocv_from_test(rec: Recording, capacity_ah: float, grid: np.ndarray | None = 
 #: counting error plus a charge that stops a little short of full.
 CAPACITY_ABOVE_TEST_TOL = 0.05
 #: above the test's charge by more than this (and up to the refusal) the fit log gives a notice: on
-#: the PyBaMM cells each percent costs about 0.4 % SOC RMSE (research.fit_quality capacity)
+#: the PyBaMM cells each percent costs 0.1-0.4 points of SOC RMSE (research.fit_quality capacity)
 CAPACITY_NOTICE_TOL = 0.01
 #: the tests :func:`capacity_above_test` reads are within this many K of 25 °C (a cold test
 #: gives less charge than the cell holds at room temperature)
