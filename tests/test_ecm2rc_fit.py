@@ -157,6 +157,7 @@ def test_a_refused_fit_names_data_the_user_has_not_given(measured):
     text = str(err.value)
     assert text.startswith("10 °C: fit RMSE 92.6 mV") and text.endswith("--force writes the profile anyway")
     assert ("an OCV test" in text) is not measured
+    assert "first check --capacity-ah" in text  # a wrong capacity fails this way with or without an OCV
     assert ("the OCV there is measured" in text and "96.8 mV" in text and "HPPC" in text) is measured
 
 

@@ -196,13 +196,17 @@ class TemperatureFit:
         return None
 
     def data_hint(self) -> str:
-        """What data would help a temperature whose fit has a :meth:`problem`."""
+        """What data would help a temperature whose fit has a :meth:`problem`, and the input to check
+        first: a capacity 13-15 % off is refused this way in ``research.fit_quality``, with or without an
+        OCV test."""
+        check = ("; first check --capacity-ah (and --full-at): the fit counts every SOC with them, and a "
+                 "capacity 10 % or more off can fail this way")
         if not self.ocv_measured:
             return ("an OCV test (a C/20 discharge and charge, or rests of an hour or more at five or more SOC "
-                    "levels) given with --ocv or among the recordings, or an HPPC test")
+                    "levels) given with --ocv or among the recordings, or an HPPC test" + check)
         return (f"the OCV there is measured, so what is left is in the dynamics (the textbook 2-RC fit leaves "
                 f"{self.ecm_rmse_mv:.1f} mV): an HPPC test (current pulses from rest at several SOC levels) or "
-                "drives at lower C-rates beside this one")
+                "drives at lower C-rates beside this one" + check)
 
 
 @dataclass
