@@ -251,7 +251,14 @@ def choose_share_bar(results: list[JobResult]) -> float:
     mids = [(a + b) / 2 for a, b in pairwise(edges)]
     cost = [sum(share_errors(results, m)) for m in mids]
     best = min(cost)
-    spans = [(edges[i], edges[i + 1]) for i, c in enumerate(cost) if c == best]
+    spans: list[list[float]] = []
+    for (a, b), c in zip(pairwise(edges), cost):
+        if c != best:
+            continue
+        if spans and spans[-1][1] == a:  # next to the last one: one span
+            spans[-1][1] = b
+        else:
+            spans.append([a, b])
     lo, hi = max(spans, key=lambda ab: ab[1] - ab[0])
     return (lo + hi) / 2
 

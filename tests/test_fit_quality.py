@@ -65,3 +65,11 @@ def test_the_share_bar_sits_between_the_user_fits_and_the_bad_input_it_must_refu
     text = share_bar_table(results, 0.6)
     assert "| all but `B`, read on `B` | 0.45 | 1/1 | 0/0 |" in text
     assert "**1/2**" in text
+
+
+def test_bars_that_tie_next_to_each_other_are_one_span() -> None:
+    """A sensor-offset job at 0.5 (not counted) splits 0.2-0.7 into two spans of the same errors: the
+    bar is the middle of the whole, 0.45, not of the wider piece (0.35)."""
+    results = [_job("A_user", "user fit", [0.2]), _job("A_offset", "sensor offset", [0.5]),
+               _job("A_ocv", "bad input", [0.7]), _job("C_ocv", "bad input", [0.9])]
+    assert choose_share_bar(results) == pytest.approx(0.45)
