@@ -394,7 +394,7 @@ def characterise(
         by_t: dict[float, list[np.ndarray]] = defaultdict(list)
         for r in ocv_tests:
             curve = ocv_from_test(r, capacity_ah, grid, short_charge)
-            above = capacity_above_test(r.name, curve, float(np.median(r.temperature_c)), capacity_ah)
+            above = capacity_above_test(str(r.path), curve, float(np.median(r.temperature_c)), capacity_ah)
             if above is not None and above.refused and not force_capacity:
                 raise ValueError(f"{above.text}; --force fits with the one given")
             if above is not None:
