@@ -42,14 +42,17 @@ from pathlib import Path
 
 import numpy as np
 
+from research.unseen_cell import CELLS, DRIVES, FIT_DRIVE, _temp_tag, told_capacity_ah
+from research.unseen_cell import DEFAULT_WORKDIR as UNSEEN
 from service.characterisation.characterise import POOR_FIT_SHARE, TemperatureFit
 
 REAL = Path("../shared/data/real")
 PAN, CALCE, A123, OCV = REAL / "panasonic_18650pf", REAL / "calce_inr18650_20r", REAL / "calce_a123", REAL / "ocv"
-UNSEEN, UNSEEN_LFP = Path("out/unseen_cell"), Path("out/unseen_lfp")
+UNSEEN_LFP = Path("out/unseen_lfp")
 DEFAULT_WORKDIR = Path("out/fit_quality")
+#: the ambients the PyBaMM NMC cells are fitted and scored at (research.unseen_cell's)
+PYBAMM_AMBIENTS = (25.0, 10.0, 0.0)
 PAN_TEMPS = ("25C", "10C", "0C", "m10C", "m20C")
-PYBAMM_DRIVES = ("HWFETa", "HWFETb", "LA92", "NN", "Cycle1", "Cycle2", "Cycle3", "Cycle4")
 CALCE_SCORED = {"DST_50soc": 10015, "FUDS_80soc": 9999, "FUDS_50soc": 5080, "US06_50soc": 10160, "US06_80soc": 9984}
 #: how far the bad-input jobs move what the user tells `socd fit`
 CAPACITY_ERROR = 1.15
@@ -89,11 +92,11 @@ class JobResult:
 
 def _pybamm_job(cell: str, ambients: tuple[float, ...], workdir: Path, kind: str, what: str,
                 capacity_scale: float = 1.0, fit_dir: Path | None = None, suffix: str = "") -> FitJob:
-    tags = [f"{'m' if t < 0 else ''}{abs(t):g}C" for t in ambients]
-    capacity = json.loads((workdir / f"{cell}_{tags[0]}_ocv.json").read_text())["capacity_ah"]
+    tags = [_temp_tag(t) for t in ambients]
+    capacity = told_capacity_ah(cell, ambients, workdir)
     src = fit_dir or workdir
-    fit = [str(workdir / f"{cell}_{t}_ocv.csv") for t in tags] + [str(src / f"{cell}_{t}_US06.csv") for t in tags]
-    scored = tuple(str(workdir / f"{cell}_{t}_{d}.csv") for t in tags for d in PYBAMM_DRIVES)
+    fit = [str(workdir / f"{cell}_{t}_ocv.csv") for t in tags] + [str(src / f"{cell}_{t}_{FIT_DRIVE}.csv") for t in tags]
+    scored = tuple(str(workdir / f"{cell}_{t}_{d}.csv") for t in tags for d in DRIVES if d != FIT_DRIVE)
     return FitJob(f"{cell}{suffix}", kind, what, (*fit, "--capacity-ah", f"{capacity * capacity_scale:.4f}"), scored)
 
 
@@ -118,17 +121,17 @@ def jobs(workdir: Path) -> list[FitJob]:
                (str(A123 / "calce_a123_20C_FUDS.csv"), str(A123 / "calce_a123_20C_US06.csv")),
                ("--full-at", "4478", "--full-at", "4436")),
     ]
-    for cell in ("Chen2020", "Mohtat2020", "Marquis2019"):
-        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "user fit", f"PyBaMM {cell}: OCV test + US06 per ambient"))
+    for cell in CELLS:
+        out.append(_pybamm_job(cell, PYBAMM_AMBIENTS, UNSEEN, "user fit", f"PyBaMM {cell}: OCV test + US06 per ambient"))
     out.append(_pybamm_job("Prada2013", (25.0,), UNSEEN_LFP, "user fit", "PyBaMM Prada2013 (LFP): OCV test + US06"))
-    for cell in ("Chen2020", "Mohtat2020", "Marquis2019"):
-        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "bad input",
+    for cell in CELLS:
+        out.append(_pybamm_job(cell, PYBAMM_AMBIENTS, UNSEEN, "bad input",
                                f"PyBaMM {cell}, told a capacity {CAPACITY_ERROR - 1:.0%} too large",
                                capacity_scale=CAPACITY_ERROR, suffix="_capacity_high"))
-        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "bad input",
+        out.append(_pybamm_job(cell, PYBAMM_AMBIENTS, UNSEEN, "bad input",
                                f"PyBaMM {cell}, told a capacity {1 - 1 / CAPACITY_ERROR:.0%} too small",
                                capacity_scale=1.0 / CAPACITY_ERROR, suffix="_capacity_low"))
-        out.append(_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "sensor offset",
+        out.append(_pybamm_job(cell, PYBAMM_AMBIENTS, UNSEEN, "sensor offset",
                                f"PyBaMM {cell}, its US06 voltage {VOLTAGE_OFFSET_V * 1000:.0f} mV high",
                                fit_dir=workdir / "offset", suffix="_voltage_offset"))
     out += [
@@ -147,7 +150,7 @@ def write_offset_recordings(workdir: Path) -> None:
 
     dest = workdir / "offset"
     dest.mkdir(parents=True, exist_ok=True)
-    for src in sorted(UNSEEN.glob("*_US06.csv")):
+    for src in sorted(UNSEEN.glob(f"*_{FIT_DRIVE}.csv")):
         target = dest / src.name
         if target.exists():
             continue
@@ -286,22 +289,21 @@ def share_bar_table(results: list[JobResult], product_bar: float = POOR_FIT_SHAR
 
 #: capacity errors of the ``capacity`` sweep (1.0: the OCV test's own discharge, as ``research.unseen_cell``)
 CAPACITY_SWEEP = (1.0, 1.03, 1.05, 1.08, 1.15)
-SWEEP_CELLS = ("Chen2020", "Mohtat2020", "Marquis2019")
 
 
 def capacity_jobs() -> list[FitJob]:
     """The PyBaMM cells' user fits told each capacity of :data:`CAPACITY_SWEEP`."""
-    return [_pybamm_job(cell, (25.0, 10.0, 0.0), UNSEEN, "capacity", f"{scale:g}", capacity_scale=scale,
-                        suffix=f"_capacity_x{scale:g}") for scale in CAPACITY_SWEEP for cell in SWEEP_CELLS]
+    return [_pybamm_job(cell, PYBAMM_AMBIENTS, UNSEEN, "capacity", f"{scale:g}", capacity_scale=scale,
+                        suffix=f"_capacity_x{scale:g}") for scale in CAPACITY_SWEEP for cell in CELLS]
 
 
 def capacity_table(results: list[JobResult]) -> str:
     """`fomiukf`'s mean SOC RMSE against the capacity error, per cell, and what `socd fit` did."""
     by = {(r.name.split("_capacity_x")[0], r.what): r for r in results}
-    lines = ["| `--capacity-ah` over the OCV test's discharge | " + " | ".join(f"`{c}`" for c in SWEEP_CELLS)
-             + " | `socd fit` |", "|" + "---|" * (len(SWEEP_CELLS) + 2)]
+    lines = ["| `--capacity-ah` over the OCV test's discharge | " + " | ".join(f"`{c}`" for c in CELLS)
+             + " | `socd fit` |", "|" + "---|" * (len(CELLS) + 2)]
     for scale in CAPACITY_SWEEP:
-        cells = [by.get((c, f"{scale:g}")) for c in SWEEP_CELLS]
+        cells = [by.get((c, f"{scale:g}")) for c in CELLS]
         soc = [f"{r.soc_rmse_pct['fomiukf']:.2f} %" if r is not None and "fomiukf" in r.soc_rmse_pct else "-"
                for r in cells]
         refusals = {refusal_kind(r.refused) for r in cells if r is not None and r.refused is not None}

@@ -230,6 +230,13 @@ class RunOptions:
     fit_drive: str = FIT_DRIVE
 
 
+def told_capacity_ah(cell: str, ambients: Sequence[float], workdir: Path) -> float:
+    """The capacity ``socd fit`` is told: the C/20 discharge of the OCV test at the warmest of
+    ``ambients``, as :func:`build_cell` recorded it."""
+    warmest = f"{cell}_{_temp_tag(max(ambients))}"
+    return float(json.loads((workdir / f"{warmest}_ocv.json").read_text())["capacity_ah"])
+
+
 def fit_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOptions) -> Path:
     """The issue's first command on one cell: ``socd fit`` on every ambient's US06 and the OCV tests
     of ``opt.ocv_ambients`` (default: every ambient's); a profile on disk is kept unless
@@ -239,8 +246,7 @@ def fit_cell(cell: str, ambients: Sequence[float], workdir: Path, opt: RunOption
     if profile.exists() and not opt.refit:
         return profile
     ocv_ambients = ambients if opt.ocv_ambients is None else opt.ocv_ambients
-    warmest = f"{cell}_{_temp_tag(max(ocv_ambients or ambients))}"
-    capacity = json.loads((workdir / f"{warmest}_ocv.json").read_text())["capacity_ah"]
+    capacity = told_capacity_ah(cell, ocv_ambients or ambients, workdir)
     fit_files = [str(workdir / f"{cell}_{_temp_tag(t)}_{part}.csv") for t in ambients
                  for part in ("ocv", opt.fit_drive) if part == opt.fit_drive or t in ocv_ambients]
     subprocess.run(["socd", "fit", *fit_files, "--capacity-ah", f"{capacity:.4f}", "-q", "-o", str(profile),
