@@ -312,6 +312,25 @@ def capacity_table(results: list[JobResult]) -> str:
     return "\n".join(lines)
 
 
+def load_results(summary: list[dict] | Path) -> list[JobResult]:
+    """The results of a summary file (``fit_quality.json``, ``capacity_sweep.json``) or of its parsed list."""
+    return [JobResult(**d) for d in (json.loads(summary.read_text()) if isinstance(summary, Path) else summary)]
+
+
+def markdown(summary: list[dict] | Path) -> str:
+    """The ``run`` summary as docs/results/characterisation.md shows it: :func:`table`, then
+    :func:`share_bar_table`."""
+    results = load_results(summary)
+    return (table(results) + "\n\nThe poor-fit share bar, chosen as `research.fit_quality` chooses it (fewest user fits "
+            "refused plus bad inputs written, the middle of the widest span of bars that reach it):\n\n"
+            + share_bar_table(results))
+
+
+def capacity_markdown(summary: list[dict] | Path) -> str:
+    """The ``capacity`` summary as docs/results/characterisation.md shows it (:func:`capacity_table`)."""
+    return capacity_table(load_results(summary))
+
+
 def run_jobs(todo: list[FitJob], summary: Path, workdir: Path, n_jobs: int) -> list[JobResult]:
     """Run ``todo`` (``n_jobs`` at once), keeping every result in ``summary`` as it comes."""
     done = {d["name"]: d for d in json.loads(summary.read_text())} if summary.exists() else {}
@@ -322,7 +341,7 @@ def run_jobs(todo: list[FitJob], summary: Path, workdir: Path, n_jobs: int) -> l
             print(f"{res.name}: {res.refused or res.soc_rmse_pct}", flush=True)
             summary.write_text(json.dumps(sorted(done.values(), key=lambda d: order.index(d["name"])
                                                  if d["name"] in order else len(order)), indent=1))
-    return [JobResult(**d) for d in json.loads(summary.read_text())]
+    return load_results(summary)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -337,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     a.workdir.mkdir(parents=True, exist_ok=True)
     if a.command.startswith("capacity"):
         summary = a.workdir / "capacity_sweep.json"
-        results = ([JobResult(**d) for d in json.loads(summary.read_text())] if a.command == "capacity-table"
+        results = (load_results(summary) if a.command == "capacity-table"
                    else run_jobs(capacity_jobs(), summary, a.workdir, a.jobs))
         print(capacity_table(results))
         return 0
@@ -346,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
         write_offset_recordings(a.workdir)
         todo = [j for j in jobs(a.workdir) if a.only is None or j.name in a.only.split(",")]
         run_jobs(todo, summary, a.workdir, a.jobs)
-    print(table([JobResult(**d) for d in json.loads(summary.read_text())]))
+    print(table(load_results(summary)))
     return 0
 
 

@@ -577,23 +577,6 @@ SEED_GROUPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), (
                ("−20 °C", r"_m20C_"))
 
 
-def fit_quality_table(out: Path) -> str:
-    """``research.fit_quality``'s table from its summary."""
-    from research.fit_quality import JobResult, share_bar_table, table
-
-    results = [JobResult(**d) for d in json.loads((out / "fit_quality" / "fit_quality.json").read_text())]
-    return (table(results) + "\n\nThe poor-fit share bar, chosen as `research.fit_quality` chooses it (fewest user fits "
-            "refused plus bad inputs written, the middle of the widest span of bars that reach it):\n\n"
-            + share_bar_table(results))
-
-
-def fit_quality_capacity_table(out: Path) -> str:
-    """``research.fit_quality capacity``'s table from its summary."""
-    from research.fit_quality import JobResult, capacity_table
-
-    return capacity_table([JobResult(**d) for d in json.loads((out / "fit_quality" / "capacity_sweep.json").read_text())])
-
-
 TABLES: tuple[Table, ...] = (
     Table("profiles", "soc_accuracy.md", REAL + f"""\
 {PAN_FIT} --kinetics -o configs/cells/panasonic_18650pf.toml
@@ -1165,12 +1148,15 @@ socd evaluate --cell $W/Prada2013_2rc.toml $(ls $W/Prada2013_25C_*.csv | grep -v
 python -m research.unseen_cell build --jobs 2
 python -m research.unseen_cell build --cells Prada2013 --ambients 25 --workdir out/unseen_lfp
 rm -f out/fit_quality/fit_quality.json
-python -m research.fit_quality run --jobs 2""", fit_quality_table, 40,
+python -m research.fit_quality run --jobs 2""",
+          lambda out: tool("fit_quality").markdown(_read(out, "fit_quality/fit_quality.json")), 40,
           ("needs:unseen_cell", "needs:unseen_cell_lfp", "needs:pybamm")),
     Table("fit_quality_capacity", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
 rm -f out/fit_quality/capacity_sweep.json
-python -m research.fit_quality capacity --jobs 2""", fit_quality_capacity_table, 25, ("needs:unseen_cell", "needs:pybamm")),
+python -m research.fit_quality capacity --jobs 2""",
+          lambda out: tool("fit_quality").capacity_markdown(_read(out, "fit_quality/capacity_sweep.json")), 25,
+          ("needs:unseen_cell", "needs:pybamm")),
     Table("unseen_cell_cold", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2 --cells Chen2020,Mohtat2020 --ambients -10
 python -m research.unseen_cell run --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10 --profile-tag _m10 --refit""",
