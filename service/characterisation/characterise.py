@@ -395,9 +395,9 @@ def characterise(
         for r in ocv_tests:
             curve = ocv_from_test(r, capacity_ah, grid, short_charge)
             above = capacity_above_test(str(r.path), curve, float(np.median(r.temperature_c)), capacity_ah)
-            if above is not None and above.refused and not force_capacity:
-                raise ValueError(f"{above.text}; --force fits with the one given")
             if above is not None:
+                if above.refused and not force_capacity:
+                    raise ValueError(f"{above.text}; --force fits with the one given")
                 lead = f"--force fits with --capacity-ah {capacity_ah:g} although " if above.refused else "notice: "
                 rep.say(lead + above.text, notice=True)
             by_t[temperature_group(r)].append(curve.ocv_v)
