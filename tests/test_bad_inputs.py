@@ -576,18 +576,16 @@ def test_fit_with_a_capacity_a_thousand_times_too_large_names_it(tmp_path: Path,
     assert not out.exists()
 
 
-BUNDLED_US06 = Path(__file__).resolve().parents[1] / "service" / "data" / "pan18650pf_25C_US06.csv"
-
-
 @pytest.mark.parametrize("command", ["fit", "evaluate", "diagnose"])
 def test_a_current_logged_with_charge_positive_is_refused(tmp_path: Path, capsys, command: str) -> None:
     """The bundled US06 with its current negated (a logger that counts charge positive): the voltage
     jumps up at every large current step, which a cell's ohmic drop never does in socd's convention.
     Each command says so in one line; ``socd diagnose``, which has no full point to count from, ran
     on it before and blamed the model."""
+    from service.demo import bundled_recording
     from service.recording import load_recording, save_recording
 
-    rec = load_recording(BUNDLED_US06)
+    rec = load_recording(bundled_recording())
     flipped = save_recording(tmp_path / "flipped.csv", np.column_stack(
         [rec.time_s, -rec.current_a, rec.voltage_v, rec.temperature_c]))
     argv = {"fit": ["fit", str(flipped), "--capacity-ah", "2.77", "-o", str(tmp_path / "cell.toml")],
