@@ -148,7 +148,8 @@ class Candidate:
     evidence: str
     fixed_reasons: list[str] = field(default_factory=list)
     significant: bool = False
-    #: the fitted size a plausibility bound reads (kinetics: the exchange current in C), if any
+    #: the fitted size a plausibility bound reads (kinetics: the exchange current in C; diffusion:
+    #: the surface lag's time constant in s), if any
     size: float | None = None
     #: a directly measured effect retried on the confirmation split (significance_reasons' ``measured``)
     measured: bool = False
@@ -267,7 +268,8 @@ def _candidates(dg, opt) -> list[Candidate]:
     for e in dg.effects:
         n_rule = len(significance_reasons(e.score, e.rmse_before_mv, e.rmse_after_mv, e.delta_bic, noise_mv,
                                           e.evidence, opt))
-        size = e.params["kinetics_i0_a"] / cap if e.name == "kinetics" else None
+        size = (e.params["kinetics_i0_a"] / cap if e.name == "kinetics"
+                else e.params["tau_s"] if e.name == "diffusion" else None)
         out.append(Candidate(name=e.name, score=float(e.score), rmse_before_mv=float(e.rmse_before_mv),
                              rmse_after_mv=float(e.rmse_after_mv), delta_bic=float(e.delta_bic), evidence=e.evidence,
                              fixed_reasons=list(e.reasons[n_rule:]), size=size))
@@ -385,13 +387,16 @@ WIDE_GRID: dict[str, tuple[float, ...]] = {
 #: the relaxation signature's ratio and z (service.diagnosis.signatures.RELAX_MIN_RATIO, RELAX_MIN_Z), and
 #: with ``rules --search-rest-length`` the shortest rest it reads (RELAX_REST_MIN_S)
 SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "relax_rest_min_s", "diffusion_signature",
-                   "branch_min_z", "branch_min_half_gap_v", "direction_min_z")
+                   "branch_min_z", "branch_min_half_gap_v", "direction_min_z", "diffusion_min_tau_s")
 #: a structural rule the search leaves alone unless asked (``rules --search-requirement``): whether a
 #: fit-only diffusion is refused never (0), where its relaxation signature read rests and did not
 #: fire (1, the product), or always (2): the index into service.diagnosis.effects.SIGNATURE_NEEDED
 REQUIREMENT_GRID: dict[str, tuple[float, ...]] = {"diffusion_signature": (0.0, 1.0, 2.0)}
 #: ``rules --search-rest-length``: the relaxation signature's shortest rest, searched with the rest
 REST_LENGTH_GRID: dict[str, tuple[float, ...]] = {"relax_rest_min_s": RELAX_REST_GRID}
+#: ``rules --search-lag-bound``: the shortest surface lag the diffusion extension may fit and still be
+#: slow diffusion (service.diagnosis.effects.DIFFUSION_MIN_TAU_S), searched with the rest
+LAG_BOUND_GRID: dict[str, tuple[float, ...]] = {"diffusion_min_tau_s": (30.0, 60.0, 120.0)}
 #: ``rules --search-hysteresis``: the hysteresis signatures' levels (service.diagnosis.signatures
 #: BRANCH_MIN_Z, BRANCH_MIN_HALF_GAP_V, DIRECTION_MIN_Z), searched with the rest
 HYSTERESIS_GRID: dict[str, tuple[float, ...]] = {
@@ -404,7 +409,12 @@ HYSTERESIS_GRID: dict[str, tuple[float, ...]] = {
 def current_rule() -> dict[str, float]:
     """The product's current value of every rule of :data:`RULE_GRID`."""
     from service.diagnosis import signatures
-    from service.diagnosis.effects import EFFECTS, KINETICS_MAX_I0_C, SIGNATURE_NEEDED
+    from service.diagnosis.effects import (
+        DIFFUSION_MIN_TAU_S,
+        EFFECTS,
+        KINETICS_MAX_I0_C,
+        SIGNATURE_NEEDED,
+    )
     from service.diagnosis.pipeline import DiagnoseOptions
 
     opt = DiagnoseOptions()
@@ -413,23 +423,24 @@ def current_rule() -> dict[str, float]:
                relax_min_z=signatures.RELAX_MIN_Z, relax_rest_min_s=signatures.RELAX_REST_MIN_S,
                diffusion_signature=float(SIGNATURE_NEEDED.index(EFFECTS["diffusion"].needs_signature)),
                branch_min_z=signatures.BRANCH_MIN_Z, branch_min_half_gap_v=signatures.BRANCH_MIN_HALF_GAP_V,
-               direction_min_z=signatures.DIRECTION_MIN_Z)
+               direction_min_z=signatures.DIRECTION_MIN_Z, diffusion_min_tau_s=DIFFUSION_MIN_TAU_S)
     return now
 
 
-def rule_axes(with_requirement: bool = False, wide: bool = False,
-              with_rest_length: bool = False, with_hysteresis: bool = False) -> dict[str, tuple[float, ...]]:
+def rule_axes(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False,
+              with_hysteresis: bool = False, with_lag_bound: bool = False) -> dict[str, tuple[float, ...]]:
     """The values searched per rule: :data:`RULE_GRID` (:data:`WIDE_GRID` with ``wide``), and
     :data:`REQUIREMENT_GRID` with ``with_requirement``, :data:`REST_LENGTH_GRID` with ``with_rest_length``,
-    :data:`HYSTERESIS_GRID` with ``with_hysteresis``."""
+    :data:`HYSTERESIS_GRID` with ``with_hysteresis``, :data:`LAG_BOUND_GRID` with ``with_lag_bound``."""
     return {**(WIDE_GRID if wide else RULE_GRID), **(REQUIREMENT_GRID if with_requirement else {}),
-            **(REST_LENGTH_GRID if with_rest_length else {}), **(HYSTERESIS_GRID if with_hysteresis else {})}
+            **(REST_LENGTH_GRID if with_rest_length else {}), **(HYSTERESIS_GRID if with_hysteresis else {}),
+            **(LAG_BOUND_GRID if with_lag_bound else {})}
 
 
 def rule_grid(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False,
-              with_hysteresis: bool = False) -> list[dict[str, float]]:
+              with_hysteresis: bool = False, with_lag_bound: bool = False) -> list[dict[str, float]]:
     """Every rule of :func:`rule_axes` with the same switches."""
-    axes = rule_axes(with_requirement, wide, with_rest_length, with_hysteresis)
+    axes = rule_axes(with_requirement, wide, with_rest_length, with_hysteresis, with_lag_bound)
     keys = list(axes)
     return [dict(zip(keys, values)) for values in itertools.product(*(axes[k] for k in keys))]
 
@@ -442,6 +453,8 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
     evidence keeps only the first split's, so that class stays as the diagnosis left it)."""
     out = []
     for c in cands:
+        if c.name == "diffusion" and "diffusion_min_tau_s" in rule and c.size is not None:
+            c = replace(c, fixed_reasons=_tau_reasons(c, rule["diffusion_min_tau_s"]))
         if c.name == "kinetics" and "kinetics_max_i0_c" in rule:
             k = rule["kinetics_max_i0_c"]
             sig = ev.signatures["kinetics"]
@@ -466,6 +479,19 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
             c = replace(c, evidence=hysteresis_evidence(ev.signatures["hysteresis"], rule))
         out.append(c)
     return out
+
+
+#: how the diffusion extension's plausibility reason begins (service.diagnosis.effects._diff_implausible)
+DIFFUSION_TAU_REASON = "fitted surface lag τ "
+
+
+def _tau_reasons(c: Candidate, min_tau_s: float) -> list[str]:
+    """The diffusion candidate's fixed reasons with the surface-lag bound at ``min_tau_s``
+    (:data:`service.diagnosis.effects.DIFFUSION_MIN_TAU_S` in the product)."""
+    fixed = [r for r in c.fixed_reasons if not r.startswith(DIFFUSION_TAU_REASON)]
+    if c.size < min_tau_s:
+        fixed.append(f"{DIFFUSION_TAU_REASON}{c.size:.0f} s < {min_tau_s:g} s")
+    return fixed
 
 
 def hysteresis_evidence(sig: dict, rule: dict[str, float]) -> str:
@@ -785,6 +811,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-hysteresis", action="store_true",
                     help="rules: search also the hysteresis signatures' levels (the rest ends' z and half-gap, the "
                          "direction state's z; evidence diagnosed before these were kept keeps its classes)")
+    ap.add_argument("--search-lag-bound", action="store_true",
+                    help="rules: search also the shortest surface lag a fitted diffusion may have (30, 60, 120 s; "
+                         "the product's is 60 s; evidence diagnosed before the lag was kept keeps its refusals)")
     ap.add_argument("--hold", action="append", default=[], metavar="RULE=VALUE",
                     help="rules: search only the rules with RULE at VALUE, e.g. relax_rest_min_s=500 (a level held "
                          "for every fold, to compare it with the one the search chooses); repeatable")
@@ -826,7 +855,8 @@ def main(argv: list[str] | None = None) -> int:
         _complete(ev, args.labelled / f"{ev.stem}.csv",
                   json.loads((args.labelled / f"{ev.stem}.meta.json").read_text())["capacity_ah"])
         ev.cell = set_cell(labels.get(ev.stem, {}).get("cell", ev.cell), cells)
-    grid = rule_grid(args.search_requirement, args.wide_grid, args.search_rest_length, args.search_hysteresis)
+    grid = rule_grid(args.search_requirement, args.wide_grid, args.search_rest_length, args.search_hysteresis,
+                     args.search_lag_bound)
     if args.diffusion_signature is not None and not args.search_requirement:
         grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
     grid = [r for r in grid if all(r.get(k) == v for k, v in held.items())]
@@ -848,7 +878,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _parse_holds(ap: argparse.ArgumentParser, holds: Sequence[str]) -> dict[str, float]:
     """``--hold RULE=VALUE`` options as a dict; an unknown rule or a value off its grid is an error."""
-    axes = rule_axes(with_requirement=True, wide=True, with_rest_length=True)
+    axes = rule_axes(with_requirement=True, wide=True, with_rest_length=True, with_hysteresis=True, with_lag_bound=True)
     out = {}
     for h in holds:
         key, _, value = h.partition("=")

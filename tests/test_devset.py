@@ -229,6 +229,23 @@ def test_signature_levels_move_nomination_and_plausibility():
     assert decide(ev, {"kinetics_max_i0_c": 0.15})[0] == "none"
 
 
+def test_the_surface_lag_bound_moves_the_diffusion_plausibility():
+    """A diffusion lag fitted at τ 45 s with a 40 % gain: refused as a fast branch at the product's
+    60 s, named at a 30 s bound; the evidence keeps τ as the candidate's size."""
+    from research.devset import DIFFUSION_TAU_REASON
+
+    diff = replace(_cand("diffusion", 0.40, before=20.0, fixed=[f"{DIFFUSION_TAU_REASON}45 s < 60 s: it relaxes"]),
+                   size=45.0)
+    ev = _ev("A", "diffusion", [diff, _cand("ocv", 0.05)])
+    ev.signatures = {"diffusion": {"statistic": None, "z": None}}
+    assert decide(ev, {})[0] == "none"
+    assert decide(ev, {"diffusion_min_tau_s": 60.0})[0] == "none"
+    assert decide(ev, {"diffusion_min_tau_s": 30.0})[0] == "diffusion"
+    assert current_rule()["diffusion_min_tau_s"] == 60.0
+    assert {r["diffusion_min_tau_s"] for r in rule_grid(with_lag_bound=True)} == {30.0, 60.0, 120.0}
+    assert "diffusion_min_tau_s" not in rule_grid()[0]
+
+
 def test_hysteresis_levels_move_its_evidence_class():
     """The direction state's z of 6 nominates hysteresis at a level of 4, not at the product's 8, and
     its 8 % gain then clears the nominated bar; rest ends whose half-gap clears the z level measure it
