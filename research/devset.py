@@ -861,8 +861,8 @@ def main(argv: list[str] | None = None) -> int:
         grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
     grid = [r for r in grid if all(r.get(k) == v for k, v in held.items())]
     if not grid:
-        ap.error(f"--hold {' '.join(args.hold)}: no rule of the grid searched holds that (--wide-grid and "
-                 "--search-rest-length add values)")
+        ap.error(f"--hold {' '.join(args.hold)}: no rule of the grid searched holds that (--wide-grid adds "
+                 "values; --search-rest-length, --search-hysteresis and --search-lag-bound add the rules they name)")
     doc = search([*evs, *labelled], grid, progress=lambda msg: print(msg, file=sys.stderr))
     held_out = {r["stem"]: r["verdict"] for r in doc["rows"]}
     doc["labelled"] = [{"stem": ev.stem, "cell": ev.cell, "truth": ev.effect, "verdict": held_out[ev.stem],
