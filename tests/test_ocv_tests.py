@@ -17,6 +17,7 @@ from service.characterisation.ocv_sources import (
     ocv_from_test,
     ocv_row_from_rests,
     ocv_rows_by_temperature,
+    slow_branches,
     soc_alignment,
 )
 from service.cli import build_parser, main
@@ -28,13 +29,14 @@ COLD_SHIFT_V = -0.030
 
 
 def write_ocv_test(path: Path, temp_c: float, shift_v: float, r_ohm: float = 0.05, charge_first: bool = False,
-                   charge_to: float = 1.0, charge_logged: float = 1.0) -> Path:
+                   charge_to: float = 1.0, charge_logged: float = 1.0, current_noise_a: float = 0.0) -> Path:
     """A C/20 discharge from full to empty, an hour's rest, a C/20 charge back to full (60 s
     samples): the voltage is the synthetic cell's OCV plus ``shift_v`` minus the ohmic drop.
     ``charge_first``: the file starts half full with a 1C charge to full and a rest (a tester's
     OCV test usually does).  ``charge_to``: the charge stops at this SOC (a cold charge meets the
     voltage limit early); ``charge_logged``: the charge current is logged at this gain (the counts
-    do not close, the cell still reaches full)."""
+    do not close, the cell still reaches full).  ``current_noise_a``: σ of the logged current's
+    white noise (a current sensor's, seeded)."""
     soc_pts, ocv_pts = nmc_ocv_points()
     amps = NMC_CAPACITY_AH / 20.0
     n = 1200  # 20 h at 60 s
@@ -46,7 +48,8 @@ def write_ocv_test(path: Path, temp_c: float, shift_v: float, r_ohm: float = 0.0
     t = 60.0 * np.arange(i.size)
     soc = start - np.cumsum(i * 60.0) / 3600.0 / NMC_CAPACITY_AH
     v = np.interp(soc, soc_pts, ocv_pts) + shift_v - r_ohm * i
-    return write_recording_csv(path, t, np.where(i < 0, charge_logged * i, i), v, np.full(i.size, temp_c))
+    logged = np.where(i < 0, charge_logged * i, i) + current_noise_a * np.random.default_rng(5).standard_normal(i.size)
+    return write_recording_csv(path, t, logged, v, np.full(i.size, temp_c))
 
 
 def test_an_ocv_test_gives_the_ocv_at_its_temperature(tmp_path: Path) -> None:
@@ -72,6 +75,22 @@ def test_an_ocv_test_that_starts_with_a_fast_charge_is_still_one(tmp_path: Path,
     assert not is_ocv_test(load_recording(drive.path), NMC_CAPACITY_AH)
     half = rec.slice(0, 40 + 60 + 600)
     assert not is_ocv_test(half, NMC_CAPACITY_AH)
+
+
+def test_an_ocv_test_logged_with_a_noisy_current_sensor_is_still_one(tmp_path: Path) -> None:
+    """A sensor whose noise is more than half the C/20 current (5 mA on a 0.17 Ah cell) puts single
+    samples outside the C/100..C/10 band all along the branches; they must not cut them, and the
+    curve read is the one a clean sensor gives, within what the noise does to the count itself (a
+    random walk of about 2 % of SOC over each branch at 60 s samples, some 6 mV on this OCV)."""
+    amps = NMC_CAPACITY_AH / 20.0
+    rec = load_recording(write_ocv_test(tmp_path / "noisy.csv", 25.0, 0.0, current_noise_a=0.6 * amps))
+    band = (rec.current_a > 0.01 * NMC_CAPACITY_AH) & (rec.current_a <= 0.1 * NMC_CAPACITY_AH)
+    assert not band[60:1260].all()  # the raw samples do leave the band
+    assert sorted(sign for sign, _ in slow_branches(rec, NMC_CAPACITY_AH)) == [-1.0, 1.0]
+    clean = ocv_from_test(load_recording(write_ocv_test(tmp_path / "clean.csv", 25.0, 0.0)), NMC_CAPACITY_AH)
+    noisy = ocv_from_test(rec, NMC_CAPACITY_AH)
+    inside = (clean.grid > 0.05) & (clean.grid < 0.95)
+    np.testing.assert_allclose(noisy.ocv_v[inside], clean.ocv_v[inside], atol=1e-2)
 
 
 def test_a_charge_that_stopped_short_is_counted_on_the_discharge_scale(tmp_path: Path) -> None:

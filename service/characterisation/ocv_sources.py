@@ -8,6 +8,7 @@ from itertools import pairwise
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
+from scipy.ndimage import median_filter
 from scipy.optimize import least_squares
 
 from service.cell.coulomb import coulomb_soc
@@ -23,22 +24,32 @@ OCV_TEST_MAX_C = 0.1
 #: a slow branch is one uninterrupted charge or discharge at or below OCV_TEST_MAX_C that moves at
 #: least this fraction of the capacity (no drive cycle, HPPC or pulse test has one)
 OCV_BRANCH_MIN_SPAN = 0.7
+#: the slow branches are found on the current's running median over this many samples: a current
+#: sensor's noise can be as large as a C/20 test current on a small cell (5 mA on a 0.17 Ah cell's
+#: 8.5 mA), and single noisy samples outside the C/100..C/10 band must not cut the branch, while
+#: a median keeps a constant-current step's edges where they are.  A sample further than twice
+#: C/10 from that median is load, not noise, and still ends the branch (a drive cycle's current
+#: can have a median within the band for a long time)
+SLOW_MEDIAN_SAMPLES = 15
 
 
 def slow_branches(rec: Recording, capacity_ah: float) -> list[tuple[float, np.ndarray]]:
     """``(sign, mask)`` of the slow branches of ``rec`` (sign +1 discharge, −1 charge): the longest
-    uninterrupted run of same-sign current at or below :data:`OCV_TEST_MAX_C` for each sign, when it
-    moves :data:`OCV_BRANCH_MIN_SPAN` of the capacity.  Faster parts of the file (a CC-CV charge
+    uninterrupted run of same-sign current at or below :data:`OCV_TEST_MAX_C` for each sign (read
+    on its running median, :data:`SLOW_MEDIAN_SAMPLES`), when it moves
+    :data:`OCV_BRANCH_MIN_SPAN` of the capacity.  Faster parts of the file (a CC-CV charge
     before the test) and the tail of a constant-voltage phase (under a fifth of the branch's
     current) are not part of it."""
     dt = np.diff(rec.time_s, prepend=rec.time_s[0])
+    level = median_filter(rec.current_a, size=SLOW_MEDIAN_SAMPLES, mode="nearest")
+    abs_excursion = np.abs(rec.current_a - level)
     out = []
     for sign in (1.0, -1.0):
         i = sign * rec.current_a
-        slow = (i > REST_CURRENT_C * capacity_ah) & (i <= OCV_TEST_MAX_C * capacity_ah)
+        slow = (sign * level > REST_CURRENT_C * capacity_ah) & (sign * level <= OCV_TEST_MAX_C * capacity_ah)
         if not slow.any():
             continue
-        slow &= i >= 0.2 * np.max(i[slow])
+        slow &= (sign * level >= 0.2 * np.max(sign * level[slow])) & (abs_excursion <= 2 * OCV_TEST_MAX_C * capacity_ah)
         best, best_ah = None, 0.0
         for a, b in _runs(slow):
             ah = float(np.sum(i[a:b] * dt[a:b])) / SECONDS_PER_HOUR
