@@ -171,9 +171,11 @@ def run(args: argparse.Namespace) -> int:
     pack = None
     if is_cell_recording(path):
         from service.cell.profile import ProfileError, load_profile
+        from service.cell.truth import check_current_sign
         from service.recording import load_recording
 
         recording = load_recording(path)
+        check_current_sign(recording)  # a charge-positive log would replay every cell the wrong way
         length_s = float(recording.time_s[-1] - recording.time_s[0])
         if args.start is not None and args.start >= length_s:
             raise UserError(f"--start {args.start:g} s is past the end of {path} ({length_s:g} s long)")

@@ -176,6 +176,7 @@ def run_demo(
     from replay.player import play
     from service.bus.encoder import decode_output
     from service.cell.profile import load_profile
+    from service.cell.truth import check_current_sign
     from service.config import DEFAULT_CELL_PROFILE
     from service.daemon.daemon import Daemon
     from service.daemon.zenoh_pub import zenoh_config
@@ -190,6 +191,7 @@ def run_demo(
     profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
     profile = load_profile(profile_path)
     recording = load_recording(recording_path)
+    check_current_sign(recording)  # a charge-positive log would replay every cell the wrong way
     if seconds is not None:
         stop_i = int(np.searchsorted(recording.time_s, recording.time_s[0] + float(seconds), side="right"))
         recording = recording.slice(0, max(2, stop_i))

@@ -101,7 +101,7 @@ class RecordingBounds:
 
     time_s: tuple[float, float] = (-1e10, 1e10)
     current_a: tuple[float, float] = (-1000.0, 1000.0)
-    voltage_v: tuple[float, float] = (0.0, 6.0)
+    voltage_v: tuple[float, float] = (0.5, 6.0)  # 0 V is a dropped sensor or an empty column
     temperature_c: tuple[float, float] = (-60.0, 150.0)
     soc_true: tuple[float, float] = (-0.5, 1.5)
 

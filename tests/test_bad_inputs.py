@@ -56,6 +56,7 @@ BAD_RECORDINGS = {
     "huge_time.csv": lambda t: _with(t, "huge_time.csv", 59, 0, "1e308"),
     "nan_voltage.csv": lambda t: _with(t, "nan_voltage.csv", 3, 2, "nan"),
     "mv_voltage.csv": lambda t: _with(t, "mv_voltage.csv", 3, 2, "3700"),
+    "zero_voltage.csv": lambda t: _with(t, "zero_voltage.csv", 3, 2, "0"),  # a dropped sensor, an empty column
     "time_back.csv": lambda t: _with(t, "time_back.csv", 10, 0, "2"),
     # the logger stopped for two hours with 1 A flowing: the held current would count 2 Ah no sample saw
     "loaded_gap.csv": lambda t: _recording(t, "loaded_gap.csv", "\n".join(
@@ -189,7 +190,8 @@ def test_bad_bounds_flag_is_an_argument_error(tmp_path: Path, capsys, spec: str)
     assert code == 2 and "argument --bounds" in err and "Traceback" not in err, err
 
 
-@pytest.mark.parametrize("table", ["nan", "binary", "duplicate", "volts_in_mv", "reversed"])
+@pytest.mark.parametrize("table", ["nan", "binary", "duplicate", "volts_in_mv", "reversed", "past_full", "flat",
+                                   "narrow"])
 def test_fit_refuses_bad_ocv_tables(tmp_path: Path, capsys, table: str) -> None:
     ocv = tmp_path / f"ocv_{table}.csv"
     soc = np.linspace(0, 1, 11)
@@ -205,6 +207,12 @@ def test_fit_refuses_bad_ocv_tables(tmp_path: Path, capsys, table: str) -> None:
             soc[5] = soc[4]
         if table == "reversed":  # falls as SOC rises: the monotone fit would flatten it into a constant
             v = v[::-1]
+        if table == "past_full":  # SOC to 1.2: neither fractions nor percent
+            soc = soc * 1.2
+        if table == "flat":  # a constant column: every SOC reads the same
+            v = np.full_like(v, 3.7)
+        if table == "narrow":  # SOC 0.4 to 0.6: everything else would be held flat
+            soc = 0.4 + 0.2 * soc
         ocv.write_text("soc,ocv_v\n" + "\n".join(f"{s},{x}" for s, x in zip(soc, v)) + "\n")
     rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
     prof = tmp_path / "cell.toml"
@@ -389,6 +397,7 @@ def test_fit_checks_where_it_writes_before_fitting(tmp_path: Path, capsys, flag:
 
 
 @pytest.mark.parametrize("argv", [
+    ["fit", "REC", "--capacity-ah", "2.9", "--memory-length", "100000", "-o", "cell.toml"],  # ran away unbounded
     ["evaluate", "REC", "--cell", "CELL", "--json", "FOLDER"],
     ["evaluate", "REC", "--cell", "CELL", "--traces", "REC"],
     ["diagnose", "REC", "--cell", "CELL", "--save-profile", "FOLDER"],
@@ -403,6 +412,14 @@ def test_output_and_spread_flags_are_checked_as_arguments(tmp_path: Path, capsys
             "cell.txt": str(tmp_path / "cell.txt"), "soc.txt": str(tmp_path / "soc.txt")}
     code, err = run_cli(capsys, [subs.get(a, a) for a in argv])
     assert code == 2 and "error: argument" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("effects", [",,", ""])
+def test_diagnose_refuses_an_effects_list_that_names_none(tmp_path: Path, capsys, effects: str) -> None:
+    """``--effects ,,`` tried no candidate and answered none; ``--effects ""`` quietly tried all."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--effects", effects])
+    assert_one_line_error(code, err, "--effects names no effect")
 
 
 def test_diagnose_refuses_a_capacity_it_would_ignore(tmp_path: Path, capsys) -> None:
@@ -498,6 +515,7 @@ def test_watch_and_bench_check_their_flags(capsys, argv: list[str]) -> None:
     '[checkpoint]\npath = "FOLDER"\n',  # a folder was moved aside as an "unusable checkpoint" at start-up
     "[estimator]\nukf_kappa = nan\n",  # reset the filter at every step
     "[estimator]\nvoltage_noise_v = inf\n",
+    "[estimator]\nvoltage_noise_v = 1e300\n",  # squared, it overflowed at start-up
     "[output]\ncan_period_s = inf\n",
 ])
 def test_config_refuses_settings_that_cannot_be(tmp_path: Path, capsys, extra: str) -> None:
@@ -576,7 +594,7 @@ def test_fit_with_a_capacity_a_thousand_times_too_large_names_it(tmp_path: Path,
     assert not out.exists()
 
 
-@pytest.mark.parametrize("command", ["fit", "evaluate", "diagnose"])
+@pytest.mark.parametrize("command", ["fit", "evaluate", "diagnose", "demo", "replay"])
 def test_a_current_logged_with_charge_positive_is_refused(tmp_path: Path, capsys, command: str) -> None:
     """The bundled US06 with its current negated (a logger that counts charge positive): the voltage
     jumps up at every large current step, which a cell's ohmic drop never does in socd's convention.
@@ -590,10 +608,12 @@ def test_a_current_logged_with_charge_positive_is_refused(tmp_path: Path, capsys
         [rec.time_s, -rec.current_a, rec.voltage_v, rec.temperature_c]))
     argv = {"fit": ["fit", str(flipped), "--capacity-ah", "2.77", "-o", str(tmp_path / "cell.toml")],
             "evaluate": ["evaluate", "--cell", str(DEFAULT_CELL_PROFILE), str(flipped), "-q"],
-            "diagnose": ["diagnose", str(flipped), "--cell", str(DEFAULT_CELL_PROFILE)]}[command]
+            "diagnose": ["diagnose", str(flipped), "--cell", str(DEFAULT_CELL_PROFILE)],
+            "demo": ["demo", "--recording", str(flipped), "--cells", "2", "--seconds", "60"],
+            "replay": ["replay", str(flipped), "--no-send", "--record", str(tmp_path / "out.asc"), "-q"]}[command]
     code, err = run_cli(capsys, argv)
     assert_one_line_error(code, err, "flipped.csv: the voltage jumps up where the current steps up")
-    assert "negate current_a" in err and not (tmp_path / "cell.toml").exists()
+    assert "negate current_a" in err and not (tmp_path / "cell.toml").exists() and not (tmp_path / "out.asc").exists()
 
 
 def test_no_shared_recording_looks_logged_charge_positive() -> None:

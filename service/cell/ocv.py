@@ -179,6 +179,24 @@ def ocv_fall_problem(soc: np.ndarray, ocv_v: np.ndarray) -> str | None:
             f"(more than {1000 * OCV_MAX_FALL_V:.0f} mV): an OCV rises with SOC; is the column reversed or the wrong one?")
 
 
+#: an OCV table a user gives must span at least this much SOC (the rest would be held flat) ...
+OCV_MIN_SOC_SPAN = 0.5
+#: ... and rise by at least this much over it (an LFP plateau rises some 40 mV over half its SOC)
+OCV_MIN_RISE_V = 0.01
+
+
+def ocv_span_problem(soc: np.ndarray, ocv_v: np.ndarray) -> str | None:
+    """What is wrong where an OCV table (``soc`` increasing) covers too little SOC to read a cell
+    by, or does not rise over it (a constant column), or None."""
+    if soc[-1] - soc[0] < OCV_MIN_SOC_SPAN:
+        return (f"it covers SOC {soc[0]:g} to {soc[-1]:g} only; an OCV table must span at least "
+                f"{OCV_MIN_SOC_SPAN:g} of the SOC range (0 to 1 is usual)")
+    if float(np.max(ocv_v) - np.min(ocv_v)) < OCV_MIN_RISE_V:
+        return (f"the OCV stays within {1000 * float(np.ptp(ocv_v)):.1f} mV from SOC {soc[0]:g} to {soc[-1]:g}: "
+                "an OCV rises with SOC; is it the right column?")
+    return None
+
+
 def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
     """Read an OCV(SOC) table CSV (``soc`` + one of :data:`OCV_COLUMNS`); blank cells skipped.
 
@@ -219,13 +237,17 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{path}: OCV table has fewer than 2 rows with both soc and {col}")
     if soc_a.max() > 1.5:
         soc_a = soc_a / 100.0
+    if soc_a.max() > 1.0 + 1e-9:  # a fraction past full (percent above 100 fails the bounds above)
+        raise ValueError(f"{path}: soc runs up to {soc_a.max():g}: give it as fractions in [0, 1] or percent "
+                         "in [0, 100]")
     order = np.argsort(soc_a)
     soc_a, ocv_a = soc_a[order], ocv_a[order]
     if (np.diff(soc_a) <= 0).any():
         k = int(np.argmax(np.diff(soc_a) <= 0))
         raise ValueError(f"{path}: soc {soc_a[k]:g} appears twice: the table must have one OCV per SOC")
-    if (problem := ocv_fall_problem(soc_a, ocv_a)) is not None:
-        raise ValueError(f"{path}: {col}: {problem}")
+    for problem in (ocv_fall_problem(soc_a, ocv_a), ocv_span_problem(soc_a, ocv_a)):
+        if problem is not None:
+            raise ValueError(f"{path}: {col}: {problem}")
     return soc_a, ocv_a
 
 

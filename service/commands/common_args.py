@@ -114,6 +114,16 @@ def positive_int(text: str) -> int:
     return n
 
 
+def memory_length(text: str) -> int:
+    """A G-L memory length: 1 to the estimators' :data:`~service.cell.memory.MAX_MEMORY_LENGTH`."""
+    from service.cell.memory import MAX_MEMORY_LENGTH
+
+    n = positive_int(text)
+    if n > MAX_MEMORY_LENGTH:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_MEMORY_LENGTH} (the estimators' longest memory), got {text}")
+    return n
+
+
 def non_negative_int(text: str) -> int:
     n = _int(text)
     if n < 0:

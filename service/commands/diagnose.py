@@ -121,8 +121,17 @@ def _profile_from_args(args):
         profile = table_profile(Path(args.ocv).stem, args.capacity_ah, soc, ocv)
         profile.ocv_table()
     except ValueError as exc:
-        raise UserError(f"{args.ocv}: unusable OCV table: {exc}") from exc
+        raise UserError(f"{args.ocv}: unusable OCV table: {_first_problem(exc)}") from exc
     return profile, True
+
+
+def _first_problem(exc: ValueError) -> str:
+    """One line for a rejected table: a pydantic error's first message, without its dump."""
+    from pydantic import ValidationError
+
+    if isinstance(exc, ValidationError):
+        return str(exc.errors()[0]["msg"]).removeprefix("Value error, ")
+    return str(exc)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -145,8 +154,11 @@ def run(args: argparse.Namespace) -> int:
     if not 0.2 <= args.fit_fraction <= 0.9:
         raise UserError(f"--fit-fraction must be in [0.2, 0.9], got {args.fit_fraction:g}")
     effects = tuple(EFFECTS)
-    if args.effects:
+    if args.effects is not None:
         effects = tuple(dict.fromkeys(e.strip() for e in args.effects.split(",") if e.strip()))
+        if not effects:
+            raise UserError(f"--effects names no effect ({args.effects!r}); choose from {', '.join(EFFECTS)}, "
+                            "or leave the flag out for all")
         bad = [e for e in effects if e not in EFFECTS]
         if bad:
             raise UserError(f"--effects: unknown effect(s) {', '.join(bad)}; choose from {', '.join(EFFECTS)}")

@@ -22,6 +22,7 @@ from service.commands.common_args import (
     add_common_arguments,
     add_fit_period_argument,
     full_at,
+    memory_length,
     output_dir,
     output_file,
     positive_float,
@@ -119,7 +120,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "(docs/results/characterisation.md); naming it with an OCV table or test is an error")
     p.add_argument("--max-seconds", type=positive_float, default=60.0, help="optimiser time bound per temperature (default 60); a search usually ends sooner, and the fit log "
                         "says whether the bound cut one (its end point then depends on the machine's load)")
-    p.add_argument("--memory-length", type=positive_int, default=16, help="G-L memory length used in the fit (default 16)")
+    p.add_argument("--memory-length", type=memory_length, default=16,
+                   help="G-L memory length used in the fit, 1-512 samples (default 16)")
     add_fit_period_argument(p, what="the fit")
     p.add_argument("--force", action="store_true",
                    help="write the profile even when a temperature's fit is poor (it leaves more than 50 mV and "

@@ -71,24 +71,24 @@ class EstimatorSettings(BaseModel):
         "parameters are confounded while SOC is still converging)"
     )
     slow_soc_delta: float = Field(0.005, gt=0, le=0.5, description="SOC movement that triggers a slow update")
-    voltage_noise_v: float = Field(0.01, gt=0, description="measurement noise σ of the SOC filter: sensor noise plus model error")
+    voltage_noise_v: float = Field(0.01, gt=0, le=1, description="measurement noise σ of the SOC filter: sensor noise plus model error")
     voltage_noise_per_c_v: float = Field(
-        0.222, ge=0, description="model error that grows with the C-rate: σ_v² = σ² + (k·|I|/Q)², Q the cell's "
+        0.222, ge=0, le=10, description="model error that grows with the C-rate: σ_v² = σ² + (k·|I|/Q)², Q the cell's "
         "capacity in Ah; per C-rate, not per amp, so a cell of any size (or cells in parallel) gets the same filter; "
         "chosen leave-one-cell-out (docs/results/tuning.md)"
     )
     voltage_noise_per_amp_v: float | None = Field(
-        None, ge=0, description="the same model error per amp (σ_v² = σ² + (k·|I|)²); overrides voltage_noise_per_c_v"
+        None, ge=0, le=10, description="the same model error per amp (σ_v² = σ² + (k·|I|)²); overrides voltage_noise_per_c_v"
     )
     voltage_noise_per_fit_rmse: float = Field(
-        0.0, ge=0, description="model error per C-rate as this multiple of the profile's 2-RC fit RMSE at the "
+        0.0, ge=0, le=1000, description="model error per C-rate as this multiple of the profile's 2-RC fit RMSE at the "
         "cell's temperature (σ per C-rate = k·RMSE_fit(T), V): a temperature the model fits poorly is trusted less "
         "under load; overrides voltage_noise_per_c_v and voltage_noise_per_amp_v when > 0 and the profile stores the "
         "2-RC fit's RMSEs ('socd fit' does); 0: those constants at every temperature. Swept leave-one-cell-out in "
         "docs/results/tuning.md, where it ties with the constant"
     )
     voltage_noise_rel_overpotential: float = Field(
-        0.0, ge=0, description="model error as a fraction of the modelled overpotential "
+        0.0, ge=0, le=10, description="model error as a fraction of the modelled overpotential "
         "|I|·(R_ohm + ΣR_b): scales with the cell's resistance at its temperature"
     )
     adaptive_noise_samples: int = Field(
@@ -104,17 +104,17 @@ class EstimatorSettings(BaseModel):
         "so the model error learned under load does not drown the rests (service.estimators.adaptive_noise)",
     )
     current_noise_c: float = Field(
-        0.0288, ge=0, description="σ of the current integral's error driving SOC process noise, as a fraction "
+        0.0288, ge=0, le=10, description="σ of the current integral's error driving SOC process noise, as a fraction "
         "of 1C (the cell's capacity in A): scale-free, like voltage_noise_per_c_v. It stands for the sensor's "
         "noise and offset and the capacity's error together, so it is larger than a sensor's datasheet σ; "
         "chosen leave-one-cell-out with param_init_std_rel (docs/results/tuning.md)"
     )
     current_noise_a: float | None = Field(
-        None, ge=0, description="the current-sensor noise σ in A (e.g. from the sensor's datasheet); overrides "
+        None, ge=0, le=1000, description="the current-sensor noise σ in A (e.g. from the sensor's datasheet); overrides "
         "current_noise_c"
     )
     branch_noise_v_per_sqrt_s: float = Field(
-        1e-4, ge=0, description="random walk of the CPE branch voltages U_cd, U_df in the SOC filter (V/√s): "
+        1e-4, ge=0, le=1, description="random walk of the CPE branch voltages U_cd, U_df in the SOC filter (V/√s): "
         "how much model error the polarisation states may take up instead of SOC"
     )
     current_bias_state: bool = Field(
@@ -127,10 +127,10 @@ class EstimatorSettings(BaseModel):
         "the capacity in A)"
     )
     current_bias_walk_c_per_sqrt_s: float = Field(
-        1e-5, ge=0, description="random walk of the offset state, fraction of 1C per √s"
+        1e-5, ge=0, le=1, description="random walk of the offset state, fraction of 1C per √s"
     )
     ocv_error_std_v: float = Field(
-        0.0, ge=0, description="augment the SOC filter with an OCV-table error state (V) of this σ: a voltage "
+        0.0, ge=0, le=1, description="augment the SOC filter with an OCV-table error state (V) of this σ: a voltage "
         "offset the table makes at the present SOC, correlated over SOC, so a persistent residual at one SOC "
         "(a long rest on a table that is off there) is not read as evidence sample after sample. 0 = off "
         "(docs/results/tuning.md)"
@@ -155,16 +155,16 @@ class EstimatorSettings(BaseModel):
         1.0, gt=0, le=1, description="sigma-point spread (Zeng Table 3): the SOC points sit α·√n σ from the "
         "estimate, so at 1 the OCV is read across ± 2 σ of SOC (a secant over a flat plateau); chosen "
         "leave-one-cell-out against 0.5 and 0.2 (docs/results/tuning.md)")
-    ukf_beta: float = Field(2.0, ge=0)
+    ukf_beta: float = Field(2.0, ge=0, le=100)
     # n + kappa must stay > 0 for the sigma points (n >= 3 states: two branches and SOC)
     ukf_kappa: float = Field(0.0, ge=-2.0, le=100.0)
-    param_process_rel: float = Field(1e-4, ge=0, description="relative σ per step of parameter random walk (fast)")
+    param_process_rel: float = Field(1e-4, ge=0, le=1, description="relative σ per step of parameter random walk (fast)")
     param_init_std_rel: float = Field(
         0.02, gt=0, le=1, description="the fast identifier's prior σ of the resistances and C_dl, relative to "
         "the profile's: how far it may move them in its first minutes; the random walk above then allows a slow "
         "drift. Chosen leave-one-cell-out with current_noise_c (docs/results/tuning.md)"
     )
-    slow_param_process_rel: float = Field(2e-2, ge=0, description="relative σ per slow update (slow)")
+    slow_param_process_rel: float = Field(2e-2, ge=0, le=1, description="relative σ per slow update (slow)")
     capacity_estimation: Literal["off", "pack-relative", "absolute"] = Field(
         "pack-relative",
         description="online capacity per cell (service.estimators.capacity, a dual EKF on the SOC filter's "
@@ -177,11 +177,11 @@ class EstimatorSettings(BaseModel):
     capacity_bounds_rel: float = Field(0.3, gt=0, lt=1, description="the capacity stays within ± this "
                                        "fraction of the profile's")
     capacity_innovation_inflation: float = Field(
-        10.0, ge=1, description="consecutive SOC-filter innovations that count as one independent sample "
+        10.0, ge=1, le=1e4, description="consecutive SOC-filter innovations that count as one independent sample "
         "for the capacity (model error correlates them)")
-    capacity_walk_rel_per_sqrt_s: float = Field(1e-6, ge=0, description="random walk of the relative "
+    capacity_walk_rel_per_sqrt_s: float = Field(1e-6, ge=0, le=1, description="random walk of the relative "
                                                 "capacity, per √s (fade)")
-    divergence_sigma: float = Field(8.0, gt=1, description="normalised innovation that counts as divergence")
+    divergence_sigma: float = Field(8.0, gt=1, le=1e6, description="normalised innovation that counts as divergence")
 
     def current_noise_sigma_a(self, capacity_ah: np.ndarray) -> np.ndarray:
         """σ of the current sensor [A] for cells of ``capacity_ah`` (:func:`current_sigma_a`)."""
