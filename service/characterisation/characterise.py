@@ -472,7 +472,8 @@ def characterise(
         rep.stage(f"2-RC fit at {t:g} °C", k, n_stages)
         segs = segs_at[t]
         if not segs:
-            raise FitQualityError(f"no stretch of the recordings at {t:g} °C starts from a known state above SOC "
+            names = ", ".join(part.path.name for part, _ in groups[t])
+            raise FitQualityError(f"{names}: no stretch of these recordings at {t:g} °C starts from a known state above SOC "
                                   f"{MIN_FIT_SOC:g} with current on it: nothing to fit there"
                                   + peak_c_rate_note(groups[t], capacity_ah))
         check_excitation(t, segs, groups[t], capacity_ah)
