@@ -537,6 +537,8 @@ SAMPLE_PERIOD_GROUPS = (("25 °C `LA92` at 10 Hz", r"_10Hz"), ("25 °C, 1 s", r"
 #: research.unseen_cell's PyBaMM cells and their recordings by ambient
 UNSEEN_CELLS = ("Chen2020", "Mohtat2020", "Marquis2019")
 UNSEEN_GROUPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"))
+#: PyBaMM sets beyond research.unseen_cell's default three, scored at 25 and 10 °C (``unseen_cell_more``)
+MORE_UNSEEN_CELLS = ("Ai2020", "OKane2022", "Ecker2015")
 #: the characterisations ``two_rc_point_by_fit_file`` scores: (label, tag, temperature groups)
 PAN_TEMPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"), ("−10 °C", r"_m10C_"), ("−20 °C", r"_m20C_"))
 FIT_FILE_CELLS = (("CALCE, DST file", "calce", (("25 °C", r"calce20r"),)),
@@ -1063,6 +1065,11 @@ done""",
     Table("unseen_cell", "characterisation.md", """\
 python -m research.unseen_cell build --jobs 2
 python -m research.unseen_cell run --refit""", unseen_table("unseen_cell"), 15, ("needs:pybamm",)),
+    Table("unseen_cell_more", "characterisation.md", """\
+W=out/unseen_more
+python -m research.unseen_cell build --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --jobs 2 --workdir $W
+python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir $W --refit""",
+          unseen_table("unseen_more", MORE_UNSEEN_CELLS, groups=UNSEEN_GROUPS[:2]), 30, ("needs:pybamm",)),
     Table("hppc_seed_spread", "characterisation.md", REAL + SEED_FIT + """\
 for s in 0 1 2 3 4 5; do seed_fit pan_s$s $s; done
 for s in 0 2; do seed_fit pank4_s$s $s --starts 4; done""",
