@@ -121,6 +121,20 @@ def within_every_cell(recording: Recording, truth_soc: np.ndarray) -> tuple[Reco
     return recording.slice(0, max(2, k)), int(np.flatnonzero(outside[k])[0])
 
 
+def check_sample_step(recording: Recording) -> None:
+    """Refuse a recording sampled more slowly than the service integrates (``MAX_STEP_S``): the
+    daemon would reject every step and the demo would score nothing (a time column in ms, or an
+    hourly log)."""
+    from service.daemon.daemon import MAX_STEP_S
+    from service.errors import UserError
+
+    step = float(np.median(np.diff(recording.time_s))) if len(recording) > 1 else 0.0
+    if step > MAX_STEP_S:
+        raise UserError(f"{recording.path}: samples every {step:g} s (median); the service integrates steps of at "
+                        f"most {MAX_STEP_S:g} s, so nothing would be estimated (is time_s in ms? socd evaluate "
+                        "scores a slow log offline)")
+
+
 def _generated_input_dbc(n_cells: int, workdir: Path) -> Path:
     """A BMS DBC for a pack larger than the shipped one, made by the generator of the shipped
     ones (same layout: 4 cells per voltage frame, one temperature sensor per 4 cells)."""
@@ -192,6 +206,7 @@ def run_demo(
     profile = load_profile(profile_path)
     recording = load_recording(recording_path)
     check_current_sign(recording)  # a charge-positive log would replay every cell the wrong way
+    check_sample_step(recording)
     if seconds is not None:
         stop_i = int(np.searchsorted(recording.time_s, recording.time_s[0] + float(seconds), side="right"))
         recording = recording.slice(0, max(2, stop_i))

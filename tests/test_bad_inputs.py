@@ -414,6 +414,15 @@ def test_output_and_spread_flags_are_checked_as_arguments(tmp_path: Path, capsys
     assert code == 2 and "error: argument" in err and "Traceback" not in err, err
 
 
+def test_demo_refuses_a_recording_sampled_slower_than_the_service_steps(tmp_path: Path, capsys) -> None:
+    """A time column in ms reads as samples 1000 s apart: the daemon rejected every step and the demo
+    printed an RMSE of nan with exit 0."""
+    rows = "\n".join(f"{1000 * t},{1.0 if t % 20 < 10 else 0.0},{3.7 - 0.001 * t},25.0" for t in range(60))
+    rec = _recording(tmp_path, "ms.csv", rows)
+    code, err = run_cli(capsys, ["demo", "--recording", str(rec), "--cells", "2"])
+    assert_one_line_error(code, err, "ms.csv: samples every 1000 s")
+
+
 @pytest.mark.parametrize("effects", [",,", ""])
 def test_diagnose_refuses_an_effects_list_that_names_none(tmp_path: Path, capsys, effects: str) -> None:
     """``--effects ,,`` tried no candidate and answered none; ``--effects ""`` quietly tried all."""
