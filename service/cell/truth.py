@@ -83,6 +83,22 @@ def check_current_sign(rec: Recording) -> None:
                         "current_a)")
 
 
+#: a recording whose largest current is under this C-rate of the capacity given has nothing to estimate
+#: or fit with; every drive, pulse test and C/20 OCV test passes it, a capacity in mAh does not
+MIN_PEAK_C = 0.02
+
+
+def check_current_scale(rec: Recording, capacity_ah: float, source: str) -> None:
+    """Raise :class:`UserError` where the current never reaches :data:`MIN_PEAK_C` of ``capacity_ah``
+    (``source`` names where that capacity came from, e.g. ``--capacity-ah``): a capacity given in mAh reads every current as
+    a thousandth of its C-rate, and the count, the filters and the diagnosis would see a cell at rest."""
+    peak = float(np.max(np.abs(rec.current_a))) if len(rec) else 0.0
+    if peak < MIN_PEAK_C * capacity_ah:
+        raise UserError(f"{rec.path}: its largest current is {peak:.3g} A, {peak / capacity_ah:.2g}C of "
+                        f"{source} {capacity_ah:g}: nothing to estimate with at under {MIN_PEAK_C:g}C "
+                        "(is the capacity in mAh?)")
+
+
 def count_hint(rec: Recording) -> str:
     """The span and sample step the time column gives, for a refusal of a charge count that left
     [0, 1] (a time in ms reads a thousand times too long)."""
@@ -115,13 +131,15 @@ def check_counted_span(rec: Recording, capacity_ah: float) -> None:
                         f"or the capacity is wrong for this recording{count_hint(rec)}")
 
 
-def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
+def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None,
+                    capacity_source: str = "the profile's capacity_ah") -> tuple[Recording, np.ndarray]:
     """The part of ``rec`` to score and its truth SOC.
 
     ``full_at``: seconds of the full-charge point, ``"auto"`` to detect the end of the
     CC-CV charge, or ``None`` (the file's start; with ``soc_true`` the recorded truth).
     """
     check_current_sign(rec)
+    check_current_scale(rec, capacity_ah, capacity_source)
     if full_at is None:
         start = 0
     elif full_at == "auto":

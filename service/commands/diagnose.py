@@ -136,7 +136,7 @@ def _first_problem(exc: ValueError) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from service.cell.profile import save_profile
-    from service.cell.truth import check_counted_span, check_current_sign
+    from service.cell.truth import check_counted_span, check_current_scale, check_current_sign
     from service.characterisation.block_average import describe, to_fit_period
     from service.diagnosis.effects import EFFECTS
     from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
@@ -165,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
     if len(rec) < 100:
         raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
     check_current_sign(rec)
+    check_current_scale(rec, profile.effective_capacity_ah, "--capacity-ah" if fit_base else "the profile's capacity_ah")
     check_counted_span(rec, profile.effective_capacity_ah)
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise UserError(f"--soc0 must be in [0, 1], got {args.soc0:g}")
