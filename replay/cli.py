@@ -262,7 +262,8 @@ def run(args: argparse.Namespace) -> int:
         what = ", ".join(f"{name} {n}x" for name, n in pack.clipped.most_common())
         print(f"socd replay: warning: values beyond their signal's minimum/maximum in {config.dbc.input} were "
               f"sent clipped to it: {what}", file=sys.stderr)
-    print(f"socd replay: {stats.frames_sent} frames sent, {stats.frames_failed} failed, "
+    verb = "sent" if send else ("recorded to " + str(args.record) if args.record else "built (--no-send: no bus, no --record)")
+    print(f"socd replay: {stats.frames_sent} frames {verb}, {stats.frames_failed} failed, "
           f"{stats.span_s:.1f} s of recording in {stats.duration_s:.1f} s"
           + (f", faults {stats.faults}" if stats.faults else ""), file=sys.stderr)
     return 0 if stats.frames_failed == 0 else 1
