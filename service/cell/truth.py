@@ -83,8 +83,10 @@ def check_current_sign(rec: Recording) -> None:
                         "current_a)")
 
 
-#: a recording whose largest current is under this C-rate of the capacity given has nothing to estimate
-#: or fit with; every drive, pulse test and C/20 OCV test passes it, a capacity in mAh does not
+#: a recording whose largest current is under this C-rate of the capacity given has nothing to diagnose
+#: with; every drive, pulse test and C/20 OCV test passes it, a capacity in mAh does not (a parked
+#: log can be scored, so ``socd evaluate`` does not ask it; ``socd fit`` refuses such a file for its
+#: lack of current steps and gives the C-rate)
 MIN_PEAK_C = 0.02
 
 
@@ -131,15 +133,13 @@ def check_counted_span(rec: Recording, capacity_ah: float) -> None:
                         f"or the capacity is wrong for this recording{count_hint(rec)}")
 
 
-def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None,
-                    capacity_source: str = "the profile's capacity_ah") -> tuple[Recording, np.ndarray]:
+def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
     """The part of ``rec`` to score and its truth SOC.
 
     ``full_at``: seconds of the full-charge point, ``"auto"`` to detect the end of the
     CC-CV charge, or ``None`` (the file's start; with ``soc_true`` the recorded truth).
     """
     check_current_sign(rec)
-    check_current_scale(rec, capacity_ah, capacity_source)
     if full_at is None:
         start = 0
     elif full_at == "auto":

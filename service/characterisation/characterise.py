@@ -414,7 +414,7 @@ def characterise(
     groups: dict[float, list[tuple[Recording, np.ndarray]]] = defaultdict(list)
     whole: dict[float, list[Recording]] = defaultdict(list)  # the same recordings before the cut
     for rec, fa in dynamic:
-        part, soc = truth_and_start(rec, capacity_ah, fa, "--capacity-ah")
+        part, soc = truth_and_start(rec, capacity_ah, fa)
         check_counted_soc(part, capacity_ah, float(soc[0]))
         key = temperature_group(part)
         groups[key].append((part, soc))
