@@ -95,8 +95,11 @@ def _note(args: argparse.Namespace, message: str) -> None:
 
 
 def _profile_from_args(args):
+    from pydantic import ValidationError
+
     from service.cell.ocv import load_ocv_csv
     from service.cell.profile import ProfileError, load_profile
+    from service.config import format_validation_error
     from service.diagnosis.pipeline import table_profile
 
     if args.cell:
@@ -120,18 +123,11 @@ def _profile_from_args(args):
     try:
         profile = table_profile(Path(args.ocv).stem, args.capacity_ah, soc, ocv)
         profile.ocv_table()
+    except ValidationError as exc:  # one line, the first problem, as socd check words it
+        raise UserError(format_validation_error(exc, f"{args.ocv}: unusable OCV table").splitlines()[0]) from exc
     except ValueError as exc:
-        raise UserError(f"{args.ocv}: unusable OCV table: {_first_problem(exc)}") from exc
+        raise UserError(f"{args.ocv}: unusable OCV table: {exc}") from exc
     return profile, True
-
-
-def _first_problem(exc: ValueError) -> str:
-    """One line for a rejected table: a pydantic error's first message, without its dump."""
-    from pydantic import ValidationError
-
-    if isinstance(exc, ValidationError):
-        return str(exc.errors()[0]["msg"]).removeprefix("Value error, ")
-    return str(exc)
 
 
 def run(args: argparse.Namespace) -> int:
