@@ -191,8 +191,8 @@ def ocv_span_problem(soc: np.ndarray, ocv_v: np.ndarray) -> str | None:
     if soc[-1] - soc[0] < OCV_MIN_SOC_SPAN:
         return (f"it covers SOC {soc[0]:g} to {soc[-1]:g} only; an OCV table must span at least "
                 f"{OCV_MIN_SOC_SPAN:g} of the SOC range (0 to 1 is usual)")
-    if float(np.max(ocv_v) - np.min(ocv_v)) < OCV_MIN_RISE_V:
-        return (f"the OCV stays within {1000 * float(np.ptp(ocv_v)):.1f} mV from SOC {soc[0]:g} to {soc[-1]:g}: "
+    if (rise := float(np.ptp(ocv_v))) < OCV_MIN_RISE_V:
+        return (f"the OCV stays within {1000 * rise:.1f} mV from SOC {soc[0]:g} to {soc[-1]:g}: "
                 "an OCV rises with SOC; is it the right column?")
     return None
 

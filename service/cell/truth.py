@@ -92,8 +92,8 @@ MIN_PEAK_C = 0.02
 
 def check_current_scale(rec: Recording, capacity_ah: float, source: str) -> None:
     """Raise :class:`UserError` where the current never reaches :data:`MIN_PEAK_C` of ``capacity_ah``
-    (``source`` names where that capacity came from, e.g. ``--capacity-ah``): a capacity given in mAh reads every current as
-    a thousandth of its C-rate, and the count, the filters and the diagnosis would see a cell at rest."""
+    (``source`` names where that capacity came from, e.g. ``--capacity-ah``): a capacity given in mAh
+    reads every current as a thousandth of its C-rate, and the diagnosis would see a cell at rest."""
     peak = float(np.max(np.abs(rec.current_a))) if len(rec) else 0.0
     if peak < MIN_PEAK_C * capacity_ah:
         raise UserError(f"{rec.path}: its largest current is {peak:.3g} A, {peak / capacity_ah:.2g}C of "

@@ -45,11 +45,11 @@ def slow_branches(rec: Recording, capacity_ah: float) -> list[tuple[float, np.nd
     abs_excursion = np.abs(rec.current_a - level)
     out = []
     for sign in (1.0, -1.0):
-        i = sign * rec.current_a
-        slow = (sign * level > REST_CURRENT_C * capacity_ah) & (sign * level <= OCV_TEST_MAX_C * capacity_ah)
+        i, lv = sign * rec.current_a, sign * level
+        slow = (lv > REST_CURRENT_C * capacity_ah) & (lv <= OCV_TEST_MAX_C * capacity_ah)
         if not slow.any():
             continue
-        slow &= (sign * level >= 0.2 * np.max(sign * level[slow])) & (abs_excursion <= 2 * OCV_TEST_MAX_C * capacity_ah)
+        slow &= (lv >= 0.2 * np.max(lv[slow])) & (abs_excursion <= 2 * OCV_TEST_MAX_C * capacity_ah)
         best, best_ah = None, 0.0
         for a, b in _runs(slow):
             ah = float(np.sum(i[a:b] * dt[a:b])) / SECONDS_PER_HOUR
