@@ -663,3 +663,13 @@ def test_no_shared_recording_looks_logged_charge_positive() -> None:
         up, steps = current_sign_steps(replace(rec, current_a=-rec.current_a))
         flagged += steps >= SIGN_MIN_STEPS and up > SIGN_AGREEMENT * steps
     assert flagged >= 60, flagged
+
+
+def test_fit_refuses_a_diffusion_cap_below_the_2rc_fast_bound(tmp_path: Path, capsys) -> None:
+    """``--max-tau-df 0.001`` made the diffusion branch a resistor, and the profile kept the 2-RC
+    start's τ2 of hundreds of seconds anyway."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["fit", str(rec), "--capacity-ah", "2.9", "--max-tau-df", "0.001",
+                                 "-o", str(tmp_path / "cell.toml")])
+    assert_one_line_error(code, err, "--max-tau-df 0.001: the cap must be at least 1 s")
+    assert not (tmp_path / "cell.toml").exists()

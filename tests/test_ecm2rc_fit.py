@@ -19,6 +19,7 @@ from service.characterisation.characterise import (
     FitReport,
     TemperatureFit,
     check_fit_quality,
+    ecm_start_point,
     say_flat_joint_ocv,
 )
 from service.characterisation.ecm2rc_fit import TAU1_BOUNDS_S, fit_ecm2rc, simulate_ecm2rc
@@ -215,3 +216,14 @@ def test_flat_share_and_the_fit_notice_for_a_flat_joint_ocv():
     rep = FitReport(echo=lambda _: None)
     say_flat_joint_ocv(rep, grid, {25.0: rising, 0.0: flat})
     assert len(rep.lines) == 1 and "0 °C" in rep.lines[0] and "flat over 10 % of SOC" in rep.lines[0]
+
+
+@pytest.mark.parametrize("cap_s", [None, 1000.0, 50.0, 2.0])
+def test_the_2rc_start_point_keeps_the_diffusion_cap(cap_s: float | None) -> None:
+    """The fit keeps the 2-RC start where the search ends worse; that point honours ``--max-tau-df``
+    as the search does (it kept τ2 = 400 s under any cap)."""
+    ecm = Ecm2RcPoint(temp_c=25.0, r0=0.02, r1=0.01, tau1_s=10.0, r2=0.015, tau2_s=400.0)
+    pt = ecm_start_point(ecm, 25.0, max_tau_df_s=cap_s)
+    tau_df = (pt.r_df * pt.c_df) ** (1.0 / pt.n)
+    assert tau_df == pytest.approx(min(400.0, cap_s or np.inf))
+    assert (pt.r_ohm, pt.r_ct, pt.r_df) == (0.02, 0.01, 0.015)

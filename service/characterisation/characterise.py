@@ -48,6 +48,7 @@ from service.cell.fitting import (
     LINEAR_I0_A,
     FitResult,
     FitSegment,
+    diffusion_tau,
     fit_parameters,
     last_current_direction,
 )
@@ -70,7 +71,7 @@ from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
 from service.cell.truth import count_hint, counted_soc_excursion, truth_and_start
-from service.characterisation.ecm2rc_fit import TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
+from service.characterisation.ecm2rc_fit import TAU1_BOUNDS_S, TAU2_BOUNDS_S, Ecm2RcFit, fit_ecm2rc
 from service.characterisation.ocv_choices import (
     DEFAULT_OCV_BETWEEN_RESTS,
     NEAR_REFERENCE_K,
@@ -114,6 +115,9 @@ MIN_FIT_SOC = 0.1
 SOC_RESISTANCE_POINTS = 21
 #: the fractional diffusion branch's time constant is capped at the textbook slow branch's bound
 MAX_TAU_DF_S = TAU2_BOUNDS_S[1]
+#: the least cap ``socd fit --max-tau-df`` takes: a diffusion branch faster than the textbook
+#: 2-RC's fastest branch is no longer a diffusion branch
+MIN_TAU_DF_CAP_S = TAU1_BOUNDS_S[0]
 #: a temperature's fit is poor, and refused, when its RMSE [mV] is above both this (Zeng's bound on
 #: the voltage error) and POOR_FIT_SHARE of the RMS overpotential it has to explain (a hard drive in
 #: the cold moves the voltage by a volt; a fit that leaves a tenth of that is still a model of it).
@@ -527,7 +531,7 @@ def characterise(
             colder = max((p for tp, p in points.items() if tp < t), key=lambda p: p.temp_c, default=None)
         kinetics_t = (fit_kinetics if fit_kinetics is not None
                       else kinetics_resolvable([part for part, _ in groups[t]], capacity_ah, t, rep))
-        start = ecm_start_point(ecm[t], t)
+        start = ecm_start_point(ecm[t], t, max_tau_df_s=max_tau_df_s)
         law_t = temperature_law_resolvable(segs, t, rep)
         res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length,
                                        fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
@@ -537,7 +541,7 @@ def characterise(
         ea_t = res.ea_j_mol
         # the 2-RC fit's point read as this model reads a point (the OCV as stored, the fractional
         # time step, no hysteresis): the bar the fit is held to, both read the same way
-        ecm_point = ecm_start_point(ecm[t], t, linear_kinetics=kinetics_t)
+        ecm_point = ecm_start_point(ecm[t], t, linear_kinetics=kinetics_t, max_tau_df_s=max_tau_df_s)
         start_rmse = segments_rmse_mv(prof, ecm_point, prof.hysteresis, segs, memory_length)
         if worse_than(start_rmse, ecm[t].rmse_mv):
             rep.say(f"  {t:g} °C: the 2-RC point reads {start_rmse:.1f} mV as this model simulates it, against "
@@ -795,15 +799,19 @@ def on_2rc_submodel(point: ParameterPoint) -> bool:
     return point.m >= 1.0 - ORDER_ONE_TOL and point.n >= 1.0 - ORDER_ONE_TOL and linear
 
 
-def ecm_start_point(fit: Ecm2RcFit | Ecm2RcPoint, temp_c: float, linear_kinetics: bool = False) -> ParameterPoint:
+def ecm_start_point(fit: Ecm2RcFit | Ecm2RcPoint, temp_c: float, linear_kinetics: bool = False,
+                    max_tau_df_s: float | None = None) -> ParameterPoint:
     """The fractional model's point that is the textbook 2-RC model (orders 1, ``C = τ/R``):
     where the fractional search starts, so it begins at the bar it has to clear.
 
     ``linear_kinetics``: for a fit with the Butler–Volmer term, the start carries the largest
     exchange current of the search (:data:`LINEAR_I0_A`), where the term is practically linear
-    and the point is still the 2-RC model."""
+    and the point is still the 2-RC model.  ``max_tau_df_s``: the diffusion branch's time constant
+    is capped as the search caps it (:func:`service.cell.fitting.diffusion_tau`), so a profile
+    that keeps this point keeps the cap ``socd fit --max-tau-df`` set; below τ2 the point is then
+    that much off the 2-RC model, and its RMSE is measured as it is."""
     r1, r2 = max(fit.r1, 1e-5), max(fit.r2, 1e-5)
-    tau2 = max(fit.tau2_s, 3.0 * fit.tau1_s)
+    tau2 = float(diffusion_tau(np.log(max(fit.tau2_s, 3.0 * fit.tau1_s)), max_tau_df_s))
     i0 = LINEAR_I0_A if linear_kinetics else None
     return ParameterPoint(temp_c=temp_c, r_ohm=max(fit.r0, 1e-4), r_ct=r1, c_dl=fit.tau1_s / r1, m=1.0,
                           r_df=r2, c_df=tau2 / r2, n=1.0, i0_a=i0)

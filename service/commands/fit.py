@@ -75,8 +75,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "orders poorly (the bundled Panasonic profile uses 0.5)")
     p.add_argument("--max-tau-df", type=positive_float, default=None, metavar="S",
                    help="cap on the diffusion branch's time constant, s (default 1000, the textbook 2-RC's slow "
-                   "bound); a longer one can follow the slow polarisation of a long drive, and can also let the "
-                   "branch act as an integrator that soaks up OCV and capacity error")
+                   "bound; at least 1); a longer one can follow the slow polarisation of a long drive, and can also let "
+                   "the branch act as an integrator that soaks up OCV and capacity error")
     p.add_argument("--monotone", action="store_true",
                    help="bound each temperature's R_ohm, R_ct, R_df by the neighbouring fitted temperatures "
                    "(resistance rises in the cold); off by default")
@@ -152,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
     from service.characterisation.block_average import describe, to_fit_period
     from service.characterisation.characterise import (
         MAX_TAU_DF_S,
+        MIN_TAU_DF_CAP_S,
         FitReport,
         PoorFitError,
         characterise,
@@ -162,6 +163,9 @@ def run(args: argparse.Namespace) -> int:
     refuse_overwriting_inputs(args.output, [*args.recordings, args.ocv], "-o")
     if not args.capacity_ah > 0:
         raise UserError(f"--capacity-ah must be > 0, got {args.capacity_ah}")
+    if args.max_tau_df is not None and args.max_tau_df < MIN_TAU_DF_CAP_S:
+        raise UserError(f"--max-tau-df {args.max_tau_df:g}: the cap must be at least {MIN_TAU_DF_CAP_S:g} s, the "
+                        "textbook 2-RC's least time constant; a faster diffusion branch is no diffusion branch")
     averaged = to_fit_period([load_recording(p) for p in args.recordings], args.fit_period)
     recs = [a.recording for a in averaged]
     full = per_recording(args.full_at, len(recs), "--full-at")
