@@ -163,6 +163,8 @@ def run(args: argparse.Namespace) -> int:
     check_current_sign(rec)
     check_current_scale(rec, profile.effective_capacity_ah, "--capacity-ah" if fit_base else "the profile's capacity_ah")
     check_counted_span(rec, profile.effective_capacity_ah)
+    if not fit_base and (beyond := profile.temperatures_beyond_fit(rec.temperature_c)) is not None:
+        print(f"socd diagnose: warning: {rec.path.name}: {beyond}", file=sys.stderr)
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise UserError(f"--soc0 must be in [0, 1], got {args.soc0:g}")
     if args.save_effect is not None:
