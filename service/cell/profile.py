@@ -318,18 +318,18 @@ class CellProfile(_Strict):
 
     # -- derived objects ----------------------------------------------------------------
     def temperatures_beyond_fit(self, temp_c: np.ndarray) -> str | None:
-        """A sentence when ``temp_c`` (a recording's) reaches more than :data:`FIT_TEMPERATURE_MARGIN_K`
-        beyond the temperatures this profile's parameters were fitted at, else None: there the
-        resistances follow the end segment's Arrhenius slope (:meth:`parameters_at`), which no data
-        checked, up to :data:`EXTRAPOLATE_C` K, and are held beyond."""
+        """A sentence when a recording's median temperature ``temp_c`` lies more than
+        :data:`FIT_TEMPERATURE_MARGIN_K` outside the temperatures this profile's parameters were
+        fitted at, else None: there the resistances follow the end segment's Arrhenius slope
+        (:meth:`parameters_at`), which no data checked, up to :data:`EXTRAPOLATE_C` K, and are held
+        beyond.  The median, not the extremes: a drive heats the cell by several kelvin."""
         fitted = [p.temp_c for p in self.parameters]
-        lo, hi = float(np.min(temp_c)), float(np.max(temp_c))
-        if min(fitted) - FIT_TEMPERATURE_MARGIN_K <= lo and hi <= max(fitted) + FIT_TEMPERATURE_MARGIN_K:
+        median = float(np.median(temp_c))
+        if min(fitted) - FIT_TEMPERATURE_MARGIN_K <= median <= max(fitted) + FIT_TEMPERATURE_MARGIN_K:
             return None
         span = f"{fitted[0]:g} °C" if len(fitted) == 1 else f"{min(fitted):g} to {max(fitted):g} °C"
-        recorded = f"{lo:.0f} °C" if round(lo) == round(hi) else f"{lo:.0f} to {hi:.0f} °C"
-        return (f"recorded at {recorded}, more than {FIT_TEMPERATURE_MARGIN_K:g} K outside the {span} profile "
-                f"{self.name!r} was fitted at: its parameters there are extrapolated (and held beyond "
+        return (f"recorded at {median:.0f} °C (median), more than {FIT_TEMPERATURE_MARGIN_K:g} K outside the {span} "
+                f"profile {self.name!r} was fitted at: its parameters there are extrapolated (and held beyond "
                 f"{EXTRAPOLATE_C:g} K)")
 
     @property
@@ -421,9 +421,9 @@ class CellProfile(_Strict):
 
 #: how far beyond the fitted temperatures parameters are extrapolated
 EXTRAPOLATE_C = 15.0
-#: a recording reaching further than this beyond the fitted temperatures is named in a warning
-#: (:meth:`CellProfile.temperatures_beyond_fit`); a drive's self-heating stays within it
-FIT_TEMPERATURE_MARGIN_K = 5.0
+#: a recording whose median temperature lies further than this beyond the fitted temperatures is
+#: named in a warning (:meth:`CellProfile.temperatures_beyond_fit`)
+FIT_TEMPERATURE_MARGIN_K = 10.0
 
 
 def kinetic_linear_ohm(i0_a: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
