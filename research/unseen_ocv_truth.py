@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,9 @@ class OcvTruthRow:
     stretched_mv: list[float]
     #: the same with ``short_charge``
     short_charge_mv: list[float]
+    #: mean SOC the default (stretched) curve reads at the bulk OCV, minus the true SOC, per band, %:
+    #: the sign and size of what an estimator inherits from the table (positive: reads high)
+    stretched_soc_pct: list[float] = field(default_factory=list)
 
 
 def bulk_ocv(cell: str, ambient_c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -56,6 +59,23 @@ def band_rms_mv(grid: np.ndarray, error_v: np.ndarray) -> list[float]:
     return out
 
 
+def band_mean_pct(grid: np.ndarray, soc_error: np.ndarray) -> list[float]:
+    """Mean of ``soc_error`` (a fraction) in each band of :data:`BANDS`, %."""
+    out = []
+    for lo, hi in BANDS:
+        inside = (grid >= lo) & ((grid < hi) if hi < 1.0 else (grid <= hi))
+        out.append(round(100.0 * float(np.mean(soc_error[inside])), 2))
+    return out
+
+
+def soc_read_error(grid: np.ndarray, table_v: np.ndarray, truth_v: np.ndarray) -> np.ndarray:
+    """The SOC a table ``(grid, table_v)`` reads at the cell's own OCV ``truth_v`` on the same grid,
+    minus the grid (the true SOC); the table is read as the estimators read it, by inverse
+    interpolation, flat stretches at their first SOC."""
+    rising, first = np.unique(table_v, return_index=True)
+    return np.interp(truth_v, rising, grid[first]) - grid
+
+
 def compare(cell: str, ambient_c: float, workdir: Path) -> OcvTruthRow:
     stem = f"{cell}_{_temp_tag(ambient_c)}_ocv"
     capacity = json.loads((workdir / f"{stem}.json").read_text())["capacity_ah"]
@@ -66,7 +86,8 @@ def compare(cell: str, ambient_c: float, workdir: Path) -> OcvTruthRow:
     truth = np.interp(stretched.grid, soc, ocv)
     return OcvTruthRow(cell, ambient_c, round(stretched.charge_reach, 4),
                        band_rms_mv(stretched.grid, stretched.ocv_v - truth),
-                       band_rms_mv(short.grid, short.ocv_v - truth))
+                       band_rms_mv(short.grid, short.ocv_v - truth),
+                       band_mean_pct(stretched.grid, soc_read_error(stretched.grid, stretched.ocv_v, truth)))
 
 
 def markdown(rows: list[OcvTruthRow]) -> str:
@@ -77,6 +98,12 @@ def markdown(rows: list[OcvTruthRow]) -> str:
         for label, mv in (("stretched (default)", r.stretched_mv), ("`--short-charge`", r.short_charge_mv)):
             lines.append(f"| `{r.cell}` | {r.ambient_c:g} °C | {100 * r.charge_reach:.1f} % | {label} | "
                          + " | ".join(f"{x:.1f}" for x in mv) + " |")
+    read = [r for r in rows if r.stretched_soc_pct]
+    if read:
+        lines += ["", "SOC the default curve reads at the cell's own OCV, minus the true SOC, mean per band (%; "
+                  "positive: reads high):", "", f"| cell | ambient | {bands} |", "|---|---|" + "---|" * len(BANDS)]
+        lines += [f"| `{r.cell}` | {r.ambient_c:g} °C | " + " | ".join(f"{x:+.2f}" for x in r.stretched_soc_pct) + " |"
+                  for r in read]
     return "\n".join(lines)
 
 

@@ -1070,6 +1070,12 @@ W=out/unseen_more
 python -m research.unseen_cell build --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --jobs 2 --workdir $W
 python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir $W --refit""",
           unseen_table("unseen_more", MORE_UNSEEN_CELLS, groups=UNSEEN_GROUPS[:2]), 30, ("needs:pybamm",)),
+    Table("unseen_ocv_truth_more", "characterisation.md", f"""\
+python -m research.unseen_ocv_truth --cells {",".join(MORE_UNSEEN_CELLS)} --ambients 25,10 --workdir out/unseen_more \\
+    --json out/unseen_ocv_truth_more.json   # the OCV tests are unseen_cell_more's""",
+          lambda out: tool("unseen_ocv_truth").markdown(
+              [tool("unseen_ocv_truth").OcvTruthRow(**r) for r in _read(out, "unseen_ocv_truth_more.json")]),
+          2, ("needs:unseen_cell_more", "needs:pybamm")),
     Table("hppc_seed_spread", "characterisation.md", REAL + SEED_FIT + """\
 for s in 0 1 2 3 4 5; do seed_fit pan_s$s $s; done
 for s in 0 2; do seed_fit pank4_s$s $s --starts 4; done""",
