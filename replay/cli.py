@@ -42,7 +42,9 @@ from service.commands.common_args import (
     progress_enabled,
     refuse_overwriting_inputs,
     relative_sigma,
+    sensor_temperature_sigma,
     setup_logging,
+    start_soc_sigma,
     stuck_cell,
 )
 from service.errors import UserError
@@ -72,10 +74,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
                    help="σ of capacity (relative)")
     g.add_argument("--spread-resistance", type=relative_sigma, default=0.0, metavar="REL",
                    help="σ of R_ohm (relative)")
-    g.add_argument("--spread-soc", type=non_negative_float, default=0.0, metavar="SOC",
-                   help="σ of start SOC (absolute)")
-    g.add_argument("--spread-temperature", type=non_negative_float, default=0.0, metavar="DEGC",
-                   help="σ of per-sensor temperature offset")
+    g.add_argument("--spread-soc", type=start_soc_sigma, default=0.0, metavar="SOC",
+                   help="σ of start SOC (absolute, 0-0.2; draws are clipped at ±3σ)")
+    g.add_argument("--spread-temperature", type=sensor_temperature_sigma, default=0.0, metavar="DEGC",
+                   help="σ of per-sensor temperature offset, K (0-10; draws are clipped at ±3σ)")
     g.add_argument("--seed", type=SEED, default=0, help="seed of the spread and the faults (default 0)")
     g.add_argument("--time-offset", type=finite_float, default=0.0, metavar="S", help="add to frame timestamps")
     g.add_argument("--truth-out", metavar="FILE.csv", type=output_file(), help="write per-cell truth SOC")

@@ -107,6 +107,14 @@ def relative_sigma(text: str) -> float:
     return x
 
 
+#: σ of a start-SOC spread: three of it span the SOC range's middle half, so a wider spread puts cells
+#: at 0 or 1 by clipping instead of by draw
+start_soc_sigma = float_in(0.0, 0.2, "a start-SOC σ (a fraction)")
+#: σ of a per-sensor temperature offset, K: three of it is a sensor 30 K off, a fault (--stuck-cell
+#: and the faults group model those), not a spread
+sensor_temperature_sigma = float_in(0.0, 10.0, "a sensor temperature σ in K")
+
+
 def positive_int(text: str) -> int:
     n = _int(text)
     if n < 1:
