@@ -48,7 +48,6 @@ from service.cell.fitting import (
     LINEAR_I0_A,
     FitResult,
     FitSegment,
-    diffusion_tau,
     fit_parameters,
     last_current_direction,
 )
@@ -811,7 +810,8 @@ def ecm_start_point(fit: Ecm2RcFit | Ecm2RcPoint, temp_c: float, linear_kinetics
     that keeps this point keeps the cap ``socd fit --max-tau-df`` set; below τ2 the point is then
     that much off the 2-RC model, and its RMSE is measured as it is."""
     r1, r2 = max(fit.r1, 1e-5), max(fit.r2, 1e-5)
-    tau2 = float(diffusion_tau(np.log(max(fit.tau2_s, 3.0 * fit.tau1_s)), max_tau_df_s))
+    tau2 = max(fit.tau2_s, 3.0 * fit.tau1_s)
+    tau2 = tau2 if max_tau_df_s is None else min(tau2, max_tau_df_s)  # as diffusion_tau caps the search's
     i0 = LINEAR_I0_A if linear_kinetics else None
     return ParameterPoint(temp_c=temp_c, r_ohm=max(fit.r0, 1e-4), r_ct=r1, c_dl=fit.tau1_s / r1, m=1.0,
                           r_df=r2, c_df=tau2 / r2, n=1.0, i0_a=i0)
