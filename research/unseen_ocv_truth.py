@@ -100,8 +100,9 @@ def markdown(rows: list[OcvTruthRow]) -> str:
                          + " | ".join(f"{x:.1f}" for x in mv) + " |")
     read = [r for r in rows if r.stretched_soc_pct]
     if read:
-        lines += ["", "SOC the default curve reads at the cell's own OCV, minus the true SOC, mean per band (%; "
-                  "positive: reads high):", "", f"| cell | ambient | {bands} |", "|---|---|" + "---|" * len(BANDS)]
+        title = ("SOC the default curve reads at the cell's own OCV, minus the true SOC, mean per band (%; "
+                 "positive: reads high):")
+        lines += ["", title, "", f"| cell | ambient | {bands} |", "|---|---|" + "---|" * len(BANDS)]
         lines += [f"| `{r.cell}` | {r.ambient_c:g} °C | " + " | ".join(f"{x:+.2f}" for x in r.stretched_soc_pct) + " |"
                   for r in read]
     return "\n".join(lines)

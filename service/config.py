@@ -36,6 +36,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 
 from service.assets import config_path, dbc_path, example_configs, profile_path
 from service.estimators.settings import EstimatorSettings
+from service.strict_numbers import NoBooleanNumbers
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +60,7 @@ class ConfigError(Exception):
     """A configuration that cannot be used; the message is ``<file>: <field.path>: <msg>``."""
 
 
-class _Section(BaseModel):
+class _Section(NoBooleanNumbers, BaseModel):
     # a NaN or infinite setting (a period, a scale, a noise level) is a mistake, never a value
     model_config = ConfigDict(extra="forbid", validate_assignment=False, allow_inf_nan=False)
 
@@ -372,9 +373,21 @@ class CheckpointConfig(_Section):
     @field_validator("path")
     @classmethod
     def _a_file(cls, v: Path) -> Path:
-        """A folder here would be moved aside as an unusable checkpoint at start-up."""
+        """A folder here would be moved aside as an unusable checkpoint at start-up, and any other
+        file that is not a checkpoint (a recording, this config) would be moved aside, then
+        overwritten by the next save."""
+        from service.daemon.checkpoint import MAGIC
+
         if str(v) in ("", ".") or v.is_dir():
             raise ValueError(f"{str(v) or '(empty)'} is a folder; give the checkpoint's file path")
+        try:
+            with v.open("rb") as f:
+                head = f.read(len(MAGIC))
+        except OSError:
+            return v  # absent (the first start) or unreadable: the daemon reports it at restore
+        if head and not MAGIC.startswith(head[: len(MAGIC)]):
+            raise ValueError(f"{v} is an existing file that is not a socd checkpoint; the service would move it "
+                             "aside and write its state there: give another path")
         return v
     interval_s: float = Field(30.0, gt=0)
     max_age_s: float = Field(

@@ -696,3 +696,56 @@ def test_a_recording_beyond_the_profiles_temperatures_is_named(tmp_path: Path, c
             assert "-20 to 25 °C profile 'panasonic_18650pf'" in warning[0], err
         else:
             assert warning == [], err
+
+
+def _config_with(tmp_path: Path, body: str, name: str = "c.toml") -> Path:
+    cfg = tmp_path / name
+    cfg.write_text(f'cell_profile = "{DEFAULT_CELL_PROFILE}"\n' + body)
+    return cfg
+
+
+@pytest.mark.parametrize("command", ["check", "run"])
+def test_a_checkpoint_path_onto_another_file_is_refused_and_the_file_kept(tmp_path: Path, capsys,
+                                                                          command: str) -> None:
+    """`socd check` said OK to a checkpoint path naming the config itself, and `socd run` then moved the
+    config aside as an unusable checkpoint (a recording named there went the same way)."""
+    cfg = tmp_path / "self.toml"
+    cfg.write_text(f'cell_profile = "{DEFAULT_CELL_PROFILE}"\n[bus]\ninterface = "virtual"\n'
+                   f'channel = "ckpt-{os.getpid()}"\n[checkpoint]\npath = "{cfg}"\n')
+    before = cfg.read_bytes()
+    code, err = run_cli(capsys, [command, "--config", str(cfg)])
+    assert_one_line_error(code, err, f"{cfg} is an existing file that is not a socd checkpoint")
+    assert cfg.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["self.toml"]
+
+
+def test_a_real_checkpoint_file_at_the_path_is_accepted(tmp_path: Path, capsys) -> None:
+    from service.daemon.checkpoint import encode_checkpoint
+
+    ckpt = tmp_path / "state.ckpt"
+    ckpt.write_bytes(encode_checkpoint({"soc": np.zeros(2)}, {"t_s": 0.0}))
+    cfg = _config_with(tmp_path, f'[checkpoint]\npath = "{ckpt}"\n')
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert code == 0, err
+
+
+@pytest.mark.parametrize("section, field", [("mapping", "current_sign"), ("pack", "n_cells"),
+                                            ("estimator", "memory_length"), ("bus", "max_open_retries")])
+def test_a_boolean_for_a_number_in_a_config_is_refused(tmp_path: Path, capsys, section: str, field: str) -> None:
+    """pydantic read `current_sign = true` as +1 (the current convention flipped) and `n_cells = true`
+    as a one-cell pack; `socd check` said OK to both."""
+    cfg = _config_with(tmp_path, f"[{section}]\n{field} = true\n")
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert_one_line_error(code, err, f"c.toml: {section}: {field} = true: a number is expected, not a boolean")
+
+
+def test_a_boolean_field_still_takes_a_boolean_and_a_profile_refuses_one_for_a_number(tmp_path: Path,
+                                                                                      capsys) -> None:
+    code, err = run_cli(capsys, ["check", "--config", str(_config_with(tmp_path, "[bus]\nfd = true\n"))])
+    assert code == 0, err
+    text = DEFAULT_CELL_PROFILE.read_text()
+    prof = tmp_path / "p.toml"
+    prof.write_text("\n".join("capacity_ah = true" if ln.startswith("capacity_ah =") else ln
+                              for ln in text.splitlines()) + "\n")
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["evaluate", "--cell", str(prof), str(rec)])
+    assert_one_line_error(code, err, "p.toml: capacity_ah = true: a number is expected, not a boolean")

@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from service.cell.ocv import OCV_V_RANGE, OcvTable, ocv_fall_problem
 from service.cell.soc_dependence import SocScaleTable
+from service.strict_numbers import NoBooleanNumbers
 from service.validation import RecordingBounds
 
 SCHEMA_VERSION = 1
@@ -36,7 +37,7 @@ FARADAY = 96485.33212  # C/mol
 KELVIN = 273.15
 
 
-class _Strict(BaseModel):
+class _Strict(NoBooleanNumbers, BaseModel):
     # a NaN or infinite number in a profile is a corrupt file, never a value
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
@@ -515,7 +516,7 @@ def load_profile(path: str | Path) -> CellProfile:
         first = exc.errors()[0]
         field = ".".join(str(p) for p in first["loc"])
         where = f"field '{field}': " if field else ""
-        raise ProfileError(f"{path}: {where}{first['msg']}") from exc
+        raise ProfileError(f"{path}: {where}{first['msg'].removeprefix('Value error, ')}") from exc
 
 
 def save_profile(profile: CellProfile, path: str | Path) -> None:

@@ -12,6 +12,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.cell.memory import MAX_MEMORY_LENGTH
+from service.strict_numbers import NoBooleanNumbers
 
 
 def current_sigma_a(noise_a: float | None, noise_c: float, capacity_ah: np.ndarray) -> np.ndarray:
@@ -21,7 +22,7 @@ def current_sigma_a(noise_a: float | None, noise_c: float, capacity_ah: np.ndarr
     return np.full_like(capacity, noise_a) if noise_a is not None else noise_c * capacity
 
 
-class EstimatorSettings(BaseModel):
+class EstimatorSettings(NoBooleanNumbers, BaseModel):
     # a NaN or infinite setting is a mistake (a NaN UKF weight reset the filter at every step)
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
