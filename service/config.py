@@ -284,11 +284,15 @@ class MappingConfig(_Section):
         return out
 
 
+#: s: the shortest publication period taken; at 1e-9 s the publishing loop spun a core at 100 % doing nothing
+MIN_PUBLISH_PERIOD_S = 0.001
+
+
 class OutputConfig(_Section):
     can_enabled: bool = True
-    can_period_s: float = Field(1.0, gt=0)
+    can_period_s: float = Field(1.0, ge=MIN_PUBLISH_PERIOD_S)
     zenoh_enabled: bool = True
-    zenoh_period_s: float = Field(0.5, gt=0, description="period of the full Zenoh round: every cell's "
+    zenoh_period_s: float = Field(0.5, ge=MIN_PUBLISH_PERIOD_S, description="period of the full Zenoh round: every cell's "
                                   "parameters, health, and the SOC keys no estimate refreshed since the last one")
     min_publish_interval_s: float = Field(0.05, ge=0, description="no Zenoh key is put more often than this; "
                                           "SOC and summary go out when estimated, held back only by it (0 = never)")
@@ -301,10 +305,17 @@ def endpoint_problem(e: str) -> str | None:
     proto, _, address = e.partition("/")
     if not proto or not address or not proto.replace("-", "").isalnum():
         return f"{e!r} is not a Zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)"
-    _, sep, port = address.rpartition(":")
+    _, sep, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    if proto in PORTED_PROTOCOLS and not (sep and port.isdigit()):
+        return f"{e!r}: a {proto} endpoint needs a numeric port (<host>:<port>, e.g. tcp/127.0.0.1:7447)"
     if sep and port.isdigit() and int(port) > 65535:
         return f"{e!r}: port {port} is outside 0..65535"
     return None
+
+
+#: Zenoh link protocols addressed by host and port (Zenoh failed on a bad port with "invalid port
+#: value" at every retry, naming neither the endpoint nor the field)
+PORTED_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 
 
 def key_chunk_problem(v: str) -> str | None:

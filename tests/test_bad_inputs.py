@@ -749,3 +749,28 @@ def test_a_boolean_field_still_takes_a_boolean_and_a_profile_refuses_one_for_a_n
     rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
     code, err = run_cli(capsys, ["evaluate", "--cell", str(prof), str(rec)])
     assert_one_line_error(code, err, "p.toml: capacity_ah = true: a number is expected, not a boolean")
+
+
+@pytest.mark.parametrize("endpoint", ["tcp/127.0.0.1", "tcp/localhost:7447x", "tcp/127.0.0.1:-1"])
+def test_a_zenoh_endpoint_without_a_numeric_port_is_refused(tmp_path: Path, capsys, endpoint: str) -> None:
+    """`socd check` said OK and `socd run` retried for ever on Zenoh's "invalid port value", naming
+    neither the field nor the endpoint; `socd watch` waited and blamed the service."""
+    cfg = _config_with(tmp_path, f'[zenoh]\nlisten = ["{endpoint}"]\n')
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert_one_line_error(code, err, f"c.toml: zenoh.listen: '{endpoint}': a tcp endpoint needs a numeric port")
+    code, err = run_cli(capsys, ["watch", "--once", "--timeout", "1", "--connect", endpoint])
+    assert code == 2 and "argument --connect" in err and "numeric port" in err, err
+
+
+@pytest.mark.parametrize("field", ["can_period_s", "zenoh_period_s"])
+def test_a_publication_period_under_a_millisecond_is_refused(tmp_path: Path, capsys, field: str) -> None:
+    """At 1e-9 s the publishing loop spun a core doing nothing."""
+    cfg = _config_with(tmp_path, f"[output]\n{field} = 1e-9\n")
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert_one_line_error(code, err, f"c.toml: output.{field}: Input should be greater than or equal to 0.001")
+
+
+def test_a_bad_bitrate_flag_is_named_in_one_line(capsys) -> None:
+    """`socd run -i virtual -b 0` printed pydantic's multi-line dump, which never named -b/--bitrate."""
+    code, err = run_cli(capsys, ["run", "-i", "virtual", "-c", f"bitrate-{os.getpid()}", "-b", "0"])
+    assert_one_line_error(code, err, "argument -b/--bitrate: Input should be greater than 0, got 0")

@@ -25,10 +25,13 @@ from typing import Any
 
 import can
 import can.cli
+from pydantic import ValidationError
 
 from service.config import BusConfig, SocdConfig
 
 #: namespace attributes python-can's flags set (absent when not given: argparse.SUPPRESS)
+#: the command-line flag that sets each bus field (python-can's names)
+_FLAG_NAMES = {"bitrate": "-b/--bitrate", "data_bitrate": "--data-bitrate", "fd": "--fd"}
 _FLAG_KEYS = ("interface", "channel", "bitrate", "fd", "data_bitrate", "timing", "can_filters", "bus_kwargs")
 
 
@@ -162,6 +165,12 @@ def resolve_bus(ns: argparse.Namespace | None, config: SocdConfig, *, user_confi
     values["kwargs"] = kwargs
     try:
         bus = BusConfig.model_validate(values)
+    except ValidationError as exc:  # one line naming the flag or field, not pydantic's dump
+        err = exc.errors()[0]
+        key = str(err["loc"][0]) if err["loc"] else ""
+        name = f"argument {_FLAG_NAMES[key]}" if key in flags and key in _FLAG_NAMES else f"bus.{key}"
+        raise BusConfigError(f"bus settings: {name}: {err['msg'].removeprefix('Value error, ')}, "
+                             f"got {err.get('input')!r}") from None
     except ValueError as exc:
         raise BusConfigError(f"bus settings: {exc}") from None
     return ResolvedBus(bus, origin["interface"], origin["channel"])
