@@ -34,7 +34,7 @@ from service.commands.common_args import (
     add_common_arguments,
     add_soc0_argument,
     bus_gap,
-    finite_float,
+    float_in,
     non_negative_float,
     output_file,
     positive_int,
@@ -79,7 +79,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     g.add_argument("--spread-temperature", type=sensor_temperature_sigma, default=0.0, metavar="DEGC",
                    help="σ of per-sensor temperature offset, K (0-10; draws are clipped at ±3σ)")
     g.add_argument("--seed", type=SEED, default=0, help="seed of the spread and the faults (default 0)")
-    g.add_argument("--time-offset", type=finite_float, default=0.0, metavar="S", help="add to frame timestamps")
+    g.add_argument("--time-offset", type=float_in(-1e10, 1e10, "an offset in s"), default=0.0, metavar="S",
+                   help="add to frame timestamps (|S| up to 1e10: Unix times fit)")
     g.add_argument("--truth-out", metavar="FILE.csv", type=output_file(), help="write per-cell truth SOC")
 
     g = p.add_argument_group("pacing")
@@ -95,8 +96,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     g.add_argument("--drop", type=probability, default=0.0, metavar="P", help="drop each frame with probability P")
     g.add_argument("--duplicate", type=probability, default=0.0, metavar="P", help="send a frame twice")
     g.add_argument("--reorder", type=probability, default=0.0, metavar="P", help="swap a frame with the next")
-    g.add_argument("--jitter", type=non_negative_float, default=0.0, metavar="SECONDS",
-                   help="delay frames by U(0, S)")
+    g.add_argument("--jitter", type=float_in(0.0, 10.0, "a delay in s"), default=0.0, metavar="SECONDS",
+                   help="delay frames by U(0, S), S up to 10")
     g.add_argument("--corrupt", type=probability, default=0.0, metavar="P", help="flip a payload bit or change DLC")
     g.add_argument("--stuck-cell", action="append", default=[], type=stuck_cell, metavar="I[:T0]",
                    help="freeze cell I's (0-based) voltage from T0 s (repeatable)")
