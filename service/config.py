@@ -378,6 +378,10 @@ def default_checkpoint_path() -> Path:
     return Path(state_dir or ".") / CHECKPOINT_FILE_NAME
 
 
+#: the first bytes of every checkpoint file (:mod:`service.daemon.checkpoint` writes them)
+CHECKPOINT_MAGIC = b"SOCD-CHECKPOINT\n"
+
+
 class CheckpointConfig(_Section):
     path: Path = Field(default_factory=default_checkpoint_path)
 
@@ -387,16 +391,14 @@ class CheckpointConfig(_Section):
         """A folder here would be moved aside as an unusable checkpoint at start-up, and any other
         file that is not a checkpoint (a recording, this config) would be moved aside, then
         overwritten by the next save."""
-        from service.daemon.checkpoint import MAGIC
-
         if str(v) in ("", ".") or v.is_dir():
             raise ValueError(f"{str(v) or '(empty)'} is a folder; give the checkpoint's file path")
         try:
             with v.open("rb") as f:
-                head = f.read(len(MAGIC))
+                head = f.read(len(CHECKPOINT_MAGIC))
         except OSError:
             return v  # absent (the first start) or unreadable: the daemon reports it at restore
-        if head and not MAGIC.startswith(head[: len(MAGIC)]):
+        if head and not CHECKPOINT_MAGIC.startswith(head):
             raise ValueError(f"{v} is an existing file that is not a socd checkpoint; the service would move it "
                              "aside and write its state there: give another path")
         return v
