@@ -466,13 +466,20 @@ class SocdConfig(BaseSettings):
                 f"pack.n_cells is {n}"
             )
         seen: dict[str, str] = {}
+        counters = [(path, name) for path, name in m.all_signals() if path.startswith("mapping.counter_signals")]
         for path, name in m.all_signals():
             if path.startswith("mapping.counter_signals"):
                 continue
             if name in seen:
                 raise ValueError(f"{path}: signal {name!r} is already mapped as {seen[name]}")
             seen[name] = path
+        for path, name in counters:  # replay would write its count into the measurement, run read it as one
+            if name in seen:
+                raise ValueError(f"{path}: signal {name!r} is a measurement ({seen[name]}), not a rolling counter")
         for k, t in enumerate(m.temperature_signals):
+            if len(set(t.cells)) < len(t.cells):
+                twice = next(c for c in t.cells if t.cells.count(c) > 1)
+                raise ValueError(f"mapping.temperature_signals[{k}].cells: cell {twice} is listed twice")
             for j, c in enumerate(t.cells):
                 if not 0 <= c < n:
                     raise ValueError(

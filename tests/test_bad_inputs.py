@@ -776,3 +776,17 @@ def test_a_bad_bitrate_flag_is_named_in_one_line(capsys) -> None:
     """`socd run -i virtual -b 0` printed pydantic's multi-line dump, which never named -b/--bitrate."""
     code, err = run_cli(capsys, ["run", "-i", "virtual", "-c", f"bitrate-{os.getpid()}", "-b", "0"])
     assert_one_line_error(code, err, "argument -b/--bitrate: Input should be greater than 0, got 0")
+
+
+@pytest.mark.parametrize("body, names", [
+    ('[pack]\nn_cells = 8\n[mapping]\ncounter_signals = {BMS_PackStatus = "BMS_PackCurrent"}\n',
+     "c.toml: mapping.counter_signals.BMS_PackStatus: signal 'BMS_PackCurrent' is a measurement"),
+    ('[pack]\nn_cells = 2\n[mapping]\ntemperature_signals = [{signal = "BMS_Temp01_C", cells = [0, 0, 1]}]\n',
+     "c.toml: mapping.temperature_signals[0].cells: cell 0 is listed twice"),
+])
+def test_a_counter_on_a_measurement_and_a_cell_listed_twice_are_refused(tmp_path: Path, capsys, body: str,
+                                                                        names: str) -> None:
+    """A counter mapped onto the pack current passed `socd check`, and `socd replay` wrote its count into
+    the current field; a cell listed twice under one sensor passed too."""
+    code, err = run_cli(capsys, ["check", "--config", str(_config_with(tmp_path, body))])
+    assert_one_line_error(code, err, names)
