@@ -292,8 +292,9 @@ class OutputConfig(_Section):
     can_enabled: bool = True
     can_period_s: float = Field(1.0, ge=MIN_PUBLISH_PERIOD_S)
     zenoh_enabled: bool = True
-    zenoh_period_s: float = Field(0.5, ge=MIN_PUBLISH_PERIOD_S, description="period of the full Zenoh round: every cell's "
-                                  "parameters, health, and the SOC keys no estimate refreshed since the last one")
+    zenoh_period_s: float = Field(0.5, ge=MIN_PUBLISH_PERIOD_S,
+                                  description="period of the full Zenoh round: every cell's parameters, health, "
+                                  "and the SOC keys no estimate refreshed since the last one")
     min_publish_interval_s: float = Field(0.05, ge=0, description="no Zenoh key is put more often than this; "
                                           "SOC and summary go out when estimated, held back only by it (0 = never)")
     queue_size: int = Field(256, ge=1)
@@ -466,9 +467,10 @@ class SocdConfig(BaseSettings):
                 f"pack.n_cells is {n}"
             )
         seen: dict[str, str] = {}
-        counters = [(path, name) for path, name in m.all_signals() if path.startswith("mapping.counter_signals")]
+        counters: list[tuple[str, str]] = []
         for path, name in m.all_signals():
             if path.startswith("mapping.counter_signals"):
+                counters.append((path, name))
                 continue
             if name in seen:
                 raise ValueError(f"{path}: signal {name!r} is already mapped as {seen[name]}")

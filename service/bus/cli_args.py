@@ -29,9 +29,9 @@ from pydantic import ValidationError
 
 from service.config import BusConfig, SocdConfig
 
-#: namespace attributes python-can's flags set (absent when not given: argparse.SUPPRESS)
 #: the command-line flag that sets each bus field (python-can's names)
 _FLAG_NAMES = {"bitrate": "-b/--bitrate", "data_bitrate": "--data-bitrate", "fd": "--fd"}
+#: namespace attributes python-can's flags set (absent when not given: argparse.SUPPRESS)
 _FLAG_KEYS = ("interface", "channel", "bitrate", "fd", "data_bitrate", "timing", "can_filters", "bus_kwargs")
 
 

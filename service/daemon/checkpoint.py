@@ -34,12 +34,11 @@ from typing import Literal
 import numpy as np
 
 from service.cell.profile import CellProfile
-from service.config import CHECKPOINT_MAGIC
+from service.config import CHECKPOINT_MAGIC as MAGIC
 
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
-MAGIC = CHECKPOINT_MAGIC
 #: header line longer than this is not ours
 _MAX_HEADER = 1 << 20
 
