@@ -226,6 +226,27 @@ def test_resistances_bounded_by_the_neighbouring_temperatures():
     assert free.r_ohm == pytest.approx(TRUE.r_ohm, rel=0.1)
 
 
+def test_pinned_coordinates_hold_and_are_not_reported_at_a_bound():
+    """``socd fit --shape``: the orders (and the time-constant ratio) given are kept exactly, the
+    rest is searched, and a pinned coordinate is not listed as ending on a bound."""
+    t, i, temp, v = _pulse_drive(profile(), 1200, 1)
+    seg = [FitSegment(t, i, v, temp, soc0=0.95)]
+    pins = {"m": 0.7, "n": 0.6, "ln_tau_ratio": math.log(50.0)}
+    res = fit_parameters(profile(), seg, max_seconds=30, x0=TRUE, de_maxiter=5, pinned=pins)
+    p = res.point
+    assert p.m == pytest.approx(0.7, abs=1e-5) and p.n == pytest.approx(0.6, abs=1e-5)
+    tau_ct = (p.r_ct * p.c_dl) ** (1 / p.m)
+    tau_df = (p.r_df * p.c_df) ** (1 / p.n)
+    assert tau_df / tau_ct == pytest.approx(50.0, rel=1e-4)
+    assert not [b for b in res.at_bounds if b.startswith(("m ", "n ", "tau_ratio"))]
+    # an order pinned at its upper bound (a point on the 2-RC submodel) stays inside the range
+    top = fit_parameters(profile(), seg, max_seconds=30, x0=TRUE, de_maxiter=2, pinned={"m": 1.0, "n": 1.0}).point
+    assert top.m == pytest.approx(1.0, abs=1e-5) and top.n <= 1.0
+    # the free search moves the orders off the pinned values, so the pin is what held them
+    free = fit_parameters(profile(), seg, max_seconds=30, x0=TRUE, de_maxiter=5).point
+    assert abs(free.m - 0.7) > 0.05
+
+
 def _pulse_segment(n_pulses: int, amp_a: float) -> Recording:
     """1 Hz: rest 30 s, pulse 10 s at ``amp_a``, repeated, then a rest; two clean steps per pulse."""
     block = np.concatenate([np.zeros(30), np.full(10, amp_a)])
@@ -314,3 +335,27 @@ def test_fit_with_the_temperature_law_gives_the_point_at_the_groups_temperature(
     assert law.rmse_mv < 1.5  # the noise is 1 mV
     one_point = fit_parameters(start, seg, max_seconds=120, seed=0, de_maxiter=20, x0=at(ref))
     assert one_point.ea_j_mol is None and one_point.rmse_mv > 2 * law.rmse_mv
+
+
+@pytest.mark.parametrize("shape", ["orders", "orders-ratio"])
+def test_fit_shares_the_reference_temperatures_shape(tmp_path: Path, nmc_recording, nmc_ocv_csv, shape, capsys):
+    """``socd fit --shape``: the points at 25 and 0 °C have the same orders (and time-constant ratio);
+    their resistances still differ, fitted at each temperature."""
+    from service.cell.profile import load_profile
+    from service.cli import main
+
+    drives = [nmc_recording(name=f"drive{t:g}", duration_s=1800, seed=5, soc0=0.95, temp_c=t, r_ohm=r)
+              for t, r in ((25.0, 0.03), (0.0, 0.06))]
+    out = tmp_path / "cell.toml"
+    rc = main(["fit", *(str(d.path) for d in drives), "--ocv", str(nmc_ocv_csv), "--capacity-ah", "2.0",
+               "--max-seconds", "5", "--force", "--shape", shape, "-q", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    cold, warm = sorted(load_profile(out).parameters, key=lambda p: p.temp_c)
+    assert (cold.m, cold.n) == pytest.approx((warm.m, warm.n), abs=1e-5)
+
+    def ratio(p):
+        return (p.r_df * p.c_df) ** (1 / p.n) / (p.r_ct * p.c_dl) ** (1 / p.m)
+
+    if shape == "orders-ratio":
+        assert ratio(cold) == pytest.approx(ratio(warm), rel=1e-4)
+    assert cold.r_ohm > 1.5 * warm.r_ohm

@@ -366,6 +366,7 @@ def fit_parameters(
     max_tau_df_s: float | None = None,
     temperature_law: bool = False,
     law_ref_temp_c: float | None = None,
+    pinned: dict[str, float] | None = None,
 ) -> FitResult:
     """Fit R_ohm, R_ct, C_dl, m, R_df, C_df, n (and U_H, rate; and the Butler-Volmer i0) to ``segments``.
 
@@ -388,6 +389,9 @@ def fit_parameters(
     by 10-20 K, and the resistances halve on the way).  ``Ea`` is returned beside the point.
     ``law_ref_temp_c``: the temperature the point is for (default, and always without the
     law: the segments' mean).
+
+    ``pinned``: base coordinates (names of :data:`BOUNDS`) held at the values given instead of
+    searched, e.g. the CPE orders of the reference temperature's point (``socd fit --shape``).
 
     ``warmer`` / ``colder``: points already fitted at a warmer / colder temperature.  The
     three resistances are then bounded to be at least the warmer point's and at most the
@@ -421,6 +425,8 @@ def fit_parameters(
         if hi_b <= lo_b:
             hi_b = lo_b + 1e-6
         base_bounds[key] = (lo_b, hi_b)
+    for key, value in (pinned or {}).items():
+        base_bounds[key] = pinned_bounds(value, *BOUNDS[key])
     extra_bounds = ((HYSTERESIS_BOUNDS if fit_hysteresis else {}) | (KINETICS_BOUNDS if fit_kinetics else {})
                     | (TEMPERATURE_LAW_BOUNDS if temperature_law else {}))
     bounds = list(base_bounds.values()) + list(extra_bounds.values())
@@ -440,6 +446,8 @@ def fit_parameters(
         guess = np.concatenate([guess, [math.log(i0_seed)]])
     if temperature_law:  # the seed as it is: the same parameters at every temperature
         guess = np.concatenate([guess, [0.0]])
+    for key, value in (pinned or {}).items():
+        guess[list(base_bounds).index(key)] = value
     guess = np.clip(guess, lo + 1e-9, hi - 1e-9)
 
     # 1. global search on full-rate windows
@@ -521,23 +529,34 @@ def fit_parameters(
         rmse_mv=rmse_mv,
         n_evaluations=obj_g.n_evaluations + obj.n_evaluations,
         # an activation energy of 0 is a finding (no measurable change), not a degenerate fit
-        at_bounds=[b for b in coordinates_at_bounds(x_fin, names, lo, hi)
-                   if not (b.startswith("ea_kj_mol") and b.endswith("(lower bound)"))],
+        # a pinned coordinate sits on its own narrow range by design
+        at_bounds=[b for name, b in coordinates_at_bounds(x_fin, names, lo, hi)
+                   if name not in (pinned or {}) and not (name == "ea_kj_mol" and b.endswith("(lower bound)"))],
         seconds=time.perf_counter() - t_start,
         time_bound=cut["global"] or cut["polish"],
         ea_j_mol=ea,
     )
 
 
+#: width of the range a pinned coordinate is searched over: the optimisers need a non-empty one
+PINNED_WIDTH = 1e-6
+
+
+def pinned_bounds(value: float, lo: float, hi: float) -> tuple[float, float]:
+    """A range of :data:`PINNED_WIDTH` holding ``value`` (clipped into ``lo..hi``)."""
+    a = min(max(value - PINNED_WIDTH / 2, lo), hi - PINNED_WIDTH)
+    return a, a + PINNED_WIDTH
+
+
 def coordinates_at_bounds(x: np.ndarray, names: list[str], lo: np.ndarray, hi: np.ndarray,
-                          rel: float = 1e-3) -> list[str]:
-    """``name = value (lower|upper bound)`` for every search coordinate within ``rel`` of the
-    width of its range from a bound (log coordinates shown as their value)."""
+                          rel: float = 1e-3) -> list[tuple[str, str]]:
+    """``(name, "name = value (lower|upper bound)")`` for every search coordinate within ``rel`` of
+    the width of its range from a bound (log coordinates shown as their value)."""
     out = []
     for name, v, a, b in zip(names, x, lo, hi):
         edge = "lower" if v <= a + rel * (b - a) else "upper" if v >= b - rel * (b - a) else None
         if edge is None:
             continue
         shown = f"{name[3:]} = {math.exp(v):.4g}" if name.startswith("ln_") else f"{name} = {v:.3g}"
-        out.append(f"{shown} ({edge} bound)")
+        out.append((name, f"{shown} ({edge} bound)"))
     return out

@@ -44,10 +44,12 @@ from service.cell.current_steps import (
     steps_resolve_kinetics,
 )
 from service.cell.fitting import (
+    BASE_NAMES,
     LAW_UPDATE_K,
     LINEAR_I0_A,
     FitResult,
     FitSegment,
+    encode_point,
     fit_parameters,
     last_current_direction,
 )
@@ -94,6 +96,7 @@ from service.characterisation.ocv_sources import (
     rests_settled,
 )
 from service.characterisation.relaxation import measure_slow_relaxation
+from service.characterisation.shape_choices import DEFAULT_SHAPE, SHAPES
 from service.characterisation.sustained_load import (
     SUSTAINED_C_RATE,
     SUSTAINED_S,
@@ -342,6 +345,7 @@ def characterise(
     ocv_between_rests: str | None = None,
     ocv_smoothing: float | None = None,
     force_capacity: bool = False,
+    shape: str = DEFAULT_SHAPE,
     report: FitReport | None = None,
 ) -> tuple[CellProfile, FitReport]:
     """Fit a cell profile (``socd fit``).  ``ocv_branch``: which hysteresis branch the OCV
@@ -364,6 +368,8 @@ def characterise(
     ``force_capacity``: fit with ``capacity_ah`` even where a room-temperature OCV test moved
     less charge than that by more than the tolerance (:func:`capacity_above_test`, ``socd fit --force``;
     the fit log says so, as it does for any excess above the notice level).
+    ``shape``: which of the fractional point's shape coordinates the reference temperature's
+    point fixes at the other temperatures (:data:`SHAPES`; :func:`shape_pins`).
     ``ocv_smoothing``: the smoothness weight of a jointly fitted OCV (:func:`fit_ecm2rc`; ``None``:
     :data:`OCV_SMOOTH_WEIGHT`), an error where the OCV is given.  ``starts``:
     global searches per temperature, seeded ``seed``, ``seed + 1``, ...; the point that fits the
@@ -371,6 +377,8 @@ def characterise(
     parameters down poorly)."""
     if ocv_branch != "mean" and not fit_hysteresis:
         raise ValueError(f"an OCV table on the {ocv_branch} branch needs the hysteresis fitted (--hysteresis)")
+    if shape not in SHAPES:
+        raise ValueError(f"unknown shape {shape!r}; one of {', '.join(SHAPES)}")
     rep = report if report is not None else FitReport()
     ocv_tests = [r for r in recordings if is_ocv_test(r, capacity_ah)]
     if rest_anchor is True and (ocv_table is not None or ocv_tests):
@@ -536,7 +544,8 @@ def characterise(
                                        fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
                                        max_seconds=max_seconds, x0=start, warmer=warmer, colder=colder,
                                        min_order=min_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
-                                       law_ref_temp_c=t)
+                                       law_ref_temp_c=t,
+                                       pinned=None if t == ref_t else shape_pins(points[ref_t], shape))
         ea_t = res.ea_j_mol
         # the 2-RC fit's point read as this model reads a point (the OCV as stored, the fractional
         # time step, no hysteresis): the bar the fit is held to, both read the same way
@@ -788,6 +797,16 @@ def rest_offsets_text(grid: np.ndarray, row: np.ndarray, anchors: list, lead: st
     socs = [a.soc for a in anchors]
     return (f"{len(anchors)} rest(s) from SOC {min(socs):.3f} to {max(socs):.3f}: "
             f"{(lead + ' ') if lead else ''}{min(off):+.1f} to {max(off):+.1f} mV")
+
+
+def shape_pins(reference: ParameterPoint, shape: str) -> dict[str, float]:
+    """The search coordinates ``shape`` holds at the reference temperature's values
+    (:mod:`.shape_choices`): none, the CPE orders, or the orders and the time-constant ratio."""
+    if shape == "each":
+        return {}
+    x = dict(zip(BASE_NAMES, encode_point(reference)))
+    keys = ("m", "n") + (("ln_tau_ratio",) if shape == "orders-ratio" else ())
+    return {k: float(x[k]) for k in keys}
 
 
 def on_2rc_submodel(point: ParameterPoint) -> bool:

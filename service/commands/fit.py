@@ -15,6 +15,7 @@ from service.characterisation.ocv_choices import (
     OCV_SMOOTH_WEIGHT,
     REST_INTERP_MAX_GAP,
 )
+from service.characterisation.shape_choices import DEFAULT_SHAPE, SHAPES
 from service.cli import UserError
 from service.commands.common_args import (
     PROFILE_SUFFIXES,
@@ -77,6 +78,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="cap on the diffusion branch's time constant, s (default 1000, the textbook 2-RC's slow "
                    "bound; at least 1); a longer one can follow the slow polarisation of a long drive, and can also let "
                    "the branch act as an integrator that soaks up OCV and capacity error")
+    p.add_argument("--shape", choices=SHAPES, default=DEFAULT_SHAPE,
+                   help="which shape of the fractional model the temperatures share: each temperature fitted freely "
+                   "(each), the CPE orders m, n of the reference temperature's point held at the others (orders), or "
+                   "the orders and the ratio of the two time constants (orders-ratio); with shared orders the profile "
+                   f"interpolates the time constants between temperatures (default {DEFAULT_SHAPE})")
     p.add_argument("--monotone", action="store_true",
                    help="bound each temperature's R_ohm, R_ct, R_df by the neighbouring fitted temperatures "
                    "(resistance rises in the cold); off by default")
@@ -190,7 +196,8 @@ def run(args: argparse.Namespace) -> int:
                                        max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S, ocv_beyond=args.ocv_beyond,
                                        ocv_between_rests=args.ocv_between_rests, ocv_smoothing=args.ocv_smoothing,
                                        memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
-                                       starts=args.starts, force_capacity=args.force, report=report)
+                                       starts=args.starts, force_capacity=args.force, shape=args.shape,
+                                       report=report)
         try:
             check_fit_quality(report)
         except PoorFitError as exc:
