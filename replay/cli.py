@@ -193,6 +193,12 @@ def run(args: argparse.Namespace) -> int:
                                        start_soc=args.soc0, time_offset_s=args.time_offset, lazy=True)
         except ValueError as exc:
             raise UserError(str(exc)) from None
+        if args.cells:
+            # the fault injector reads the config's whole mapping; the pack replayed is narrower
+            for cell, _ in args.stuck_cell:
+                if cell >= args.cells:
+                    raise UserError(f"--stuck-cell {cell}: the replayed pack has {args.cells} cells (--cells), "
+                                    f"0..{args.cells - 1}")
         per_sample = sum(1 for _ in _one_sample(config, args.cells))
         # a --start/--stop window plays an unknown share of the frames: no total, no ETA
         total = per_sample * len(pack) if args.start is None and args.stop is None else None

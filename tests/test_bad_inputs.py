@@ -790,3 +790,13 @@ def test_a_counter_on_a_measurement_and_a_cell_listed_twice_are_refused(tmp_path
     the current field; a cell listed twice under one sensor passed too."""
     code, err = run_cli(capsys, ["check", "--config", str(_config_with(tmp_path, body))])
     assert_one_line_error(code, err, names)
+
+
+def test_replay_refuses_a_stuck_cell_beyond_the_pack_it_replays(tmp_path: Path, capsys) -> None:
+    """``--cells 4 --stuck-cell 6`` on the 8-cell default config was checked against the config only:
+    the fault hit a cell that was never sent, and the replay said nothing."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["replay", str(rec), "--no-send", "--cells", "4", "--stuck-cell", "6",
+                                 "--record", str(tmp_path / "out.asc")])
+    assert_one_line_error(code, err, "--stuck-cell 6: the replayed pack has 4 cells")
+    assert not (tmp_path / "out.asc").exists()
