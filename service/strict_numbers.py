@@ -3,12 +3,14 @@
 pydantic's lax mode reads ``true`` as 1 in an int or float field, so ``current_sign = true`` in a
 config flipped the current convention, ``n_cells = true`` made a one-cell pack and
 ``capacity_ah = true`` a 1 Ah cell, each without a word.  Strings still convert (``"96"`` is 96):
-environment overrides (``SOCD_PACK__N_CELLS=96``) arrive as strings.
+environment overrides (``SOCD_PACK__N_CELLS=96``) arrive as strings.  The same holds inside lists
+and tuples of numbers (an OCV row, a plausibility range).
 """
 
 from __future__ import annotations
 
-from typing import Any, get_args
+from types import UnionType
+from typing import Any, Union, get_args, get_origin
 
 from pydantic import BaseModel, model_validator
 
@@ -22,12 +24,33 @@ class NoBooleanNumbers(BaseModel):
         if isinstance(data, dict):
             for name, value in data.items():
                 field = cls.model_fields.get(name)
-                if isinstance(value, bool) and field is not None and is_number(field.annotation):
-                    raise ValueError(f"{name} = {str(value).lower()}: a number is expected, not a boolean")
+                if field is not None and holds_numbers(field.annotation) and contains_boolean(value):
+                    raise ValueError(f"{name} = {str(value).lower()}: a number is expected, not a boolean"
+                                     if isinstance(value, bool) else f"{name}: numbers are expected, and it holds a boolean")
         return data
 
 
 def is_number(annotation: Any) -> bool:
     """An int or float field, optional or not (a bool or ``int | bool`` field takes booleans)."""
+    if get_origin(annotation) not in (None, Union, UnionType):
+        return False  # a container
     kinds = get_args(annotation) or (annotation,)
     return bool not in kinds and any(k in (int, float) for k in kinds)
+
+
+def holds_numbers(annotation: Any) -> bool:
+    """A number field, or a list or tuple (nested, optional) of numbers."""
+    if is_number(annotation):
+        return True
+    origin = get_origin(annotation)
+    args = [a for a in get_args(annotation) if a is not Ellipsis and a is not type(None)]
+    if origin in (list, tuple) or (origin is not None and args and all(get_origin(a) in (list, tuple) for a in args)):
+        return bool(args) and all(holds_numbers(a) for a in args)
+    return False
+
+
+def contains_boolean(value: Any) -> bool:
+    """A boolean anywhere inside nested lists and tuples."""
+    if isinstance(value, bool):
+        return True
+    return isinstance(value, list | tuple) and any(contains_boolean(v) for v in value)

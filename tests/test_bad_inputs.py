@@ -753,6 +753,20 @@ def test_a_boolean_field_still_takes_a_boolean_and_a_profile_refuses_one_for_a_n
     assert_one_line_error(code, err, "p.toml: capacity_ah = true: a number is expected, not a boolean")
 
 
+def test_a_boolean_inside_a_list_of_numbers_is_refused(tmp_path: Path, capsys) -> None:
+    """`voltage_range_v = [true, 4.8]` read as a range from 1 V, and an OCV row with `true` in it as a
+    row through 1 V; both passed."""
+    cfg = _config_with(tmp_path, "[mapping]\nvoltage_range_v = [true, 4.8]\n")
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert_one_line_error(code, err, "c.toml: mapping: voltage_range_v: numbers are expected, and it holds a boolean")
+    prof = tmp_path / "p.toml"
+    text = DEFAULT_CELL_PROFILE.read_text()
+    start = text.index("soc = [") + len("soc = [")
+    prof.write_text(text[:start] + "true, " + text[text.index(",", start) + 1:])
+    code, err = run_cli(capsys, ["evaluate", "--cell", str(prof), str(_recording(tmp_path, "ok.csv", GOOD_ROWS))])
+    assert_one_line_error(code, err, "soc: numbers are expected, and it holds a boolean")
+
+
 @pytest.mark.parametrize("endpoint", ["tcp/127.0.0.1", "tcp/localhost:7447x", "tcp/127.0.0.1:-1"])
 def test_a_zenoh_endpoint_without_a_numeric_port_is_refused(tmp_path: Path, capsys, endpoint: str) -> None:
     """`socd check` said OK and `socd run` retried for ever on Zenoh's "invalid port value", naming
