@@ -20,6 +20,7 @@ names no file there falls back to the file of that name that socd ships
 
 from __future__ import annotations
 
+import difflib
 import functools
 import logging
 import math
@@ -39,6 +40,8 @@ from service.estimators.settings import EstimatorSettings
 from service.strict_numbers import NoBooleanNumbers
 
 log = logging.getLogger(__name__)
+#: environment variables with this prefix override the config file (nested with ``__``)
+ENV_PREFIX = "SOCD_"
 
 DEFAULT_INPUT_DBC = dbc_path("bms_pack.dbc")
 DEFAULT_OUTPUT_DBC = dbc_path("socd_output.dbc")
@@ -422,7 +425,7 @@ class SocdConfig(BaseSettings):
     """Everything the daemon and the replay tool need; see the module docstring."""
 
     model_config = SettingsConfigDict(
-        env_prefix="SOCD_",
+        env_prefix=ENV_PREFIX,
         env_nested_delimiter="__",
         extra="forbid",
         case_sensitive=False,
@@ -582,12 +585,40 @@ def build_config(raw: dict[str, Any], source: str = "<config>", base_dir: Path |
     raw = _deepcopy(raw)
     if base_dir is not None:
         _resolve_relative(raw, base_dir)
+    overrides = sorted(k for k in os.environ if k.upper().startswith(ENV_PREFIX))
+    for name in overrides:
+        if (hint := unknown_override(name)) is not None:
+            log.warning("%s", hint)
     try:
         return SocdConfig(**raw)
     except ValidationError as exc:
-        raise ConfigError(format_validation_error(exc, source)) from None
+        text = format_validation_error(exc, source)
+        if overrides:  # the bad value may be the environment's, not the file's
+            text += f" (the environment overrides the file: {', '.join(overrides)})"
+        raise ConfigError(text) from None
     except ValueError as exc:  # pragma: no cover - pydantic wraps these, belt and braces
         raise ConfigError(f"{source}: {exc}") from None
+
+
+def override_names(model: type[BaseModel] | None = None, prefix: str = "") -> Iterator[str]:
+    """Every environment variable name that sets a config field or a whole section (upper case)."""
+    model = model or SocdConfig
+    for field, info in model.model_fields.items():
+        name = f"{prefix}{field.upper()}"
+        yield name
+        kind = info.annotation
+        if isinstance(kind, type) and issubclass(kind, BaseModel):
+            yield from override_names(kind, name + "__")
+
+
+def unknown_override(name: str) -> str | None:
+    """A warning for a ``SOCD_*`` variable that sets no config field (a typo is otherwise ignored)."""
+    known = {ENV_PREFIX + n for n in override_names()}
+    if name.upper() in known:
+        return None
+    near = difflib.get_close_matches(name.upper(), sorted(known), n=1)
+    return (f"environment variable {name} sets no config field; it is ignored"
+            + (f" (did you mean {near[0]}?)" if near else ""))
 
 
 def _deepcopy(d: Any) -> Any:

@@ -814,3 +814,18 @@ def test_replay_refuses_a_stuck_cell_beyond_the_pack_it_replays(tmp_path: Path, 
                                  "--record", str(tmp_path / "out.asc")])
     assert_one_line_error(code, err, "--stuck-cell 6: the replayed pack has 4 cells")
     assert not (tmp_path / "out.asc").exists()
+
+
+def test_an_environment_override_is_named_when_misspelt_or_bad(tmp_path: Path, capsys, monkeypatch, caplog) -> None:
+    """`SOCD_PAK__N_CELLS=3` was ignored without a word, and a bad `SOCD_PACK__N_CELLS=0` was reported
+    against the config file alone."""
+    monkeypatch.setenv("SOCD_PAK__N_CELLS", "3")
+    with caplog.at_level("WARNING", logger="service.config"):
+        code, err = run_cli(capsys, ["check"])
+    assert code == 0, err
+    assert "SOCD_PAK__N_CELLS sets no config field; it is ignored (did you mean SOCD_PACK__N_CELLS?)" in caplog.text
+    monkeypatch.delenv("SOCD_PAK__N_CELLS")
+    monkeypatch.setenv("SOCD_PACK__N_CELLS", "0")
+    code, err = run_cli(capsys, ["check"])
+    assert_one_line_error(code, err, "pack.n_cells: Input should be greater than or equal to 1 "
+                                     "(the environment overrides the file: SOCD_PACK__N_CELLS)")
