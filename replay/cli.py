@@ -105,8 +105,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
                    help="no frames from T0 for DURATION s (repeatable)")
 
     g = p.add_argument_group("output")
-    g.add_argument("--record", metavar="OUT", type=output_file(), help="write the frames to a python-can log "
-                   "(" + ", ".join(LOG_SUFFIXES) + "); with no bus flags only the log is written")
+    g.add_argument("--record", metavar="OUT", type=record_file, help="write the frames to a python-can log "
+                   "(" + ", ".join(LOG_SUFFIXES) + ", optionally .gz), which socd replay reads back; with no bus "
+                   "flags only the log is written")
     g.add_argument("--no-send", action="store_true", help="do not open a bus")
     add_common_arguments(p, progress=True, old_no_progress_alias=True, bounds=True)
     p.set_defaults(func=run)
@@ -276,6 +277,15 @@ def run(args: argparse.Namespace) -> int:
           f"{stats.span_s:.1f} s of recording in {stats.duration_s:.1f} s"
           + (f", faults {stats.faults}" if stats.faults else ""), file=sys.stderr)
     return 0 if stats.frames_failed == 0 else 1
+
+
+def record_file(text: str) -> str:
+    """``--record``: a log python-can writes and :func:`read_log` reads back (python-can also writes
+    ``.txt`` and others that no reader opens again)."""
+    if log_format(text) is None:
+        raise argparse.ArgumentTypeError(f"{text}: expected a python-can log ({', '.join(LOG_SUFFIXES)}, "
+                                         "optionally .gz) that socd replay can read back")
+    return output_file()(text)
 
 
 def _one_sample(config, n_cells):

@@ -408,6 +408,7 @@ def test_fit_checks_where_it_writes_before_fitting(tmp_path: Path, capsys, flag:
     ["replay", "REC", "--no-send", "--cells", "8", "--spread-soc", "5"],  # every cell clipped to 0 or 1
     ["replay", "REC", "--no-send", "--cells", "8", "--jitter", "1e12"],  # "year 22154 is out of range (DBC)"
     ["replay", "REC", "--no-send", "--cells", "8", "--time-offset=-1e12"],
+    ["replay", "REC", "--record", "out.txt"],  # python-can writes .txt, and no reader opens it again
 ])
 def test_output_and_spread_flags_are_checked_as_arguments(tmp_path: Path, capsys, argv: list[str]) -> None:
     rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
