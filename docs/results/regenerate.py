@@ -1088,6 +1088,29 @@ for s in 0 1 2 3 4 5; do seed_fit mono_s$s $s --monotone; done""",
           seed_spread_table(tuple((f"seed {s}, `--monotone`", f"seeds/mono_s{s}") for s in range(6)),
                             SEED_TEMPS, SEED_GROUPS, averaged=6),
           25),
+    Table("unseen_shape", "characterisation.md", """\
+# the default fits (--shape each) are the unseen_cell and unseen_cell_more tables'
+python -m research.unseen_cell run --estimators fomiukf --profile-tag _orders --refit --fit-flags='--shape orders'
+python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
+    --estimators fomiukf --profile-tag _orders --refit --fit-flags='--shape orders'""",
+          runs_table(tuple((f"`{cell}` {label}", f"{folder}/{cell}{tag}_eval.json")
+                           for folder, cells in (("unseen_cell", UNSEEN_CELLS), ("unseen_more", MORE_UNSEEN_CELLS))
+                           for cell in cells
+                           for label, tag in (("`each` (default)", ""), ("`--shape orders`", "_orders"))),
+                     UNSEEN_GROUPS),
+          60, ("needs:unseen_cell", "needs:unseen_cell_more", "needs:pybamm")),
+    Table("pan_us06_shape", "characterisation.md", REAL + """\
+mkdir -p out/shape   # the default fit (--shape each) is char_pan_us06's
+socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q \\
+    --shape orders -o out/shape/pan_us06_orders.toml
+socd evaluate --cell out/shape/pan_us06_orders.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
+    --estimator fomiukf -q --json out/shape/pan_us06_orders_eval.json""",
+          group_table("shape/pan_us06_orders_eval.json", PAN_GROUPS), 40),
+    Table("hppc_seed_spread_shape", "characterisation.md", REAL + SEED_FIT + """\
+for s in 0 1 2; do seed_fit panord_s$s $s --shape orders; done""",
+          seed_spread_table(tuple((f"seed {s}, `--shape orders`", f"seeds/panord_s{s}") for s in range(3)),
+                            SEED_TEMPS, SEED_GROUPS, averaged=3),
+          35),
     Table("starts_other_cells", "characterisation.md", REAL + f"""\
 mkdir -p out/starts
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
