@@ -12,4 +12,6 @@ them is read with a shape neither point has."""
 from __future__ import annotations
 
 SHAPES = ("each", "orders", "orders-ratio")
+#: chosen leave-one-cell-out over the shared and PyBaMM characterisations (docs/results/characterisation.md,
+#: ``unseen_shape``): ``orders`` helped one cell and hurt another, and moved the rest within their run-to-run spread
 DEFAULT_SHAPE = "each"
