@@ -13,5 +13,6 @@ from __future__ import annotations
 
 SHAPES = ("each", "orders", "orders-ratio")
 #: chosen leave-one-cell-out over the shared and PyBaMM characterisations (docs/results/characterisation.md,
-#: ``unseen_shape``): ``orders`` helped one cell and hurt another, and moved the rest within their run-to-run spread
+#: ``unseen_shape``): ``orders`` helped one cell and hurt another, and moved the rest by no more than two
+#: commits' default fits differ
 DEFAULT_SHAPE = "each"
