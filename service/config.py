@@ -600,9 +600,8 @@ def build_config(raw: dict[str, Any], source: str = "<config>", base_dir: Path |
         raise ConfigError(f"{source}: {exc}") from None
 
 
-def override_names(model: type[BaseModel] | None = None, prefix: str = "") -> Iterator[str]:
-    """Every environment variable name that sets a config field or a whole section (upper case)."""
-    model = model or SocdConfig
+def override_names(model: type[BaseModel], prefix: str) -> Iterator[str]:
+    """Every environment variable name that sets a field of ``model`` or a whole section (upper case)."""
     for field, info in model.model_fields.items():
         name = f"{prefix}{field.upper()}"
         yield name
@@ -611,12 +610,18 @@ def override_names(model: type[BaseModel] | None = None, prefix: str = "") -> It
             yield from override_names(kind, name + "__")
 
 
+@functools.cache
+def known_overrides() -> tuple[str, ...]:
+    """Every ``SOCD_*`` name that sets a config field or section, sorted (read once)."""
+    return tuple(sorted(override_names(SocdConfig, ENV_PREFIX)))
+
+
 def unknown_override(name: str) -> str | None:
     """A warning for a ``SOCD_*`` variable that sets no config field (a typo is otherwise ignored)."""
-    known = {ENV_PREFIX + n for n in override_names()}
+    known = known_overrides()
     if name.upper() in known:
         return None
-    near = difflib.get_close_matches(name.upper(), sorted(known), n=1)
+    near = difflib.get_close_matches(name.upper(), known, n=1)
     return (f"environment variable {name} sets no config field; it is ignored"
             + (f" (did you mean {near[0]}?)" if near else ""))
 

@@ -42,11 +42,10 @@ def holds_numbers(annotation: Any) -> bool:
     """A number field, or a list or tuple (nested, optional) of numbers."""
     if is_number(annotation):
         return True
-    origin = get_origin(annotation)
-    args = [a for a in get_args(annotation) if a is not Ellipsis and a is not type(None)]
-    if origin in (list, tuple) or (origin is not None and args and all(get_origin(a) in (list, tuple) for a in args)):
-        return bool(args) and all(holds_numbers(a) for a in args)
-    return False
+    if get_origin(annotation) not in (list, tuple, Union, UnionType):
+        return False
+    args = [a for a in get_args(annotation) if a not in (Ellipsis, type(None))]
+    return bool(args) and all(holds_numbers(a) for a in args)
 
 
 def contains_boolean(value: Any) -> bool:
