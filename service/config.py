@@ -36,6 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from service.assets import config_path, dbc_path, example_configs, profile_path
+from service.errors import validation_message
 from service.estimators.settings import EstimatorSettings
 from service.strict_numbers import NoBooleanNumbers
 
@@ -572,8 +573,7 @@ def format_loc(loc: tuple[Any, ...]) -> str:
 def format_validation_error(exc: ValidationError, source: str) -> str:
     lines = []
     for err in exc.errors():
-        msg = err["msg"]
-        msg = msg.removeprefix("Value error, ")
+        msg = validation_message(err)
         loc = format_loc(tuple(err["loc"]))
         # cross-field checks name their own field at the start of the message
         lines.append(f"{source}: {loc}: {msg}" if loc else f"{source}: {msg}")

@@ -28,6 +28,7 @@ import can.cli
 from pydantic import ValidationError
 
 from service.config import BusConfig, SocdConfig
+from service.errors import validation_message
 
 #: the command-line flag that sets each bus field (python-can's names)
 _FLAG_NAMES = {"bitrate": "-b/--bitrate", "data_bitrate": "--data-bitrate", "fd": "--fd"}
@@ -169,7 +170,7 @@ def resolve_bus(ns: argparse.Namespace | None, config: SocdConfig, *, user_confi
         err = exc.errors()[0]
         key = str(err["loc"][0]) if err["loc"] else ""
         name = f"argument {_FLAG_NAMES[key]}" if key in flags and key in _FLAG_NAMES else f"bus.{key}"
-        raise BusConfigError(f"bus settings: {name}: {err['msg'].removeprefix('Value error, ')}, "
+        raise BusConfigError(f"bus settings: {name}: {validation_message(err)}, "
                              f"got {err.get('input')!r}") from None
     except ValueError as exc:
         raise BusConfigError(f"bus settings: {exc}") from None

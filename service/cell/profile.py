@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from service.cell.ocv import OCV_V_RANGE, OcvTable, ocv_fall_problem
 from service.cell.soc_dependence import SocScaleTable
+from service.errors import validation_message
 from service.strict_numbers import NoBooleanNumbers
 from service.validation import RecordingBounds
 
@@ -516,7 +517,7 @@ def load_profile(path: str | Path) -> CellProfile:
         first = exc.errors()[0]
         field = ".".join(str(p) for p in first["loc"])
         where = f"field '{field}': " if field else ""
-        raise ProfileError(f"{path}: {where}{first['msg'].removeprefix('Value error, ')}") from exc
+        raise ProfileError(f"{path}: {where}{validation_message(first)}") from exc
 
 
 def save_profile(profile: CellProfile, path: str | Path) -> None:
