@@ -447,7 +447,7 @@ def fit_parameters(
     if temperature_law:  # the seed as it is: the same parameters at every temperature
         guess = np.concatenate([guess, [0.0]])
     for key, value in (pinned or {}).items():
-        guess[list(base_bounds).index(key)] = value
+        guess[BASE_NAMES.index(key)] = value
     guess = np.clip(guess, lo + 1e-9, hi - 1e-9)
 
     # 1. global search on full-rate windows
