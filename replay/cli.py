@@ -20,6 +20,7 @@ import argparse
 import csv
 import sys
 import threading
+from collections import Counter
 from pathlib import Path
 
 import can
@@ -209,10 +210,18 @@ def run(args: argparse.Namespace) -> int:
         if log_format(path) is None:
             raise UserError(f"{path}: not a cell recording and not a python-can log "
                             f"({', '.join(LOG_SUFFIXES)}, optionally .gz)")
+        ids: Counter[tuple[int, bool]] = Counter()
+
+        def counted(p: Path):
+            for msg in read_log(p):
+                ids[(msg.arbitration_id, bool(msg.is_extended_id))] += 1
+                yield msg
+
         try:  # read it to the end once, so a bad log fails here and not halfway through a replay
-            total = check_can_log(path, LOG_SUFFIXES, read_log)
+            total = check_can_log(path, LOG_SUFFIXES, counted)
         except InputFileError as exc:
             raise UserError(str(exc)) from None
+        warn_unknown_ids(path, ids, config)
         if args.time_offset:
             frames = _offset(read_log(path), args.time_offset)
         else:
@@ -293,6 +302,25 @@ def _one_sample(config, n_cells):
 
     cfg = config if not n_cells or n_cells == config.pack.n_cells else narrow_config(config, n_cells)
     return FrameBuilder(cfg).sample_templates
+
+
+def unknown_ids(ids: Counter[tuple[int, bool]], config) -> Counter[tuple[int, bool]]:
+    """The frame counts of ``ids`` (``(arbitration id, extended)`` -> frames) that the config's
+    input DBC does not define: a daemon on that config rejects each of them."""
+    known = {(m.frame_id, bool(m.is_extended_frame)) for m in config.input_db().messages}
+    return Counter({key: n for key, n in ids.items() if key not in known})
+
+
+def warn_unknown_ids(path: Path, ids: Counter[tuple[int, bool]], config) -> None:
+    """Say, before sending, how many of a log's frames the input DBC does not know."""
+    unknown = unknown_ids(ids, config)
+    if not unknown:
+        return
+    shown = ", ".join(f"0x{i:X}{'x' if ext else ''} {n}x" for (i, ext), n in unknown.most_common(5))
+    more = f" and {len(unknown) - 5} more IDs" if len(unknown) > 5 else ""
+    print(f"socd replay: warning: {sum(unknown.values())} of {sum(ids.values())} frames in {path} carry IDs the "
+          f"input DBC {config.dbc.input} does not define ({shown}{more}): they are sent as logged, and a socd "
+          f"daemon on this config counts them as rejected", file=sys.stderr)
 
 
 def _offset(frames, offset):

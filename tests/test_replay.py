@@ -207,6 +207,30 @@ def test_cli_record_and_truth(tmp_path, profile):
     assert rc == 0
 
 
+def test_log_with_ids_the_dbc_does_not_define_is_warned_about(tmp_path, capsys):
+    log = tmp_path / "foreign.asc"
+    with can.Logger(str(log)) as logger:
+        for k in range(6):
+            # 0x123 and the extended 0x18FF0001 are in no frame of the shipped input DBC
+            msg_id, ext = ((0x123, False), (0x18FF0001, True))[k % 2]
+            logger.on_message_received(can.Message(timestamp=float(k), arbitration_id=msg_id,
+                                                   is_extended_id=ext, data=bytes(8)))
+    rc = socd_main(["replay", str(log), "-i", "virtual", "-c", "unknown_ids", "--fast", "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 0
+    assert "6 of 6 frames" in err and "0x123 3x" in err and "0x18FF0001x 3x" in err
+    assert "rejected" in err
+
+
+def test_log_of_the_dbcs_own_frames_is_not_warned_about(generated, tmp_path, capsys):
+    log = tmp_path / "own.asc"
+    with can.Logger(str(log)) as logger:
+        for msg in generated[0][:50]:
+            logger.on_message_received(msg)
+    assert socd_main(["replay", str(log), "-i", "virtual", "-c", "own_ids", "--fast", "--quiet"]) == 0
+    assert "does not define" not in capsys.readouterr().err
+
+
 def test_cli_errors(tmp_path):
     assert socd_main(["replay", str(tmp_path / "missing.csv")]) == 2
     bad = tmp_path / "x.txt"
