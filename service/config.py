@@ -203,8 +203,11 @@ class MappingConfig(_Section):
         if v is not None:
             try:
                 # a field width like {number:0999999999d} would build a gigabyte per name
-                widths = [int(d) for _, _, spec, _ in string.Formatter().parse(v) if spec
-                          for d in re.findall(r"\d+", spec)]
+                specs = [spec for _, _, spec, _ in string.Formatter().parse(v) if spec]
+                # a width read from a field ({number:0{number}{number}d}) grows with the cell number
+                if any("{" in spec for spec in specs):
+                    raise ValueError("a format spec that holds a field of its own")
+                widths = [int(d) for spec in specs for d in re.findall(r"\d+", spec)]
                 if any(w > MAX_PATTERN_WIDTH for w in widths):
                     raise ValueError(f"a field width over {MAX_PATTERN_WIDTH}")
                 a, b = v.format(index=0, number=1), v.format(index=1, number=2)
