@@ -247,6 +247,20 @@ def test_pinned_coordinates_hold_and_are_not_reported_at_a_bound():
     assert abs(free.m - 0.7) > 0.05
 
 
+def test_min_slow_order_bounds_the_diffusion_branch_alone():
+    """``socd fit --min-slow-order``: the diffusion branch's order n stays at or above it (reported
+    at the bound when it ends there), while the double-layer order m keeps the default range."""
+    t, i, temp, v = _pulse_drive(profile(), 1200, 1)
+    seg = [FitSegment(t, i, v, temp, soc0=0.95)]
+    # a point whose slow branch is far more dispersed than the bound allows
+    low = TRUE.model_copy(update={"m": 0.35, "n": 0.35})
+    res = fit_parameters(profile(), seg, max_seconds=30, x0=low, de_maxiter=3, min_slow_order=0.8)
+    assert res.point.n >= 0.8 - 1e-9
+    assert res.point.m < 0.8 or not [b for b in res.at_bounds if b.startswith("m ")]
+    with pytest.raises(ValueError, match="min_slow_order"):
+        fit_parameters(profile(), seg, max_seconds=5, x0=TRUE, de_maxiter=1, min_slow_order=1.0)
+
+
 def _pulse_segment(n_pulses: int, amp_a: float) -> Recording:
     """1 Hz: rest 30 s, pulse 10 s at ``amp_a``, repeated, then a rest; two clean steps per pulse."""
     block = np.concatenate([np.zeros(30), np.full(10, amp_a)])

@@ -367,6 +367,7 @@ def fit_parameters(
     temperature_law: bool = False,
     law_ref_temp_c: float | None = None,
     pinned: dict[str, float] | None = None,
+    min_slow_order: float | None = None,
 ) -> FitResult:
     """Fit R_ohm, R_ct, C_dl, m, R_df, C_df, n (and U_H, rate; and the Butler-Volmer i0) to ``segments``.
 
@@ -379,6 +380,8 @@ def fit_parameters(
     ``min_order`` raises the lower bound of the CPE orders ``m, n`` (default 0.3).  With the
     short G-L memory (L = 16 samples) the truncated tail of the weights grows as the order
     falls (|w_j| ~ j^(-1-α)), so a low-order branch fitted at one rate is mostly truncation.
+    ``min_slow_order`` raises the lower bound of the diffusion branch's order ``n`` alone: that
+    branch's time constant is tens of times the memory, so truncation is worst there.
 
     ``max_tau_df_s`` caps the diffusion branch's time constant (:func:`diffusion_tau`).
 
@@ -416,6 +419,10 @@ def fit_parameters(
             raise ValueError(f"min_order must be in (0, 1), got {min_order}")
         base_bounds["m"] = (min_order, 1.0)
         base_bounds["n"] = (min_order, 1.0)
+    if min_slow_order is not None:
+        if not 0.0 < min_slow_order < 1.0:
+            raise ValueError(f"min_slow_order must be in (0, 1), got {min_slow_order}")
+        base_bounds["n"] = (max(base_bounds["n"][0], min_slow_order), 1.0)
     for key, attr in (("ln_r_ohm", "r_ohm"), ("ln_r_ct", "r_ct"), ("ln_r_df", "r_df")):
         lo_b, hi_b = base_bounds[key]
         if warmer is not None:

@@ -330,6 +330,7 @@ def characterise(
     fit_kinetics: bool | None = None,
     max_seconds: float = 60.0,
     min_order: float | None = None,
+    min_slow_order: float | None = None,
     monotone: bool = False,
     soc_resistance: bool = False,
     memory_length: int = 16,
@@ -543,7 +544,7 @@ def characterise(
         res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length,
                                        fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
                                        max_seconds=max_seconds, x0=start, warmer=warmer, colder=colder,
-                                       min_order=min_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
+                                       min_order=min_order, min_slow_order=min_slow_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
                                        law_ref_temp_c=t,
                                        pinned=None if t == ref_t else shape_pins(points[ref_t], shape))
         ea_t = res.ea_j_mol

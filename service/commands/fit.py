@@ -74,6 +74,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--min-order", type=float, default=None, metavar="A",
                    help="lower bound of the CPE orders m, n (default 0.3); the short G-L memory represents low "
                    "orders poorly (the bundled Panasonic profile uses 0.5)")
+    p.add_argument("--min-slow-order", type=float, default=None, metavar="A",
+                   help="lower bound of the diffusion branch's CPE order n alone (default: --min-order's); its time "
+                   "constant is tens of times the G-L memory, where a low order is mostly truncation")
     p.add_argument("--max-tau-df", type=positive_float, default=None, metavar="S",
                    help="cap on the diffusion branch's time constant, s (default 1000, the textbook 2-RC's slow "
                    "bound; at least 1); a longer one can follow the slow polarisation of a long drive, and can also let "
@@ -191,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
                                        fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
-                                       min_order=args.min_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
+                                       min_order=args.min_order, min_slow_order=args.min_slow_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
                                        slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
                                        short_charge=args.short_charge,
                                        max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S, ocv_beyond=args.ocv_beyond,
