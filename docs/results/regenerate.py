@@ -1111,6 +1111,93 @@ for s in 0 1 2; do seed_fit panord_s$s $s --shape orders; done""",
           seed_spread_table(tuple((f"seed {s}, `--shape orders`", f"seeds/panord_s{s}") for s in range(3)),
                             SEED_TEMPS, SEED_GROUPS, averaged=3),
           35),
+    Table("shape_seeds", "characterisation.md", REAL + SEED_FIT + """\
+# seed 0: the unseen_cell, unseen_cell_more, unseen_shape, pan_us06_shape and hppc_seed_spread_shape tables' runs
+mkdir -p out/shape_seeds; O=out/shape_seeds
+for sh in each orders; do
+  python -m research.unseen_cell run --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --shape $sh"
+  python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
+      --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --shape $sh"
+done
+for s in 0 1; do for sh in each orders; do
+  [ $s$sh = 0orders ] && continue   # pan_us06_shape's
+  socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q --seed $s \\
+      --shape $sh -o $O/pan_us06_s${s}_$sh.toml
+  socd evaluate --cell $O/pan_us06_s${s}_$sh.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
+      --estimator fomiukf --no-bar -q --json $O/pan_us06_s${s}_$sh.json
+done; done
+for s in 0 1; do seed_fit pan_s$s $s; done   # the orders fits are hppc_seed_spread_shape's panord_s0, panord_s1
+G=""; for sh in each orders; do
+  for c in Chen2020 Mohtat2020 Marquis2019; do t=""; [ $sh = orders ] && t=_orders
+    G="$G $sh=out/unseen_cell/$c${t}_eval.json@$c $sh=out/unseen_cell/${c}_s1_${sh}_eval.json@$c"; done
+  for c in Ai2020 OKane2022 Ecker2015; do t=""; [ $sh = orders ] && t=_orders
+    G="$G $sh=out/unseen_more/$c${t}_eval.json@$c $sh=out/unseen_more/${c}_s1_${sh}_eval.json@$c"; done
+  u0=$O/pan_us06_s0_each.json; [ $sh = orders ] && u0=out/shape/pan_us06_orders_eval.json
+  h=pan_s; [ $sh = orders ] && h=panord_s
+  G="$G $sh=$u0@panasonic $sh=$O/pan_us06_s1_$sh.json@panasonic $sh=out/seeds/${h}0.json@panasonic $sh=out/seeds/${h}1.json@panasonic"
+done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference each --exclude _10C_trise $G \\
+    --json out/shape_seeds.json""",
+          nested_table("shape_seeds.json"), 330,
+          ("needs:unseen_cell", "needs:unseen_cell_more", "needs:unseen_shape", "needs:pan_us06_shape",
+           "needs:hppc_seed_spread_shape", "needs:pybamm")),
+    Table("slow_order", "characterisation.md", """\
+# the default fits are the unseen_cell, unseen_cell_more and shape_seeds tables' (seed 0, seed 1)
+python -m research.unseen_cell run --cells OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
+    --estimators fomiukf --profile-tag _so6_s0 --refit --fit-flags="--min-slow-order 0.6"
+python -m research.unseen_cell run --cells OKane2022 --ambients 25,10 --workdir out/unseen_more \\
+    --estimators fomiukf --profile-tag _so6_s1 --refit --fit-flags="--min-slow-order 0.6 --seed 1"
+for s in 0 1; do
+  python -m research.unseen_cell run --cells Chen2020 --estimators fomiukf --profile-tag _so6_s$s --refit \\
+      --fit-flags="--min-slow-order 0.6 --seed $s"
+done""",
+          runs_table((("`Chen2020` seed 0, default", "unseen_cell/Chen2020_eval.json"),
+                      ("`Chen2020` seed 0, `--min-slow-order 0.6`", "unseen_cell/Chen2020_so6_s0_eval.json"),
+                      ("`Chen2020` seed 1, default", "unseen_cell/Chen2020_s1_each_eval.json"),
+                      ("`Chen2020` seed 1, `--min-slow-order 0.6`", "unseen_cell/Chen2020_so6_s1_eval.json"),
+                      ("`OKane2022` seed 0, default", "unseen_more/OKane2022_eval.json"),
+                      ("`OKane2022` seed 0, `--min-slow-order 0.6`", "unseen_more/OKane2022_so6_s0_eval.json"),
+                      ("`OKane2022` seed 1, default", "unseen_more/OKane2022_s1_each_eval.json"),
+                      ("`OKane2022` seed 1, `--min-slow-order 0.6`", "unseen_more/OKane2022_so6_s1_eval.json"),
+                      ("`Ecker2015` seed 0, default", "unseen_more/Ecker2015_eval.json"),
+                      ("`Ecker2015` seed 0, `--min-slow-order 0.6`", "unseen_more/Ecker2015_so6_s0_eval.json")),
+                     UNSEEN_GROUPS),
+          90, ("needs:unseen_cell", "needs:unseen_cell_more", "needs:shape_seeds", "needs:pybamm")),
+    Table("slow_order_loco", "characterisation.md", REAL + f"""\
+# --min-slow-order 0.6 against the default (0.3, --min-order's) on every characterisation, seed 0, and seed 1 where
+# the slow_order table has it; the default runs are char_*'s, hppc_seed_spread's (pan_s0), shape_seeds' and the unseen tables'
+mkdir -p out/slow_order; O=out/slow_order; E="--estimator fomiukf --no-bar -q"
+socd evaluate --cell out/s25/calce.toml {CALCE} $E --json $O/calce_so3.json
+socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --min-slow-order 0.6 -q -o $O/calce_so6.toml
+socd evaluate --cell $O/calce_so6.toml {CALCE} $E --json $O/calce_so6.json
+socd evaluate --cell out/s25/a123.toml {A123} $E --json $O/a123_so3.json
+socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv \\
+    --min-slow-order 0.6 -q -o $O/a123_so6.toml
+socd evaluate --cell $O/a123_so6.toml {A123} $E --json $O/a123_so6.json
+socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 --min-slow-order 0.6 -q -o $O/pan_hppc_so6.toml
+socd evaluate --cell $O/pan_hppc_so6.toml $(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v -e HPPC -e trise) $E \\
+    --json $O/pan_hppc_so6.json
+socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv --capacity-ah 2.77 --min-slow-order 0.6 -q \\
+    -o $O/pan_us06_so6.toml
+socd evaluate --cell $O/pan_us06_so6.toml $(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v -e HPPC -e US06) $E \\
+    --json $O/pan_us06_so6.json
+python -m research.unseen_cell run --cells Mohtat2020,Marquis2019 --estimators fomiukf --profile-tag _so6_s0 --refit \\
+    --fit-flags="--min-slow-order 0.6"
+python -m research.unseen_cell run --cells Ai2020 --ambients 25,10 --workdir out/unseen_more --estimators fomiukf \\
+    --profile-tag _so6_s0 --refit --fit-flags="--min-slow-order 0.6"
+G="so3=$O/calce_so3.json@calce so6=$O/calce_so6.json@calce so3=$O/a123_so3.json@a123 so6=$O/a123_so6.json@a123"
+G="$G so3=out/seeds/pan_s0.json@panasonic so3=out/shape_seeds/pan_us06_s0_each.json@panasonic"
+G="$G so6=$O/pan_hppc_so6.json@panasonic so6=$O/pan_us06_so6.json@panasonic"
+for c in Chen2020 OKane2022; do d=unseen_cell; [ $c = OKane2022 ] && d=unseen_more
+  G="$G so3=out/$d/${{c}}_eval.json@$c so3=out/$d/${{c}}_s1_each_eval.json@$c"
+  G="$G so6=out/$d/${{c}}_so6_s0_eval.json@$c so6=out/$d/${{c}}_so6_s1_eval.json@$c"; done
+for c in Mohtat2020 Marquis2019 Ai2020 Ecker2015; do d=unseen_cell; [ $c = Ai2020 -o $c = Ecker2015 ] && d=unseen_more
+  G="$G so3=out/$d/${{c}}_eval.json@$c so6=out/$d/${{c}}_so6_s0_eval.json@$c"; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference so3 --exclude {TUNING_EXCLUDE} $G \\
+    --json out/slow_order_loco.json""",
+          nested_table("slow_order_loco.json"), 120,
+          ("needs:char_calce", "needs:char_a123", "needs:hppc_seed_spread", "needs:shape_seeds", "needs:slow_order",
+           "needs:unseen_cell", "needs:unseen_cell_more", "needs:pybamm")),
     Table("starts_other_cells", "characterisation.md", REAL + f"""\
 mkdir -p out/starts
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
