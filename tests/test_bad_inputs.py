@@ -569,6 +569,17 @@ def test_config_refuses_a_port_or_pattern_that_cannot_work(tmp_path: Path, capsy
     assert "Traceback" not in err, err
 
 
+@pytest.mark.parametrize("flag", ["--min-order", "--min-slow-order"])
+@pytest.mark.parametrize("value", ["1.0", "0", "nan"])
+def test_fit_refuses_an_order_bound_the_search_cannot_hold(tmp_path: Path, capsys, flag: str, value: str) -> None:
+    """An order bound of 1 or more left the search an empty range and failed only after the OCV was
+    fitted; it is an argument error naming the flag, before any file is read."""
+    code, err = run_cli(capsys, ["fit", str(tmp_path / "never_read.csv"), "--capacity-ah", "2", flag, value,
+                                 "-o", str(tmp_path / "cell.toml")])
+    assert code == 2 and f"argument {flag}" in err and "Traceback" not in err, err
+    assert not (tmp_path / "cell.toml").exists()
+
+
 def test_config_with_a_byte_order_mark_is_read(tmp_path: Path, capsys) -> None:
     cfg = _config_file(tmp_path, Path(DEFAULT_INPUT_DBC))
     cfg.write_bytes(b"\xef\xbb\xbf" + cfg.read_bytes())

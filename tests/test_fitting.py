@@ -248,8 +248,8 @@ def test_pinned_coordinates_hold_and_are_not_reported_at_a_bound():
 
 
 def test_min_slow_order_bounds_the_diffusion_branch_alone():
-    """``socd fit --min-slow-order``: the diffusion branch's order n stays at or above it (reported
-    at the bound when it ends there), while the double-layer order m keeps the default range."""
+    """``socd fit --min-slow-order``: the diffusion branch's order n stays at or above it, started
+    below it, while the double-layer order m is not held by it; a bound of 1 is refused."""
     t, i, temp, v = _pulse_drive(profile(), 1200, 1)
     seg = [FitSegment(t, i, v, temp, soc0=0.95)]
     # a point whose slow branch is far more dispersed than the bound allows

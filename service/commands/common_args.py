@@ -96,6 +96,8 @@ def float_in(lo: float, hi: float, what: str) -> Callable[[str], float]:
 probability = float_in(0.0, 1.0, "a probability")
 #: a state of charge as a fraction in [0, 1] (not percent)
 soc_fraction = float_in(0.0, 1.0, "a SOC fraction")
+#: a lower bound of a CPE order (the search's orders end at 1; ``socd fit --min-order``)
+cpe_order_bound = float_in(0.05, 0.99, "a CPE order bound")
 
 
 def relative_sigma(text: str) -> float:

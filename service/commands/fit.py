@@ -22,6 +22,7 @@ from service.commands.common_args import (
     SEED,
     add_common_arguments,
     add_fit_period_argument,
+    cpe_order_bound,
     full_at,
     memory_length,
     output_dir,
@@ -71,10 +72,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "20 or more clean current steps reaching 0.5C (HPPC tests, pulse and DST-like cycles), the "
                    "steps that measure it; --kinetics fits it at every temperature, --no-kinetics at none "
                    "(docs/results/tuning.md)")
-    p.add_argument("--min-order", type=float, default=None, metavar="A",
+    p.add_argument("--min-order", type=cpe_order_bound, default=None, metavar="A",
                    help="lower bound of the CPE orders m, n (default 0.3); the short G-L memory represents low "
                    "orders poorly (the bundled Panasonic profile uses 0.5)")
-    p.add_argument("--min-slow-order", type=float, default=None, metavar="A",
+    p.add_argument("--min-slow-order", type=cpe_order_bound, default=None, metavar="A",
                    help="lower bound of the diffusion branch's CPE order n alone (default: --min-order's); its time "
                    "constant is tens of times the G-L memory, where a low order is mostly truncation")
     p.add_argument("--max-tau-df", type=positive_float, default=None, metavar="S",
