@@ -316,7 +316,8 @@ def warn_unknown_ids(path: Path, ids: Counter[tuple[int, bool]], config) -> None
     unknown = unknown_ids(ids, config)
     if not unknown:
         return
-    shown = ", ".join(f"0x{i:X}{'x' if ext else ''} {n}x" for (i, ext), n in unknown.most_common(5))
+    # an extended ID in eight hex digits, a standard one in three, as candump writes them
+    shown = ", ".join(f"0x{i:08X} {n}x" if ext else f"0x{i:03X} {n}x" for (i, ext), n in unknown.most_common(5))
     more = f" and {len(unknown) - 5} more IDs" if len(unknown) > 5 else ""
     print(f"socd replay: warning: {sum(unknown.values())} of {sum(ids.values())} frames in {path} carry IDs the "
           f"input DBC {config.dbc.input} does not define ({shown}{more}): they are sent as logged, and a socd "

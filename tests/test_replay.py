@@ -218,7 +218,7 @@ def test_log_with_ids_the_dbc_does_not_define_is_warned_about(tmp_path, capsys):
     rc = socd_main(["replay", str(log), "-i", "virtual", "-c", "unknown_ids", "--fast", "--quiet"])
     err = capsys.readouterr().err
     assert rc == 0
-    assert "6 of 6 frames" in err and "0x123 3x" in err and "0x18FF0001x 3x" in err
+    assert "6 of 6 frames" in err and "0x123 3x" in err and "0x18FF0001 3x" in err
     assert "rejected" in err
 
 
