@@ -29,6 +29,7 @@ from replay.faults import FaultSpec
 from replay.pack import SpreadSpec, pack_frames
 from replay.player import LOG_SUFFIXES, log_format, play, read_log
 from service.bus.cli_args import BusConfigError, add_bus_arguments, bus_flags_given, resolve_bus
+from service.bus.decoder import frame_key, message_key
 from service.commands.common_args import (
     SEED,
     add_cell_argument,
@@ -214,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
 
         def counted(p: Path):
             for msg in read_log(p):
-                ids[(msg.arbitration_id, bool(msg.is_extended_id))] += 1
+                ids[frame_key(msg)] += 1
                 yield msg
 
         try:  # read it to the end once, so a bad log fails here and not halfway through a replay
@@ -307,7 +308,7 @@ def _one_sample(config, n_cells):
 def unknown_ids(ids: Counter[tuple[int, bool]], config) -> Counter[tuple[int, bool]]:
     """The frame counts of ``ids`` (``(arbitration id, extended)`` -> frames) that the config's
     input DBC does not define: a daemon on that config rejects each of them."""
-    known = {(m.frame_id, bool(m.is_extended_frame)) for m in config.input_db().messages}
+    known = {message_key(m) for m in config.input_db().messages}
     return Counter({key: n for key, n in ids.items() if key not in known})
 
 

@@ -84,6 +84,17 @@ REJECT_REASONS = FRAME_REJECTS
 #: consecutive agreeing off-timeline frames of one ID after which it re-anchors on them
 REANCHOR_AFTER = 5
 
+
+def message_key(message) -> tuple[int, bool]:
+    """A DBC message's ``(frame id, extended)``: the key a frame is decoded by (:func:`frame_key`)."""
+    return message.frame_id, bool(message.is_extended_frame)
+
+
+def frame_key(msg: can.Message) -> tuple[int, bool]:
+    """A frame's ``(arbitration id, extended)``, matched against :func:`message_key`."""
+    return msg.arbitration_id, bool(msg.is_extended_id)
+
+
 _CURRENT, _VOLT, _TEMP = 0, 1, 2
 
 
@@ -135,7 +146,7 @@ class FrameDecoder:
                 sig = m.get_signal_by_name(cname)
                 info.counter = cname
                 info.counter_mod = 1 << sig.length
-            self._by_id[(m.frame_id, bool(m.is_extended_frame))] = info
+            self._by_id[message_key(m)] = info
 
         #: the signal carrying the sample time, and its message (None: frame timestamps)
         self.time_signal: TimeSignal | None = None
@@ -143,7 +154,7 @@ class FrameDecoder:
         if mp.time_signal is not None:
             self.time_signal = TimeSignal.find(self.db, mp.time_signal)
             m = self.time_signal.message
-            self._sync_info = self._by_id[(m.frame_id, bool(m.is_extended_frame))]
+            self._sync_info = self._by_id[message_key(m)]
         #: the latest accepted time-sync value, the one accepted before it, and whether a
         #: sample has been completed since the latest
         self.sync_t_s: float | None = None
@@ -301,7 +312,7 @@ class FrameDecoder:
             return "error_frame"
         if msg.is_remote_frame:
             return "remote_frame"
-        info = self._by_id.get((msg.arbitration_id, bool(msg.is_extended_id)))
+        info = self._by_id.get(frame_key(msg))
         if info is None:
             return "unknown_id"
         data = bytes(msg.data)
