@@ -12,7 +12,7 @@ them is read with a shape neither point has."""
 from __future__ import annotations
 
 SHAPES = ("each", "orders", "orders-ratio")
-#: chosen leave-one-cell-out over the shared and PyBaMM characterisations (docs/results/characterisation.md,
-#: ``unseen_shape``): ``orders`` helped one cell and hurt another, and moved the rest by no more than two
-#: commits' default fits differ
+#: ``each`` was chosen leave-one-cell-out on one optimiser seed (docs/results/characterisation.md,
+#: ``unseen_shape``); over two seeds ``orders`` wins by more than the tuning margin (``shape_seeds``), and
+#: becomes the default once the multi-temperature tables are fitted again with it
 DEFAULT_SHAPE = "each"
