@@ -414,14 +414,13 @@ def fit_parameters(
         temp_c = float(law_ref_temp_c)
 
     base_bounds = dict(BOUNDS)
+    for name, bound in (("min_order", min_order), ("min_slow_order", min_slow_order)):
+        if bound is not None and not 0.0 < bound < 1.0:
+            raise ValueError(f"{name} must be in (0, 1), got {bound}")
     if min_order is not None:
-        if not 0.0 < min_order < 1.0:
-            raise ValueError(f"min_order must be in (0, 1), got {min_order}")
         base_bounds["m"] = (min_order, 1.0)
         base_bounds["n"] = (min_order, 1.0)
     if min_slow_order is not None:
-        if not 0.0 < min_slow_order < 1.0:
-            raise ValueError(f"min_slow_order must be in (0, 1), got {min_slow_order}")
         base_bounds["n"] = (max(base_bounds["n"][0], min_slow_order), 1.0)
     for key, attr in (("ln_r_ohm", "r_ohm"), ("ln_r_ct", "r_ct"), ("ln_r_df", "r_df")):
         lo_b, hi_b = base_bounds[key]
