@@ -351,10 +351,10 @@ def test_fit_with_the_temperature_law_gives_the_point_at_the_groups_temperature(
     assert one_point.ea_j_mol is None and one_point.rmse_mv > 2 * law.rmse_mv
 
 
-@pytest.mark.parametrize("shape", ["orders", "orders-ratio"])
+@pytest.mark.parametrize("shape", [None, "orders", "orders-ratio"])
 def test_fit_shares_the_reference_temperatures_shape(tmp_path: Path, nmc_recording, nmc_ocv_csv, shape, capsys):
-    """``socd fit --shape``: the points at 25 and 0 °C have the same orders (and time-constant ratio);
-    their resistances still differ, fitted at each temperature."""
+    """``socd fit --shape`` (and its default, ``orders``): the points at 25 and 0 °C have the same orders
+    (and time-constant ratio); their resistances still differ, fitted at each temperature."""
     from service.cell.profile import load_profile
     from service.cli import main
 
@@ -362,7 +362,7 @@ def test_fit_shares_the_reference_temperatures_shape(tmp_path: Path, nmc_recordi
               for t, r in ((25.0, 0.03), (0.0, 0.06))]
     out = tmp_path / "cell.toml"
     rc = main(["fit", *(str(d.path) for d in drives), "--ocv", str(nmc_ocv_csv), "--capacity-ah", "2.0",
-               "--max-seconds", "5", "--force", "--shape", shape, "-q", "-o", str(out)])
+               "--max-seconds", "5", "--force", *(("--shape", shape) if shape else ()), "-q", "-o", str(out)])
     assert rc == 0, capsys.readouterr().err
     cold, warm = sorted(load_profile(out).parameters, key=lambda p: p.temp_c)
     assert (cold.m, cold.n) == pytest.approx((warm.m, warm.n), abs=1e-5)

@@ -86,8 +86,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="which shape of the fractional model the temperatures share: each temperature fitted freely "
                    "(each), the CPE orders m, n of the reference temperature's point held at the others (orders), or "
                    "the orders and the ratio of the two time constants (orders-ratio); with shared orders the profile "
-                   f"interpolates the time constants between temperatures (default {DEFAULT_SHAPE}; over two optimiser "
-                   "seeds orders reads better, docs/results/characterisation.md, shape_seeds)")
+                   f"interpolates the time constants between temperatures (default {DEFAULT_SHAPE}, chosen leave-one-cell-out "
+                   "over two optimiser seeds: docs/results/characterisation.md, shape_seeds)")
     p.add_argument("--monotone", action="store_true",
                    help="bound each temperature's R_ohm, R_ct, R_df by the neighbouring fitted temperatures "
                    "(resistance rises in the cold); off by default")
