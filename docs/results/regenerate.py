@@ -1077,30 +1077,32 @@ python -m research.unseen_ocv_truth --cells {",".join(MORE_UNSEEN_CELLS)} --ambi
               [tool("unseen_ocv_truth").OcvTruthRow(**r) for r in _read(out, "unseen_ocv_truth_more.json")]),
           2, ("needs:unseen_cell_more", "needs:pybamm")),
     Table("hppc_seed_spread", "characterisation.md", REAL + SEED_FIT + """\
-for s in 0 1 2 3 4 5; do seed_fit pan_s$s $s; done
-for s in 0 2; do seed_fit pank4_s$s $s --starts 4; done""",
+for s in 0 1 2 3 4 5; do seed_fit pan_s$s $s --shape each; done
+for s in 0 2; do seed_fit pank4_s$s $s --starts 4 --shape each; done""",
           seed_spread_table(tuple((f"seed {s}", f"seeds/pan_s{s}") for s in range(6))
                             + tuple((f"`--starts 4` from seed {s} (seeds {s}-{s + 3})", f"seeds/pank4_s{s}") for s in (0, 2)),
                             SEED_TEMPS, SEED_GROUPS, averaged=6),
           70),
     Table("hppc_seed_spread_monotone", "characterisation.md", REAL + SEED_FIT + """\
-for s in 0 1 2 3 4 5; do seed_fit mono_s$s $s --monotone; done""",
+for s in 0 1 2 3 4 5; do seed_fit mono_s$s $s --monotone --shape each; done""",
           seed_spread_table(tuple((f"seed {s}, `--monotone`", f"seeds/mono_s{s}") for s in range(6)),
                             SEED_TEMPS, SEED_GROUPS, averaged=6),
           25),
     Table("unseen_shape", "characterisation.md", """\
-# the default fits (--shape each) are the unseen_cell and unseen_cell_more tables'
+python -m research.unseen_cell run --profile-tag _s0_each --refit --fit-flags='--shape each'
+python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
+    --profile-tag _s0_each --refit --fit-flags='--shape each'
 python -m research.unseen_cell run --estimators fomiukf --profile-tag _orders --refit --fit-flags='--shape orders'
 python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
     --estimators fomiukf --profile-tag _orders --refit --fit-flags='--shape orders'""",
           runs_table(tuple((f"`{cell}` {label}", f"{folder}/{cell}{tag}_eval.json")
                            for folder, cells in (("unseen_cell", UNSEEN_CELLS), ("unseen_more", MORE_UNSEEN_CELLS))
                            for cell in cells
-                           for label, tag in (("`each` (default)", ""), ("`--shape orders`", "_orders"))),
+                           for label, tag in (("`--shape each`", "_s0_each"), ("`--shape orders` (the default)", "_orders"))),
                      UNSEEN_GROUPS),
           60, ("needs:unseen_cell", "needs:unseen_cell_more", "needs:pybamm")),
     Table("pan_us06_shape", "characterisation.md", REAL + """\
-mkdir -p out/shape   # the default fit (--shape each) is char_pan_us06's
+mkdir -p out/shape   # the default fit since orders became the default, char_pan_us06's; each is shape_seeds' pan_us06_s0_each
 socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q \\
     --shape orders -o out/shape/pan_us06_orders.toml
 socd evaluate --cell out/shape/pan_us06_orders.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
@@ -1108,11 +1110,11 @@ socd evaluate --cell out/shape/pan_us06_orders.toml $(ls $P/pan18650pf_{25C,10C,
           group_table("shape/pan_us06_orders_eval.json", PAN_GROUPS), 40),
     Table("hppc_seed_spread_shape", "characterisation.md", REAL + SEED_FIT + """\
 for s in 0 1 2; do seed_fit panord_s$s $s --shape orders; done""",
-          seed_spread_table(tuple((f"seed {s}, `--shape orders`", f"seeds/panord_s{s}") for s in range(3)),
+          seed_spread_table(tuple((f"seed {s}, `--shape orders` (the default)", f"seeds/panord_s{s}") for s in range(3)),
                             SEED_TEMPS, SEED_GROUPS, averaged=3),
           35),
     Table("shape_seeds", "characterisation.md", REAL + SEED_FIT + """\
-# seed 0: the unseen_cell, unseen_cell_more, unseen_shape, pan_us06_shape and hppc_seed_spread_shape tables' runs
+# seed 0: the unseen_shape, pan_us06_shape, hppc_seed_spread and hppc_seed_spread_shape tables' runs
 mkdir -p out/shape_seeds; O=out/shape_seeds
 for sh in each orders; do
   python -m research.unseen_cell run --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --shape $sh"
@@ -1126,11 +1128,11 @@ for s in 0 1; do for sh in each orders; do
   socd evaluate --cell $O/pan_us06_s${s}_$sh.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
       --estimator fomiukf --no-bar -q --json $O/pan_us06_s${s}_$sh.json
 done; done
-for s in 0 1; do seed_fit pan_s$s $s; done   # the orders fits are hppc_seed_spread_shape's panord_s0, panord_s1
+for s in 0 1; do seed_fit pan_s$s $s --shape each; done   # the orders fits are hppc_seed_spread_shape's panord_s0, panord_s1
 G=""; for sh in each orders; do
-  for c in Chen2020 Mohtat2020 Marquis2019; do t=""; [ $sh = orders ] && t=_orders
+  for c in Chen2020 Mohtat2020 Marquis2019; do t=_s0_each; [ $sh = orders ] && t=_orders
     G="$G $sh=out/unseen_cell/$c${t}_eval.json@$c $sh=out/unseen_cell/${c}_s1_${sh}_eval.json@$c"; done
-  for c in Ai2020 OKane2022 Ecker2015; do t=""; [ $sh = orders ] && t=_orders
+  for c in Ai2020 OKane2022 Ecker2015; do t=_s0_each; [ $sh = orders ] && t=_orders
     G="$G $sh=out/unseen_more/$c${t}_eval.json@$c $sh=out/unseen_more/${c}_s1_${sh}_eval.json@$c"; done
   u0=$O/pan_us06_s0_each.json; [ $sh = orders ] && u0=out/shape/pan_us06_orders_eval.json
   h=pan_s; [ $sh = orders ] && h=panord_s
@@ -1141,31 +1143,74 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference each 
           nested_table("shape_seeds.json"), 330,
           ("needs:unseen_cell", "needs:unseen_cell_more", "needs:unseen_shape", "needs:pan_us06_shape",
            "needs:hppc_seed_spread_shape", "needs:pybamm")),
+    Table("fit_file_pick", "characterisation.md", REAL + f"""\
+# every multi-temperature profile is --shape orders (the default): unseen_shape's and shape_seeds' fits (seeds 0, 1),
+# pan_us06_shape's and shape_seeds' (Panasonic OCV test + US06), hppc_seed_spread_shape's (Panasonic HPPC)
+mkdir -p out/fitsel; O=out/fitsel; E="--estimator fomiukf --no-bar -q"
+for s in 0 1; do
+  socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --seed $s -q -o $O/calce_s$s.toml
+  socd evaluate --cell $O/calce_s$s.toml $C/calce20r_25C_DST_80soc.csv --full-at 3303 $E --json $O/calce_s$s.json
+  socd evaluate --cell $O/calce_s$s.toml {CALCE} $E --json $O/calce_s${{s}}_held.json
+  socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
+      --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --seed $s -q -o $O/a123_s$s.toml
+  socd evaluate --cell $O/a123_s$s.toml $A/calce_a123_20C_DST.csv --full-at 4815 $E --json $O/a123_s$s.json
+  socd evaluate --cell $O/a123_s$s.toml {A123} $E --json $O/a123_s${{s}}_held.json
+done
+for c in Chen2020 Mohtat2020 Marquis2019; do
+  for s in 0 1; do t=_orders; [ $s = 1 ] && t=_s1_orders
+    socd evaluate --cell out/unseen_cell/$c$t.toml out/unseen_cell/${{c}}_{{25C,10C,0C}}_US06.csv $E --json $O/${{c}}_s$s.json; done; done
+for c in Ai2020 OKane2022 Ecker2015; do
+  for s in 0 1; do t=_orders; [ $s = 1 ] && t=_s1_orders
+    socd evaluate --cell out/unseen_more/$c$t.toml out/unseen_more/${{c}}_{{25C,10C}}_US06.csv $E --json $O/${{c}}_s$s.json; done; done
+socd evaluate --cell out/shape/pan_us06_orders.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv $E --json $O/panus06_s0.json
+socd evaluate --cell out/shape_seeds/pan_us06_s1_orders.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv $E --json $O/panus06_s1.json
+for s in 0 1; do
+  socd evaluate --cell out/seeds/panord_s$s.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv $E --json $O/panhppc_s$s.json; done
+G=""
+pair() {{  # CELL FIT0 HELD0 FIT1 HELD1: both seeds, and the seed whose filter reads its fit files best, twice
+  p=$(python -m research.fit_file_pick $2:$3 $4:$5)
+  G="$G single=$3@$1 single=$5@$1 pick=$p@$1 pick=$p@$1"
+}}
+pair calce $O/calce_s0.json $O/calce_s0_held.json $O/calce_s1.json $O/calce_s1_held.json
+pair a123 $O/a123_s0.json $O/a123_s0_held.json $O/a123_s1.json $O/a123_s1_held.json
+for c in Chen2020 Mohtat2020 Marquis2019; do
+  pair $c $O/${{c}}_s0.json out/unseen_cell/${{c}}_orders_eval.json $O/${{c}}_s1.json out/unseen_cell/${{c}}_s1_orders_eval.json; done
+for c in Ai2020 OKane2022 Ecker2015; do
+  pair $c $O/${{c}}_s0.json out/unseen_more/${{c}}_orders_eval.json $O/${{c}}_s1.json out/unseen_more/${{c}}_s1_orders_eval.json; done
+pair panasonic $O/panus06_s0.json out/shape/pan_us06_orders_eval.json $O/panus06_s1.json out/shape_seeds/pan_us06_s1_orders.json
+pair panasonic $O/panhppc_s0.json out/seeds/panord_s0.json $O/panhppc_s1.json out/seeds/panord_s1.json
+python -m research.nested_tuning --by cell --estimator fomiukf --reference single --exclude {TUNING_EXCLUDE} $G \\
+    --json out/fit_file_pick.json""",
+          nested_table("fit_file_pick.json"), 60,
+          ("needs:unseen_shape", "needs:shape_seeds", "needs:pan_us06_shape", "needs:hppc_seed_spread_shape",
+           "needs:pybamm")),
     Table("slow_order", "characterisation.md", """\
-# the default fits are the unseen_cell, unseen_cell_more and shape_seeds tables' (seed 0, seed 1)
+# every fit here --shape each, the default when this ran; the fits without the bound are unseen_shape's (seed 0)
+# and shape_seeds' (seed 1)
 python -m research.unseen_cell run --cells OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
-    --estimators fomiukf --profile-tag _so6_s0 --refit --fit-flags="--min-slow-order 0.6"
+    --estimators fomiukf --profile-tag _so6_s0 --refit --fit-flags="--min-slow-order 0.6 --shape each"
 python -m research.unseen_cell run --cells OKane2022 --ambients 25,10 --workdir out/unseen_more \\
-    --estimators fomiukf --profile-tag _so6_s1 --refit --fit-flags="--min-slow-order 0.6 --seed 1"
+    --estimators fomiukf --profile-tag _so6_s1 --refit --fit-flags="--min-slow-order 0.6 --seed 1 --shape each"
 for s in 0 1; do
   python -m research.unseen_cell run --cells Chen2020 --estimators fomiukf --profile-tag _so6_s$s --refit \\
-      --fit-flags="--min-slow-order 0.6 --seed $s"
+      --fit-flags="--min-slow-order 0.6 --seed $s --shape each"
 done""",
-          runs_table((("`Chen2020` seed 0, default", "unseen_cell/Chen2020_eval.json"),
+          runs_table((("`Chen2020` seed 0, `--min-slow-order 0.3` (default)", "unseen_cell/Chen2020_s0_each_eval.json"),
                       ("`Chen2020` seed 0, `--min-slow-order 0.6`", "unseen_cell/Chen2020_so6_s0_eval.json"),
-                      ("`Chen2020` seed 1, default", "unseen_cell/Chen2020_s1_each_eval.json"),
+                      ("`Chen2020` seed 1, `--min-slow-order 0.3` (default)", "unseen_cell/Chen2020_s1_each_eval.json"),
                       ("`Chen2020` seed 1, `--min-slow-order 0.6`", "unseen_cell/Chen2020_so6_s1_eval.json"),
-                      ("`OKane2022` seed 0, default", "unseen_more/OKane2022_eval.json"),
+                      ("`OKane2022` seed 0, `--min-slow-order 0.3` (default)", "unseen_more/OKane2022_s0_each_eval.json"),
                       ("`OKane2022` seed 0, `--min-slow-order 0.6`", "unseen_more/OKane2022_so6_s0_eval.json"),
-                      ("`OKane2022` seed 1, default", "unseen_more/OKane2022_s1_each_eval.json"),
+                      ("`OKane2022` seed 1, `--min-slow-order 0.3` (default)", "unseen_more/OKane2022_s1_each_eval.json"),
                       ("`OKane2022` seed 1, `--min-slow-order 0.6`", "unseen_more/OKane2022_so6_s1_eval.json"),
-                      ("`Ecker2015` seed 0, default", "unseen_more/Ecker2015_eval.json"),
+                      ("`Ecker2015` seed 0, `--min-slow-order 0.3` (default)", "unseen_more/Ecker2015_s0_each_eval.json"),
                       ("`Ecker2015` seed 0, `--min-slow-order 0.6`", "unseen_more/Ecker2015_so6_s0_eval.json")),
                      UNSEEN_GROUPS),
           90, ("needs:unseen_cell", "needs:unseen_cell_more", "needs:shape_seeds", "needs:pybamm")),
     Table("slow_order_loco", "characterisation.md", REAL + f"""\
 # --min-slow-order 0.6 against the default (0.3, --min-order's) on every characterisation, seed 0, and seed 1 where
-# the slow_order table has it; the default runs are char_*'s, hppc_seed_spread's (pan_s0), shape_seeds' and the unseen tables'
+# the slow_order table has it, all with --shape each (the default when this ran); the runs at 0.3 are char_calce's and
+# char_a123's fits, hppc_seed_spread's (pan_s0), shape_seeds' and unseen_shape's
 mkdir -p out/slow_order; O=out/slow_order; E="--estimator fomiukf --no-bar -q"
 socd evaluate --cell out/s25/calce.toml {CALCE} $E --json $O/calce_so3.json
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --min-slow-order 0.6 -q -o $O/calce_so6.toml
@@ -1174,25 +1219,25 @@ socd evaluate --cell out/s25/a123.toml {A123} $E --json $O/a123_so3.json
 socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv \\
     --min-slow-order 0.6 -q -o $O/a123_so6.toml
 socd evaluate --cell $O/a123_so6.toml {A123} $E --json $O/a123_so6.json
-socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 --min-slow-order 0.6 -q -o $O/pan_hppc_so6.toml
+socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 --min-slow-order 0.6 --shape each -q -o $O/pan_hppc_so6.toml
 socd evaluate --cell $O/pan_hppc_so6.toml $(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v -e HPPC -e trise) $E \\
     --json $O/pan_hppc_so6.json
-socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv --capacity-ah 2.77 --min-slow-order 0.6 -q \\
+socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv --capacity-ah 2.77 --min-slow-order 0.6 --shape each -q \\
     -o $O/pan_us06_so6.toml
 socd evaluate --cell $O/pan_us06_so6.toml $(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v -e HPPC -e US06) $E \\
     --json $O/pan_us06_so6.json
 python -m research.unseen_cell run --cells Mohtat2020,Marquis2019 --estimators fomiukf --profile-tag _so6_s0 --refit \\
-    --fit-flags="--min-slow-order 0.6"
+    --fit-flags="--min-slow-order 0.6 --shape each"
 python -m research.unseen_cell run --cells Ai2020 --ambients 25,10 --workdir out/unseen_more --estimators fomiukf \\
-    --profile-tag _so6_s0 --refit --fit-flags="--min-slow-order 0.6"
+    --profile-tag _so6_s0 --refit --fit-flags="--min-slow-order 0.6 --shape each"
 G="so3=$O/calce_so3.json@calce so6=$O/calce_so6.json@calce so3=$O/a123_so3.json@a123 so6=$O/a123_so6.json@a123"
 G="$G so3=out/seeds/pan_s0.json@panasonic so3=out/shape_seeds/pan_us06_s0_each.json@panasonic"
 G="$G so6=$O/pan_hppc_so6.json@panasonic so6=$O/pan_us06_so6.json@panasonic"
 for c in Chen2020 OKane2022; do d=unseen_cell; [ $c = OKane2022 ] && d=unseen_more
-  G="$G so3=out/$d/${{c}}_eval.json@$c so3=out/$d/${{c}}_s1_each_eval.json@$c"
+  G="$G so3=out/$d/${{c}}_s0_each_eval.json@$c so3=out/$d/${{c}}_s1_each_eval.json@$c"
   G="$G so6=out/$d/${{c}}_so6_s0_eval.json@$c so6=out/$d/${{c}}_so6_s1_eval.json@$c"; done
 for c in Mohtat2020 Marquis2019 Ai2020 Ecker2015; do d=unseen_cell; [ $c = Ai2020 -o $c = Ecker2015 ] && d=unseen_more
-  G="$G so3=out/$d/${{c}}_eval.json@$c so6=out/$d/${{c}}_so6_s0_eval.json@$c"; done
+  G="$G so3=out/$d/${{c}}_s0_each_eval.json@$c so6=out/$d/${{c}}_so6_s0_eval.json@$c"; done
 python -m research.nested_tuning --by cell --estimator fomiukf --reference so3 --exclude {TUNING_EXCLUDE} $G \\
     --json out/slow_order_loco.json""",
           nested_table("slow_order_loco.json"), 120,
