@@ -1102,7 +1102,7 @@ python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients
                      UNSEEN_GROUPS),
           60, ("needs:unseen_cell", "needs:unseen_cell_more", "needs:pybamm")),
     Table("pan_us06_shape", "characterisation.md", REAL + """\
-mkdir -p out/shape   # the default fit since orders became the default, char_pan_us06's; each is shape_seeds' pan_us06_s0_each
+mkdir -p out/shape   # char_pan_us06's fit now that orders is the default; --shape each's is shape_seeds' pan_us06_s0_each
 socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q \\
     --shape orders -o out/shape/pan_us06_orders.toml
 socd evaluate --cell out/shape/pan_us06_orders.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
