@@ -1102,19 +1102,21 @@ python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients
                      UNSEEN_GROUPS),
           60, ("needs:unseen_cell", "needs:unseen_cell_more", "needs:pybamm")),
     Table("pan_us06_shape", "characterisation.md", REAL + """\
-mkdir -p out/shape   # char_pan_us06's fit now that orders is the default; --shape each's is shape_seeds' pan_us06_s0_each
-socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q \\
-    --shape orders -o out/shape/pan_us06_orders.toml
-socd evaluate --cell out/shape/pan_us06_orders.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
-    --estimator fomiukf -q --json out/shape/pan_us06_orders_eval.json""",
-          group_table("shape/pan_us06_orders_eval.json", PAN_GROUPS), 40),
+mkdir -p out/shape_seeds; O=out/shape_seeds   # the default fit (--shape orders) is char_pan_us06's
+socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q --seed 0 \\
+    --shape each -o $O/pan_us06_s0_each.toml
+socd evaluate --cell $O/pan_us06_s0_each.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
+    --estimator fomiukf --no-bar -q --json $O/pan_us06_s0_each.json""",
+          runs_table((("`--shape each`", "shape_seeds/pan_us06_s0_each.json"),
+                      ("`--shape orders` (the default, `char_pan_us06`)", "s25/pan_us06_eval.json")), PAN_GROUPS),
+          30, ("needs:char_pan_us06",)),
     Table("hppc_seed_spread_shape", "characterisation.md", REAL + SEED_FIT + """\
 for s in 0 1 2; do seed_fit panord_s$s $s --shape orders; done""",
           seed_spread_table(tuple((f"seed {s}, `--shape orders` (the default)", f"seeds/panord_s{s}") for s in range(3)),
                             SEED_TEMPS, SEED_GROUPS, averaged=3),
           35),
     Table("shape_seeds", "characterisation.md", REAL + SEED_FIT + """\
-# seed 0: the unseen_shape, pan_us06_shape, hppc_seed_spread and hppc_seed_spread_shape tables' runs
+# seed 0: the unseen_shape, char_pan_us06, pan_us06_shape, hppc_seed_spread and hppc_seed_spread_shape tables' runs
 mkdir -p out/shape_seeds; O=out/shape_seeds
 for sh in each orders; do
   python -m research.unseen_cell run --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --shape $sh"
@@ -1122,7 +1124,7 @@ for sh in each orders; do
       --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --shape $sh"
 done
 for s in 0 1; do for sh in each orders; do
-  [ $s$sh = 0orders ] && continue   # pan_us06_shape's
+  [ $s = 0 ] && continue   # char_pan_us06's (orders) and pan_us06_shape's (each)
   socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q --seed $s \\
       --shape $sh -o $O/pan_us06_s${s}_$sh.toml
   socd evaluate --cell $O/pan_us06_s${s}_$sh.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
@@ -1134,18 +1136,18 @@ G=""; for sh in each orders; do
     G="$G $sh=out/unseen_cell/$c${t}_eval.json@$c $sh=out/unseen_cell/${c}_s1_${sh}_eval.json@$c"; done
   for c in Ai2020 OKane2022 Ecker2015; do t=_s0_each; [ $sh = orders ] && t=_orders
     G="$G $sh=out/unseen_more/$c${t}_eval.json@$c $sh=out/unseen_more/${c}_s1_${sh}_eval.json@$c"; done
-  u0=$O/pan_us06_s0_each.json; [ $sh = orders ] && u0=out/shape/pan_us06_orders_eval.json
+  u0=$O/pan_us06_s0_each.json; [ $sh = orders ] && u0=out/s25/pan_us06_eval.json
   h=pan_s; [ $sh = orders ] && h=panord_s
   G="$G $sh=$u0@panasonic $sh=$O/pan_us06_s1_$sh.json@panasonic $sh=out/seeds/${h}0.json@panasonic $sh=out/seeds/${h}1.json@panasonic"
 done
 python -m research.nested_tuning --by cell --estimator fomiukf --reference each --exclude _10C_trise $G \\
     --json out/shape_seeds.json""",
           nested_table("shape_seeds.json"), 330,
-          ("needs:unseen_cell", "needs:unseen_cell_more", "needs:unseen_shape", "needs:pan_us06_shape",
-           "needs:hppc_seed_spread_shape", "needs:pybamm")),
+          ("needs:unseen_cell", "needs:unseen_cell_more", "needs:unseen_shape", "needs:char_pan_us06",
+           "needs:pan_us06_shape", "needs:hppc_seed_spread_shape", "needs:pybamm")),
     Table("fit_file_pick", "characterisation.md", REAL + f"""\
 # every multi-temperature profile is --shape orders (the default): unseen_shape's and shape_seeds' fits (seeds 0, 1),
-# pan_us06_shape's and shape_seeds' (Panasonic OCV test + US06), hppc_seed_spread_shape's (Panasonic HPPC)
+# char_pan_us06's and shape_seeds' (Panasonic OCV test + US06), hppc_seed_spread_shape's (Panasonic HPPC)
 mkdir -p out/fitsel; O=out/fitsel; E="--estimator fomiukf --no-bar -q"
 for s in 0 1; do
   socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --seed $s -q -o $O/calce_s$s.toml
@@ -1162,7 +1164,7 @@ for c in Chen2020 Mohtat2020 Marquis2019; do
 for c in Ai2020 OKane2022 Ecker2015; do
   for s in 0 1; do t=_orders; [ $s = 1 ] && t=_s1_orders
     socd evaluate --cell out/unseen_more/$c$t.toml out/unseen_more/${{c}}_{{25C,10C}}_US06.csv $E --json $O/${{c}}_s$s.json; done; done
-socd evaluate --cell out/shape/pan_us06_orders.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv $E --json $O/panus06_s0.json
+socd evaluate --cell out/s25/pan_us06.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv $E --json $O/panus06_s0.json
 socd evaluate --cell out/shape_seeds/pan_us06_s1_orders.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv $E --json $O/panus06_s1.json
 for s in 0 1; do
   socd evaluate --cell out/seeds/panord_s$s.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv $E --json $O/panhppc_s$s.json; done
@@ -1177,12 +1179,12 @@ for c in Chen2020 Mohtat2020 Marquis2019; do
   pair $c $O/${{c}}_s0.json out/unseen_cell/${{c}}_orders_eval.json $O/${{c}}_s1.json out/unseen_cell/${{c}}_s1_orders_eval.json; done
 for c in Ai2020 OKane2022 Ecker2015; do
   pair $c $O/${{c}}_s0.json out/unseen_more/${{c}}_orders_eval.json $O/${{c}}_s1.json out/unseen_more/${{c}}_s1_orders_eval.json; done
-pair panasonic $O/panus06_s0.json out/shape/pan_us06_orders_eval.json $O/panus06_s1.json out/shape_seeds/pan_us06_s1_orders.json
+pair panasonic $O/panus06_s0.json out/s25/pan_us06_eval.json $O/panus06_s1.json out/shape_seeds/pan_us06_s1_orders.json
 pair panasonic $O/panhppc_s0.json out/seeds/panord_s0.json $O/panhppc_s1.json out/seeds/panord_s1.json
 python -m research.nested_tuning --by cell --estimator fomiukf --reference single --exclude {TUNING_EXCLUDE} $G \\
     --json out/fit_file_pick.json""",
           nested_table("fit_file_pick.json"), 60,
-          ("needs:unseen_shape", "needs:shape_seeds", "needs:pan_us06_shape", "needs:hppc_seed_spread_shape",
+          ("needs:unseen_shape", "needs:shape_seeds", "needs:char_pan_us06", "needs:hppc_seed_spread_shape",
            "needs:pybamm")),
     Table("slow_order", "characterisation.md", """\
 # every fit here --shape each, the default when this ran; the fits without the bound are unseen_shape's (seed 0)
