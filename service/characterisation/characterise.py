@@ -590,6 +590,11 @@ def characterise(
                    else f"; search finished in {res.seconds:.0f} s"))
         if outcome.at_bounds:
             rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}", notice=True)
+        if (source == "2-RC start" and t != ref_t and shape_pins(points[ref_t], shape)
+                and not np.allclose((pt.m, pt.n), (points[ref_t].m, points[ref_t].n), atol=1e-6)):
+            rep.say(f"  {t:g} °C: the search holding the {ref_t:g} °C point's shape (--shape {shape}) fitted worse "
+                    "than the 2-RC point, which is kept, so this temperature does not share that shape (more "
+                    "--max-seconds, or --shape each)", notice=True)
     profile = prof.model_copy(update={
         "memory_span_s": memory_span_s,
         "parameters": with_linear_kinetics_where_unfitted([points[t] for t in sorted(points)]),
