@@ -541,12 +541,14 @@ def characterise(
                       else kinetics_resolvable([part for part, _ in groups[t]], capacity_ah, t, rep))
         start = ecm_start_point(ecm[t], t, max_tau_df_s=max_tau_df_s)
         law_t = temperature_law_resolvable(segs, t, rep)
+        # the search coordinates the reference temperature's point holds here (--shape)
+        pins = {} if t == ref_t else shape_pins(points[ref_t], shape)
         res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length,
                                        fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
                                        max_seconds=max_seconds, x0=start, warmer=warmer, colder=colder,
                                        min_order=min_order, min_slow_order=min_slow_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
                                        law_ref_temp_c=t,
-                                       pinned=None if t == ref_t else shape_pins(points[ref_t], shape))
+                                       pinned=pins or None)
         ea_t = res.ea_j_mol
         # the 2-RC fit's point read as this model reads a point (the OCV as stored, the fractional
         # time step, no hysteresis): the bar the fit is held to, both read the same way
@@ -590,8 +592,8 @@ def characterise(
                    else f"; search finished in {res.seconds:.0f} s"))
         if outcome.at_bounds:
             rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}", notice=True)
-        if (source == "2-RC start" and t != ref_t and shape_pins(points[ref_t], shape)
-                and not np.allclose((pt.m, pt.n), (points[ref_t].m, points[ref_t].n), atol=1e-6)):
+        if (source == "2-RC start" and pins
+                and not np.allclose(list(shape_pins(pt, shape).values()), list(pins.values()), atol=1e-6)):
             rep.say(f"  {t:g} °C: the search holding the {ref_t:g} °C point's shape (--shape {shape}) fitted worse "
                     "than the 2-RC point, which is kept, so this temperature does not share that shape (more "
                     "--max-seconds, or --shape each)", notice=True)
