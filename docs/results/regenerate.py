@@ -1115,7 +1115,7 @@ for s in 0 1 2; do seed_fit panord_s$s $s --shape orders; done""",
           seed_spread_table(tuple((f"seed {s}, `--shape orders` (the default)", f"seeds/panord_s{s}") for s in range(3)),
                             SEED_TEMPS, SEED_GROUPS, averaged=3),
           35),
-    Table("shape_seeds", "characterisation.md", REAL + SEED_FIT + """\
+    Table("shape_seeds", "characterisation.md", REAL + """\
 # seed 0: the unseen_shape, char_pan_us06, pan_us06_shape, hppc_seed_spread and hppc_seed_spread_shape tables' runs
 mkdir -p out/shape_seeds; O=out/shape_seeds
 for sh in each orders; do
@@ -1123,14 +1123,13 @@ for sh in each orders; do
   python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
       --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --shape $sh"
 done
-for s in 0 1; do for sh in each orders; do
-  [ $s = 0 ] && continue   # char_pan_us06's (orders) and pan_us06_shape's (each)
-  socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q --seed $s \\
-      --shape $sh -o $O/pan_us06_s${s}_$sh.toml
-  socd evaluate --cell $O/pan_us06_s${s}_$sh.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
-      --estimator fomiukf --no-bar -q --json $O/pan_us06_s${s}_$sh.json
-done; done
-for s in 0 1; do seed_fit pan_s$s $s --shape each; done   # the orders fits are hppc_seed_spread_shape's panord_s0, panord_s1
+for sh in each orders; do   # seed 0: char_pan_us06's (orders) and pan_us06_shape's (each)
+  socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q --seed 1 \\
+      --shape $sh -o $O/pan_us06_s1_$sh.toml
+  socd evaluate --cell $O/pan_us06_s1_$sh.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
+      --estimator fomiukf --no-bar -q --json $O/pan_us06_s1_$sh.json
+done
+# the HPPC fits are hppc_seed_spread's (pan_s0, pan_s1: each) and hppc_seed_spread_shape's (panord_s0, panord_s1: orders)
 G=""; for sh in each orders; do
   for c in Chen2020 Mohtat2020 Marquis2019; do t=_s0_each; [ $sh = orders ] && t=_orders
     G="$G $sh=out/unseen_cell/$c${t}_eval.json@$c $sh=out/unseen_cell/${c}_s1_${sh}_eval.json@$c"; done
@@ -1144,7 +1143,7 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference each 
     --json out/shape_seeds.json""",
           nested_table("shape_seeds.json"), 330,
           ("needs:unseen_cell", "needs:unseen_cell_more", "needs:unseen_shape", "needs:char_pan_us06",
-           "needs:pan_us06_shape", "needs:hppc_seed_spread_shape", "needs:pybamm")),
+           "needs:pan_us06_shape", "needs:hppc_seed_spread", "needs:hppc_seed_spread_shape", "needs:pybamm")),
     Table("fit_file_pick", "characterisation.md", REAL + f"""\
 # every multi-temperature profile is --shape orders (the default): unseen_shape's and shape_seeds' fits (seeds 0, 1),
 # char_pan_us06's and shape_seeds' (Panasonic OCV test + US06), hppc_seed_spread_shape's (Panasonic HPPC)
