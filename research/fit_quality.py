@@ -159,10 +159,31 @@ def write_offset_recordings(workdir: Path) -> None:
         save_recording(target, np.column_stack(cols), fmt="%.5f")
 
 
+_CANDIDATE = re.compile(r"\[fit\] candidate profile \d+ of \d+: the fit again with optimiser seed (\d+) "
+                        r"\(the first used (\d+)\)")
+_KEPT = re.compile(r"\[fit\] profile pick: .*; keeping seed (\d+)'s")
+
+
+def kept_candidate_log(text: str) -> str:
+    """The part of a ``socd fit`` log that fitted the profile it wrote: with ``--candidates`` above 1
+    each candidate's fit is logged in turn and the pick names the seed kept; where no pick was logged
+    (one candidate, or every candidate refused and the first's refusal raised) the first fit's part."""
+    marks = list(_CANDIDATE.finditer(text))
+    if not marks:
+        return text
+    starts = [(int(marks[0].group(2)), 0)] + [(int(m.group(1)), m.start()) for m in marks]
+    kept = _KEPT.search(text)
+    seed = int(kept.group(1)) if kept else starts[0][0]
+    bounds = [pos for _, pos in starts] + [len(text)]
+    k = next(i for i, (s, _) in enumerate(starts) if s == seed)
+    return text[bounds[k]:bounds[k + 1]]
+
+
 def read_fit_log(text: str) -> list[dict]:
-    """Each temperature's figures from a ``socd fit`` log, with the product rule's verdict on them."""
+    """Each temperature's figures from a ``socd fit`` log (the candidate written, :func:`kept_candidate_log`),
+    with the product rule's verdict on them."""
     rows = []
-    for m in _LINE.finditer(text):
+    for m in _LINE.finditer(kept_candidate_log(text)):
         t, rmse, ecm, simulated, eta = (float(x) for x in m.groups())
         fit = TemperatureFit(temp_c=t, rmse_mv=rmse, ecm_rmse_mv=ecm, ecm_simulated_mv=simulated, at_bounds=[],
                              source="", overpotential_rms_mv=eta)

@@ -89,7 +89,7 @@ def test_fit_on_10hz_data_keeps_the_16s_memory_unless_told(tmp_path: Path, nmc_r
     spans = {}
     for label, flags in (("default", []), ("recorded rate", ["--fit-period", "0"])):
         out = tmp_path / f"{label.replace(' ', '_')}.toml"
-        rc = main(["fit", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "-o", str(out), *flags])
+        rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "-o", str(out), *flags])
         err = capsys.readouterr().err
         assert rc == 0, err
         assert ("block-averaged to 1 s" in err) == (label == "default"), err

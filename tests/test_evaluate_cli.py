@@ -364,7 +364,7 @@ def test_fit_writes_a_profile_that_reproduces_the_recording(tmp_path: Path, nmc_
                                                             nmc_profile, capsys) -> None:
     rec = nmc_recording(name="fitdrive", duration_s=1200, seed=4, soc0=0.95)
     out = tmp_path / "prof" / "fitted.toml"
-    rc = main(["fit", str(rec.path), "--capacity-ah", "2.0", "--ocv", str(nmc_ocv_csv), "--max-seconds", "5",
+    rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--ocv", str(nmc_ocv_csv), "--max-seconds", "5",
                "-o", str(out)])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
@@ -388,7 +388,7 @@ def test_fit_writes_a_profile_that_reproduces_the_recording(tmp_path: Path, nmc_
 def test_fit_plots_show_both_models_along_each_recording(tmp_path: Path, nmc_recording, nmc_ocv_csv, capsys) -> None:
     rec = nmc_recording(name="fitdrive", duration_s=1200, seed=4, soc0=0.95)
     plots = tmp_path / "plots"
-    rc = main(["fit", str(rec.path), "--capacity-ah", "2.0", "--ocv", str(nmc_ocv_csv), "--max-seconds", "5",
+    rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--ocv", str(nmc_ocv_csv), "--max-seconds", "5",
                "-o", str(tmp_path / "fitted.toml"), "--plots", str(plots), "-q"])
     captured = capsys.readouterr()
     out = captured.out
@@ -547,7 +547,7 @@ def test_fit_stores_the_textbook_2rc_model_beside_the_fractional_one(tmp_path: P
     to it, and ``ecm2rc-ekf`` then runs on the stored 2-RC parameters."""
     rec = nmc_recording(name="fitdrive", duration_s=2400, seed=4, soc0=0.95)
     out = tmp_path / "fitted.toml"
-    rc = main(["fit", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "5", "-o", str(out)])
+    rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "5", "-o", str(out)])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     assert "textbook 2-RC at 25 °C" in captured.err
@@ -570,10 +570,10 @@ def test_fit_refuses_a_recording_no_model_follows_and_writes_nothing(tmp_path: P
     rows = zip(rec.time_s, rec.current_a, 3.7 + rng.normal(0.0, 0.3, rec.time_s.size), rec.temperature_c)
     bad.write_text("time_s,current_a,voltage_v,temperature_c\n" + "".join(f"{t},{i},{v},{c}\n" for t, i, v, c in rows))
     out = tmp_path / "never.toml"
-    err = _fail(["fit", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "-o", str(out)], capsys)
+    err = _fail(["fit", "--candidates", "1", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "-o", str(out)], capsys)
     assert "25 °C" in err and "Nothing written" in err and "--force" in err
     assert not out.exists()
-    assert main(["fit", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "-o", str(out)]) == 0
+    assert main(["fit", "--candidates", "1", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "-o", str(out)]) == 0
     assert out.exists()
     err = capsys.readouterr().err
     assert "warning: --force writes a fit it would refuse: 25 °C: fit RMSE" in err and "Nothing written" not in err
@@ -739,7 +739,7 @@ def test_fit_caps_the_diffusion_time_constant_where_told(tmp_path: Path, nmc_rec
     rec = nmc_recording(name="fitdrive", duration_s=2400, seed=4, soc0=0.95)
     for cap, out in ((None, tmp_path / "default.toml"), (40.0, tmp_path / "capped.toml")):
         flags = [] if cap is None else ["--max-tau-df", f"{cap:g}"]
-        rc = main(["fit", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "5", "--force", "-q", *flags,
+        rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "5", "--force", "-q", *flags,
                    "-o", str(out)])
         assert rc == 0, capsys.readouterr().err
         pt = load_profile(out).parameters[0]

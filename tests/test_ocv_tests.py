@@ -159,7 +159,7 @@ def test_fit_keeps_each_ocv_test_at_its_own_temperature(tmp_path: Path, nmc_reco
     tests = [write_ocv_test(tmp_path / "ocv25.csv", 25.0, 0.0), write_ocv_test(tmp_path / "ocv0.csv", 0.0, COLD_SHIFT_V)]
     drives = [nmc_recording(name=f"drive{t:g}", duration_s=1800, seed=5, soc0=0.95, temp_c=t) for t in (25.0, 0.0)]
     out = tmp_path / "cell.toml"
-    rc = main(["fit", *map(str, tests), *(str(d.path) for d in drives), "--capacity-ah", str(NMC_CAPACITY_AH),
+    rc = main(["fit", "--candidates", "1", *map(str, tests), *(str(d.path) for d in drives), "--capacity-ah", str(NMC_CAPACITY_AH),
                "--max-seconds", "5", "--force", "-q", "-o", str(out)])
     assert rc == 0, capsys.readouterr().err
     table = load_profile(out).ocv_table()
@@ -225,7 +225,7 @@ def test_fit_refuses_a_capacity_above_what_its_ocv_test_moved(tmp_path: Path, nm
     test = write_ocv_test(tmp_path / "ocv25.csv", 25.0, 0.0)
     drive = nmc_recording(name="drive", duration_s=1800, seed=5, soc0=0.95)
     out = tmp_path / "cell.toml"
-    fit = ["fit", str(test), str(drive.path), "--max-seconds", "3", "-q", "-o", str(out)]
+    fit = ["fit", "--candidates", "1", str(test), str(drive.path), "--max-seconds", "3", "-q", "-o", str(out)]
     assert main([*fit, "--capacity-ah", f"{1.15 * NMC_CAPACITY_AH:g}"]) == 2
     err = capsys.readouterr().err
     assert "ocv25.csv: --capacity-ah" in err and "15.0% more than the" in err and f"{NMC_CAPACITY_AH:.4g} Ah" in err

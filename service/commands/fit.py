@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
@@ -15,6 +17,7 @@ from service.characterisation.ocv_choices import (
     OCV_SMOOTH_WEIGHT,
     REST_INTERP_MAX_GAP,
 )
+from service.characterisation.profile_pick import DEFAULT_CANDIDATES, PICK_ESTIMATOR
 from service.characterisation.shape_choices import DEFAULT_SHAPE, SHAPES
 from service.cli import UserError
 from service.commands.common_args import (
@@ -34,7 +37,14 @@ from service.commands.common_args import (
     setup_logging,
 )
 from service.commands.progress import open_progress
-from service.recording import load_recording
+from service.recording import Recording, load_recording
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from service.cell.profile import CellProfile
+    from service.characterisation.characterise import FitReport, PoorFitError
+    from service.commands.progress import Bar
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -147,6 +157,12 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         "fit alike predict it further apart than the fit's RMSE (pulse tests leave the slow "
                         "branch loosely bound). Costs that many times the fit's run time "
                         "(docs/results/characterisation.md, hppc_seed_spread)")
+    p.add_argument("--candidates", type=positive_int, default=DEFAULT_CANDIDATES, metavar="N",
+                   help="whole profiles fitted, seeded --seed, --seed+1, ...; of those the quality check passes, the "
+                        f"one whose {PICK_ESTIMATOR} reads the fit recordings' SOC best (all but OCV tests, from a 20 %% "
+                        f"wrong start, after 600 s) is written, and the log gives each one's reading (default "
+                        f"{DEFAULT_CANDIDATES}, chosen leave-one-cell-out: docs/results/characterisation.md, "
+                        "fit_file_pick; 1 fits once). Costs N fits plus N filter runs over the fit recordings")
     p.add_argument("--seed", type=SEED, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", type=output_file(*PROFILE_SUFFIXES), help="profile to write (.toml or .json)")
@@ -161,14 +177,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from service.characterisation.block_average import describe, to_fit_period
-    from service.characterisation.characterise import (
-        MAX_TAU_DF_S,
-        MIN_TAU_DF_CAP_S,
-        FitReport,
-        PoorFitError,
-        characterise,
-        check_fit_quality,
-    )
+    from service.characterisation.characterise import MIN_TAU_DF_CAP_S
 
     setup_logging(args)
     refuse_overwriting_inputs(args.output, [*args.recordings, args.ocv], "-o")
@@ -177,7 +186,8 @@ def run(args: argparse.Namespace) -> int:
     if args.max_tau_df is not None and args.max_tau_df < MIN_TAU_DF_CAP_S:
         raise UserError(f"--max-tau-df {args.max_tau_df:g}: the cap must be at least {MIN_TAU_DF_CAP_S:g} s, the "
                         "textbook 2-RC's least time constant; a faster diffusion branch is no diffusion branch")
-    averaged = to_fit_period([load_recording(p) for p in args.recordings], args.fit_period)
+    originals = [load_recording(p) for p in args.recordings]
+    averaged = to_fit_period(originals, args.fit_period)
     recs = [a.recording for a in averaged]
     full = per_recording(args.full_at, len(recs), "--full-at")
     table = None
@@ -188,27 +198,13 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(str(exc)) from exc
     out = Path(args.output)
     bar = open_progress(progress_enabled(args), "fit", None, unit="stages")
-    report = FitReport(echo=bar.log if bar.enabled else None, quiet=args.quiet,
-                       progress=lambda what, done, total: bar.update(completed=done, total=total, description=what))
+    log = fit_report(args, bar)
     if (line := describe(averaged, args.fit_period)) is not None:
-        report.say(line)
+        log.say(line)
     try:
-        profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
-                                       fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
-                                       min_order=args.min_order, min_slow_order=args.min_slow_order, monotone=args.monotone, soc_resistance=args.soc_resistance,
-                                       slow_branch=args.slow_branch, ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
-                                       short_charge=args.short_charge,
-                                       max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S, ocv_beyond=args.ocv_beyond,
-                                       ocv_between_rests=args.ocv_between_rests, ocv_smoothing=args.ocv_smoothing,
-                                       memory_length=args.memory_length, name=args.name or out.stem, seed=args.seed,
-                                       starts=args.starts, force_capacity=args.force, shape=args.shape,
-                                       report=report)
-        try:
-            check_fit_quality(report)
-        except PoorFitError as exc:
-            if not args.force:
-                raise
-            print(f"socd fit: warning: --force writes a fit it would refuse: {exc.problems}", file=sys.stderr)
+        candidates = [fit_candidate(args, recs, full, table, out.stem, args.seed + k, bar)
+                      for k in range(args.candidates)]
+        profile = choose(candidates, originals, full, log, bar)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     finally:
@@ -224,3 +220,79 @@ def run(args: argparse.Namespace) -> int:
             print(f"wrote {plot.path}: fractional {plot.fractional_rmse_mv:.1f} mV{two_rc} RMSE along "
                   f"{plot.recording}")
     return 0
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One profile fitted with optimiser seed ``seed``; ``refusal``: why the quality check refuses it
+    (``None`` where it passes, or where ``--force`` writes it anyway)."""
+
+    seed: int
+    profile: CellProfile
+    refusal: PoorFitError | None
+
+
+def fit_report(args: argparse.Namespace, bar: Bar) -> FitReport:
+    """A fit log that writes above the progress bar (or to stderr) and moves the bar by stage."""
+    from service.characterisation.characterise import FitReport
+
+    return FitReport(echo=bar.log if bar.enabled else None, quiet=args.quiet,
+                     progress=lambda what, done, total: bar.update(completed=done, total=total, description=what))
+
+
+def fit_candidate(args: argparse.Namespace, recs: list[Recording], full: list[str | float | None],
+                  table: tuple[np.ndarray, np.ndarray] | None, stem: str, seed: int, bar: Bar) -> Candidate:
+    """One candidate profile fitted with optimiser seed ``seed`` and read by the quality check."""
+    from service.characterisation.characterise import (
+        MAX_TAU_DF_S,
+        PoorFitError,
+        characterise,
+        check_fit_quality,
+    )
+
+    report = fit_report(args, bar)
+    if seed != args.seed:  # the first fit's log reads as a single fit's, and its errors come first
+        report.say(f"candidate profile {seed - args.seed + 1} of {args.candidates}: the fit again with optimiser seed "
+                   f"{seed} (the first used {args.seed})")
+    profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
+                                   fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
+                                   min_order=args.min_order, min_slow_order=args.min_slow_order, monotone=args.monotone,
+                                   soc_resistance=args.soc_resistance, slow_branch=args.slow_branch,
+                                   ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
+                                   short_charge=args.short_charge, max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S,
+                                   ocv_beyond=args.ocv_beyond, ocv_between_rests=args.ocv_between_rests,
+                                   ocv_smoothing=args.ocv_smoothing, memory_length=args.memory_length,
+                                   name=args.name or stem, seed=seed, starts=args.starts,
+                                   force_capacity=args.force, shape=args.shape, report=report)
+    try:
+        check_fit_quality(report)
+    except PoorFitError as exc:
+        if not args.force:
+            return Candidate(seed, profile, exc)
+        print(f"socd fit: warning: --force writes a fit it would refuse: {exc.problems}", file=sys.stderr)
+    return Candidate(seed, profile, None)
+
+
+def choose(candidates: list[Candidate], originals: list[Recording], full: list[str | float | None],
+           log: FitReport, bar: Bar) -> CellProfile:
+    """Of the candidates the quality check passes, the one whose filter reads the fit recordings
+    best (:mod:`service.characterisation.profile_pick`); the first refusal is raised where none passes."""
+    from service.characterisation.profile_pick import describe_pick, fit_file_score, pick_profile
+
+    passed = [c for c in candidates if c.refusal is None]
+    if not passed:
+        raise candidates[0].refusal  # type: ignore[misc]
+    if len(candidates) == 1:
+        return passed[0].profile
+    if refused := [str(c.seed) for c in candidates if c.refusal is not None]:
+        log.say(f"profile pick: the quality check refuses the fit of seed {', '.join(refused)}; picking among the "
+                "others", notice=True)
+    scored = []
+    for c in passed:
+        def progress(recording: str, estimator: str, samples: int, seed: int = c.seed) -> None:
+            bar.update(description=f"seed {seed}'s {estimator} on {recording[:24]}")
+
+        scored.append((c.profile, fit_file_score(c.profile, c.seed, originals, full, progress)))
+    profile, kept = pick_profile(scored)
+    log.say(describe_pick([s for _, s in scored], kept))
+    return profile

@@ -1,0 +1,88 @@
+"""``socd fit --candidates``: of profiles fitted with different optimiser seeds, the one whose
+``fomiukf`` reads the fit recordings' SOC best is written (service.characterisation.profile_pick)."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from service.cell.profile import load_profile
+from service.characterisation.characterise import PoorFitError
+from service.characterisation.profile_pick import (
+    DEFAULT_CANDIDATES,
+    FitFileScore,
+    describe_pick,
+    fit_file_score,
+    pick_profile,
+    scored_recordings,
+)
+from service.cli import main
+from service.commands.fit import Candidate, choose, fit_report
+from service.commands.progress import Bar
+from service.recording import load_recording
+from tests.conftest import NMC_CAPACITY_AH
+from tests.test_ocv_tests import write_ocv_test
+
+
+def test_the_fit_file_score_is_socd_evaluates_mean_on_the_fit_recordings_but_the_ocv_tests(
+        tmp_path: Path, nmc_recording, nmc_profile, nmc_profile_file: Path) -> None:
+    """The score is what ``socd evaluate --estimator fomiukf`` reads on the same files with its
+    defaults (the research table fit_file_pick measured the rule that way); an OCV test among
+    the fit recordings is left out."""
+    drives = [nmc_recording(name=f"drive{k}", duration_s=1500, seed=k, soc0=0.9) for k in (1, 2)]
+    ocv_test = write_ocv_test(tmp_path / "ocv25.csv", 25.0, 0.0)
+    recs = [load_recording(ocv_test), *(load_recording(d.path) for d in drives)]
+    kept, full = scored_recordings(recs, [None] * 3, NMC_CAPACITY_AH)
+    assert [r.name for r in kept] == ["drive1", "drive2"] and full == [None, None]
+
+    got = fit_file_score(nmc_profile, 7, recs, [None] * 3)
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", *(str(d.path) for d in drives), "--cell", str(nmc_profile_file), "--estimator",
+                 "fomiukf", "--no-bar", "-q", "--json", str(out)]) == 0
+    rmse = [r["soc_rmse_after_600s_pct"] for r in json.loads(out.read_text())["results"]]
+    assert got.seed == 7 and got.recordings_scored == 2
+    assert got.soc_rmse_after_600s_pct == pytest.approx(sum(rmse) / 2, rel=1e-9)
+
+
+def test_the_pick_keeps_the_lowest_reading_and_the_first_of_equals_or_of_the_unscored(nmc_profile) -> None:
+    a, b, c = (nmc_profile.model_copy(update={"name": n}) for n in "abc")
+    assert pick_profile([(a, FitFileScore(0, 0.9, 2)), (b, FitFileScore(1, 0.4, 2)), (c, FitFileScore(2, 0.6, 2))])[0] is b
+    assert pick_profile([(a, FitFileScore(0, 0.5, 1)), (b, FitFileScore(1, 0.5, 1))])[0] is a
+    assert pick_profile([(a, FitFileScore(0, None, 0)), (b, FitFileScore(1, 0.7, 1))])[0] is b
+    assert pick_profile([(a, FitFileScore(0, None, 0)), (b, FitFileScore(1, None, 0))])[0] is a
+    with pytest.raises(ValueError, match="no candidate"):
+        pick_profile([])
+    line = describe_pick([FitFileScore(3, None, 0), FitFileScore(4, None, 0)], FitFileScore(3, None, 0))
+    assert "none scores the 2 candidates" in line and "keeping seed 3's" in line
+
+
+def test_where_the_quality_check_refuses_every_candidate_the_first_refusal_is_raised(nmc_profile) -> None:
+    import argparse
+
+    log = fit_report(argparse.Namespace(quiet=True), Bar(None, None))
+    first, second = PoorFitError("25 °C: seed 0 poor"), PoorFitError("25 °C: seed 1 poor")
+    with pytest.raises(PoorFitError, match="seed 0 poor"):
+        choose([Candidate(0, nmc_profile, first), Candidate(1, nmc_profile, second)], [], [], log, Bar(None, None))
+
+
+def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_best(
+        tmp_path: Path, nmc_recording, nmc_ocv_csv: Path, capsys) -> None:
+    """With the default two candidates the log gives each seed's reading and the seed kept; the profile
+    written is the lowest reading's (scored again here, it reads what the log says)."""
+    assert DEFAULT_CANDIDATES == 2
+    drive = nmc_recording(name="drive", duration_s=2400, seed=3, soc0=0.95)
+    out = tmp_path / "cell.toml"
+    assert main(["fit", str(drive.path), "--ocv", str(nmc_ocv_csv), "--capacity-ah", str(NMC_CAPACITY_AH),
+                 "--max-seconds", "3", "--force", "--seed", "4", "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "candidate profile 2 of 2: the fit again with optimiser seed 5 (the first used 4)" in err
+    m = re.search(r"profile pick: .*: seed 4 ([\d.]+) %, seed 5 ([\d.]+) %; keeping seed (\d)'s", err)
+    assert m, err
+    readings = {4: float(m.group(1)), 5: float(m.group(2))}
+    kept = int(m.group(3))
+    assert readings[kept] == min(readings.values())
+    again = fit_file_score(load_profile(out), kept, [load_recording(drive.path)], [None])
+    assert round(again.soc_rmse_after_600s_pct, 2) == pytest.approx(readings[kept], abs=0.006)
