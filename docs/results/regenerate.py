@@ -569,7 +569,7 @@ mkdir -p out/seeds
 PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e trise)"
 seed_fit() {  # NAME SEED FIT-FLAGS...: the HPPC-alone fit at one seed (its log kept), scored on the drives
   n=$1; s=$2; shift 2
-  socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --seed $s "$@" \\
+  socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --seed $s --candidates 1 "$@" \\
       -o out/seeds/$n.toml > out/seeds/$n.fitlog 2>&1
   socd evaluate --cell out/seeds/$n.toml $PANX --estimator fomiukf --no-bar -q --json out/seeds/$n.json
 }
@@ -941,10 +941,10 @@ fit_and_score() {{  # VARIANT SEED FIT-FLAGS...: the four characterisations of t
     socd evaluate --cell $o/panus06_$v.toml $(echo $PANX | tr ' ' '\\n' | grep -v US06) $E --json $o/panus06_$v.json
   fi
   socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
-      --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv "$@" --seed $s -q -o $o/a123s${{s}}_$v.toml
+      --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv "$@" --seed $s --candidates 1 -q -o $o/a123s${{s}}_$v.toml
   socd evaluate --cell $o/a123s${{s}}_$v.toml {A123} $E --json $o/a123s${{s}}_$v.json
   if [ $s != 2 ]; then
-    socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 "$@" --seed $s -q -o $o/panhppcs${{s}}_$v.toml
+    socd fit $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv --capacity-ah 2.77 --full-at 0 "$@" --seed $s --candidates 1 -q -o $o/panhppcs${{s}}_$v.toml
     socd evaluate --cell $o/panhppcs${{s}}_$v.toml $PANX $E --json $o/panhppcs${{s}}_$v.json
   fi
 }}
@@ -1089,12 +1089,12 @@ for s in 0 1 2 3 4 5; do seed_fit mono_s$s $s --monotone --shape each; done""",
                             SEED_TEMPS, SEED_GROUPS, averaged=6),
           25),
     Table("unseen_shape", "characterisation.md", """\
-python -m research.unseen_cell run --profile-tag _s0_each --refit --fit-flags='--shape each'
+python -m research.unseen_cell run --profile-tag _s0_each --refit --fit-flags='--candidates 1 --shape each'
 python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
-    --profile-tag _s0_each --refit --fit-flags='--shape each'
-python -m research.unseen_cell run --estimators fomiukf --profile-tag _orders --refit --fit-flags='--shape orders'
+    --profile-tag _s0_each --refit --fit-flags='--candidates 1 --shape each'
+python -m research.unseen_cell run --estimators fomiukf --profile-tag _orders --refit --fit-flags='--candidates 1 --shape orders'
 python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
-    --estimators fomiukf --profile-tag _orders --refit --fit-flags='--shape orders'""",
+    --estimators fomiukf --profile-tag _orders --refit --fit-flags='--candidates 1 --shape orders'""",
           runs_table(tuple((f"`{cell}` {label}", f"{folder}/{cell}{tag}_eval.json")
                            for folder, cells in (("unseen_cell", UNSEEN_CELLS), ("unseen_more", MORE_UNSEEN_CELLS))
                            for cell in cells
@@ -1102,29 +1102,31 @@ python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients
                      UNSEEN_GROUPS),
           60, ("needs:unseen_cell", "needs:unseen_cell_more", "needs:pybamm")),
     Table("pan_us06_shape", "characterisation.md", REAL + """\
-mkdir -p out/shape_seeds; O=out/shape_seeds   # the default fit (--shape orders) is char_pan_us06's
-socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q --seed 0 \\
-    --shape each -o $O/pan_us06_s0_each.toml
-socd evaluate --cell $O/pan_us06_s0_each.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
-    --estimator fomiukf --no-bar -q --json $O/pan_us06_s0_each.json""",
+mkdir -p out/shape_seeds; O=out/shape_seeds   # one candidate profile at seed 0, as shape_seeds' seed 1
+for sh in each orders; do
+  socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q --seed 0 --candidates 1 \\
+      --shape $sh -o $O/pan_us06_s0_$sh.toml
+  socd evaluate --cell $O/pan_us06_s0_$sh.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
+      --estimator fomiukf --no-bar -q --json $O/pan_us06_s0_$sh.json
+done""",
           runs_table((("`--shape each`", "shape_seeds/pan_us06_s0_each.json"),
-                      ("`--shape orders` (the default, `char_pan_us06`)", "s25/pan_us06_eval.json")), PAN_GROUPS),
-          30, ("needs:char_pan_us06",)),
+                      ("`--shape orders` (the default)", "shape_seeds/pan_us06_s0_orders.json")), PAN_GROUPS),
+          30),
     Table("hppc_seed_spread_shape", "characterisation.md", REAL + SEED_FIT + """\
 for s in 0 1 2; do seed_fit panord_s$s $s --shape orders; done""",
           seed_spread_table(tuple((f"seed {s}, `--shape orders` (the default)", f"seeds/panord_s{s}") for s in range(3)),
                             SEED_TEMPS, SEED_GROUPS, averaged=3),
           35),
     Table("shape_seeds", "characterisation.md", REAL + """\
-# seed 0: the unseen_shape, char_pan_us06, pan_us06_shape, hppc_seed_spread and hppc_seed_spread_shape tables' runs
+# seed 0: the unseen_shape, pan_us06_shape, hppc_seed_spread and hppc_seed_spread_shape tables' runs; every fit one candidate
 mkdir -p out/shape_seeds; O=out/shape_seeds
 for sh in each orders; do
-  python -m research.unseen_cell run --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --shape $sh"
+  python -m research.unseen_cell run --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --candidates 1 --shape $sh"
   python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
-      --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --shape $sh"
+      --estimators fomiukf --profile-tag _s1_$sh --refit --fit-flags="--seed 1 --candidates 1 --shape $sh"
 done
-for sh in each orders; do   # seed 0: char_pan_us06's (orders) and pan_us06_shape's (each)
-  socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q --seed 1 \\
+for sh in each orders; do   # seed 0: pan_us06_shape's
+  socd fit $D/ocv/ocv_pan18650pf_25C.csv $P/pan18650pf_{25C,10C,0C,m10C,m20C}_US06.csv --capacity-ah 2.77 -q --seed 1 --candidates 1 \\
       --shape $sh -o $O/pan_us06_s1_$sh.toml
   socd evaluate --cell $O/pan_us06_s1_$sh.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v -e HPPC -e US06) \\
       --estimator fomiukf --no-bar -q --json $O/pan_us06_s1_$sh.json
@@ -1135,25 +1137,25 @@ G=""; for sh in each orders; do
     G="$G $sh=out/unseen_cell/$c${t}_eval.json@$c $sh=out/unseen_cell/${c}_s1_${sh}_eval.json@$c"; done
   for c in Ai2020 OKane2022 Ecker2015; do t=_s0_each; [ $sh = orders ] && t=_orders
     G="$G $sh=out/unseen_more/$c${t}_eval.json@$c $sh=out/unseen_more/${c}_s1_${sh}_eval.json@$c"; done
-  u0=$O/pan_us06_s0_each.json; [ $sh = orders ] && u0=out/s25/pan_us06_eval.json
+  u0=$O/pan_us06_s0_$sh.json
   h=pan_s; [ $sh = orders ] && h=panord_s
   G="$G $sh=$u0@panasonic $sh=$O/pan_us06_s1_$sh.json@panasonic $sh=out/seeds/${h}0.json@panasonic $sh=out/seeds/${h}1.json@panasonic"
 done
 python -m research.nested_tuning --by cell --estimator fomiukf --reference each --exclude _10C_trise $G \\
     --json out/shape_seeds.json""",
           nested_table("shape_seeds.json"), 330,
-          ("needs:unseen_cell", "needs:unseen_cell_more", "needs:unseen_shape", "needs:char_pan_us06",
+          ("needs:unseen_cell", "needs:unseen_cell_more", "needs:unseen_shape",
            "needs:pan_us06_shape", "needs:hppc_seed_spread", "needs:hppc_seed_spread_shape", "needs:pybamm")),
     Table("fit_file_pick", "characterisation.md", REAL + f"""\
 # every multi-temperature profile is --shape orders (the default): unseen_shape's and shape_seeds' fits (seeds 0, 1),
-# char_pan_us06's and shape_seeds' (Panasonic OCV test + US06), hppc_seed_spread_shape's (Panasonic HPPC)
+# pan_us06_shape's and shape_seeds' (Panasonic OCV test + US06), hppc_seed_spread_shape's (Panasonic HPPC)
 mkdir -p out/fitsel; O=out/fitsel; E="--estimator fomiukf --no-bar -q"
 for s in 0 1; do
-  socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --seed $s -q -o $O/calce_s$s.toml
+  socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --seed $s --candidates 1 -q -o $O/calce_s$s.toml
   socd evaluate --cell $O/calce_s$s.toml $C/calce20r_25C_DST_80soc.csv --full-at 3303 $E --json $O/calce_s$s.json
   socd evaluate --cell $O/calce_s$s.toml {CALCE} $E --json $O/calce_s${{s}}_held.json
   socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
-      --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --seed $s -q -o $O/a123_s$s.toml
+      --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv --seed $s --candidates 1 -q -o $O/a123_s$s.toml
   socd evaluate --cell $O/a123_s$s.toml $A/calce_a123_20C_DST.csv --full-at 4815 $E --json $O/a123_s$s.json
   socd evaluate --cell $O/a123_s$s.toml {A123} $E --json $O/a123_s${{s}}_held.json
 done
@@ -1163,7 +1165,7 @@ for c in Chen2020 Mohtat2020 Marquis2019; do
 for c in Ai2020 OKane2022 Ecker2015; do
   for s in 0 1; do t=_orders; [ $s = 1 ] && t=_s1_orders
     socd evaluate --cell out/unseen_more/$c$t.toml out/unseen_more/${{c}}_{{25C,10C}}_US06.csv $E --json $O/${{c}}_s$s.json; done; done
-socd evaluate --cell out/s25/pan_us06.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv $E --json $O/panus06_s0.json
+socd evaluate --cell out/shape_seeds/pan_us06_s0_orders.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv $E --json $O/panus06_s0.json
 socd evaluate --cell out/shape_seeds/pan_us06_s1_orders.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_US06.csv $E --json $O/panus06_s1.json
 for s in 0 1; do
   socd evaluate --cell out/seeds/panord_s$s.toml $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_HPPC.csv $E --json $O/panhppc_s$s.json; done
@@ -1178,12 +1180,12 @@ for c in Chen2020 Mohtat2020 Marquis2019; do
   pair $c $O/${{c}}_s0.json out/unseen_cell/${{c}}_orders_eval.json $O/${{c}}_s1.json out/unseen_cell/${{c}}_s1_orders_eval.json; done
 for c in Ai2020 OKane2022 Ecker2015; do
   pair $c $O/${{c}}_s0.json out/unseen_more/${{c}}_orders_eval.json $O/${{c}}_s1.json out/unseen_more/${{c}}_s1_orders_eval.json; done
-pair panasonic $O/panus06_s0.json out/s25/pan_us06_eval.json $O/panus06_s1.json out/shape_seeds/pan_us06_s1_orders.json
+pair panasonic $O/panus06_s0.json out/shape_seeds/pan_us06_s0_orders.json $O/panus06_s1.json out/shape_seeds/pan_us06_s1_orders.json
 pair panasonic $O/panhppc_s0.json out/seeds/panord_s0.json $O/panhppc_s1.json out/seeds/panord_s1.json
 python -m research.nested_tuning --by cell --estimator fomiukf --reference single --exclude {TUNING_EXCLUDE} $G \\
     --json out/fit_file_pick.json""",
           nested_table("fit_file_pick.json"), 60,
-          ("needs:unseen_shape", "needs:shape_seeds", "needs:char_pan_us06", "needs:hppc_seed_spread_shape",
+          ("needs:unseen_shape", "needs:shape_seeds", "needs:pan_us06_shape", "needs:hppc_seed_spread_shape",
            "needs:pybamm")),
     Table("slow_order", "characterisation.md", """\
 # every fit here --shape each, the default when this ran; the fits without the bound are unseen_shape's (seed 0)
@@ -1191,10 +1193,10 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference singl
 python -m research.unseen_cell run --cells OKane2022,Ecker2015 --ambients 25,10 --workdir out/unseen_more \\
     --estimators fomiukf --profile-tag _so6_s0 --refit --fit-flags="--min-slow-order 0.6 --shape each"
 python -m research.unseen_cell run --cells OKane2022 --ambients 25,10 --workdir out/unseen_more \\
-    --estimators fomiukf --profile-tag _so6_s1 --refit --fit-flags="--min-slow-order 0.6 --seed 1 --shape each"
+    --estimators fomiukf --profile-tag _so6_s1 --refit --fit-flags="--min-slow-order 0.6 --seed 1 --candidates 1 --shape each"
 for s in 0 1; do
   python -m research.unseen_cell run --cells Chen2020 --estimators fomiukf --profile-tag _so6_s$s --refit \\
-      --fit-flags="--min-slow-order 0.6 --seed $s --shape each"
+      --fit-flags="--min-slow-order 0.6 --seed $s --candidates 1 --shape each"
 done""",
           runs_table((("`Chen2020` seed 0, `--min-slow-order 0.3` (default)", "unseen_cell/Chen2020_s0_each_eval.json"),
                       ("`Chen2020` seed 0, `--min-slow-order 0.6`", "unseen_cell/Chen2020_so6_s0_eval.json"),
