@@ -86,3 +86,25 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     assert readings[kept] == min(readings.values())
     again = fit_file_score(load_profile(out), kept, [load_recording(drive.path)], [None])
     assert round(again.soc_rmse_after_600s_pct, 2) == pytest.approx(readings[kept], abs=0.006)
+
+
+def test_where_the_evaluation_refuses_a_fit_recordings_truth_the_first_candidate_is_written(
+        tmp_path: Path, nmc_profile, capsys) -> None:
+    """A recording the scoring cannot count a truth on (here a 1C discharge for three hours of a 2 Ah
+    cell) leaves the pick without a reading; the fit is not failed for it: the first candidate is
+    written and a notice says why."""
+    import argparse
+
+    import numpy as np
+
+    from tests.conftest import write_recording_csv
+
+    t = np.arange(0.0, 3 * 3600.0, 10.0)
+    path = write_recording_csv(tmp_path / "overrun.csv", t, np.full(t.size, 2.0), np.full(t.size, 3.7),
+                               np.full(t.size, 25.0))
+    first, second = (nmc_profile.model_copy(update={"name": n}) for n in ("first", "second"))
+    log = fit_report(argparse.Namespace(quiet=True), Bar(None, None))
+    got = choose([Candidate(0, first, None), Candidate(1, second, None)], [load_recording(path)], [None], log,
+                 Bar(None, None))
+    assert got is first
+    assert "cannot be scored" in capsys.readouterr().err and "keeping seed 0's" in log.lines[-1]

@@ -292,7 +292,12 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
         def progress(recording: str, estimator: str, samples: int, seed: int = c.seed) -> None:
             bar.update(description=f"seed {seed}'s {estimator} on {recording[:24]}")
 
-        scored.append((c.profile, fit_file_score(c.profile, c.seed, originals, full, progress)))
+        try:
+            scored.append((c.profile, fit_file_score(c.profile, c.seed, originals, full, progress)))
+        except (ValueError, UserError) as exc:  # a truth the evaluation refuses: the fit itself stands
+            log.say(f"profile pick: the fit recordings cannot be scored ({exc}); keeping seed {passed[0].seed}'s",
+                    notice=True)
+            return passed[0].profile
     profile, kept = pick_profile(scored)
     log.say(describe_pick([s for _, s in scored], kept))
     return profile
