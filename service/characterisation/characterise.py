@@ -592,11 +592,8 @@ def characterise(
                    else f"; search finished in {res.seconds:.0f} s"))
         if outcome.at_bounds:
             rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}", notice=True)
-        if (source == "2-RC start" and pins
-                and not np.allclose(list(shape_pins(pt, shape).values()), list(pins.values()), atol=1e-6)):
-            rep.say(f"  {t:g} °C: the search holding the {ref_t:g} °C point's shape (--shape {shape}) fitted worse "
-                    "than the 2-RC point, which is kept, so this temperature does not share that shape (more "
-                    "--max-seconds, or --shape each)", notice=True)
+        if pins and not np.allclose(list(shape_pins(pt, shape).values()), list(pins.values()), atol=1e-6):
+            say_shape_not_shared(rep, t, ref_t, shape, source, max_tau_df_s)
     profile = prof.model_copy(update={
         "memory_span_s": memory_span_s,
         "parameters": with_linear_kinetics_where_unfitted([points[t] for t in sorted(points)]),
@@ -805,6 +802,21 @@ def rest_offsets_text(grid: np.ndarray, row: np.ndarray, anchors: list, lead: st
     socs = [a.soc for a in anchors]
     return (f"{len(anchors)} rest(s) from SOC {min(socs):.3f} to {max(socs):.3f}: "
             f"{(lead + ' ') if lead else ''}{min(off):+.1f} to {max(off):+.1f} mV")
+
+
+def say_shape_not_shared(rep: FitReport, temp_c: float, ref_t: float, shape: str, source: str,
+                         max_tau_df_s: float) -> None:
+    """A notice where a temperature's kept point does not hold the reference's shape coordinates:
+    the 2-RC point was kept over the search's, or (the search's own point) the diffusion time
+    constant's cap held tau_df below tau_ct times the reference's ratio (:func:`diffusion_tau`)."""
+    if source == "fractional fit":
+        why = (f"the diffusion time constant's cap ({max_tau_df_s:g} s, --max-tau-df) holds it below the charge-"
+               "transfer one times the held ratio, so the ratio is not shared here (a larger --max-tau-df, or "
+               "--shape orders)")
+    else:
+        why = ("the search holding it fitted worse than the 2-RC point, which is kept, so this temperature does not "
+               "share that shape (more --max-seconds, or --shape each)")
+    rep.say(f"  {temp_c:g} °C: the {ref_t:g} °C point's shape (--shape {shape}): {why}", notice=True)
 
 
 def shape_pins(reference: ParameterPoint, shape: str) -> dict[str, float]:
