@@ -63,7 +63,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "same data and stored beside the fractional one: 'ecm2rc-ekf' runs on it, and a temperature whose "
             "fractional fit is poor or worse than it fails the command (exit 2, nothing written) unless --force. "
             "Where the fractional search ends on the 2-RC model itself (orders 1, no Butler-Volmer bend), the "
-            "2-RC fit's own point is kept for that temperature (the fit log says so)."
+            "2-RC fit's own point is kept for that temperature (the fit log says so). The whole fit runs "
+            f"{DEFAULT_CANDIDATES} times with different optimiser seeds and the profile whose {PICK_ESTIMATOR} reads "
+            "the fit recordings' own SOC best is written (--candidates)."
         ),
     )
     p.add_argument("recordings", nargs="+", metavar="RECORDING")
