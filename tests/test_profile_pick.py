@@ -38,7 +38,7 @@ def test_the_fit_file_score_is_socd_evaluates_mean_on_the_fit_recordings_but_the
     kept, full = scored_recordings(recs, [None] * 3, NMC_CAPACITY_AH)
     assert [r.name for r in kept] == ["drive1", "drive2"] and full == [None, None]
 
-    got = fit_file_score(nmc_profile, 7, recs, [None] * 3)
+    got = fit_file_score(nmc_profile, 7, kept, full)
     out = tmp_path / "eval.json"
     assert main(["evaluate", *(str(d.path) for d in drives), "--cell", str(nmc_profile_file), "--estimator",
                  "fomiukf", "--no-bar", "-q", "--json", str(out)]) == 0

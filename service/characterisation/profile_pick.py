@@ -50,12 +50,12 @@ def scored_recordings(recordings: Sequence[Recording], full_at: Sequence[str | f
 def fit_file_score(profile: CellProfile, seed: int, recordings: Sequence[Recording],
                    full_at: Sequence[str | float | None],
                    progress: Callable[[str, str, int], None] | None = None) -> FitFileScore:
-    """``profile``'s :data:`PICK_ESTIMATOR` on the fit recordings (DESIGN §7's defaults)."""
+    """``profile``'s :data:`PICK_ESTIMATOR` on ``recordings`` (DESIGN §7's defaults): the fit
+    recordings :func:`scored_recordings` keeps, chosen once for every candidate."""
     from service.estimators.registry import create
     from service.evaluation.run import evaluate_recordings
 
-    recs, full = scored_recordings(recordings, full_at, profile.capacity_ah)
-    runs = evaluate_recordings(recs, profile, [create(PICK_ESTIMATOR)], full_at=full, progress=progress)
+    runs = evaluate_recordings(recordings, profile, [create(PICK_ESTIMATOR)], full_at=full_at, progress=progress)
     rmse = [s.soc_rmse_after_600s_pct for ev in runs for s in ev.scores if s.soc_rmse_after_600s_pct is not None]
     return FitFileScore(seed, statistics.fmean(rmse) if rmse else None, len(rmse))
 

@@ -279,7 +279,12 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
            log: FitReport, bar: Bar) -> CellProfile:
     """Of the candidates the quality check passes, the one whose filter reads the fit recordings
     best (:mod:`service.characterisation.profile_pick`); the first refusal is raised where none passes."""
-    from service.characterisation.profile_pick import describe_pick, fit_file_score, pick_profile
+    from service.characterisation.profile_pick import (
+        describe_pick,
+        fit_file_score,
+        pick_profile,
+        scored_recordings,
+    )
 
     passed = [c for c in candidates if c.refusal is None]
     if not passed:
@@ -289,13 +294,14 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
     if refused := [str(c.seed) for c in candidates if c.refusal is not None]:
         log.say(f"profile pick: the quality check refuses the fit of seed {', '.join(refused)}; picking among the "
                 "others", notice=True)
+    recs, full_at = scored_recordings(originals, full, passed[0].profile.capacity_ah)
     scored = []
     for c in passed:
         def progress(recording: str, estimator: str, samples: int, seed: int = c.seed) -> None:
             bar.update(description=f"seed {seed}'s {estimator} on {recording[:24]}")
 
         try:
-            scored.append((c.profile, fit_file_score(c.profile, c.seed, originals, full, progress)))
+            scored.append((c.profile, fit_file_score(c.profile, c.seed, recs, full_at, progress)))
         except (ValueError, UserError) as exc:  # a truth the evaluation refuses: the fit itself stands
             log.say(f"profile pick: the fit recordings cannot be scored ({exc}); keeping seed {passed[0].seed}'s",
                     notice=True)
