@@ -154,8 +154,8 @@ def test_seed_spread_table_reads_the_fit_logs_and_the_evaluations(regen, tmp_pat
     (tmp_path / "seeds").mkdir()
     for s in (0, 1):
         stem = tmp_path / "seeds" / f"s{s}"
-        done = subprocess.run([sys.executable, "-m", "service.cli", "fit", str(rec.path), "--capacity-ah", "2.0",
-                               "--max-seconds", "3", "--force", "--seed", str(s), "-o", f"{stem}.toml"],
+        done = subprocess.run([sys.executable, "-m", "service.cli", "fit", "--candidates", "1", str(rec.path),
+                               "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "--seed", str(s), "-o", f"{stem}.toml"],
                               cwd=ROOT, capture_output=True, text=True, check=False)
         assert done.returncode == 0, done.stderr
         Path(f"{stem}.fitlog").write_text(done.stdout + done.stderr)
