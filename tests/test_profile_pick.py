@@ -20,7 +20,7 @@ from service.characterisation.profile_pick import (
     scored_recordings,
 )
 from service.cli import main
-from service.commands.fit import Candidate, choose, fit_report
+from service.commands.fit import Candidate, candidate_seed, choose, fit_report
 from service.commands.progress import Bar
 from service.recording import load_recording
 from tests.conftest import NMC_CAPACITY_AH
@@ -84,8 +84,19 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     readings = {4: float(m.group(1)), 5: float(m.group(2))}
     kept = int(m.group(3))
     assert readings[kept] == min(readings.values())
-    again = fit_file_score(load_profile(out), kept, [load_recording(drive.path)], [None])
+    written = load_profile(out)
+    again = fit_file_score(written, kept, [load_recording(drive.path)], [None])
     assert round(again.soc_rmse_after_600s_pct, 2) == pytest.approx(readings[kept], abs=0.006)
+    # the profile keeps the pick's readings and the seed kept after the log is gone
+    assert written.notes["profile_pick"] == m.group(0).removeprefix("profile pick: ")
+
+
+def test_candidates_are_seeded_starts_apart_so_no_two_searches_share_a_seed() -> None:
+    """Each candidate runs --starts searches per temperature seeded from its first seed up; with the
+    default one start the candidates are seeded --seed, --seed + 1, ... as before."""
+    assert [candidate_seed(4, 1, k) for k in range(3)] == [4, 5, 6]
+    searches = [candidate_seed(0, 3, k) + j for k in range(2) for j in range(3)]
+    assert searches == [0, 1, 2, 3, 4, 5]
 
 
 def test_where_the_evaluation_refuses_a_fit_recordings_truth_the_first_candidate_is_written(
@@ -106,5 +117,5 @@ def test_where_the_evaluation_refuses_a_fit_recordings_truth_the_first_candidate
     log = fit_report(argparse.Namespace(quiet=True), Bar(None, None))
     got = choose([Candidate(0, first, None), Candidate(1, second, None)], [load_recording(path)], [None], log,
                  Bar(None, None))
-    assert got is first
+    assert got.name == "first" and "cannot be scored" in got.notes["profile_pick"]
     assert "cannot be scored" in capsys.readouterr().err and "keeping seed 0's" in log.lines[-1]

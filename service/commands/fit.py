@@ -160,11 +160,13 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         "branch loosely bound). Costs that many times the fit's run time "
                         "(docs/results/characterisation.md, hppc_seed_spread)")
     p.add_argument("--candidates", type=positive_int, default=DEFAULT_CANDIDATES, metavar="N",
-                   help="whole profiles fitted, seeded --seed, --seed+1, ...; of those the quality check passes, the "
+                   help="whole profiles fitted, seeded --seed, --seed+S, --seed+2S, ... (S = --starts, so no two "
+                        "searches share a seed); of those the quality check passes, the "
                         f"one whose {PICK_ESTIMATOR} reads the fit recordings' SOC best (all but OCV tests, from a 20 %% "
                         f"wrong start, after 600 s) is written, and the log gives each one's reading (default "
                         f"{DEFAULT_CANDIDATES}, chosen leave-one-cell-out: docs/results/characterisation.md, "
-                        "fit_file_pick; 1 fits once). Costs N fits plus N filter runs over the fit recordings")
+                        "fit_file_pick; 1 fits once). Costs N fits plus N filter runs over the fit recordings. The "
+                        "profile's notes keep the readings and the seed kept (notes.profile_pick)")
     p.add_argument("--seed", type=SEED, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", type=output_file(*PROFILE_SUFFIXES), help="profile to write (.toml or .json)")
@@ -204,8 +206,7 @@ def run(args: argparse.Namespace) -> int:
     if (line := describe(averaged, args.fit_period)) is not None:
         log.say(line)
     try:
-        candidates = [fit_candidate(args, recs, full, table, out.stem, args.seed + k, bar)
-                      for k in range(args.candidates)]
+        candidates = [fit_candidate(args, recs, full, table, out.stem, k, bar) for k in range(args.candidates)]
         profile = choose(candidates, originals, full, log, bar)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
@@ -242,9 +243,16 @@ def fit_report(args: argparse.Namespace, bar: Bar) -> FitReport:
                      progress=lambda what, done, total: bar.update(completed=done, total=total, description=what))
 
 
+def candidate_seed(seed: int, starts: int, k: int) -> int:
+    """Candidate ``k``'s first optimiser seed: each candidate runs ``starts`` searches per temperature,
+    seeded from here up, so candidates are spaced ``starts`` apart and never share a search."""
+    return seed + k * starts
+
+
 def fit_candidate(args: argparse.Namespace, recs: list[Recording], full: list[str | float | None],
-                  table: tuple[np.ndarray, np.ndarray] | None, stem: str, seed: int, bar: Bar) -> Candidate:
-    """One candidate profile fitted with optimiser seed ``seed`` and read by the quality check."""
+                  table: tuple[np.ndarray, np.ndarray] | None, stem: str, k: int, bar: Bar) -> Candidate:
+    """Candidate ``k`` (from 0): the profile fitted with optimiser seed :func:`candidate_seed`, read by
+    the quality check."""
     from service.characterisation.characterise import (
         MAX_TAU_DF_S,
         PoorFitError,
@@ -252,9 +260,10 @@ def fit_candidate(args: argparse.Namespace, recs: list[Recording], full: list[st
         check_fit_quality,
     )
 
+    seed = candidate_seed(args.seed, args.starts, k)
     report = fit_report(args, bar)
-    if seed != args.seed:  # the first fit's log reads as a single fit's, and its errors come first
-        report.say(f"candidate profile {seed - args.seed + 1} of {args.candidates}: the fit again with optimiser seed "
+    if k:  # the first fit's log reads as a single fit's, and its errors come first
+        report.say(f"candidate profile {k + 1} of {args.candidates}: the fit again with optimiser seed "
                    f"{seed} (the first used {args.seed})")
     profile, report = characterise(recs, args.capacity_ah, full, table, args.hysteresis,
                                    fit_kinetics=args.kinetics, max_seconds=args.max_seconds,
@@ -303,9 +312,16 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
         try:
             scored.append((c.profile, fit_file_score(c.profile, c.seed, recs, full_at, progress)))
         except (ValueError, UserError) as exc:  # a truth the evaluation refuses: the fit itself stands
-            log.say(f"profile pick: the fit recordings cannot be scored ({exc}); keeping seed {passed[0].seed}'s",
-                    notice=True)
-            return passed[0].profile
+            line = f"profile pick: the fit recordings cannot be scored ({exc}); keeping seed {passed[0].seed}'s"
+            log.say(line, notice=True)
+            return with_pick_note(passed[0].profile, line)
     profile, kept = pick_profile(scored)
-    log.say(describe_pick([s for _, s in scored], kept))
-    return profile
+    line = describe_pick([s for _, s in scored], kept)
+    log.say(line)
+    return with_pick_note(profile, line)
+
+
+def with_pick_note(profile: CellProfile, line: str) -> CellProfile:
+    """``profile`` with the pick's log line in its notes (``profile_pick``), so the file says which
+    candidate it is and why, after the log is gone."""
+    return profile.model_copy(update={"notes": {**profile.notes, "profile_pick": line.removeprefix("profile pick: ")}})
