@@ -20,7 +20,7 @@ from service.characterisation.profile_pick import (
     scored_recordings,
 )
 from service.cli import main
-from service.commands.fit import Candidate, candidate_seed, choose, fit_report
+from service.commands.fit import Candidate, choose, fit_report
 from service.commands.progress import Bar
 from service.recording import load_recording
 from tests.conftest import NMC_CAPACITY_AH
@@ -71,17 +71,20 @@ def test_where_the_quality_check_refuses_every_candidate_the_first_refusal_is_ra
 def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_best(
         tmp_path: Path, nmc_recording, nmc_ocv_csv: Path, capsys) -> None:
     """With the default two candidates the log gives each seed's reading and the seed kept; the profile
-    written is the lowest reading's (scored again here, it reads what the log says)."""
+    written is the lowest reading's (scored again here, it reads what the log says) and its notes keep
+    the line. With --starts 2 each candidate runs two searches per temperature, so the second candidate
+    starts two seeds on (6 and 7 after 4 and 5): no search is run twice."""
     assert DEFAULT_CANDIDATES == 2
     drive = nmc_recording(name="drive", duration_s=2400, seed=3, soc0=0.95)
     out = tmp_path / "cell.toml"
     assert main(["fit", str(drive.path), "--ocv", str(nmc_ocv_csv), "--capacity-ah", str(NMC_CAPACITY_AH),
-                 "--max-seconds", "3", "--force", "--seed", "4", "-o", str(out)]) == 0
+                 "--max-seconds", "3", "--force", "--seed", "4", "--starts", "2", "-o", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "candidate profile 2 of 2: the fit again with optimiser seed 5 (the first used 4)" in err
-    m = re.search(r"profile pick: .*: seed 4 ([\d.]+) %, seed 5 ([\d.]+) %; keeping seed (\d)'s", err)
+    assert "candidate profile 2 of 2: the fit again with optimiser seed 6 (the first used 4)" in err
+    assert re.findall(r"search \d of 2 \(seed (\d)\)", err) == ["4", "5", "6", "7"], err
+    m = re.search(r"profile pick: .*: seed 4 ([\d.]+) %, seed 6 ([\d.]+) %; keeping seed (\d)'s", err)
     assert m, err
-    readings = {4: float(m.group(1)), 5: float(m.group(2))}
+    readings = {4: float(m.group(1)), 6: float(m.group(2))}
     kept = int(m.group(3))
     assert readings[kept] == min(readings.values())
     written = load_profile(out)
@@ -90,13 +93,6 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     # the profile keeps the pick's readings and the seed kept after the log is gone
     assert written.notes["profile_pick"] == m.group(0).removeprefix("profile pick: ")
 
-
-def test_candidates_are_seeded_starts_apart_so_no_two_searches_share_a_seed() -> None:
-    """Each candidate runs --starts searches per temperature seeded from its first seed up; with the
-    default one start the candidates are seeded --seed, --seed + 1, ... as before."""
-    assert [candidate_seed(4, 1, k) for k in range(3)] == [4, 5, 6]
-    searches = [candidate_seed(0, 3, k) + j for k in range(2) for j in range(3)]
-    assert searches == [0, 1, 2, 3, 4, 5]
 
 
 def test_where_the_evaluation_refuses_a_fit_recordings_truth_the_first_candidate_is_written(
