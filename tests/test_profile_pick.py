@@ -94,7 +94,6 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     assert written.notes["profile_pick"] == m.group(0).removeprefix("profile pick: ")
 
 
-
 def test_where_the_evaluation_refuses_a_fit_recordings_truth_the_first_candidate_is_written(
         tmp_path: Path, nmc_profile, capsys) -> None:
     """A recording the scoring cannot count a truth on (here a 1C discharge for three hours of a 2 Ah

@@ -26,6 +26,8 @@ if TYPE_CHECKING:  # the fitting and filtering parts load scipy: imported where 
 PICK_ESTIMATOR = "fomiukf"
 #: profiles fitted by default, seeded --seed, --seed + 1, ... (chosen as the module docstring says)
 DEFAULT_CANDIDATES = 2
+#: how the pick's lines begin in the fit log; the profile's ``notes.profile_pick`` holds the rest
+PICK_LOG_PREFIX = "profile pick: "
 
 
 @dataclass(frozen=True)
@@ -72,11 +74,12 @@ def pick_profile(candidates: Sequence[tuple[CellProfile, FitFileScore]]) -> tupl
 
 
 def describe_pick(scores: Sequence[FitFileScore], kept: FitFileScore) -> str:
-    """One log line: each seed's fit-file reading and which profile was kept."""
+    """What the pick read and kept (the fit log gives it after :data:`PICK_LOG_PREFIX`): each seed's
+    fit-file reading and which profile was kept."""
     if kept.soc_rmse_after_600s_pct is None:
-        return (f"profile pick: no fit recording other than an OCV test lasts 600 s past its start, so none "
+        return (f"no fit recording other than an OCV test lasts 600 s past its start, so none "
                 f"scores the {len(scores)} candidates; keeping seed {kept.seed}'s")
     read = ", ".join(f"seed {s.seed} {s.soc_rmse_after_600s_pct:.2f} %" if s.soc_rmse_after_600s_pct is not None
                      else f"seed {s.seed} unscored" for s in scores)
-    return (f"profile pick: {PICK_ESTIMATOR}'s SOC RMSE after 600 s on the {kept.recordings_scored} fit "
+    return (f"{PICK_ESTIMATOR}'s SOC RMSE after 600 s on the {kept.recordings_scored} fit "
             f"recording(s) other than OCV tests, from a 20 % wrong start: {read}; keeping seed {kept.seed}'s")

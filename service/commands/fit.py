@@ -17,7 +17,11 @@ from service.characterisation.ocv_choices import (
     OCV_SMOOTH_WEIGHT,
     REST_INTERP_MAX_GAP,
 )
-from service.characterisation.profile_pick import DEFAULT_CANDIDATES, PICK_ESTIMATOR
+from service.characterisation.profile_pick import (
+    DEFAULT_CANDIDATES,
+    PICK_ESTIMATOR,
+    PICK_LOG_PREFIX,
+)
 from service.characterisation.shape_choices import DEFAULT_SHAPE, SHAPES
 from service.cli import UserError
 from service.commands.common_args import (
@@ -301,7 +305,7 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
     if len(candidates) == 1:
         return passed[0].profile
     if refused := [str(c.seed) for c in candidates if c.refusal is not None]:
-        log.say(f"profile pick: the quality check refuses the fit of seed {', '.join(refused)}; picking among the "
+        log.say(f"{PICK_LOG_PREFIX}the quality check refuses the fit of seed {', '.join(refused)}; picking among the "
                 "others", notice=True)
     recs, full_at = scored_recordings(originals, full, passed[0].profile.capacity_ah)
     scored = []
@@ -312,16 +316,14 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
         try:
             scored.append((c.profile, fit_file_score(c.profile, c.seed, recs, full_at, progress)))
         except (ValueError, UserError) as exc:  # a truth the evaluation refuses: the fit itself stands
-            line = f"profile pick: the fit recordings cannot be scored ({exc}); keeping seed {passed[0].seed}'s"
-            log.say(line, notice=True)
-            return with_pick_note(passed[0].profile, line)
+            what = f"the fit recordings cannot be scored ({exc}); keeping seed {passed[0].seed}'s"
+            return say_pick(passed[0].profile, what, log, notice=True)
     profile, kept = pick_profile(scored)
-    line = describe_pick([s for _, s in scored], kept)
-    log.say(line)
-    return with_pick_note(profile, line)
+    return say_pick(profile, describe_pick([s for _, s in scored], kept), log)
 
 
-def with_pick_note(profile: CellProfile, line: str) -> CellProfile:
-    """``profile`` with the pick's log line in its notes (``profile_pick``), so the file says which
-    candidate it is and why, after the log is gone."""
-    return profile.model_copy(update={"notes": {**profile.notes, "profile_pick": line.removeprefix("profile pick: ")}})
+def say_pick(profile: CellProfile, what: str, log: FitReport, notice: bool = False) -> CellProfile:
+    """Log what the pick did and return ``profile`` with it in its notes (``profile_pick``), so the file
+    says which candidate it is and why after the log is gone."""
+    log.say(PICK_LOG_PREFIX + what, notice=notice)
+    return profile.model_copy(update={"notes": {**profile.notes, "profile_pick": what}})
