@@ -4,9 +4,9 @@
 (:meth:`service.characterisation.characterise.TemperatureFit.problem`).  That rule is only right if
 it passes the fits of every cell we have, fitted as a user would, and refuses the fits of input a
 user gets wrong.  This module runs both kinds as a user would (what ``socd fit`` says is kept),
-then with ``--force`` where it refused, so every profile is written; it reads from each fit log
-every temperature's fit RMSE, the textbook 2-RC fit's and the RMS overpotential the dynamics had to
-explain, and scores each profile with ``socd evaluate`` on recordings it was not fitted on, beside
+then with ``--force`` where it refused, so every profile is written; it reads from each fit's
+report (``socd fit --report``) every temperature's fit RMSE, the textbook 2-RC fit's and the RMS
+overpotential the dynamics had to explain, and scores each profile with ``socd evaluate`` on recordings it was not fitted on, beside
 the textbook 2-RC EKF.  :func:`choose_share_bar` picks the poor-fit share bar from them, and
 :func:`share_bar_table` reads that choice with each cell held out.  The kinds of fit:
 
@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import statistics
 import subprocess
 import sys
@@ -44,7 +43,8 @@ import numpy as np
 
 from research.unseen_cell import CELLS, DRIVES, FIT_DRIVE, _temp_tag, told_capacity_ah
 from research.unseen_cell import DEFAULT_WORKDIR as UNSEEN
-from service.characterisation.characterise import POOR_FIT_SHARE, TemperatureFit
+from service.characterisation.characterise import POOR_FIT_SHARE
+from service.characterisation.fit_summary import FitSummary
 
 REAL = Path("../shared/data/real")
 PAN, CALCE, A123, OCV = REAL / "panasonic_18650pf", REAL / "calce_inr18650_20r", REAL / "calce_a123", REAL / "ocv"
@@ -57,9 +57,6 @@ CALCE_SCORED = {"DST_50soc": 10015, "FUDS_80soc": 9999, "FUDS_50soc": 5080, "US0
 #: how far the bad-input jobs move what the user tells `socd fit`
 CAPACITY_ERROR = 1.15
 VOLTAGE_OFFSET_V = 0.020
-
-_LINE = re.compile(r"\[fit\]\s+(-?[\d.]+) °C: R_ohm .*?fit RMSE ([\d.]+) mV \(textbook 2-RC ([\d.]+) mV, ([\d.]+) mV as "
-                   r"this model simulates its point\).*?, \d+% of the ([\d.]+) mV RMS overpotential")
 
 
 @dataclass(frozen=True)
@@ -159,51 +156,27 @@ def write_offset_recordings(workdir: Path) -> None:
         save_recording(target, np.column_stack(cols), fmt="%.5f")
 
 
-_CANDIDATE = re.compile(r"\[fit\] candidate profile \d+ of \d+: the fit again with optimiser seed (\d+) "
-                        r"\(the first used (\d+)\)")
-_KEPT = re.compile(r"\[fit\] profile pick: .*; keeping seed (\d+)'s")
-
-
-def kept_candidate_log(text: str) -> str:
-    """The part of a ``socd fit`` log that fitted the profile it wrote: with ``--candidates`` above 1
-    each candidate's fit is logged in turn and the pick names the seed kept; where no pick was logged
-    (one candidate, or every candidate refused and the first's refusal raised) the first fit's part."""
-    marks = list(_CANDIDATE.finditer(text))
-    if not marks:
-        return text
-    starts = [(int(marks[0].group(2)), 0)] + [(int(m.group(1)), m.start()) for m in marks]
-    kept = _KEPT.search(text)
-    seed = int(kept.group(1)) if kept else starts[0][0]
-    bounds = [pos for _, pos in starts] + [len(text)]
-    k = next(i for i, (s, _) in enumerate(starts) if s == seed)
-    return text[bounds[k]:bounds[k + 1]]
-
-
-def read_fit_log(text: str) -> list[dict]:
-    """Each temperature's figures from a ``socd fit`` log (the candidate written, :func:`kept_candidate_log`),
-    with the product rule's verdict on them."""
-    rows = []
-    for m in _LINE.finditer(kept_candidate_log(text)):
-        t, rmse, ecm, simulated, eta = (float(x) for x in m.groups())
-        fit = TemperatureFit(temp_c=t, rmse_mv=rmse, ecm_rmse_mv=ecm, ecm_simulated_mv=simulated, at_bounds=[],
-                             source="", overpotential_rms_mv=eta)
-        rows.append({"temp_c": t, "rmse_mv": rmse, "ecm_rmse_mv": ecm, "ecm_simulated_mv": simulated,
-                     "overpotential_rms_mv": eta, "unexplained_share": fit.unexplained_share,
-                     "refused_by": fit.problem()})
-    return rows
+def fit_rows(report: Path) -> list[dict]:
+    """Each temperature's figures for the profile ``socd fit --report`` says it wrote, with the
+    product rule's verdict on them (``refused_by``)."""
+    written = FitSummary.load(report).written()
+    return [{"temp_c": t.temp_c, "rmse_mv": t.rmse_mv, "ecm_rmse_mv": t.ecm_rmse_mv,
+             "ecm_simulated_mv": t.ecm_simulated_mv, "overpotential_rms_mv": t.overpotential_rms_mv,
+             "unexplained_share": t.unexplained_share, "refused_by": t.problem} for t in written.temperatures]
 
 
 def run_job(job: FitJob, workdir: Path) -> JobResult:
     res = JobResult(job.name, job.kind, job.what)
-    profile, log = workdir / f"{job.name}.toml", workdir / f"{job.name}.fitlog"
+    profile, log, report = (workdir / f"{job.name}{end}" for end in (".toml", ".fitlog", "_fit.json"))
     for force in ((), ("--force",)):
-        fit = subprocess.run(["socd", "fit", *job.fit_args, *force, "-o", str(profile)], capture_output=True,
-                             text=True, check=False)
+        report.unlink(missing_ok=True)
+        fit = subprocess.run(["socd", "fit", *job.fit_args, *force, "-o", str(profile), "--report", str(report)],
+                             capture_output=True, text=True, check=False)
         log.write_text(fit.stdout + fit.stderr)
         if fit.returncode == 0:
             break
         res.refused = (fit.stderr.strip().splitlines() or ["(no message)"])[-1].removeprefix("socd fit: error: ")
-    res.temperatures = read_fit_log(fit.stderr)
+    res.temperatures = fit_rows(report) if report.exists() else []
     if fit.returncode != 0:
         return res
     scores = workdir / f"{job.name}_eval.json"

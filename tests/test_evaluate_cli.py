@@ -13,6 +13,7 @@ import pytest
 
 from service.cell.profile import load_profile
 from service.cell.trajectory import simulate
+from service.characterisation.fit_summary import FitSummary
 from service.cli import main
 from service.estimators.registry import ESTIMATORS
 from service.evaluation.aggregate import summarise, summary_lines
@@ -569,15 +570,32 @@ def test_fit_refuses_a_recording_no_model_follows_and_writes_nothing(tmp_path: P
     bad = tmp_path / "bad.csv"
     rows = zip(rec.time_s, rec.current_a, 3.7 + rng.normal(0.0, 0.3, rec.time_s.size), rec.temperature_c)
     bad.write_text("time_s,current_a,voltage_v,temperature_c\n" + "".join(f"{t},{i},{v},{c}\n" for t, i, v, c in rows))
-    out = tmp_path / "never.toml"
-    err = _fail(["fit", "--candidates", "1", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "-o", str(out)], capsys)
+    out, report = tmp_path / "never.toml", tmp_path / "never.json"
+    args = ["fit", "--candidates", "1", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "-o", str(out),
+            "--report", str(report)]
+    err = _fail(args, capsys)
     assert "25 °C" in err and "Nothing written" in err and "--force" in err
-    assert not out.exists()
-    assert main(["fit", "--candidates", "1", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "-o", str(out)]) == 0
+    assert not out.exists() and not report.exists()
+    assert main([*args, "--force"]) == 0
     assert out.exists()
     err = capsys.readouterr().err
     assert "warning: --force writes a fit it would refuse: 25 °C: fit RMSE" in err and "Nothing written" not in err
     assert "% of the" in err and "mV RMS overpotential" in err  # the fit log says how much it left
+    # the report names the refused temperature and why, as the check does
+    (temp,) = FitSummary.load(report).written().temperatures
+    assert temp.temp_c == 25.0 and temp.problem is not None and temp.problem.startswith("fit RMSE")
+    assert temp.problem in err
+
+
+@pytest.mark.parametrize("report", ["-", "cell.json", "drive.csv"])
+def test_fit_refuses_a_report_path_that_would_overwrite_the_profile_or_an_input(tmp_path: Path, nmc_recording,
+                                                                               capsys, report: str) -> None:
+    rec = nmc_recording(name="drive", duration_s=600, seed=5, soc0=0.95)
+    before = rec.path.read_bytes()
+    out = tmp_path / "cell.json"
+    where = report if report == "-" else str(rec.path if report == "drive.csv" else out)
+    err = _fail(["fit", str(rec.path), "--capacity-ah", "2.0", "-o", str(out), "--report", where], capsys)
+    assert "--report" in err and not out.exists() and rec.path.read_bytes() == before
 
 
 @pytest.mark.parametrize("what", ["few_seconds", "constant_current"])

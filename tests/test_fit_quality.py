@@ -1,5 +1,5 @@
-"""``research.fit_quality`` reads what ``socd fit`` says about each temperature, and judges it by
-the product's own rule (the table in docs/results/characterisation.md rests on this)."""
+"""``research.fit_quality`` reads what ``socd fit --report`` says about each temperature, and judges it
+by the product's own rule (the table in docs/results/characterisation.md rests on this)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from research.fit_quality import (
     JobResult,
     choose_share_bar,
-    read_fit_log,
+    fit_rows,
     refusal_kind,
     share_bar_table,
     share_errors,
@@ -19,13 +19,13 @@ from service.cli import main
 from tests.conftest import NMC_CAPACITY_AH
 
 
-def test_the_fit_log_gives_each_temperatures_figures_and_the_products_verdict(tmp_path: Path, nmc_recording,
-                                                                             nmc_ocv_csv: Path, capsys) -> None:
+def test_the_fit_report_gives_each_temperatures_figures_and_the_products_verdict(tmp_path: Path, nmc_recording,
+                                                                                nmc_ocv_csv: Path) -> None:
     drive = nmc_recording(name="drive", duration_s=1800, seed=5, soc0=0.95)
-    out = tmp_path / "cell.toml"
+    out, report = tmp_path / "cell.toml", tmp_path / "fit.json"
     assert main(["fit", "--candidates", "1", str(drive.path), "--ocv", str(nmc_ocv_csv), "--capacity-ah", str(NMC_CAPACITY_AH),
-                 "--max-seconds", "3", "--force", "-o", str(out)]) == 0
-    rows = read_fit_log(capsys.readouterr().err)
+                 "--max-seconds", "3", "--force", "-o", str(out), "--report", str(report)]) == 0
+    rows = fit_rows(report)
     assert [r["temp_c"] for r in rows] == [25.0]
     row = rows[0]
     assert 0.0 < row["rmse_mv"] < row["overpotential_rms_mv"]
@@ -73,18 +73,3 @@ def test_bars_that_tie_next_to_each_other_are_one_span() -> None:
     results = [_job("A_user", "user fit", [0.2]), _job("A_offset", "sensor offset", [0.5]),
                _job("A_ocv", "bad input", [0.7]), _job("C_ocv", "bad input", [0.9])]
     assert choose_share_bar(results) == pytest.approx(0.45)
-
-
-def test_a_log_of_several_candidates_is_read_for_the_one_written() -> None:
-    def row(t: float, rmse: float) -> str:
-        return (f"[fit]   {t:g} °C: R_ohm 50.0 mΩ, fit RMSE {rmse:.1f} mV (textbook 2-RC 9.0 mV, 9.5 mV as "
-                "this model simulates its point), 12% of the 60.0 mV RMS overpotential\n")
-
-    first, second = row(25, 11.0), row(25, 7.0)
-    again = "[fit] candidate profile 2 of 2: the fit again with optimiser seed 1 (the first used 0)\n"
-    for kept, want in ((1, 7.0), (0, 11.0)):
-        log = (first + again + second + "[fit] profile pick: fomiukf's SOC RMSE after 600 s on the 1 fit recording(s) "
-               f"other than OCV tests, from a 20 % wrong start: seed 0 0.40 %, seed 1 0.30 %; keeping seed {kept}'s\n")
-        assert [r["rmse_mv"] for r in read_fit_log(log)] == [want]
-    assert [r["rmse_mv"] for r in read_fit_log(first + again + second)] == [11.0], "no pick logged: the first fit's"
-    assert [r["rmse_mv"] for r in read_fit_log(first)] == [11.0]

@@ -11,6 +11,7 @@ import pytest
 
 from service.cell.profile import load_profile
 from service.characterisation.characterise import PoorFitError
+from service.characterisation.fit_summary import FitSummary
 from service.characterisation.profile_pick import (
     DEFAULT_CANDIDATES,
     FitFileScore,
@@ -65,7 +66,7 @@ def test_where_the_quality_check_refuses_every_candidate_the_first_refusal_is_ra
     log = fit_report(argparse.Namespace(quiet=True), Bar(None, None))
     first, second = PoorFitError("25 °C: seed 0 poor"), PoorFitError("25 °C: seed 1 poor")
     with pytest.raises(PoorFitError, match="seed 0 poor"):
-        choose([Candidate(0, nmc_profile, first), Candidate(1, nmc_profile, second)], [], [], log, Bar(None, None))
+        choose([Candidate(0, nmc_profile, first, log), Candidate(1, nmc_profile, second, log)], [], [], log, Bar(None, None))
 
 
 def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_best(
@@ -76,9 +77,10 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     starts two seeds on (6 and 7 after 4 and 5): no search is run twice."""
     assert DEFAULT_CANDIDATES == 2
     drive = nmc_recording(name="drive", duration_s=2400, seed=3, soc0=0.95)
-    out = tmp_path / "cell.toml"
+    out, report = tmp_path / "cell.toml", tmp_path / "fit.json"
     assert main(["fit", str(drive.path), "--ocv", str(nmc_ocv_csv), "--capacity-ah", str(NMC_CAPACITY_AH),
-                 "--max-seconds", "3", "--force", "--seed", "4", "--starts", "2", "-o", str(out)]) == 0
+                 "--max-seconds", "3", "--force", "--seed", "4", "--starts", "2", "-o", str(out),
+                 "--report", str(report)]) == 0
     err = capsys.readouterr().err
     assert "candidate profile 2 of 2: the fit again with optimiser seed 6 (the first used 4)" in err
     assert re.findall(r"search \d of 2 \(seed (\d)\)", err) == ["4", "5", "6", "7"], err
@@ -92,6 +94,14 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     assert round(again.soc_rmse_after_600s_pct, 2) == pytest.approx(readings[kept], abs=0.006)
     # the profile keeps the pick's readings and the seed kept after the log is gone
     assert written.notes["profile_pick"] == m.group(0).removeprefix("profile pick: ")
+    # --report says the same by machine: both candidates, their readings, which one the profile is
+    summary = FitSummary.load(report)
+    assert summary.profile == str(out) and summary.profile_pick == written.notes["profile_pick"]
+    assert [c.seed for c in summary.candidates] == [4, 6] and summary.written().seed == kept
+    assert {c.seed: round(c.fit_file_soc_rmse_after_600s_pct, 2) for c in summary.candidates} == readings
+    for c in summary.candidates:
+        assert [t.temp_c for t in c.temperatures] == [25.0] and c.refusal is None
+        assert any(f"seed {c.seed}" in line for line in c.log), "each candidate keeps its own log"
 
 
 def test_where_the_evaluation_refuses_a_fit_recordings_truth_the_first_candidate_is_written(
@@ -110,7 +120,8 @@ def test_where_the_evaluation_refuses_a_fit_recordings_truth_the_first_candidate
                                np.full(t.size, 25.0))
     first, second = (nmc_profile.model_copy(update={"name": n}) for n in ("first", "second"))
     log = fit_report(argparse.Namespace(quiet=True), Bar(None, None))
-    got = choose([Candidate(0, first, None), Candidate(1, second, None)], [load_recording(path)], [None], log,
-                 Bar(None, None))
-    assert got.name == "first" and "cannot be scored" in got.notes["profile_pick"]
+    got = choose([Candidate(0, first, None, log), Candidate(1, second, None, log)], [load_recording(path)], [None],
+                 log, Bar(None, None))
+    assert got.seed == 0 and got.readings == {}
+    assert got.profile.name == "first" and "cannot be scored" in got.profile.notes["profile_pick"]
     assert "cannot be scored" in capsys.readouterr().err and "keeping seed 0's" in log.lines[-1]

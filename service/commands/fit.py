@@ -48,6 +48,7 @@ if TYPE_CHECKING:
 
     from service.cell.profile import CellProfile
     from service.characterisation.characterise import FitReport, PoorFitError
+    from service.characterisation.fit_summary import FitSummary
     from service.commands.progress import Bar
 
 
@@ -174,6 +175,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=SEED, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
     p.add_argument("-o", "--output", required=True, metavar="CELL_FILE", type=output_file(*PROFILE_SUFFIXES), help="profile to write (.toml or .json)")
+    p.add_argument("--report", metavar="JSON", type=output_file(".json"),
+                   help="also write what the run found as JSON, written only when the profile is: each candidate's "
+                   "seed, figures per temperature (fit RMSE, the textbook 2-RC's, the share of the overpotential "
+                   "left, the search bounds reached), the quality check's verdict, the pick's SOC reading and "
+                   "which candidate the profile is, with its log (service.characterisation.fit_summary)")
     p.add_argument("--plots", metavar="DIR", type=output_dir,
                    help="write PNGs to DIR: each drive or pulse recording with the measured voltage, the fitted "
                    "fractional model and the textbook 2-RC model along it (parameters following the recorded "
@@ -189,6 +195,10 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging(args)
     refuse_overwriting_inputs(args.output, [*args.recordings, args.ocv], "-o")
+    if args.report is not None:
+        refuse_overwriting_inputs(args.report, [*args.recordings, args.ocv], "--report")
+        if args.report == "-" or Path(args.report).resolve() == Path(args.output).resolve():
+            raise UserError(f"--report {args.report}: give a file of its own, apart from the profile (-o)")
     if not args.capacity_ah > 0:
         raise UserError(f"--capacity-ah must be > 0, got {args.capacity_ah}")
     if args.max_tau_df is not None and args.max_tau_df < MIN_TAU_DF_CAP_S:
@@ -211,14 +221,18 @@ def run(args: argparse.Namespace) -> int:
         log.say(line)
     try:
         candidates = [fit_candidate(args, recs, full, table, out.stem, k, bar) for k in range(args.candidates)]
-        profile = choose(candidates, originals, full, log, bar)
+        pick = choose(candidates, originals, full, log, bar)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     finally:
         bar.close()
+    profile = pick.profile
     save_profile(profile, out)
     print(f"wrote {out}: {len(profile.parameters)} temperature(s) "
           f"{', '.join(f'{p.temp_c:g} °C' for p in profile.parameters)}, capacity {profile.capacity_ah:g} Ah")
+    if args.report is not None:
+        fit_summary(out, candidates, pick).save(Path(args.report))
+        print(f"wrote {args.report}: the fit's figures per candidate and temperature")
     if args.plots:
         from service.characterisation.fit_plots import plot_fit
 
@@ -237,6 +251,18 @@ class Candidate:
     seed: int
     profile: CellProfile
     refusal: PoorFitError | None
+    #: the candidate's fit log and figures per temperature
+    report: FitReport
+
+
+@dataclass(frozen=True)
+class Pick:
+    """The profile to write, the seed of the candidate it is, and the pick's reading of each candidate
+    it scored (seed -> mean SOC RMSE after 600 s on the fit recordings, %; absent: not scored)."""
+
+    profile: CellProfile
+    seed: int
+    readings: dict[int, float | None]
 
 
 def fit_report(args: argparse.Namespace, bar: Bar) -> FitReport:
@@ -283,13 +309,13 @@ def fit_candidate(args: argparse.Namespace, recs: list[Recording], full: list[st
         check_fit_quality(report)
     except PoorFitError as exc:
         if not args.force:
-            return Candidate(seed, profile, exc)
+            return Candidate(seed, profile, exc, report)
         print(f"socd fit: warning: --force writes a fit it would refuse: {exc.problems}", file=sys.stderr)
-    return Candidate(seed, profile, None)
+    return Candidate(seed, profile, None, report)
 
 
 def choose(candidates: list[Candidate], originals: list[Recording], full: list[str | float | None],
-           log: FitReport, bar: Bar) -> CellProfile:
+           log: FitReport, bar: Bar) -> Pick:
     """Of the candidates the quality check passes, the one whose filter reads the fit recordings
     best (:mod:`service.characterisation.profile_pick`); the first refusal is raised where none passes."""
     from service.characterisation.profile_pick import (
@@ -303,7 +329,7 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
     if not passed:
         raise candidates[0].refusal  # type: ignore[misc]
     if len(candidates) == 1:
-        return passed[0].profile
+        return Pick(passed[0].profile, passed[0].seed, {})
     if refused := [str(c.seed) for c in candidates if c.refusal is not None]:
         log.say(f"{PICK_LOG_PREFIX}the quality check refuses the fit of seed {', '.join(refused)}; picking among the "
                 "others", notice=True)
@@ -317,9 +343,10 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
             scored.append((c.profile, fit_file_score(c.profile, c.seed, recs, full_at, progress)))
         except (ValueError, UserError) as exc:  # a truth the evaluation refuses: the fit itself stands
             what = f"the fit recordings cannot be scored ({exc}); keeping seed {passed[0].seed}'s"
-            return say_pick(passed[0].profile, what, log, notice=True)
+            return Pick(say_pick(passed[0].profile, what, log, notice=True), passed[0].seed, {})
     profile, kept = pick_profile(scored)
-    return say_pick(profile, describe_pick([s for _, s in scored], kept), log)
+    readings = {s.seed: s.soc_rmse_after_600s_pct for _, s in scored}
+    return Pick(say_pick(profile, describe_pick([s for _, s in scored], kept), log), kept.seed, readings)
 
 
 def say_pick(profile: CellProfile, what: str, log: FitReport, notice: bool = False) -> CellProfile:
@@ -327,3 +354,21 @@ def say_pick(profile: CellProfile, what: str, log: FitReport, notice: bool = Fal
     says which candidate it is and why after the log is gone."""
     log.say(PICK_LOG_PREFIX + what, notice=notice)
     return profile.model_copy(update={"notes": {**profile.notes, "profile_pick": what}})
+
+
+def fit_summary(out: Path, candidates: list[Candidate], pick: Pick) -> FitSummary:
+    """The run as ``--report`` writes it (:mod:`service.characterisation.fit_summary`)."""
+    from service.characterisation.fit_summary import (
+        CandidateSummary,
+        FitSummary,
+        TemperatureSummary,
+    )
+
+    return FitSummary(
+        profile=str(out), profile_pick=pick.profile.notes.get("profile_pick"),
+        candidates=[CandidateSummary(seed=c.seed, written=c.seed == pick.seed,
+                                     refusal=None if c.refusal is None else c.refusal.problems,
+                                     fit_file_soc_rmse_after_600s_pct=pick.readings.get(c.seed),
+                                     temperatures=[TemperatureSummary.of(t) for t in c.report.temperatures],
+                                     log=list(c.report.lines))
+                    for c in candidates])
