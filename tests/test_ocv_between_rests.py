@@ -136,3 +136,25 @@ def test_the_fit_log_says_where_near_reference_keeps_the_joint_shape() -> None:
     said = "\n".join(rep.lines)
     assert "25 °C: between rests" in said and "monotone cubic through them" in said
     assert "0 °C: more than 15 K from the reference 25 °C" in said and "keeps the joint fit's shape" in said
+
+
+def test_reference_shape_reads_the_cold_row_as_the_references_shifted_through_its_own_rests() -> None:
+    """``reference-shape``: the 25 °C row follows its rests as near-reference's does; the 0 °C row is that
+    row shifted through the 0 °C rests (here 30 mV below, with a joint row whose wiggle carries 15 mV of
+    polarisation), not the joint fit's shape; and the log says so. Without a rest at the reference the
+    cold row keeps the joint fit's shape, as near-reference's does."""
+    from service.characterisation.characterise import FitReport, anchor_rows_at_rests, reads_through_rests
+
+    steps = [round(0.1 * k, 2) for k in range(1, 10)]
+    cold = [RestPoint(p.soc, p.ocv_v - 0.030, 0.0, 0.005) for p in rests_at(steps)]
+    rep = FitReport()
+    rows = {0.0: wiggly_row() - 0.030, 25.0: wiggly_row()}
+    anchor_rows_at_rests(rep, GRID, rows, {0.0: cold, 25.0: rests_at(steps)}, "reference-shape", 25.0)
+    inside = (GRID >= 0.1) & (GRID <= 0.9)
+    assert np.max(np.abs(rows[25.0] - true_ocv(GRID))[inside]) < 2e-3
+    assert np.max(np.abs(rows[0.0] - (true_ocv(GRID) - 0.030))[inside]) < 2e-3
+    assert "0 °C: more than 15 K from the reference 25 °C, so the OCV is the reference's row shifted" in "\n".join(rep.lines)
+    assert reads_through_rests("reference-shape", 25.0, 25.0, cold) and not reads_through_rests("reference-shape", 0.0, 25.0, cold)
+    rows = {0.0: wiggly_row() - 0.030, 25.0: wiggly_row()}
+    anchor_rows_at_rests(FitReport(), GRID, rows, {0.0: cold, 25.0: []}, "reference-shape", 25.0)
+    assert np.max(np.abs(rows[0.0] - (true_ocv(GRID) - 0.030))[inside]) > 0.014

@@ -1018,6 +1018,31 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference near-
     --json out/loco_ocv_between_rests.json""",
           nested_table("loco_ocv_between_rests.json"), 1,
           ("needs:char_pan_hppc", "needs:hppc_ocv_between_rests", "needs:unseen_cell_hppc")),
+    Table("loco_reference_shape", "characterisation.md", REAL + """\
+PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC)"   # near-reference (the default): char_pan_hppc's
+socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --ocv-between-rests reference-shape \\
+    -q -o out/s25/pan_hppc_between_reference-shape.toml
+socd evaluate --cell out/s25/pan_hppc_between_reference-shape.toml $PANX --estimator fomiukf -q \\
+    --json out/s25/pan_hppc_between_reference-shape_eval.json
+python -m research.unseen_cell build --jobs 2
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc --refit &
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_refshape \\
+    --fit-flags="--ocv-between-rests reference-shape" --refit
+wait
+G="reference-shape=out/s25/pan_hppc_between_reference-shape_eval.json@panasonic"
+G="$G near-reference=out/s25/pan_hppc_eval.json@panasonic"
+for c in Chen2020 Mohtat2020 Marquis2019; do
+  G="$G reference-shape=out/unseen_cell/${c}_hppc_refshape_eval.json@$c near-reference=out/unseen_cell/${c}_hppc_eval.json@$c"
+done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference near-reference --exclude _10C_trise $G \\
+    --json out/loco_reference_shape.json""",
+          lambda out: nested_table("loco_reference_shape.json")(out) + "\n\n" + runs_table(
+              (("Panasonic, `near-reference` (default)", "s25/pan_hppc_eval.json"),
+               ("Panasonic, `reference-shape`", "s25/pan_hppc_between_reference-shape_eval.json")), PAN_GROUPS)(out)
+          + "\n\n" + runs_table(tuple((f"`{c}`, {label}", f"unseen_cell/{c}{tag}_eval.json") for c in UNSEEN_CELLS
+                                        for label, tag in (("`near-reference` (default)", "_hppc"),
+                                                           ("`reference-shape`", "_hppc_refshape"))), UNSEEN_GROUPS)(out),
+          45, ("needs:char_pan_hppc", "needs:pybamm")),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json

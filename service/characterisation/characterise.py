@@ -746,9 +746,10 @@ def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[Pa
 def reads_through_rests(between: str, temp_c: float, ref_t: float, anchors: list[RestPoint]) -> bool:
     """Whether the OCV row at ``temp_c`` is read through its rests (``--ocv-between-rests``): everywhere
     (``interpolate``), within :data:`NEAR_REFERENCE_K` of the reference temperature ``ref_t``
-    (``near-reference``), where the rests have settled (``settled``, :func:`rests_settled`), or
-    nowhere (``joint``)."""
-    return (between == "interpolate" or (between == "near-reference" and abs(temp_c - ref_t) <= NEAR_REFERENCE_K)
+    (``near-reference``, ``reference-shape``), where the rests have settled (``settled``,
+    :func:`rests_settled`), or nowhere (``joint``)."""
+    return (between == "interpolate"
+            or (between in ("near-reference", "reference-shape") and abs(temp_c - ref_t) <= NEAR_REFERENCE_K)
             or (between == "settled" and rests_settled(anchors)))
 
 
@@ -759,14 +760,23 @@ def anchor_rows_at_rests(rep: FitReport, grid: np.ndarray, ocv_rows: dict[float,
     (``points_by_t``; :func:`ocv_row_from_rests`, one rest is enough); a temperature without one
     keeps its row.  Between rests close in SOC the row is then the monotone cubic through them
     (:func:`interpolate_between_rests`) instead of the joint fit's shape where
-    :func:`reads_through_rests` says so for ``between``.  No rest at any temperature is an error."""
+    :func:`reads_through_rests` says so for ``between``; with ``reference-shape``, a temperature more than
+    :data:`NEAR_REFERENCE_K` from the reference is the reference's finished row shifted through its own
+    rests instead.  No rest at any temperature is an error."""
     if not any(points_by_t.values()):
         raise ValueError(f"--rest-anchor: no rest of {REST_MIN_S:g} s or more in the recordings at any temperature "
                          f"({', '.join(f'{t:g} °C' for t in sorted(points_by_t))}) to anchor the OCV table on")
-    for t in sorted(points_by_t):
+    # the reference first: ``reference-shape`` reads the far temperatures with its finished row
+    for t in sorted(points_by_t, key=lambda t: abs(t - ref_t)):
         anchors = points_by_t[t]
         if not anchors:
             rep.say(f"{t:g} °C: no rest of {REST_MIN_S:g} s or more; its jointly fitted OCV is kept")
+            continue
+        if between == "reference-shape" and abs(t - ref_t) > NEAR_REFERENCE_K and points_by_t.get(ref_t):
+            ocv_rows[t] = ocv_row_from_rests(grid, ocv_rows[ref_t], anchors, min_points=1)
+            rep.say(f"{t:g} °C: more than {NEAR_REFERENCE_K:g} K from the reference {ref_t:g} °C, so the OCV is the "
+                    f"reference's row shifted through this temperature's rests ("
+                    + rest_offsets_text(grid, ocv_rows[ref_t], anchors, "") + " from the reference's row)")
             continue
         rep.say(f"joint OCV at {t:g} °C anchored at the relaxed rest voltage(s) of "
                 + rest_offsets_text(grid, ocv_rows[t], anchors, "the table moved"))

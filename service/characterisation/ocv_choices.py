@@ -13,8 +13,11 @@ REST_INTERP_MAX_GAP = 0.15
 NEAR_REFERENCE_K = 15.0
 #: how the OCV between a temperature's rests is read when it is fitted jointly (``socd fit
 #: --ocv-between-rests``): through the rests near the reference temperature (the default), the joint
-#: fit's shape shifted onto them, through the rests where they have settled, or everywhere
-OCV_BETWEEN_RESTS = ("near-reference", "joint", "settled", "interpolate")
+#: fit's shape shifted onto them, through the rests where they have settled, everywhere, or near the
+#: reference as the default does and in the cold as the reference temperature's finished row shifted
+#: through that temperature's rests (the joint fit's shape there carries polarisation, the reference's
+#: row does not)
+OCV_BETWEEN_RESTS = ("near-reference", "joint", "settled", "interpolate", "reference-shape")
 #: the default, chosen leave-one-cell-out over the Panasonic cell and the three PyBaMM cells fitted from
 #: pulse tests alone (docs/results/characterisation.md, table ``loco_ocv_between_rests``)
 DEFAULT_OCV_BETWEEN_RESTS = "near-reference"

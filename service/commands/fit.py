@@ -138,8 +138,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    f"{REST_INTERP_MAX_GAP:g} apart in SOC (a pulse test's steps), read the OCV as the monotone "
                    f"cubic through the rests at temperatures within {NEAR_REFERENCE_K:g} K of the reference "
                    "(near-reference, the default; the joint shape in the cold), as the joint fit's shape shifted "
-                   "onto them (joint), through the rests where the temperature's rests have settled (settled) or "
-                   "everywhere (interpolate); naming one with an OCV table or test or --no-rest-anchor is an error "
+                   "onto them (joint), through the rests where the temperature's rests have settled (settled), "
+                   "everywhere (interpolate), or as near-reference but in the cold the reference temperature's row "
+                   "shifted through that temperature's rests (reference-shape); naming one with an OCV table or test or --no-rest-anchor is an error "
                    "(docs/results/characterisation.md, cell_options.md)")
     p.add_argument("--ocv-smoothing", type=positive_float, default=None, metavar="W",
                    help="with no OCV table or test: the weight of the smoothness penalty on the jointly fitted OCV "
