@@ -1019,15 +1019,15 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference near-
           nested_table("loco_ocv_between_rests.json"), 1,
           ("needs:char_pan_hppc", "needs:hppc_ocv_between_rests", "needs:unseen_cell_hppc")),
     Table("loco_reference_shape", "characterisation.md", REAL + """\
+python -m research.unseen_cell build --jobs 2
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc --refit &
+python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_refshape \\
+    --fit-flags="--ocv-between-rests reference-shape" --refit &
 PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC)"   # near-reference (the default): char_pan_hppc's
 socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --ocv-between-rests reference-shape \\
     -q -o out/s25/pan_hppc_between_reference-shape.toml
 socd evaluate --cell out/s25/pan_hppc_between_reference-shape.toml $PANX --estimator fomiukf -q \\
     --json out/s25/pan_hppc_between_reference-shape_eval.json
-python -m research.unseen_cell build --jobs 2
-python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc --refit &
-python -m research.unseen_cell run --fit-drive HPPC --profile-tag _hppc_refshape \\
-    --fit-flags="--ocv-between-rests reference-shape" --refit
 wait
 G="reference-shape=out/s25/pan_hppc_between_reference-shape_eval.json@panasonic"
 G="$G near-reference=out/s25/pan_hppc_eval.json@panasonic"
