@@ -143,7 +143,11 @@ def test_reference_shape_reads_the_cold_row_as_the_references_shifted_through_it
     row shifted through the 0 °C rests (here 30 mV below, with a joint row whose wiggle carries 15 mV of
     polarisation), not the joint fit's shape; and the log says so. Without a rest at the reference the
     cold row keeps the joint fit's shape, as near-reference's does."""
-    from service.characterisation.characterise import FitReport, anchor_rows_at_rests, reads_through_rests
+    from service.characterisation.characterise import (
+        FitReport,
+        anchor_rows_at_rests,
+        reads_through_rests,
+    )
 
     steps = [round(0.1 * k, 2) for k in range(1, 10)]
     cold = [RestPoint(p.soc, p.ocv_v - 0.030, 0.0, 0.005) for p in rests_at(steps)]
