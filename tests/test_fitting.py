@@ -382,3 +382,27 @@ def test_fit_shares_the_reference_temperatures_shape(tmp_path: Path, nmc_recordi
     if shape == "orders-ratio":
         assert ratio(cold) == pytest.approx(ratio(warm), rel=1e-4)
     assert cold.r_ohm > 1.5 * warm.r_ohm
+
+
+def test_a_fitted_exchange_current_rising_in_the_cold_is_named() -> None:
+    """i0 0.31 A at -20 °C above 0.05 A at -10 °C (the Panasonic HPPC fit's): one notice naming both;
+    a linear placeholder (i0 at the search's upper bound) and a falling pair say nothing."""
+    from service.cell.fitting import LINEAR_I0_A
+    from service.cell.profile import ParameterPoint
+    from service.characterisation.characterise import (
+        FitReport,
+        say_exchange_current_rising_in_the_cold,
+    )
+
+    def point(t: float, i0: float | None) -> ParameterPoint:
+        return ParameterPoint(temp_c=t, r_ohm=0.5, r_ct=0.05, c_dl=10.0, m=1.0, r_df=0.1, c_df=1000.0, n=1.0, i0_a=i0)
+
+    rep = FitReport(quiet=True)
+    say_exchange_current_rising_in_the_cold(rep, {-20.0: point(-20.0, 0.31), -10.0: point(-10.0, 0.05),
+                                                  0.0: point(0.0, 0.11), 25.0: point(25.0, LINEAR_I0_A)})
+    assert len(rep.lines) == 1
+    assert "i0 is 0.31 A at -20 °C but 0.05 A at -10 °C" in rep.lines[0]
+    rep = FitReport(quiet=True)
+    say_exchange_current_rising_in_the_cold(rep, {0.0: point(0.0, 0.11), 10.0: point(10.0, 0.40),
+                                                  25.0: point(25.0, None)})
+    assert rep.lines == []

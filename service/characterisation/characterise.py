@@ -594,6 +594,7 @@ def characterise(
             rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}", notice=True)
         if pins and not np.allclose(list(shape_pins(pt, shape).values()), list(pins.values()), atol=1e-6):
             say_shape_not_shared(rep, t, ref_t, shape, source, max_tau_df_s)
+    say_exchange_current_rising_in_the_cold(rep, points)
     profile = prof.model_copy(update={
         "memory_span_s": memory_span_s,
         "parameters": with_linear_kinetics_where_unfitted([points[t] for t in sorted(points)]),
@@ -732,6 +733,20 @@ def temperature_law_resolvable(segments: list[FitSegment], temp_c: float, rep: F
         rep.say(f"temperature at {temp_c:g} °C spans {span:.1f} K (10th-90th percentile): the resistances' "
                 "activation energy is fitted with the point")
     return resolved
+
+
+def say_exchange_current_rising_in_the_cold(rep: FitReport, points: dict[float, ParameterPoint]) -> None:
+    """A notice for each pair of neighbouring temperatures that fitted a Butler–Volmer exchange current
+    (not the linear placeholder) where the colder one's is larger: ``i0`` falls as a cell cools
+    (Arrhenius), so the recordings did not pin it at one of the two, and the profile's kinetics between
+    them interpolates a compromise of the search."""
+    fitted = [(t, p.i0_a) for t, p in sorted(points.items())
+              if p.i0_a is not None and p.i0_a < (1.0 - ORDER_ONE_TOL) * LINEAR_I0_A]
+    for (t_cold, i_cold), (t_warm, i_warm) in pairwise(fitted):
+        if i_cold > i_warm:
+            rep.say(f"exchange current i0 is {i_cold:.2f} A at {t_cold:g} °C but {i_warm:.2f} A at {t_warm:g} °C: "
+                    "it should fall as a cell cools, so the recordings do not pin it at one of the two (current "
+                    "pulses of several sizes at both temperatures would)", notice=True)
 
 
 def with_linear_kinetics_where_unfitted(points: list[ParameterPoint]) -> list[ParameterPoint]:
