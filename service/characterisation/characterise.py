@@ -740,8 +740,7 @@ def say_exchange_current_rising_in_the_cold(rep: FitReport, points: dict[float, 
     (not the linear placeholder) where the colder one's is larger: ``i0`` falls as a cell cools
     (Arrhenius), so the recordings did not pin it at one of the two, and the profile's kinetics between
     them interpolates a compromise of the search."""
-    fitted = [(t, p.i0_a) for t, p in sorted(points.items())
-              if p.i0_a is not None and p.i0_a < (1.0 - ORDER_ONE_TOL) * LINEAR_I0_A]
+    fitted = [(t, p.i0_a) for t, p in sorted(points.items()) if not kinetics_linear(p)]
     for (t_cold, i_cold), (t_warm, i_warm) in pairwise(fitted):
         if i_cold > i_warm:
             rep.say(f"exchange current i0 is {i_cold:.2f} A at {t_cold:g} °C but {i_warm:.2f} A at {t_warm:g} °C: "
@@ -858,8 +857,13 @@ def on_2rc_submodel(point: ParameterPoint) -> bool:
     """True when a fitted point is the textbook 2-RC model in the fractional form: both CPE
     orders at 1 (within :data:`ORDER_ONE_TOL`) and the Butler–Volmer term linear (not fitted,
     or its exchange current at the largest the search allows, :data:`LINEAR_I0_A`)."""
-    linear = point.i0_a is None or point.i0_a >= (1.0 - ORDER_ONE_TOL) * LINEAR_I0_A
-    return point.m >= 1.0 - ORDER_ONE_TOL and point.n >= 1.0 - ORDER_ONE_TOL and linear
+    return point.m >= 1.0 - ORDER_ONE_TOL and point.n >= 1.0 - ORDER_ONE_TOL and kinetics_linear(point)
+
+
+def kinetics_linear(point: ParameterPoint) -> bool:
+    """True when a point's Butler–Volmer term is linear: not fitted, or its exchange current at the
+    largest the search allows (:data:`LINEAR_I0_A`, within :data:`ORDER_ONE_TOL`)."""
+    return point.i0_a is None or point.i0_a >= (1.0 - ORDER_ONE_TOL) * LINEAR_I0_A
 
 
 def ecm_start_point(fit: Ecm2RcFit | Ecm2RcPoint, temp_c: float, linear_kinetics: bool = False,
