@@ -580,6 +580,14 @@ def test_fit_refuses_an_order_bound_the_search_cannot_hold(tmp_path: Path, capsy
     assert not (tmp_path / "cell.toml").exists()
 
 
+@pytest.mark.parametrize("value", ["1.5", "-0.1", "nan"])
+def test_fit_refuses_a_pure_ohmic_share_outside_zero_to_one(tmp_path: Path, capsys, value: str) -> None:
+    code, err = run_cli(capsys, ["fit", str(tmp_path / "never_read.csv"), "--capacity-ah", "2",
+                                 "--pure-ohmic-share", value, "-o", str(tmp_path / "cell.toml")])
+    assert code == 2 and "argument --pure-ohmic-share" in err and "Traceback" not in err, err
+    assert not (tmp_path / "cell.toml").exists()
+
+
 def test_config_with_a_byte_order_mark_is_read(tmp_path: Path, capsys) -> None:
     cfg = _config_file(tmp_path, Path(DEFAULT_INPUT_DBC))
     cfg.write_bytes(b"\xef\xbb\xbf" + cfg.read_bytes())

@@ -127,6 +127,29 @@ def test_fit_kinetics_recovers_exchange_current():
     assert linear.point.i0_a is None and linear.rmse_mv > 2 * res.rmse_mv
 
 
+def test_pure_ohmic_floor_holds_r_ohm_above_the_kinetic_drop():
+    """``min_pure_ohm``: the search cannot give the kinetic term the whole instantaneous drop;
+    every candidate it simulates, and the point it returns, keep R_ohm at least that much above
+    the Butler-Volmer term's linear drop (``socd fit --pure-ohmic-share``)."""
+    truth = TRUE.model_copy(update={"temp_c": 0.0, "i0_a": 1.0})
+    t, i, temp, v = _pulse_drive(profile(truth), 1200, 7, scale=2.0, temp_c=0.0)
+    floor_pure = 0.02
+    # a candidate with almost no R_ohm is simulated at the floor
+    x = np.array([[math.log(1e-4), math.log(0.015), math.log(5.0), 0.9, math.log(0.02), math.log(30.0), 0.85,
+                   math.log(1.0)]])
+    lin = 2.0 * GAS_CONSTANT * KELVIN / FARADAY / 2.0
+    params = decode(x, profile(truth), 0.0, False, fit_kinetics=True, min_pure_ohm=floor_pure)
+    assert params.r_ohm[0] == pytest.approx(lin + floor_pure)
+    assert decode(x, profile(truth), 0.0, False, fit_kinetics=True).r_ohm[0] == pytest.approx(lin)
+    res = fit_parameters(profile(truth), [FitSegment(t, i, v, temp, soc0=0.95)], fit_kinetics=True, max_seconds=30,
+                         x0=truth, de_maxiter=3, min_pure_ohm=floor_pure)
+    kinetic = 2.0 * GAS_CONSTANT * (res.point.temp_c + KELVIN) / FARADAY / (2.0 * res.point.i0_a)
+    assert res.point.r_ohm >= (kinetic + floor_pure) * (1 - 1e-9)
+    # without a Butler-Volmer term the floor is the pure part alone
+    plain = decode(x[:, :7], profile(TRUE), 25.0, False, min_pure_ohm=floor_pure)
+    assert plain.r_ohm[0] == pytest.approx(floor_pure)
+
+
 def test_i0_interpolates_like_a_resistance_and_is_all_or_none():
     # R_ohm 60 mΩ holds the linear kinetic drop of i0 0.5 A at 0 °C (47 mΩ; see the next test)
     pts = [TRUE.model_copy(update={"temp_c": 0.0, "i0_a": 0.5, "r_ohm": 0.06}),

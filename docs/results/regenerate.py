@@ -537,6 +537,7 @@ SAMPLE_PERIOD_GROUPS = (("25 °C `LA92` at 10 Hz", r"_10Hz"), ("25 °C, 1 s", r"
 #: research.unseen_cell's PyBaMM cells and their recordings by ambient
 UNSEEN_CELLS = ("Chen2020", "Mohtat2020", "Marquis2019")
 UNSEEN_GROUPS = (("25 °C", r"_25C_"), ("10 °C", r"_10C_"), ("0 °C", r"_0C_"))
+UNSEEN_M10_GROUPS = UNSEEN_GROUPS + (("−10 °C", r"_m10C_"),)
 #: PyBaMM sets beyond research.unseen_cell's default three, scored at 25 and 10 °C (``unseen_cell_more``)
 MORE_UNSEEN_CELLS = ("Ai2020", "OKane2022", "Ecker2015")
 #: the characterisations ``two_rc_point_by_fit_file`` scores: (label, tag, temperature groups)
@@ -1043,6 +1044,34 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference near-
                                         for label, tag in (("`near-reference` (default)", "_hppc"),
                                                            ("`reference-shape`", "_hppc_refshape"))), UNSEEN_GROUPS)(out),
           45, ("needs:char_pan_hppc", "needs:pybamm")),
+    Table("loco_pure_ohmic", "characterisation.md", REAL + """\
+python -m research.unseen_cell build --jobs 2
+python -m research.unseen_cell build --jobs 2 --cells Chen2020,Mohtat2020 --ambients -10
+for f in 0 0.25; do
+  python -m research.unseen_cell run --fit-drive HPPC --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10 \\
+      --profile-tag _hppc_pure$f --fit-flags="--pure-ohmic-share $f" --refit &
+  python -m research.unseen_cell run --fit-drive HPPC --cells Marquis2019 --profile-tag _hppc_pure$f \\
+      --fit-flags="--pure-ohmic-share $f" --refit &
+  socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full-at 0 --pure-ohmic-share $f -q \\
+      -o out/s25/pan_hppc_pure$f.toml
+  socd evaluate --cell out/s25/pan_hppc_pure$f.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC) \\
+      --estimator fomiukf -q --json out/s25/pan_hppc_pure${f}_eval.json
+  wait
+done
+G=""; for f in 0 0.25; do
+  G="$G $f=out/s25/pan_hppc_pure${f}_eval.json@panasonic"
+  for c in Chen2020 Mohtat2020 Marquis2019; do G="$G $f=out/unseen_cell/${c}_hppc_pure${f}_eval.json@$c"; done
+done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference 0 --exclude _10C_trise $G \\
+    --json out/loco_pure_ohmic.json""",
+          lambda out: nested_table("loco_pure_ohmic.json")(out) + "\n\n" + runs_table(
+              tuple((f"Panasonic, `--pure-ohmic-share {f}`", f"s25/pan_hppc_pure{f}_eval.json") for f in ("0", "0.25")),
+              PAN_GROUPS)(out)
+          + "\n\n" + runs_table(tuple((f"`{c}`, `--pure-ohmic-share {f}`", f"unseen_cell/{c}_hppc_pure{f}_eval.json")
+                                        for c in UNSEEN_CELLS for f in ("0", "0.25")), UNSEEN_M10_GROUPS)(out)
+          + "\n" + runs_table(tuple((f"`{c}`, 2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_pure0_eval.json")
+                                     for c in UNSEEN_CELLS), UNSEEN_M10_GROUPS, "ecm2rc-ekf")(out).split("\n", 2)[2],
+          90, ("needs:pybamm",)),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json

@@ -47,8 +47,8 @@ from service.cell.profile import (
     CellProfile,
     HysteresisSpec,
     ParameterPoint,
-    kinetic_floor_ohm,
     lift_to_kinetic_floor,
+    ohmic_floor_ohm,
 )
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
@@ -237,12 +237,15 @@ def estimate_r_ohm(segments: list[FitSegment]) -> float | None:
 
 # -- parameter coding ---------------------------------------------------------------------
 def decode(x: np.ndarray, profile: CellProfile, temp_c: float, fit_hysteresis: bool,
-           fit_kinetics: bool = False, max_tau_df_s: float | None = None) -> CellParameters:
+           fit_kinetics: bool = False, max_tau_df_s: float | None = None,
+           min_pure_ohm: float = 0.0) -> CellParameters:
     """Search coordinates ``x[N, p]`` -> :class:`CellParameters` for ``N`` candidates.
 
     Coordinates: the 7 base ones, then ``U_H, ln rate`` (``fit_hysteresis``), then
     ``ln i0`` (``fit_kinetics``, the Butler-Volmer term of :func:`kinetic_overpotential`).
     ``max_tau_df_s`` caps the diffusion branch's time constant (:func:`diffusion_tau`).
+    ``min_pure_ohm``: the least ``R_ohm`` above the Butler-Volmer term's linear drop
+    (:func:`service.cell.profile.ohmic_floor_ohm`).
     """
     x = np.atleast_2d(x)
     n = x.shape[0]
@@ -266,8 +269,9 @@ def decode(x: np.ndarray, profile: CellProfile, temp_c: float, fit_hysteresis: b
         p.hyst_rate = np.exp(x[:, 8])
     if fit_kinetics:
         p.kinetics_i0_a = np.exp(x[:, 9 if fit_hysteresis else 7])
-        # R_ohm holds the Butler-Volmer term's linear drop (CellProfile rejects less)
-        p.r_ohm = np.maximum(p.r_ohm, kinetic_floor_ohm(p.kinetics_i0_a, temp_c, profile.min_r_ohm_scale(temp_c)))
+    # R_ohm holds the Butler-Volmer term's linear drop (CellProfile rejects less) and a pure ohmic part
+    i0 = p.kinetics_i0_a if fit_kinetics else None
+    p.r_ohm = np.maximum(p.r_ohm, ohmic_floor_ohm(i0, temp_c, profile.min_r_ohm_scale(temp_c), min_pure_ohm))
     return p
 
 
@@ -306,8 +310,9 @@ class _Objective:
     """Residuals of ``N`` candidates over all segments, one vectorised simulation each."""
 
     def __init__(self, profile, segments, memory_length, fit_hysteresis, temp_c, fit_kinetics=False,
-                 max_tau_df_s=None, temperature_law=False):
+                 max_tau_df_s=None, temperature_law=False, min_pure_ohm=0.0):
         self.max_tau_df_s = max_tau_df_s
+        self.min_pure_ohm = min_pure_ohm
         #: the last coordinate is the resistances' activation energy [kJ/mol]: each sample is
         #: simulated with the candidate scaled from ``temp_c`` to its own temperature
         self.temperature_law = temperature_law
@@ -323,7 +328,8 @@ class _Objective:
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """``[N, samples]`` simulated minus measured voltage."""
         x = np.atleast_2d(x)
-        params = decode(x, self.profile, self.temp_c, self.fit_hysteresis, self.fit_kinetics, self.max_tau_df_s)
+        params = decode(x, self.profile, self.temp_c, self.fit_hysteresis, self.fit_kinetics, self.max_tau_df_s,
+                        self.min_pure_ohm)
         law = None
         if self.temperature_law:
             ea = 1000.0 * x[:, -1]
@@ -368,6 +374,7 @@ def fit_parameters(
     law_ref_temp_c: float | None = None,
     pinned: dict[str, float] | None = None,
     min_slow_order: float | None = None,
+    min_pure_ohm: float = 0.0,
 ) -> FitResult:
     """Fit R_ohm, R_ct, C_dl, m, R_df, C_df, n (and U_H, rate; and the Butler-Volmer i0) to ``segments``.
 
@@ -384,6 +391,10 @@ def fit_parameters(
     branch's time constant is tens of times the memory, so truncation is worst there.
 
     ``max_tau_df_s`` caps the diffusion branch's time constant (:func:`diffusion_tau`).
+
+    ``min_pure_ohm`` [Ω]: ``R_ohm`` keeps at least this much above the Butler-Volmer term's linear
+    drop (:func:`service.cell.profile.ohmic_floor_ohm`), so the search cannot hand the electrolyte's
+    and contacts' resistance to the kinetic term.
 
     ``temperature_law``: also fit an activation energy ``Ea`` of the resistances
     (:mod:`service.cell.temperature_law`), so each sample is simulated with the point scaled
@@ -460,7 +471,7 @@ def fit_parameters(
     cap = profile.effective_capacity_ah
     coarse = [excited_window(s, max(200, int(global_points * len(s) / total)), cap) for s in segments]
     obj_g = _Objective(profile, coarse, memory_length, fit_hysteresis, temp_c, fit_kinetics, max_tau_df_s,
-                       temperature_law)
+                       temperature_law, min_pure_ohm)
     g_deadline = t_start + 0.6 * max_seconds
 
     def cost(xt: np.ndarray) -> np.ndarray:  # xt: [p, S] (vectorised DE)
@@ -483,7 +494,7 @@ def fit_parameters(
     # 2. local polish on (nearly) full-rate data
     fine = [excited_window(s, max(200, int(polish_points * len(s) / total)), cap) for s in segments]
     obj = _Objective(profile, fine, memory_length, fit_hysteresis, temp_c, fit_kinetics, max_tau_df_s,
-                     temperature_law)
+                     temperature_law, min_pure_ohm)
     steps = np.full(p, 1e-4)
     best = {"x": x_best, "cost": np.inf}
     cache: dict[str, np.ndarray] = {}
@@ -528,7 +539,8 @@ def fit_parameters(
     i0 = float(math.exp(x_fin[names.index("ln_i0_a")])) if fit_kinetics else None
     ea = 1000.0 * float(x_fin[names.index("ea_kj_mol")]) if temperature_law else None
     # R_ohm as decode() simulated it
-    point = lift_to_kinetic_floor(point_from_x(x_fin, temp_c, i0, max_tau_df_s), i0, profile.min_r_ohm_scale(temp_c))
+    point = lift_to_kinetic_floor(point_from_x(x_fin, temp_c, i0, max_tau_df_s), i0, profile.min_r_ohm_scale(temp_c),
+                                  min_pure_ohm)
     return FitResult(
         point=point,
         hysteresis=hyst,

@@ -444,12 +444,18 @@ def kinetic_floor_ohm(i0_a, temp_c, min_scale: float = 1.0):
     return kinetic_linear_ohm(i0_a, temp_c) / min_scale
 
 
-def lift_to_kinetic_floor(point: ParameterPoint, i0_a: float | None, min_scale: float = 1.0) -> ParameterPoint:
-    """``point`` with ``R_ohm`` raised to :func:`kinetic_floor_ohm` at its own temperature
-    (unchanged without a Butler–Volmer term or when already above)."""
-    if i0_a is None:
-        return point
-    floor = float(kinetic_floor_ohm(i0_a, point.temp_c, min_scale))
+def ohmic_floor_ohm(i0_a, temp_c, min_scale: float = 1.0, pure_ohm: float = 0.0):
+    """Smallest ``R_ohm`` a fit may give: ``pure_ohm`` (the electrolyte's and contacts' part, which
+    no Butler–Volmer term replaces) on top of :func:`kinetic_floor_ohm` (0 without an ``i0_a``)."""
+    kinetic = 0.0 if i0_a is None else kinetic_floor_ohm(i0_a, temp_c, min_scale)
+    return kinetic + pure_ohm
+
+
+def lift_to_kinetic_floor(point: ParameterPoint, i0_a: float | None, min_scale: float = 1.0,
+                          pure_ohm: float = 0.0) -> ParameterPoint:
+    """``point`` with ``R_ohm`` raised to :func:`ohmic_floor_ohm` at its own temperature
+    (unchanged when already above)."""
+    floor = float(ohmic_floor_ohm(i0_a, point.temp_c, min_scale, pure_ohm))
     return point if point.r_ohm >= floor else point.model_copy(update={"r_ohm": floor})
 
 

@@ -120,6 +120,10 @@ MAX_TAU_DF_S = TAU2_BOUNDS_S[1]
 #: the least cap ``socd fit --max-tau-df`` takes: a diffusion branch faster than the textbook
 #: 2-RC's fastest branch is no longer a diffusion branch
 MIN_TAU_DF_CAP_S = TAU1_BOUNDS_S[0]
+#: the share of the textbook 2-RC's R0 that a fitted R_ohm keeps above the Butler-Volmer term's linear
+#: drop (socd fit --pure-ohmic-share): the electrolyte and contacts conduct ohmically at any current, so
+#: the kinetic term may not take the whole instantaneous drop
+PURE_OHMIC_SHARE = 0.0
 #: a temperature's fit is poor, and refused, when its RMSE [mV] is above both this (Zeng's bound on
 #: the voltage error) and POOR_FIT_SHARE of the RMS overpotential it has to explain (a hard drive in
 #: the cold moves the voltage by a volt; a fit that leaves a tenth of that is still a model of it).
@@ -342,6 +346,7 @@ def characterise(
     rest_anchor: bool | None = None,
     short_charge: bool = False,
     max_tau_df_s: float = MAX_TAU_DF_S,
+    pure_ohmic_share: float = PURE_OHMIC_SHARE,
     ocv_beyond: str = "hold",
     ocv_between_rests: str | None = None,
     ocv_smoothing: float | None = None,
@@ -361,7 +366,9 @@ def characterise(
     temperature whose recordings have the current steps that resolve it (:func:`kinetics_resolvable`).
     ``short_charge``: an OCV test whose charge stopped short of full is counted on the discharge's
     scale (:func:`ocv_from_test`).  ``max_tau_df_s``: cap on the fractional diffusion branch's time
-    constant (:func:`service.cell.fitting.diffusion_tau`).  ``ocv_beyond``: how OCV tests' rows are
+    constant (:func:`service.cell.fitting.diffusion_tau`).  ``pure_ohmic_share``: the share of the
+    textbook 2-RC's ``R0`` at each temperature that ``R_ohm`` keeps above the Butler-Volmer term's linear
+    drop (:func:`service.cell.profile.ohmic_floor_ohm`).  ``ocv_beyond``: how OCV tests' rows are
     read at temperatures beyond theirs (:func:`ocv_rows_by_temperature`).  ``ocv_between_rests``: how
     a rest-anchored joint OCV is read between rests close in SOC (:func:`reads_through_rests`); ``None``
     (the default) reads it the :data:`DEFAULT_OCV_BETWEEN_RESTS` way where there is such an OCV and
@@ -544,6 +551,7 @@ def characterise(
         # the search coordinates the reference temperature's point holds here (--shape)
         pins = {} if t == ref_t else shape_pins(points[ref_t], shape)
         res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length,
+                                       min_pure_ohm=pure_ohmic_share * ecm[t].r0,
                                        fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
                                        max_seconds=max_seconds, x0=start, warmer=warmer, colder=colder,
                                        min_order=min_order, min_slow_order=min_slow_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
@@ -608,7 +616,8 @@ def characterise(
 
 
 def best_of_starts(prof: CellProfile, segs: list[FitSegment], temp_c: float, seed: int, starts: int,
-                   rep: FitReport, memory_length: int, **fit_options) -> tuple[FitResult, ParameterPoint, float]:
+                   rep: FitReport, memory_length: int, min_pure_ohm: float = 0.0,
+                   **fit_options) -> tuple[FitResult, ParameterPoint, float]:
     """``starts`` searches (:func:`fit_parameters` with ``memory_length`` and ``fit_options``) seeded ``seed``, ``seed + 1``,
     ...: the result, its point relabelled to ``temp_c`` and that point's RMSE over ``segs`` (mV), of
     the one that fits ``segs`` best. With several, the log gives each search's RMSE and the
@@ -616,10 +625,11 @@ def best_of_starts(prof: CellProfile, segs: list[FitSegment], temp_c: float, see
     the searches that fit alike predict it further apart than the fit's RMSE."""
     fits = []
     for j in range(max(1, starts)):
-        res = fit_parameters(prof, segs, memory_length=memory_length, seed=seed + j, **fit_options)
+        res = fit_parameters(prof, segs, memory_length=memory_length, seed=seed + j, min_pure_ohm=min_pure_ohm,
+                             **fit_options)
         # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
         pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": temp_c}), res.point.i0_a,
-                                   prof.min_r_ohm_scale(temp_c))
+                                   prof.min_r_ohm_scale(temp_c), min_pure_ohm)
         rmse = segments_rmse_mv(prof, pt, res.hysteresis or prof.hysteresis, segs, memory_length, res.ea_j_mol)
         fits.append((res, pt, rmse))
     keep = min(range(len(fits)), key=lambda j: fits[j][2])

@@ -98,6 +98,8 @@ probability = float_in(0.0, 1.0, "a probability")
 soc_fraction = float_in(0.0, 1.0, "a SOC fraction")
 #: a lower bound of a CPE order (the search's orders end at 1; ``socd fit --min-order``)
 cpe_order_bound = float_in(0.05, 0.99, "a CPE order bound")
+#: a share of a resistance that a part of it keeps (``socd fit --pure-ohmic-share``)
+resistance_share = float_in(0.0, 1.0, "a share of R0")
 
 
 def relative_sigma(text: str) -> float:

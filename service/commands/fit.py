@@ -38,6 +38,7 @@ from service.commands.common_args import (
     positive_int,
     progress_enabled,
     refuse_overwriting_inputs,
+    resistance_share,
     setup_logging,
 )
 from service.commands.progress import open_progress
@@ -99,6 +100,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="cap on the diffusion branch's time constant, s (default 1000, the textbook 2-RC's slow "
                    "bound; at least 1); a longer one can follow the slow polarisation of a long drive, and can also let "
                    "the branch act as an integrator that soaks up OCV and capacity error")
+    p.add_argument("--pure-ohmic-share", type=resistance_share, default=None, metavar="F",
+                   help="share of the textbook 2-RC's R0 that R_ohm keeps above the Butler-Volmer term's linear drop "
+                   "at each temperature: the electrolyte and contacts conduct ohmically at any current, and in the "
+                   "cold a fit can otherwise hand the whole instantaneous drop to the kinetic term (default 0)")
     p.add_argument("--shape", choices=SHAPES, default=DEFAULT_SHAPE,
                    help="which shape of the fractional model the temperatures share: each temperature fitted freely "
                    "(each), the CPE orders m, n of the reference temperature's point held at the others (orders), or "
@@ -286,6 +291,7 @@ def fit_candidate(args: argparse.Namespace, recs: list[Recording], full: list[st
     the quality check."""
     from service.characterisation.characterise import (
         MAX_TAU_DF_S,
+        PURE_OHMIC_SHARE,
         PoorFitError,
         characterise,
         check_fit_quality,
@@ -302,6 +308,8 @@ def fit_candidate(args: argparse.Namespace, recs: list[Recording], full: list[st
                                    soc_resistance=args.soc_resistance, slow_branch=args.slow_branch,
                                    ocv_branch=args.ocv_branch, rest_anchor=args.rest_anchor,
                                    short_charge=args.short_charge, max_tau_df_s=args.max_tau_df or MAX_TAU_DF_S,
+                                   pure_ohmic_share=(PURE_OHMIC_SHARE if args.pure_ohmic_share is None
+                                                     else args.pure_ohmic_share),
                                    ocv_beyond=args.ocv_beyond, ocv_between_rests=args.ocv_between_rests,
                                    ocv_smoothing=args.ocv_smoothing, memory_length=args.memory_length,
                                    name=args.name or stem, seed=seed, starts=args.starts,
