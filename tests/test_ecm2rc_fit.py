@@ -205,6 +205,27 @@ def test_two_rc_point_writes_the_textbook_model_in_the_fractional_form(tmp_path:
     assert two_rc_point([str(src), str(tmp_path / "x.toml"), "--temp", "5"]) == 2  # no point there
 
 
+def test_two_rc_point_with_the_two_rc_ocv_is_the_textbook_ekfs_whole_model(tmp_path: Path):
+    """``--ocv two-rc`` also takes the 2-RC fit's OCV row, so the profile holds the model the
+    textbook EKF runs; without it the fractional OCV stays."""
+    from research.two_rc_point import main as two_rc_point
+    from service.cell.profile import load_profile, save_profile
+
+    grid = np.linspace(0, 1, 201)
+    frac = OcvSpec(soc=grid.tolist(), ocv_v=[ocv_curve(grid).tolist()])
+    own = OcvSpec(soc=grid.tolist(), ocv_v=[(ocv_curve(grid) + 0.015).tolist()])
+    spec = Ecm2RcSpec(ocv=own, points=[Ecm2RcPoint(temp_c=25.0, **TRUE)])
+    point = ParameterPoint(temp_c=25.0, r_ohm=0.2, r_ct=0.1, c_dl=10.0, m=0.5, r_df=0.3, c_df=10.0, n=0.5)
+    src = tmp_path / "cell.toml"
+    save_profile(CellProfile(capacity_ah=CAPACITY_AH, ocv=frac, parameters=[point], ecm2rc=spec), src)
+    assert two_rc_point([str(src), str(tmp_path / "whole.toml"), "--ocv", "two-rc"]) == 0
+    assert two_rc_point([str(src), str(tmp_path / "points.toml")]) == 0
+    whole, points = load_profile(tmp_path / "whole.toml"), load_profile(tmp_path / "points.toml")
+    assert np.allclose(whole.ocv.ocv_v[0], ocv_curve(grid) + 0.015)
+    assert np.allclose(points.ocv.ocv_v[0], ocv_curve(grid))
+    assert whole.parameters == points.parameters
+
+
 def test_flat_share_and_the_fit_notice_for_a_flat_joint_ocv():
     """A monotone row flat over 0.4-0.5 SOC (a joint fit's active bound) is flat over a tenth of SOC,
     and the fit says so per temperature as a notice; a rising row says nothing."""

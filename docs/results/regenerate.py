@@ -548,6 +548,8 @@ FIT_FILE_CELLS = (("CALCE, DST file", "calce", (("25 °C", r"calce20r"),)),
                   ("Panasonic, OCV test + US06", "pan_us06", PAN_TEMPS)) + tuple(
     (f"`{c}`, OCV test + US06", c, UNSEEN_GROUPS) for c in UNSEEN_CELLS)
 #: the CALCE files by rest: the two that rest two hours at 50 % SOC, the other three, all five
+#: the five CALCE 20R files scored at 25 °C, as one group
+CALCE_ALL = (("CALCE 20R, 25 °C (five files)", r"calce20r"),)
 CALCE_REST_GROUPS = (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUDS)_50soc"),
                      ("the other three", r"_80soc|US06_50soc"), ("all five", r"calce20r"))
 #: loco_ocv_error's runs without the offset: (label, folder under out/, JSON tag)
@@ -1072,6 +1074,25 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference 0 --e
           + "\n" + runs_table(tuple((f"`{c}`, 2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_pure0_eval.json")
                                      for c in UNSEEN_CELLS), UNSEEN_M10_GROUPS, "ecm2rc-ekf")(out).split("\n", 2)[2],
           90, ("needs:pybamm",)),
+    Table("filter_on_two_rc_model", "characterisation.md", REAL + f"""\
+# the Panasonic profile is loco_pure_ohmic's default one (--pure-ohmic-share 0), scored there
+python -m research.two_rc_point out/s25/pan_hppc_pure0.toml out/s25/pan_hppc_2rc_whole.toml --ocv two-rc
+socd evaluate --cell out/s25/pan_hppc_2rc_whole.toml $(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC) \\
+    --estimator fomiukf --no-bar -q --json out/s25/pan_hppc_2rc_whole_eval.json
+socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 -q -o out/s25/calce_f2.toml
+python -m research.two_rc_point out/s25/calce_f2.toml out/s25/calce_2rc_whole.toml --ocv two-rc
+socd evaluate --cell out/s25/calce_f2.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_f2_eval.json
+socd evaluate --cell out/s25/calce_2rc_whole.toml {CALCE} --estimator fomiukf --no-bar -q \\
+    --json out/s25/calce_2rc_whole_eval.json""",
+          lambda out: runs_table((("`fomiukf`, the fitted profile", "s25/pan_hppc_pure0_eval.json"),
+                                  ("`fomiukf`, the EKF's own model", "s25/pan_hppc_2rc_whole_eval.json")), PAN_GROUPS)(out)
+          + "\n" + runs_table((("`ecm2rc-ekf`, its own model", "s25/pan_hppc_pure0_eval.json"),), PAN_GROUPS,
+                               "ecm2rc-ekf")(out).split("\n", 2)[2]
+          + "\n\n" + runs_table((("`fomiukf`, the fitted profile", "s25/calce_f2_eval.json"),
+                                  ("`fomiukf`, the EKF's own model", "s25/calce_2rc_whole_eval.json")), CALCE_ALL)(out)
+          + "\n" + runs_table((("`ecm2rc-ekf`, its own model", "s25/calce_f2_eval.json"),), CALCE_ALL,
+                               "ecm2rc-ekf")(out).split("\n", 2)[2],
+          10, ("needs:loco_pure_ohmic",)),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json
