@@ -550,6 +550,8 @@ FIT_FILE_CELLS = (("CALCE, DST file", "calce", (("25 °C", r"calce20r"),)),
 #: the CALCE files by rest: the two that rest two hours at 50 % SOC, the other three, all five
 #: the five CALCE 20R files scored at 25 °C, as one group
 CALCE_ALL = (("CALCE 20R, 25 °C (five files)", r"calce20r"),)
+#: the two A123 files scored at 20 °C, as one group
+A123_ALL = (("A123, 20 °C (`FUDS`, `US06`)", r"calce_a123"),)
 CALCE_REST_GROUPS = (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUDS)_50soc"),
                      ("the other three", r"_80soc|US06_50soc"), ("all five", r"calce20r"))
 #: loco_ocv_error's runs without the offset: (label, folder under out/, JSON tag)
@@ -1083,7 +1085,13 @@ socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 -q -o 
 python -m research.two_rc_point out/s25/calce_f2.toml out/s25/calce_2rc_whole.toml --ocv two-rc
 socd evaluate --cell out/s25/calce_f2.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_f2_eval.json
 socd evaluate --cell out/s25/calce_2rc_whole.toml {CALCE} --estimator fomiukf --no-bar -q \\
-    --json out/s25/calce_2rc_whole_eval.json""",
+    --json out/s25/calce_2rc_whole_eval.json
+# A123 with char_a123's command (its OCV table on the charge branch, --hysteresis)
+socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteresis \\
+    --ocv $D/ocv/ocv_a123_20C_charge_soc_table.csv -q -o out/s25/a123_f2.toml
+python -m research.two_rc_point out/s25/a123_f2.toml out/s25/a123_2rc_whole.toml --ocv two-rc
+socd evaluate --cell out/s25/a123_f2.toml {A123} --estimator fomiukf -q --json out/s25/a123_f2_eval.json
+socd evaluate --cell out/s25/a123_2rc_whole.toml {A123} --estimator fomiukf --no-bar -q --json out/s25/a123_2rc_whole_eval.json""",
           lambda out: runs_table((("`fomiukf`, the fitted profile", "s25/pan_hppc_pure0_eval.json"),
                                   ("`fomiukf`, the EKF's own model", "s25/pan_hppc_2rc_whole_eval.json")), PAN_GROUPS)(out)
           + "\n" + runs_table((("`ecm2rc-ekf`, its own model", "s25/pan_hppc_pure0_eval.json"),), PAN_GROUPS,
@@ -1091,8 +1099,12 @@ socd evaluate --cell out/s25/calce_2rc_whole.toml {CALCE} --estimator fomiukf --
           + "\n\n" + runs_table((("`fomiukf`, the fitted profile", "s25/calce_f2_eval.json"),
                                   ("`fomiukf`, the EKF's own model", "s25/calce_2rc_whole_eval.json")), CALCE_ALL)(out)
           + "\n" + runs_table((("`ecm2rc-ekf`, its own model", "s25/calce_f2_eval.json"),), CALCE_ALL,
+                               "ecm2rc-ekf")(out).split("\n", 2)[2]
+          + "\n\n" + runs_table((("`fomiukf`, the fitted profile", "s25/a123_f2_eval.json"),
+                                  ("`fomiukf`, the EKF's own model", "s25/a123_2rc_whole_eval.json")), A123_ALL)(out)
+          + "\n" + runs_table((("`ecm2rc-ekf`, its own model", "s25/a123_f2_eval.json"),), A123_ALL,
                                "ecm2rc-ekf")(out).split("\n", 2)[2],
-          10, ("needs:loco_pure_ohmic",)),
+          15, ("needs:loco_pure_ohmic",)),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json
