@@ -19,7 +19,7 @@ import sys
 import numpy as np
 
 from service.cell.profile import CellProfile, ProfileError, load_profile, save_profile
-from service.characterisation.two_rc_profile import with_two_rc_points
+from service.characterisation.two_rc_profile import SAME_TEMP_C, with_two_rc_points
 
 
 def with_two_rc_ocv(profile: CellProfile) -> CellProfile:
@@ -30,7 +30,7 @@ def with_two_rc_ocv(profile: CellProfile) -> CellProfile:
     own = profile.ecm2rc.ocv
     rows = []
     for t in profile.ocv.temps_c:
-        k = next((j for j, te in enumerate(own.temps_c) if abs(te - t) < 0.1), None)
+        k = next((j for j, te in enumerate(own.temps_c) if abs(te - t) < SAME_TEMP_C), None)
         if k is None:
             raise ValueError(f"profile '{profile.name}': the 2-RC fit has no OCV row at {t:g} °C")
         rows.append(np.interp(profile.ocv.soc, own.soc, own.ocv_v[k]).tolist())
