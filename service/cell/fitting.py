@@ -47,7 +47,7 @@ from service.cell.profile import (
     CellProfile,
     HysteresisSpec,
     ParameterPoint,
-    lift_to_kinetic_floor,
+    lift_to_ohmic_floor,
     ohmic_floor_ohm,
 )
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
@@ -539,7 +539,7 @@ def fit_parameters(
     i0 = float(math.exp(x_fin[names.index("ln_i0_a")])) if fit_kinetics else None
     ea = 1000.0 * float(x_fin[names.index("ea_kj_mol")]) if temperature_law else None
     # R_ohm as decode() simulated it
-    point = lift_to_kinetic_floor(point_from_x(x_fin, temp_c, i0, max_tau_df_s), i0, profile.min_r_ohm_scale(temp_c),
+    point = lift_to_ohmic_floor(point_from_x(x_fin, temp_c, i0, max_tau_df_s), i0, profile.min_r_ohm_scale(temp_c),
                                   min_pure_ohm)
     return FitResult(
         point=point,

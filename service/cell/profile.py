@@ -451,7 +451,7 @@ def ohmic_floor_ohm(i0_a, temp_c, min_scale: float = 1.0, pure_ohm: float = 0.0)
     return kinetic + pure_ohm
 
 
-def lift_to_kinetic_floor(point: ParameterPoint, i0_a: float | None, min_scale: float = 1.0,
+def lift_to_ohmic_floor(point: ParameterPoint, i0_a: float | None, min_scale: float = 1.0,
                           pure_ohm: float = 0.0) -> ParameterPoint:
     """``point`` with ``R_ohm`` raised to :func:`ohmic_floor_ohm` at its own temperature
     (unchanged when already above)."""

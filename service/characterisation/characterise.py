@@ -66,7 +66,7 @@ from service.cell.profile import (
     OcvSpec,
     ParameterPoint,
     SocResistanceSpec,
-    lift_to_kinetic_floor,
+    lift_to_ohmic_floor,
 )
 from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
@@ -628,7 +628,7 @@ def best_of_starts(prof: CellProfile, segs: list[FitSegment], temp_c: float, see
         res = fit_parameters(prof, segs, memory_length=memory_length, seed=seed + j, min_pure_ohm=min_pure_ohm,
                              **fit_options)
         # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
-        pt = lift_to_kinetic_floor(res.point.model_copy(update={"temp_c": temp_c}), res.point.i0_a,
+        pt = lift_to_ohmic_floor(res.point.model_copy(update={"temp_c": temp_c}), res.point.i0_a,
                                    prof.min_r_ohm_scale(temp_c), min_pure_ohm)
         rmse = segments_rmse_mv(prof, pt, res.hysteresis or prof.hysteresis, segs, memory_length, res.ea_j_mol)
         fits.append((res, pt, rmse))

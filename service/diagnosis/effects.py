@@ -28,7 +28,7 @@ from service.cell.profile import (
     OcvCorrectionSpec,
     SurfaceDiffusionSpec,
     kinetic_floor_ohm,
-    lift_to_kinetic_floor,
+    lift_to_ohmic_floor,
 )
 from service.cell.units import SECONDS_PER_HOUR
 from service.diagnosis.features import direction_state, lowpass
@@ -352,7 +352,7 @@ def _kin_apply(th, mods, ctx):
 
 def _kin_profile(ph, profile, ctx):
     i0 = ph["kinetics_i0_a"]
-    points = [lift_to_kinetic_floor(p, i0, profile.min_r_ohm_scale(p.temp_c)) for p in profile.parameters]
+    points = [lift_to_ohmic_floor(p, i0, profile.min_r_ohm_scale(p.temp_c)) for p in profile.parameters]
     return _ext(profile.model_copy(update={"parameters": points}), kinetics_i0_a=i0)
 
 
