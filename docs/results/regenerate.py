@@ -114,14 +114,16 @@ def unseen_table(folder: str, cells: tuple[str, ...] = (), tag: str = "",
     return render
 
 
-def runs_table(runs: tuple[tuple[str, str], ...], groups: tuple[tuple[str, str], ...],
+def runs_table(runs: tuple[tuple[str, ...], ...], groups: tuple[tuple[str, str], ...],
                estimator: str = "fomiukf") -> Callable[[Path], str]:
-    """One row per ``socd evaluate --json`` run (label, file), one column per group of recordings
-    (a regular expression on the name): ``estimator``'s mean SOC RMSE after 600 s there."""
+    """One row per ``socd evaluate --json`` run (label, file[, estimator]), one column per group of
+    recordings (a regular expression on the name): the row's estimator's (default ``estimator``) mean SOC
+    RMSE after 600 s there."""
     def render(out: Path) -> str:
         lines = ["| run | " + " | ".join(label for label, _ in groups) + " |", "|---|" + "---|" * len(groups)]
-        for label, name in runs:
-            cells = ["-" if m is None else f"{m:.2f}" for m in group_means(out, name, groups, estimator)]
+        for label, name, *row_estimator in runs:
+            means = group_means(out, name, groups, row_estimator[0] if row_estimator else estimator)
+            cells = ["-" if m is None else f"{m:.2f}" for m in means]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         return "\n".join(lines)
     return render
@@ -1007,10 +1009,9 @@ wait""",
               f"`{c}`:\n\n" + runs_table((("rest anchor, `near-reference` (default)", f"unseen_cell/{c}_hppc_eval.json"),
                                            ("`--no-rest-anchor`", f"unseen_cell/{c}_hppc_noanchor_eval.json"),
                                            ("`--ocv-between-rests joint`", f"unseen_cell/{c}_hppc_joint_eval.json"),
-                                           ("`--ocv-between-rests settled`", f"unseen_cell/{c}_hppc_settled_eval.json")),
+                                           ("`--ocv-between-rests settled`", f"unseen_cell/{c}_hppc_settled_eval.json"),
+                                           ("2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_eval.json", "ecm2rc-ekf")),
                                           UNSEEN_GROUPS)(out)
-              + "\n" + runs_table((("2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_eval.json"),), UNSEEN_GROUPS,
-                                   "ecm2rc-ekf")(out).split("\n", 2)[2]
               for c in UNSEEN_CELLS), 40),
     Table("loco_ocv_between_rests", "characterisation.md", """\
 G=""; for v in joint settled; do
@@ -1072,9 +1073,9 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference 0 --e
               tuple((f"Panasonic, `--pure-ohmic-share {f}`", f"s25/pan_hppc_pure{f}_eval.json") for f in ("0", "0.25")),
               PAN_GROUPS)(out)
           + "\n\n" + runs_table(tuple((f"`{c}`, `--pure-ohmic-share {f}`", f"unseen_cell/{c}_hppc_pure{f}_eval.json")
-                                        for c in UNSEEN_CELLS for f in ("0", "0.25")), UNSEEN_M10_GROUPS)(out)
-          + "\n" + runs_table(tuple((f"`{c}`, 2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_pure0_eval.json")
-                                     for c in UNSEEN_CELLS), UNSEEN_M10_GROUPS, "ecm2rc-ekf")(out).split("\n", 2)[2],
+                                        for c in UNSEEN_CELLS for f in ("0", "0.25"))
+                                  + tuple((f"`{c}`, 2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_pure0_eval.json",
+                                           "ecm2rc-ekf") for c in UNSEEN_CELLS), UNSEEN_M10_GROUPS)(out),
           90, ("needs:pybamm",)),
     Table("filter_on_two_rc_model", "characterisation.md", REAL + f"""\
 # the Panasonic profile is loco_pure_ohmic's default one (--pure-ohmic-share 0), scored there
@@ -1092,18 +1093,13 @@ socd fit $A/calce_a123_20C_DST.csv --full-at 4815 --capacity-ah 1.041 --hysteres
 python -m research.two_rc_point out/s25/a123_f2.toml out/s25/a123_2rc_whole.toml --ocv two-rc
 socd evaluate --cell out/s25/a123_f2.toml {A123} --estimator fomiukf -q --json out/s25/a123_f2_eval.json
 socd evaluate --cell out/s25/a123_2rc_whole.toml {A123} --estimator fomiukf --no-bar -q --json out/s25/a123_2rc_whole_eval.json""",
-          lambda out: runs_table((("`fomiukf`, the fitted profile", "s25/pan_hppc_pure0_eval.json"),
-                                  ("`fomiukf`, the EKF's own model", "s25/pan_hppc_2rc_whole_eval.json")), PAN_GROUPS)(out)
-          + "\n" + runs_table((("`ecm2rc-ekf`, its own model", "s25/pan_hppc_pure0_eval.json"),), PAN_GROUPS,
-                               "ecm2rc-ekf")(out).split("\n", 2)[2]
-          + "\n\n" + runs_table((("`fomiukf`, the fitted profile", "s25/calce_f2_eval.json"),
-                                  ("`fomiukf`, the EKF's own model", "s25/calce_2rc_whole_eval.json")), CALCE_ALL)(out)
-          + "\n" + runs_table((("`ecm2rc-ekf`, its own model", "s25/calce_f2_eval.json"),), CALCE_ALL,
-                               "ecm2rc-ekf")(out).split("\n", 2)[2]
-          + "\n\n" + runs_table((("`fomiukf`, the fitted profile", "s25/a123_f2_eval.json"),
-                                  ("`fomiukf`, the EKF's own model", "s25/a123_2rc_whole_eval.json")), A123_ALL)(out)
-          + "\n" + runs_table((("`ecm2rc-ekf`, its own model", "s25/a123_f2_eval.json"),), A123_ALL,
-                               "ecm2rc-ekf")(out).split("\n", 2)[2],
+          lambda out: "\n\n".join(
+              runs_table((("`fomiukf`, the fitted profile", f"s25/{fitted}_eval.json"),
+                          ("`fomiukf`, the EKF's own model", f"s25/{whole}_eval.json"),
+                          ("`ecm2rc-ekf`, its own model", f"s25/{fitted}_eval.json", "ecm2rc-ekf")), groups)(out)
+              for fitted, whole, groups in (("pan_hppc_pure0", "pan_hppc_2rc_whole", PAN_GROUPS),
+                                            ("calce_f2", "calce_2rc_whole", CALCE_ALL),
+                                            ("a123_f2", "a123_2rc_whole", A123_ALL))),
           15, ("needs:loco_pure_ohmic",)),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
