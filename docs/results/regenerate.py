@@ -1101,6 +1101,37 @@ socd evaluate --cell out/s25/a123_2rc_whole.toml {A123} --estimator fomiukf --no
                                             ("calce_f2", "calce_2rc_whole", CALCE_ALL),
                                             ("a123_f2", "a123_2rc_whole", A123_ALL))),
           15, ("needs:loco_pure_ohmic",)),
+    Table("loco_flat_ocv", "tuning.md", REAL + f"""\
+mkdir -p out/fo
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+# the profiles: filter_on_two_rc_model's CALCE and A123 ones, loco_pure_ohmic's HPPC-alone ones (default flags)
+flat_run() {{  # VALUE BIAS: every profile scored with flat_ocv_noise_v = VALUE, current offset BIAS x 1C
+  printf "flat_ocv_noise_v = $1\\n" > out/fo/fo$1.toml
+  E="--estimator fomiukf --no-bar --settings out/fo/fo$1.toml --current-bias-c $2 -q"
+  socd evaluate --cell out/s25/calce_f2.toml {CALCE} $E --json out/fo/calce_fo$1_b$2.json
+  socd evaluate --cell out/s25/a123_f2.toml {A123} $E --json out/fo/a123_fo$1_b$2.json
+  socd evaluate --cell out/s25/pan_hppc_pure0.toml $PANX $E --json out/fo/pan_fo$1_b$2.json
+  U="--fit-drive HPPC --profile-tag _hppc_pure0 --estimators fomiukf --settings out/fo/fo$1.toml --current-bias-c $2"
+  python -m research.unseen_cell run $U --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10 --tag _fo$1_b$2
+  python -m research.unseen_cell run $U --cells Marquis2019 --tag _fo$1_b$2
+}}
+flat_run 0 0 & flat_run 0.02 0 & wait
+flat_run 0.1 0 & flat_run 0 0.01 & wait
+flat_run 0.02 0.01 & flat_run 0.1 0.01 & wait
+G=""; for v in 0 0.02 0.1; do for b in 0 0.01; do
+  G="$G $v=out/fo/calce_fo${{v}}_b$b.json@calce $v=out/fo/a123_fo${{v}}_b$b.json@a123 $v=out/fo/pan_fo${{v}}_b$b.json@panasonic"
+  for c in {" ".join(UNSEEN_CELLS)}; do G="$G $v=out/unseen_cell/${{c}}_hppc_pure0_fo${{v}}_b${{b}}_eval.json@$c"; done
+done; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference 0 --exclude {TUNING_EXCLUDE} $G \\
+    --json out/loco_flat_ocv.json""",
+          lambda out: nested_table("loco_flat_ocv.json")(out) + "\n\n" + runs_table(
+              tuple((f"CALCE, {v} V" + (", +1 % offset" if b == "0.01" else ""), f"fo/calce_fo{v}_b{b}.json")
+                    for b in ("0", "0.01") for v in ("0", "0.02", "0.1")), CALCE_REST_GROUPS)(out)
+          + "\n\n" + runs_table(tuple((f"Panasonic, HPPC alone, {v} V", f"fo/pan_fo{v}_b0.json")
+                                        for v in ("0", "0.02", "0.1")), PAN_GROUPS)(out)
+          + "\n\n" + runs_table(tuple((f"`{c}`, {v} V", f"unseen_cell/{c}_hppc_pure0_fo{v}_b0_eval.json")
+                                        for c in UNSEEN_CELLS for v in ("0", "0.02", "0.1")), UNSEEN_M10_GROUPS)(out),
+          80, ("needs:pybamm", "needs:loco_pure_ohmic", "needs:filter_on_two_rc_model")),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json
