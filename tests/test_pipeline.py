@@ -521,3 +521,36 @@ def test_ocv_error_state_is_off_by_default() -> None:
     assert FoMiUkf(table, 2, 2, EstimatorSettings()).i_ocv is None
     with_state = FoMiUkf(table, 2, 2, EstimatorSettings(ocv_error_std_v=0.01, current_bias_state=True))
     assert (with_state.nx, with_state.i_ocv, with_state.i_bias) == (6, 5, 4)
+
+
+def _flat_run_table(profile, lo: float, hi: float):
+    """``profile`` with its OCV held flat over SOC [lo, hi] (as a monotone fit holds it where the
+    data would have it fall)."""
+    soc = np.asarray(profile.ocv.soc)
+    rows = []
+    for r in profile.ocv.ocv_v:
+        r = np.asarray(r, float)
+        rows.append(list(np.where((soc >= lo) & (soc <= hi), np.interp(lo, soc, r), r)))
+    return profile.model_copy(update={"ocv": profile.ocv.model_copy(update={"ocv_v": rows})})
+
+
+@pytest.mark.parametrize("soc, on_run", [(0.5, True), (0.2, False)])
+def test_flat_ocv_noise_applies_on_a_flat_run_only(nmc_profile, soc: float, on_run: bool) -> None:
+    """``flat_ocv_noise_v`` adds its variance to the innovation's where the table is flat at the
+    filter's SOC, and nothing elsewhere; with it the SOC gain on the run shrinks."""
+    profile = _flat_run_table(nmc_profile, 0.45, 0.55)
+    out = {}
+    for value in (0.0, 0.05):
+        pack = PackEstimator(profile, 1, EstimatorSettings(flat_ocv_noise_v=value, adaptive_noise_samples=0,
+                                                           fast_identifier=False))
+        pack.start(soc, soc_std=0.02)
+        v = float(profile.ocv_table().ocv(np.array([soc + 0.01]), 25.0)[0])
+        pack.step(1.0, 0.0, np.array([v]), np.array([25.0]))
+        out[value] = (float(pack.ukf.innovation_var[0]), abs(float(pack.ukf.gain[0, pack.ukf.i_soc])))
+    extra = out[0.05][0] - out[0.0][0]
+    if on_run:
+        assert extra == pytest.approx(0.05**2, rel=1e-6)
+        assert out[0.05][1] < 0.5 * out[0.0][1]
+    else:
+        assert extra == pytest.approx(0.0, abs=1e-12)
+        assert out[0.05][1] == pytest.approx(out[0.0][1])
