@@ -135,6 +135,10 @@ class OcvTable:
 #: an OCV table's slope below this (V per unit SOC, 0.1 mV per % SOC) counts as flat: a fitted
 #: monotone table's step where the data would have had it fall
 FLAT_SLOPE_V = 0.01
+#: a slope below this (V per unit SOC) is a run the monotone fit held flat: :func:`make_monotone`'s
+#: minimum step reads 0.0002, a measured plateau (LFP) ten times this or more. The SOC filter takes
+#: little from the voltage on such a run (``EstimatorSettings.flat_ocv_noise_v``)
+FLAT_RUN_SLOPE_V = 1e-3
 
 
 def flat_share(table: OcvTable, temp_c: float) -> float:
@@ -288,6 +292,10 @@ class CellOcv:
 
     def slope(self, soc: np.ndarray) -> np.ndarray:
         return self._slope(soc, *self._index(soc))
+
+    def on_flat_run(self, soc: np.ndarray) -> np.ndarray:
+        """Whether each ``soc`` sits on a run of the table held flat (:data:`FLAT_RUN_SLOPE_V`)."""
+        return self.slope(soc) < FLAT_RUN_SLOPE_V
 
     def ocv_and_slope(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(ocv(soc), slope(soc))`` from one table lookup (the identifiers need both each step)."""

@@ -49,8 +49,6 @@ from service.estimators.sigma_points import merwe_weights, robust_cholesky, sigm
 #: the filter's SOC mean stays in [0, 1] (DESIGN: SOC in [0, 1] internally): a cell holds
 #: neither more than full nor less than empty; sigma points may still spread beyond it
 SOC_LIMITS = (0.0, 1.0)
-#: an OCV table slope below this (V per unit SOC) is a flat run of the table, not a plateau
-FLAT_OCV_SLOPE_V = 1e-3
 
 
 class FoMiUkf:
@@ -236,8 +234,9 @@ class FoMiUkf:
         p_own = (dy * dy) @ self.wc + st.voltage_noise_v**2
         p_yy = p_own + model_err**2
         if st.flat_ocv_noise_v and cell_ocv is not None:
-            flat_here = cell_ocv.slope(self.x[:, self.i_soc]) < FLAT_OCV_SLOPE_V
-            p_yy = p_yy + np.where(flat_here, st.flat_ocv_noise_v**2, 0.0)
+            # the table's value on a run its monotone fit held flat is not known (DESIGN §7 tuning:
+            # docs/results/tuning.md, loco_flat_ocv)
+            p_yy = p_yy + np.where(cell_ocv.on_flat_run(self.x[:, self.i_soc]), st.flat_ocv_noise_v**2, 0.0)
         e = np.where(active, voltage_v - y_hat, 0.0)
         if st.adaptive_noise_samples:
             p_yy = self.noise.match(e, p_yy, overpotential * overpotential, active)

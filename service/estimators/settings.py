@@ -152,8 +152,10 @@ class EstimatorSettings(NoBooleanNumbers, BaseModel):
         "allows for, the same way; e.g. a sensor's datasheet offset over the cell's 1C"
     )
     flat_ocv_noise_v: float = Field(
-        0.0, ge=0, le=10, description="extra measurement σ (V) while SOC sits where the OCV table is flat "
-        "(a run held flat by the monotone fit: the data there did not fix the OCV). 0 = off")
+        0.1, ge=0, le=10, description="extra measurement σ (V) while SOC sits where the OCV table is flat "
+        "(a run held flat by the monotone fit: the data there did not fix the OCV), so a rest on such a run is "
+        "not read as evidence against the table; 0 = off. Chosen leave-one-cell-out (docs/results/tuning.md, "
+        "loco_flat_ocv)")
     soc_init_std: float = Field(0.2, gt=0, le=1, description="σ of SOC at an OCV-based start")
     ukf_alpha: float = Field(
         1.0, gt=0, le=1, description="sigma-point spread (Zeng Table 3): the SOC points sit α·√n σ from the "
