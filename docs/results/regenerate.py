@@ -1480,9 +1480,9 @@ for v in pan_hppc pan_hppc_2rc; do
       --estimator fomiukf --no-bar -q --json out/s25/pt_$v.json
 done""",
           lambda out: runs_table(
-              (("A123 default fit (`--hysteresis`)", "s25/pt_a123.json"),
+              (("A123 `--hysteresis` (`char_a123`'s command)", "s25/pt_a123.json"),
                ("A123 `--hysteresis --no-kinetics`", "s25/pt_a123_hys_nokin.json"),
-               ("A123 no hysteresis", "s25/pt_a123_nohys.json"),
+               ("A123 default flags (no hysteresis)", "s25/pt_a123_nohys.json"),
                ("A123 no hysteresis, `--no-kinetics`", "s25/pt_a123_nohys_nokin.json"),
                ("A123 its 2-RC point (orders 1, no hysteresis)", "s25/pt_a123_2rc.json")),
               (("FUDS, US06 (held out)", r"_a123_20C_(FUDS|US06)"),
