@@ -321,7 +321,8 @@ def say_flat_joint_ocv(rep: FitReport, grid: np.ndarray, rows: dict[float, np.nd
         share = flat_share(OcvTable.from_points(grid, rows[t]), t)  # a one-row table: any temperature reads it
         if share > 0:
             rep.say(f"  {t:g} °C: the joint OCV is flat over {100 * share:.0f} % of SOC (held up by its monotone "
-                    "bound where the data would have it fall); an OCV test or rests at those SOCs would "
+                    "bound where the data would have it fall); the SOC filter takes little from the voltage "
+                    "on its flattest runs (flat_ocv_noise_v), and an OCV test or rests at those SOCs would "
                     "determine it", notice=True)
 
 
