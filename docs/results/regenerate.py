@@ -1132,6 +1132,38 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference 0 --e
           + "\n\n" + runs_table(tuple((f"`{c}`, {v} V", f"unseen_cell/{c}_hppc_pure0_fo{v}_b0_eval.json")
                                         for c in UNSEEN_CELLS for v in ("0", "0.02", "0.1")), UNSEEN_M10_GROUPS)(out),
           80, ("needs:pybamm", "needs:loco_pure_ohmic", "needs:filter_on_two_rc_model")),
+    Table("loco_branch_walk", "tuning.md", REAL + f"""\
+mkdir -p out/bw
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+# loco_flat_ocv's profiles, and unseen_cell_more's three cells (OCV test + one US06 per temperature)
+walk_run() {{  # VALUE BIAS: every profile scored with branch_noise_v_per_sqrt_s = VALUE, current offset BIAS x 1C
+  printf "branch_noise_v_per_sqrt_s = $1\\n" > out/bw/bw$1.toml
+  E="--estimator fomiukf --no-bar --settings out/bw/bw$1.toml --current-bias-c $2 -q"
+  socd evaluate --cell out/s25/calce_f2.toml {CALCE} $E --json out/bw/calce_bw$1_b$2.json
+  socd evaluate --cell out/s25/a123_f2.toml {A123} $E --json out/bw/a123_bw$1_b$2.json
+  socd evaluate --cell out/s25/pan_hppc_pure0.toml $PANX $E --json out/bw/pan_bw$1_b$2.json
+  U="--estimators fomiukf --settings out/bw/bw$1.toml --current-bias-c $2 --tag _bw$1_b$2"
+  python -m research.unseen_cell run $U --fit-drive HPPC --profile-tag _hppc_pure0 --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10
+  python -m research.unseen_cell run $U --fit-drive HPPC --profile-tag _hppc_pure0 --cells Marquis2019
+  python -m research.unseen_cell run $U --cells {",".join(MORE_UNSEEN_CELLS)} --ambients 25,10 --workdir out/unseen_more
+}}
+walk_run 1e-4 0 & walk_run 3e-4 0 & wait
+walk_run 1e-3 0 & walk_run 1e-4 0.01 & wait
+walk_run 3e-4 0.01 & walk_run 1e-3 0.01 & wait
+G=""; for v in 1e-4 3e-4 1e-3; do for b in 0 0.01; do
+  G="$G $v=out/bw/calce_bw${{v}}_b$b.json@calce $v=out/bw/a123_bw${{v}}_b$b.json@a123 $v=out/bw/pan_bw${{v}}_b$b.json@panasonic"
+  for c in {" ".join(UNSEEN_CELLS)}; do G="$G $v=out/unseen_cell/${{c}}_hppc_pure0_bw${{v}}_b${{b}}_eval.json@$c"; done
+  for c in {" ".join(MORE_UNSEEN_CELLS)}; do G="$G $v=out/unseen_more/${{c}}_bw${{v}}_b${{b}}_eval.json@$c"; done
+done; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference 1e-4 --exclude {TUNING_EXCLUDE} $G \\
+    --json out/loco_branch_walk.json""",
+          lambda out: nested_table("loco_branch_walk.json")(out)
+          + "\n\n" + runs_table(tuple((f"Panasonic, HPPC alone, {v} V/√s", f"bw/pan_bw{v}_b0.json")
+                                        for v in ("1e-4", "3e-4", "1e-3")), PAN_GROUPS)(out)
+          + "\n\n" + runs_table(tuple((f"`{c}`, {v} V/√s", f"unseen_more/{c}_bw{v}_b0_eval.json")
+                                        for c in MORE_UNSEEN_CELLS for v in ("1e-4", "3e-4", "1e-3")),
+                                  UNSEEN_GROUPS[:2])(out),
+          70, ("needs:pybamm", "needs:loco_pure_ohmic", "needs:filter_on_two_rc_model", "needs:unseen_cell_more")),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json
