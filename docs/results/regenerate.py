@@ -560,6 +560,21 @@ CALCE_REST_GROUPS = (("`DST_50soc`, `FUDS_50soc` (2 h rest at 50 %)", r"(DST|FUD
 OCV_ERROR_RUNS = (("off (default)", "loco", "noslow"), ("0.01 V", "cn", "oe0.01"), ("0.02 V", "cn", "oe0.02"))
 
 
+def sweep_head(name: str, field: str, folder: str, tag: str) -> str:
+    """The opening of a shell function ``NAME VALUE BIAS`` that scores one pipeline setting: its settings
+    file under ``out/<folder>/`` and the three shared cells' evaluations (``filter_on_two_rc_model``'s
+    CALCE and A123 profiles, ``loco_pure_ohmic``'s Panasonic HPPC-alone one); the caller adds its other
+    cells and the closing brace."""
+    return f"""\
+{name}() {{  # VALUE BIAS: every profile scored with {field} = VALUE, current offset BIAS x 1C
+  printf "{field} = $1\\n" > out/{folder}/{tag}$1.toml
+  E="--estimator fomiukf --no-bar --settings out/{folder}/{tag}$1.toml --current-bias-c $2 -q"
+  socd evaluate --cell out/s25/calce_f2.toml {CALCE} $E --json out/{folder}/calce_{tag}$1_b$2.json
+  socd evaluate --cell out/s25/a123_f2.toml {A123} $E --json out/{folder}/a123_{tag}$1_b$2.json
+  socd evaluate --cell out/s25/pan_hppc_pure0.toml $PANX $E --json out/{folder}/pan_{tag}$1_b$2.json
+"""
+
+
 @dataclass(frozen=True)
 class Table:
     name: str
@@ -1105,13 +1120,7 @@ socd evaluate --cell out/s25/a123_2rc_whole.toml {A123} --estimator fomiukf --no
 mkdir -p out/fo
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
 # the profiles: filter_on_two_rc_model's CALCE and A123 ones, loco_pure_ohmic's HPPC-alone ones (default flags)
-flat_run() {{  # VALUE BIAS: every profile scored with flat_ocv_noise_v = VALUE, current offset BIAS x 1C
-  printf "flat_ocv_noise_v = $1\\n" > out/fo/fo$1.toml
-  E="--estimator fomiukf --no-bar --settings out/fo/fo$1.toml --current-bias-c $2 -q"
-  socd evaluate --cell out/s25/calce_f2.toml {CALCE} $E --json out/fo/calce_fo$1_b$2.json
-  socd evaluate --cell out/s25/a123_f2.toml {A123} $E --json out/fo/a123_fo$1_b$2.json
-  socd evaluate --cell out/s25/pan_hppc_pure0.toml $PANX $E --json out/fo/pan_fo$1_b$2.json
-  U="--fit-drive HPPC --profile-tag _hppc_pure0 --estimators fomiukf --settings out/fo/fo$1.toml --current-bias-c $2"
+{sweep_head("flat_run", "flat_ocv_noise_v", "fo", "fo")}  U="--fit-drive HPPC --profile-tag _hppc_pure0 --estimators fomiukf --settings out/fo/fo$1.toml --current-bias-c $2"
   python -m research.unseen_cell run $U --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10 --tag _fo$1_b$2
   python -m research.unseen_cell run $U --cells Marquis2019 --tag _fo$1_b$2
 }}
@@ -1136,13 +1145,7 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference 0 --e
 mkdir -p out/bw
 PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
 # loco_flat_ocv's profiles, and unseen_cell_more's three cells (OCV test + one US06 per temperature)
-walk_run() {{  # VALUE BIAS: every profile scored with branch_noise_v_per_sqrt_s = VALUE, current offset BIAS x 1C
-  printf "branch_noise_v_per_sqrt_s = $1\\n" > out/bw/bw$1.toml
-  E="--estimator fomiukf --no-bar --settings out/bw/bw$1.toml --current-bias-c $2 -q"
-  socd evaluate --cell out/s25/calce_f2.toml {CALCE} $E --json out/bw/calce_bw$1_b$2.json
-  socd evaluate --cell out/s25/a123_f2.toml {A123} $E --json out/bw/a123_bw$1_b$2.json
-  socd evaluate --cell out/s25/pan_hppc_pure0.toml $PANX $E --json out/bw/pan_bw$1_b$2.json
-  U="--estimators fomiukf --settings out/bw/bw$1.toml --current-bias-c $2 --tag _bw$1_b$2"
+{sweep_head("walk_run", "branch_noise_v_per_sqrt_s", "bw", "bw")}  U="--estimators fomiukf --settings out/bw/bw$1.toml --current-bias-c $2 --tag _bw$1_b$2"
   python -m research.unseen_cell run $U --fit-drive HPPC --profile-tag _hppc_pure0 --cells Chen2020,Mohtat2020 --ambients 25,10,0,-10
   python -m research.unseen_cell run $U --fit-drive HPPC --profile-tag _hppc_pure0 --cells Marquis2019
   python -m research.unseen_cell run $U --cells {",".join(MORE_UNSEEN_CELLS)} --ambients 25,10 --workdir out/unseen_more
