@@ -540,7 +540,7 @@ def fit_parameters(
     ea = 1000.0 * float(x_fin[names.index("ea_kj_mol")]) if temperature_law else None
     # R_ohm as decode() simulated it
     point = lift_to_ohmic_floor(point_from_x(x_fin, temp_c, i0, max_tau_df_s), i0, profile.min_r_ohm_scale(temp_c),
-                                  min_pure_ohm)
+                                min_pure_ohm)
     return FitResult(
         point=point,
         hysteresis=hyst,

@@ -452,7 +452,7 @@ def ohmic_floor_ohm(i0_a, temp_c, min_scale: float = 1.0, pure_ohm: float = 0.0)
 
 
 def lift_to_ohmic_floor(point: ParameterPoint, i0_a: float | None, min_scale: float = 1.0,
-                          pure_ohm: float = 0.0) -> ParameterPoint:
+                        pure_ohm: float = 0.0) -> ParameterPoint:
     """``point`` with ``R_ohm`` raised to :func:`ohmic_floor_ohm` at its own temperature
     (unchanged when already above)."""
     floor = float(ohmic_floor_ohm(i0_a, point.temp_c, min_scale, pure_ohm))

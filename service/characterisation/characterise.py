@@ -630,7 +630,7 @@ def best_of_starts(prof: CellProfile, segs: list[FitSegment], temp_c: float, see
                              **fit_options)
         # relabelled to the group's temperature: R_ohm again holds the linear kinetic drop there
         pt = lift_to_ohmic_floor(res.point.model_copy(update={"temp_c": temp_c}), res.point.i0_a,
-                                   prof.min_r_ohm_scale(temp_c), min_pure_ohm)
+                                 prof.min_r_ohm_scale(temp_c), min_pure_ohm)
         rmse = segments_rmse_mv(prof, pt, res.hysteresis or prof.hysteresis, segs, memory_length, res.ea_j_mol)
         fits.append((res, pt, rmse))
     keep = min(range(len(fits)), key=lambda j: fits[j][2])
