@@ -489,13 +489,18 @@ def test_fit_rmse_model_error_equal_to_the_constant_gives_the_same_estimate(nmc_
 
 
 # -- OCV-table error state ---------------------------------------------------------------------------
+def _with_ocv_rows(profile, row):
+    """``profile`` with each OCV row replaced by ``row(soc, ocv_v)`` (arrays on the table's SOC grid)."""
+    soc = np.asarray(profile.ocv.soc)
+    rows = [list(row(soc, np.asarray(r, float))) for r in profile.ocv.ocv_v]
+    return profile.model_copy(update={"ocv": profile.ocv.model_copy(update={"ocv_v": rows})})
+
+
 def _bumped_table(profile, bump_v: float):
     """``profile`` with its OCV table raised by ``bump_v`` between SOC 0.3 and 0.7 (a fitted table's
     local error), smoothly at the edges."""
-    soc = np.asarray(profile.ocv.soc)
-    bump = bump_v * np.clip(np.minimum(soc - 0.25, 0.75 - soc) / 0.05, 0.0, 1.0)
-    rows = [list(np.asarray(r) + bump) for r in profile.ocv.ocv_v]
-    return profile.model_copy(update={"ocv": profile.ocv.model_copy(update={"ocv_v": rows})})
+    return _with_ocv_rows(profile, lambda soc, r: r + bump_v * np.clip(np.minimum(soc - 0.25, 0.75 - soc) / 0.05,
+                                                                       0.0, 1.0))
 
 
 def test_ocv_error_state_holds_soc_against_a_local_table_error(nmc_recording, nmc_profile) -> None:
@@ -526,12 +531,7 @@ def test_ocv_error_state_is_off_by_default() -> None:
 def _flat_run_table(profile, lo: float, hi: float):
     """``profile`` with its OCV held flat over SOC [lo, hi] (as a monotone fit holds it where the
     data would have it fall)."""
-    soc = np.asarray(profile.ocv.soc)
-    rows = []
-    for r in profile.ocv.ocv_v:
-        r = np.asarray(r, float)
-        rows.append(list(np.where((soc >= lo) & (soc <= hi), np.interp(lo, soc, r), r)))
-    return profile.model_copy(update={"ocv": profile.ocv.model_copy(update={"ocv_v": rows})})
+    return _with_ocv_rows(profile, lambda soc, r: np.where((soc >= lo) & (soc <= hi), np.interp(lo, soc, r), r))
 
 
 @pytest.mark.parametrize("soc, on_run", [(0.5, True), (0.2, False)])
