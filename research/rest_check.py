@@ -33,7 +33,7 @@ import numpy as np
 from service.cell.fitting import last_current_direction
 from service.cell.profile import CellProfile, ProfileError, load_profile
 from service.cell.truth import per_recording, truth_and_start
-from service.characterisation.ocv_sources import REST_CURRENT_C, rest_spans
+from service.characterisation.ocv_sources import rest_level_a, rest_spans
 from service.errors import UserError
 from service.recording import Recording, load_recording
 
@@ -63,7 +63,7 @@ def read_rests(part: Recording, truth: np.ndarray, profile: CellProfile,
     capacity = profile.effective_capacity_ah
     table = profile.ocv_table()
     u_h_max = float(profile.hysteresis.u_h_max_v)
-    rest_a = REST_CURRENT_C * capacity
+    rest_a = rest_level_a(part.current_a, capacity)
     out = []
     for first, last in rest_spans(part, capacity, min_rest_s):
         u_h = last_current_direction(part.current_a[:first], rest_a) * u_h_max

@@ -80,17 +80,18 @@ from service.characterisation.ocv_choices import (
     REST_INTERP_MAX_GAP,
 )
 from service.characterisation.ocv_sources import (
-    REST_CURRENT_C,
     REST_MIN_S,
     RestPoint,
     alignment_at_bound,
     capacity_above_test,
     interpolate_between_rests,
     is_ocv_test,
+    load_level_a,
     ocv_from_test,
     ocv_row_from_rests,
     ocv_rows_by_temperature,
     rest_alignment,
+    rest_level_a,
     rest_points,
     rest_spans,
     rests_settled,
@@ -257,12 +258,12 @@ def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest
     # rest ends come out increasing and after sample 0, so no sort is needed
     starts = [0] + [j for _, j in rest_spans(rec, capacity_ah, min_rest_s) if j > 0] + [len(rec)]
     segs = []
-    rest_a = REST_CURRENT_C * capacity_ah
+    rest_a, load_a = rest_level_a(rec.current_a, capacity_ah), load_level_a(rec.current_a, capacity_ah)
     # the hysteresis branch each segment starts on: a full charge point is on the charge
     # branch; later segments on the branch of the last current before them
     full = float(soc[0]) >= FULL_SOC
     for a, b in pairwise(starts):
-        if b - a >= 5 and np.abs(rec.current_a[a:b]).max() > 5 * rest_a:
+        if b - a >= 5 and np.abs(rec.current_a[a:b]).max() > load_a:
             branch = 0.0
             if track_branch:
                 branch = last_current_direction(rec.current_a[1:a + 1], rest_a) if a > 0 else 0.0
@@ -296,7 +297,7 @@ def measure_soc_resistance(groups: dict[float, list[tuple[Recording, np.ndarray]
     temps, rows_ohm, rows_pol = [], [], []
     for t in sorted(groups):
         pulses = [pulse_resistances(part.time_s, part.current_a, part.voltage_v, soc, capacity_ah,
-                                    REST_CURRENT_C * capacity_ah, ocv_v=ocv.ocv(soc, part.temperature_c))
+                                    rest_level_a(part.current_a, capacity_ah), ocv_v=ocv.ocv(soc, part.temperature_c))
                   for part, soc in groups[t]]
         rows = scale_rows(np.concatenate(pulses))
         if rows is None:

@@ -8,7 +8,7 @@ from itertools import pairwise
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
-from scipy.ndimage import median_filter
+from scipy.ndimage import median_filter, uniform_filter1d
 from scipy.optimize import least_squares
 
 from service.cell.coulomb import coulomb_soc
@@ -17,8 +17,21 @@ from service.cell.units import SECONDS_PER_HOUR
 from service.characterisation.ocv_choices import REST_INTERP_MAX_GAP
 from service.recording import Recording
 
-REST_CURRENT_C = 0.01  # |I| below this fraction of 1C counts as rest
+REST_CURRENT_C = 0.01  # |I| below this fraction of 1C counts as rest (:func:`resting`)
 REST_MIN_S = 600.0
+#: the current sensor's noise σ is read on the samples below this fraction of 1C (rests and the
+#: slowest currents; the noise of a rest is centred on zero)
+NOISE_BAND_C = 0.05
+#: :func:`resting` tests each sample against :data:`REST_CURRENT_C` while the noise σ is at most this
+#: fraction of it
+REST_PER_SAMPLE_NOISE = 1.0 / 3.0
+#: where the noise is larger, :func:`resting` averages the current over
+#: enough samples that the mean's noise is this many times smaller than that level (a rest's mean then
+#: crosses it about once in two million samples), and no single rest sample lies further than this many
+#: σ from it (a load pulse does at once)
+REST_NOISE_SIGMAS = 5.0
+#: the longest average :func:`resting` takes (samples): wider would blur a rest's edges by minutes
+REST_MAX_AVERAGE = 121
 #: an OCV test's branches run at or below this fraction of 1C (C/20 is usual)
 OCV_TEST_MAX_C = 0.1
 #: a slow branch is one uninterrupted charge or discharge at or below OCV_TEST_MAX_C that moves at
@@ -60,6 +73,46 @@ def slow_branches(rec: Recording, capacity_ah: float) -> list[tuple[float, np.nd
             mask[best[0]:best[1]] = True
             out.append((sign, mask))
     return out
+
+
+def current_noise_a(current_a: np.ndarray, capacity_ah: float) -> float:
+    """The current sensor's noise σ [A], read robustly (1.4826 × the median absolute value) on the
+    samples within :data:`NOISE_BAND_C` of zero: rests, whose true current is zero.  0 for a logger
+    that records rests as exact zeros."""
+    quiet = np.abs(current_a)[np.abs(current_a) < NOISE_BAND_C * capacity_ah]
+    return float(1.4826 * np.median(quiet)) if quiet.size else 0.0
+
+
+def rest_level_a(current_a: np.ndarray, capacity_ah: float) -> float:
+    """The largest |I| [A] a rest sample shows: ``REST_CURRENT_C · C``, plus
+    :data:`REST_NOISE_SIGMAS` noise σ where the sensor's noise (:func:`current_noise_a`) is too large
+    for that level alone."""
+    level = REST_CURRENT_C * capacity_ah
+    sigma = current_noise_a(np.asarray(current_a, dtype=float), capacity_ah)
+    return level if sigma <= REST_PER_SAMPLE_NOISE * level else level + REST_NOISE_SIGMAS * sigma
+
+
+def load_level_a(current_a: np.ndarray, capacity_ah: float) -> float:
+    """A current [A] that is load beyond doubt: five times ``REST_CURRENT_C · C``, and beyond any
+    rest sample (:func:`rest_level_a`)."""
+    return max(5.0 * REST_CURRENT_C * capacity_ah, rest_level_a(current_a, capacity_ah))
+
+
+def resting(current_a: np.ndarray, capacity_ah: float) -> np.ndarray:
+    """Rest samples: ``|I| < REST_CURRENT_C · C``, where the sensor's noise
+    (:func:`current_noise_a`) stays well within that.  On a small cell the noise alone can exceed
+    1 % of 1C (5 mA on a 0.17 Ah cell's 1.7 mA) and would cut every rest into pieces shorter than a
+    rest is read at; there a rest is where the current's running mean over enough samples to bring
+    the noise under the level is below it (no current flows on average), with every sample within
+    the noise of it (so a load pulse ends the rest where it begins)."""
+    current_a = np.asarray(current_a, dtype=float)
+    level = REST_CURRENT_C * capacity_ah
+    sigma = current_noise_a(current_a, capacity_ah)
+    if sigma <= REST_PER_SAMPLE_NOISE * level:
+        return np.abs(current_a) < level
+    width = min(REST_MAX_AVERAGE, int(np.ceil((REST_NOISE_SIGMAS * sigma / level) ** 2)) | 1)
+    mean = uniform_filter1d(current_a, size=width, mode="nearest")
+    return (np.abs(mean) < level) & (np.abs(current_a) < rest_level_a(current_a, capacity_ah))
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -126,11 +179,11 @@ def _charge_reach(rec: Recording, capacity_ah: float, dis: _Branch, chg: _Branch
     branches' mean where the charge ended, counted on the discharge's scale; full, it rests near
     the voltage it rested at before the discharge.  A test that is not discharge-then-charge with
     a rest before and after is taken as reaching full."""
-    resting = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah
+    rest = resting(rec.current_a, capacity_ah)
     reach = float(chg.q_ah[-1] / dis.q_ah[-1])
-    after = np.flatnonzero(resting & (rec.time_s > rec.time_s[chg.last])
+    after = np.flatnonzero(rest & (rec.time_s > rec.time_s[chg.last])
                            & (rec.time_s <= rec.time_s[chg.last] + POST_CHARGE_REST_S))
-    if reach >= 1.0 or dis.last > chg.first or dis.first == 0 or not resting[dis.first - 1] or not after.size:
+    if reach >= 1.0 or dis.last > chg.first or dis.first == 0 or not rest[dis.first - 1] or not after.size:
         return 1.0
     v_full = rec.voltage_v[dis.first - 1]
     v_post = rec.voltage_v[after[-1]]
@@ -316,21 +369,9 @@ def rest_reading(time_s: np.ndarray, voltage_v: np.ndarray) -> tuple[float, floa
 
 
 def rest_spans(rec: Recording, capacity_ah: float, min_rest_s: float) -> list[tuple[int, int]]:
-    """``(first, last)`` sample of every rest (``|I| < REST_CURRENT_C · C``) lasting ``min_rest_s``."""
-    resting = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah
-    spans = []
-    k, n = 0, resting.size
-    while k < n:
-        if not resting[k]:
-            k += 1
-            continue
-        j = k
-        while j + 1 < n and resting[j + 1]:
-            j += 1
-        if rec.time_s[j] - rec.time_s[k] >= min_rest_s:
-            spans.append((k, j))
-        k = j + 1
-    return spans
+    """``(first, last)`` sample of every rest (:func:`resting`) lasting ``min_rest_s``."""
+    return [(int(a), int(b) - 1) for a, b in _runs(resting(rec.current_a, capacity_ah))
+            if rec.time_s[b - 1] - rec.time_s[a] >= min_rest_s]
 
 
 #: rests spanning at least this much counted SOC fix the OCV curve's SOC scale (:func:`soc_alignment`)

@@ -30,7 +30,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from service.cell.profile import BranchSpec
-from service.characterisation.ocv_sources import REST_CURRENT_C, rest_spans
+from service.characterisation.ocv_sources import load_level_a, rest_spans
 from service.recording import Recording
 
 #: a rest must last this long to carry the slow relaxation
@@ -63,7 +63,7 @@ class SlowRelaxation:
 
 def long_rests(rec: Recording, capacity_ah: float, min_rest_s: float = LONG_REST_S) -> list[tuple[int, int]]:
     """``(first, last)`` sample of every rest of at least ``min_rest_s`` that follows a load."""
-    loaded_before = np.maximum.accumulate(np.abs(rec.current_a)) > 5 * REST_CURRENT_C * capacity_ah
+    loaded_before = np.maximum.accumulate(np.abs(rec.current_a)) > load_level_a(rec.current_a, capacity_ah)
     return [(k, j) for k, j in rest_spans(rec, capacity_ah, min_rest_s) if k > 0 and loaded_before[k]]
 
 
