@@ -1219,6 +1219,12 @@ W=out/unseen_more
 python -m research.unseen_cell build --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --jobs 2 --workdir $W
 python -m research.unseen_cell run --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10 --workdir $W --refit""",
           unseen_table("unseen_more", MORE_UNSEEN_CELLS, groups=UNSEEN_GROUPS[:2]), 30, ("needs:pybamm",)),
+    Table("unseen_more_hppc", "characterisation.md", """\
+W=out/unseen_more
+python -m research.unseen_cell build --cells Ai2020,OKane2022,Ecker2015 --ambients 25,10,0 --jobs 2 --workdir $W
+R="run --ambients 25,10,0 --workdir $W --fit-drive HPPC --profile-tag _hppc --refit"
+python -m research.unseen_cell $R --cells Ai2020,Ecker2015 & python -m research.unseen_cell $R --cells OKane2022; wait""",
+          unseen_table("unseen_more", MORE_UNSEEN_CELLS, tag="_hppc"), 30, ("needs:pybamm",)),
     Table("unseen_ocv_truth_more", "characterisation.md", f"""\
 python -m research.unseen_ocv_truth --cells {",".join(MORE_UNSEEN_CELLS)} --ambients 25,10 --workdir out/unseen_more \\
     --json out/unseen_ocv_truth_more.json   # the OCV tests are unseen_cell_more's""",
