@@ -8,7 +8,7 @@ from itertools import pairwise
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
-from scipy.ndimage import median_filter, uniform_filter1d
+from scipy.ndimage import maximum_filter1d, median_filter, uniform_filter1d
 from scipy.optimize import least_squares
 
 from service.cell.coulomb import coulomb_soc
@@ -30,8 +30,9 @@ REST_PER_SAMPLE_NOISE = 1.0 / 3.0
 #: crosses it about once in two million samples), and no single rest sample lies further than this many
 #: σ from it (a load pulse does at once)
 REST_NOISE_SIGMAS = 5.0
-#: the longest average :func:`resting` takes (samples): wider would blur a rest's edges by minutes
-REST_MAX_AVERAGE = 121
+#: the longest average :func:`resting` takes (s): wider would blur a rest's edges by minutes (a
+#: slowly logged test averages fewer samples, and its rests may stay cut by the noise)
+REST_MAX_AVERAGE_S = 120.0
 #: an OCV test's branches run at or below this fraction of 1C (C/20 is usual)
 OCV_TEST_MAX_C = 0.1
 #: a slow branch is one uninterrupted charge or discharge at or below OCV_TEST_MAX_C that moves at
@@ -98,21 +99,26 @@ def load_level_a(current_a: np.ndarray, capacity_ah: float) -> float:
     return max(5.0 * REST_CURRENT_C * capacity_ah, rest_level_a(current_a, capacity_ah))
 
 
-def resting(current_a: np.ndarray, capacity_ah: float) -> np.ndarray:
+def resting(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> np.ndarray:
     """Rest samples: ``|I| < REST_CURRENT_C · C``, where the sensor's noise
     (:func:`current_noise_a`) stays well within that.  On a small cell the noise alone can exceed
     1 % of 1C (5 mA on a 0.17 Ah cell's 1.7 mA) and would cut every rest into pieces shorter than a
-    rest is read at; there a rest is where the current's running mean over enough samples to bring
-    the noise under the level is below it (no current flows on average), with every sample within
-    the noise of it (so a load pulse ends the rest where it begins)."""
+    rest is read at; there a rest is where the current's running mean (over enough samples to bring
+    the noise under the level, within :data:`REST_MAX_AVERAGE_S`) is below it: no current flows on
+    average.  A rest then reaches back to its edges by up to half that window through samples within
+    the noise of the level, so a load pulse ends it where the pulse begins, and a current under the
+    noise (C/20 on such a cell) within half a window."""
     current_a = np.asarray(current_a, dtype=float)
     level = REST_CURRENT_C * capacity_ah
     sigma = current_noise_a(current_a, capacity_ah)
     if sigma <= REST_PER_SAMPLE_NOISE * level:
         return np.abs(current_a) < level
-    width = min(REST_MAX_AVERAGE, int(np.ceil((REST_NOISE_SIGMAS * sigma / level) ** 2)) | 1)
+    period_s = float(np.median(np.diff(time_s))) if len(time_s) > 1 else 1.0
+    longest = max(1, int(REST_MAX_AVERAGE_S / max(period_s, 1e-9)))
+    width = min(longest, int(np.ceil((REST_NOISE_SIGMAS * sigma / level) ** 2))) | 1
     mean = uniform_filter1d(current_a, size=width, mode="nearest")
-    return (np.abs(mean) < level) & (np.abs(current_a) < rest_level_a(current_a, capacity_ah))
+    quiet = np.abs(current_a) < rest_level_a(current_a, capacity_ah)
+    return maximum_filter1d((np.abs(mean) < level) & quiet, size=width, mode="nearest") & quiet
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -179,7 +185,7 @@ def _charge_reach(rec: Recording, capacity_ah: float, dis: _Branch, chg: _Branch
     branches' mean where the charge ended, counted on the discharge's scale; full, it rests near
     the voltage it rested at before the discharge.  A test that is not discharge-then-charge with
     a rest before and after is taken as reaching full."""
-    rest = resting(rec.current_a, capacity_ah)
+    rest = resting(rec.time_s, rec.current_a, capacity_ah)
     reach = float(chg.q_ah[-1] / dis.q_ah[-1])
     after = np.flatnonzero(rest & (rec.time_s > rec.time_s[chg.last])
                            & (rec.time_s <= rec.time_s[chg.last] + POST_CHARGE_REST_S))
@@ -370,7 +376,7 @@ def rest_reading(time_s: np.ndarray, voltage_v: np.ndarray) -> tuple[float, floa
 
 def rest_spans(rec: Recording, capacity_ah: float, min_rest_s: float) -> list[tuple[int, int]]:
     """``(first, last)`` sample of every rest (:func:`resting`) lasting ``min_rest_s``."""
-    return [(int(a), int(b) - 1) for a, b in _runs(resting(rec.current_a, capacity_ah))
+    return [(int(a), int(b) - 1) for a, b in _runs(resting(rec.time_s, rec.current_a, capacity_ah))
             if rec.time_s[b - 1] - rec.time_s[a] >= min_rest_s]
 
 
