@@ -18,6 +18,7 @@ from service.characterisation.ocv_sources import (
     REST_CURRENT_C,
     REST_MAX_AVERAGE_S,
     REST_MIN_S,
+    _runs,
     current_noise_a,
     load_level_a,
     rest_level_a,
@@ -104,8 +105,3 @@ def test_a_slow_test_current_under_the_noise_is_not_a_rest():
     assert rest[n - 1] and rest[2 * n]
     assert rest[:n].mean() > 0.99 and rest[2 * n:].mean() > 0.99
     assert load_level_a(current, SMALL_AH) >= rest_level_a(current, SMALL_AH) > REST_CURRENT_C * SMALL_AH
-
-
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
-    return list(zip(edges[::2], edges[1::2]))

@@ -84,13 +84,16 @@ def current_noise_a(current_a: np.ndarray, capacity_ah: float) -> float:
     return float(1.4826 * np.median(quiet)) if quiet.size else 0.0
 
 
+def _rest_level(level: float, sigma: float) -> float:
+    """:func:`rest_level_a` from the level and the noise σ, both in A."""
+    return level if sigma <= REST_PER_SAMPLE_NOISE * level else level + REST_NOISE_SIGMAS * sigma
+
+
 def rest_level_a(current_a: np.ndarray, capacity_ah: float) -> float:
     """The largest |I| [A] a rest sample shows: ``REST_CURRENT_C · C``, plus
     :data:`REST_NOISE_SIGMAS` noise σ where the sensor's noise (:func:`current_noise_a`) is too large
     for that level alone."""
-    level = REST_CURRENT_C * capacity_ah
-    sigma = current_noise_a(np.asarray(current_a, dtype=float), capacity_ah)
-    return level if sigma <= REST_PER_SAMPLE_NOISE * level else level + REST_NOISE_SIGMAS * sigma
+    return _rest_level(REST_CURRENT_C * capacity_ah, current_noise_a(np.asarray(current_a, dtype=float), capacity_ah))
 
 
 def load_level_a(current_a: np.ndarray, capacity_ah: float) -> float:
@@ -111,13 +114,14 @@ def resting(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> np
     current_a = np.asarray(current_a, dtype=float)
     level = REST_CURRENT_C * capacity_ah
     sigma = current_noise_a(current_a, capacity_ah)
-    if sigma <= REST_PER_SAMPLE_NOISE * level:
+    top = _rest_level(level, sigma)
+    if top == level:
         return np.abs(current_a) < level
     period_s = float(np.median(np.diff(time_s))) if len(time_s) > 1 else 1.0
     longest = max(1, int(REST_MAX_AVERAGE_S / max(period_s, 1e-9)))
     width = min(longest, int(np.ceil((REST_NOISE_SIGMAS * sigma / level) ** 2))) | 1
     mean = uniform_filter1d(current_a, size=width, mode="nearest")
-    quiet = np.abs(current_a) < rest_level_a(current_a, capacity_ah)
+    quiet = np.abs(current_a) < top
     return maximum_filter1d((np.abs(mean) < level) & quiet, size=width, mode="nearest") & quiet
 
 
