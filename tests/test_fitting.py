@@ -9,11 +9,15 @@ import numpy as np
 import pytest
 
 from service.cell.fitting import (
+    BOUNDS,
+    BOUNDS_MIN_CAPACITY_AH,
+    KINETICS_BOUNDS,
     FitSegment,
     decode,
     excited_window,
     fit_parameters,
     point_from_x,
+    search_bounds,
 )
 from service.cell.profile import (
     FARADAY,
@@ -429,3 +433,36 @@ def test_a_fitted_exchange_current_rising_in_the_cold_is_named() -> None:
     say_exchange_current_rising_in_the_cold(rep, {0.0: point(0.0, 0.11), 10.0: point(10.0, 0.40),
                                                   25.0: point(25.0, None)})
     assert rep.lines == []
+
+
+def test_a_small_cells_resistances_are_within_the_search() -> None:
+    """A 0.1 Ah cell has resistances over the 1 Ω the bounds end at for the cells they were set on
+    (resistance x capacity as a 2 Ah cell's): the search widens by the capacity ratio and finds them."""
+    scale = 80.0  # the 2 Ah point's resistances x 80 on a 0.1 Ah cell: R_ohm 2.4 Ω, R·Q 4x the 2 Ah cell's
+    small = TRUE.model_copy(update={"r_ohm": TRUE.r_ohm * scale, "r_ct": TRUE.r_ct * scale, "c_dl": TRUE.c_dl / scale,
+                                    "r_df": TRUE.r_df * scale, "c_df": TRUE.c_df / scale})
+    assert small.r_ohm > math.exp(BOUNDS["ln_r_ohm"][1])
+    n, cap = 2400, 0.1
+    t = np.arange(n, dtype=float)
+    i = pulse_current(n, cap, 1)
+    temp = np.full(n, 25.0)
+    cell = CellProfile(capacity_ah=cap, ocv=nmc_like_ocv(), parameters=[small])
+    v, _ = simulate(cell, t, i, temp, 0.95)
+    v = v + np.random.default_rng(2).normal(0, 0.001, n)
+    res = fit_parameters(cell.model_copy(update={"parameters": [TRUE]}), [FitSegment(t, i, v, temp, soc0=0.95)],
+                         max_seconds=120, seed=0, de_maxiter=30)
+    assert res.rmse_mv < 1.3  # the noise is 1 mV
+    assert res.point.r_ohm == pytest.approx(small.r_ohm, rel=0.1)
+    assert not [b for b in res.at_bounds if b.startswith("r_")]
+
+
+def test_search_bounds_scale_below_the_smallest_cell_they_were_set_on() -> None:
+    kinetics = KINETICS_BOUNDS["ln_i0_a"]
+    for cap in (BOUNDS_MIN_CAPACITY_AH, 2.9, 50.0):  # as set, for every cell that size or larger
+        assert search_bounds(cap) == BOUNDS | {"ln_i0_a": kinetics}
+    ratio = 5.0
+    small = search_bounds(BOUNDS_MIN_CAPACITY_AH / ratio)
+    for name, (lo, hi) in BOUNDS.items():
+        widened = hi + math.log(ratio) if name in ("ln_r_ohm", "ln_r_ct", "ln_r_df") else hi
+        assert small[name] == pytest.approx((lo, widened))
+    assert small["ln_i0_a"] == pytest.approx((kinetics[0] - math.log(ratio), kinetics[1]))

@@ -79,6 +79,30 @@ TEMPERATURE_LAW_BOUNDS: dict[str, tuple[float, float]] = {"ea_kj_mol": (0.0, 120
 #: the fit re-reads a candidate's parameters when the temperature has moved this far [K]
 LAW_UPDATE_K = 0.5
 BASE_NAMES = tuple(BOUNDS)
+#: the bounds above are for a cell of at least this capacity: the cells they were set on ran from
+#: 0.87 Ah (PyBaMM's Marquis2019) to 5.1 Ah.  A smaller cell has proportionally larger resistances
+#: and smaller currents (a 0.17 Ah cell's charge transfer at 0 °C is over 1 Ω, and a strongly
+#: non-linear exchange current under 0.05 A), so :func:`search_bounds` widens them by the ratio.
+BOUNDS_MIN_CAPACITY_AH = 0.85
+#: the resistance coordinates, whose upper bounds scale as 1 / capacity below it
+RESISTANCE_NAMES = ("ln_r_ohm", "ln_r_ct", "ln_r_df")
+
+
+def small_cell_ratio(capacity_ah: float) -> float:
+    """How many times smaller than :data:`BOUNDS_MIN_CAPACITY_AH` a cell is (1 for a cell that size or larger)."""
+    return max(1.0, BOUNDS_MIN_CAPACITY_AH / capacity_ah) if capacity_ah > 0 else 1.0
+
+
+def search_bounds(capacity_ah: float) -> dict[str, tuple[float, float]]:
+    """:data:`BOUNDS` and :data:`KINETICS_BOUNDS` for a cell of ``capacity_ah``: below
+    :data:`BOUNDS_MIN_CAPACITY_AH` the resistances' upper bounds rise and the exchange current's
+    lower bound falls by the cell's :func:`small_cell_ratio`, so the search spans the same range
+    of resistance x capacity and exchange current in C as on the cells the bounds were set on.
+    The other bounds (times, orders, the largest exchange current) do not scale with size."""
+    widen = math.log(small_cell_ratio(capacity_ah))
+    out = {k: ((lo, hi + widen) if k in RESISTANCE_NAMES else (lo, hi)) for k, (lo, hi) in BOUNDS.items()}
+    lo, hi = KINETICS_BOUNDS["ln_i0_a"]
+    return out | {"ln_i0_a": (lo - widen, hi)}
 
 
 @dataclass
@@ -283,15 +307,16 @@ def diffusion_tau(ln_tau: np.ndarray | float, max_tau_s: float | None) -> np.nda
     return tau if max_tau_s is None else np.minimum(tau, max_tau_s)
 
 
-def encode_point(point: ParameterPoint) -> np.ndarray:
-    """A :class:`ParameterPoint` -> base search coordinates (clipped into the bounds)."""
+def encode_point(point: ParameterPoint, capacity_ah: float = BOUNDS_MIN_CAPACITY_AH) -> np.ndarray:
+    """A :class:`ParameterPoint` -> base search coordinates (clipped into the bounds of a cell of
+    ``capacity_ah``, :func:`search_bounds`)."""
     tau_ct = (point.r_ct * point.c_dl) ** (1.0 / point.m)
     tau_df = (point.r_df * point.c_df) ** (1.0 / point.n)
     x = np.array([
         math.log(point.r_ohm), math.log(point.r_ct), math.log(tau_ct), point.m,
         math.log(point.r_df), math.log(max(tau_df / tau_ct, 1e-12)), point.n,
     ])
-    lo, hi = np.array(list(BOUNDS.values())).T
+    lo, hi = np.array([b for k, b in search_bounds(capacity_ah).items() if k in BOUNDS]).T
     return np.clip(x, lo, hi)
 
 
@@ -424,7 +449,8 @@ def fit_parameters(
     if temperature_law and law_ref_temp_c is not None:
         temp_c = float(law_ref_temp_c)
 
-    base_bounds = dict(BOUNDS)
+    cell_bounds = search_bounds(profile.effective_capacity_ah)
+    base_bounds = {k: cell_bounds[k] for k in BOUNDS}
     for name, bound in (("min_order", min_order), ("min_slow_order", min_slow_order)):
         if bound is not None and not 0.0 < bound < 1.0:
             raise ValueError(f"{name} must be in (0, 1), got {bound}")
@@ -443,8 +469,9 @@ def fit_parameters(
             hi_b = lo_b + 1e-6
         base_bounds[key] = (lo_b, hi_b)
     for key, value in (pinned or {}).items():
-        base_bounds[key] = pinned_bounds(value, *BOUNDS[key])
-    extra_bounds = ((HYSTERESIS_BOUNDS if fit_hysteresis else {}) | (KINETICS_BOUNDS if fit_kinetics else {})
+        base_bounds[key] = pinned_bounds(value, *cell_bounds[key])
+    kinetics_bounds = {"ln_i0_a": cell_bounds["ln_i0_a"]}
+    extra_bounds = ((HYSTERESIS_BOUNDS if fit_hysteresis else {}) | (kinetics_bounds if fit_kinetics else {})
                     | (TEMPERATURE_LAW_BOUNDS if temperature_law else {}))
     bounds = list(base_bounds.values()) + list(extra_bounds.values())
     lo, hi = np.array(bounds).T
@@ -452,7 +479,7 @@ def fit_parameters(
 
     # a first guess: the seed point, else R_ohm from current steps and mid-range dynamics
     if x0 is not None:
-        guess = encode_point(x0)
+        guess = encode_point(x0, profile.effective_capacity_ah)
     else:
         r0 = estimate_r_ohm(segments) or 0.02
         guess = np.array([math.log(r0), math.log(r0 / 2), math.log(5.0), 0.8, math.log(r0), math.log(40.0), 0.8])

@@ -648,7 +648,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
     base_profile = profile.model_copy(update={"parameters": [point]})
     problem = Problem(profile=base_profile, grid=grid, fit_mask=fit_mask, v_rest0=v_rest0, temp_c=temp_fit,
                       memory_length=opt.memory_length)
-    x0 = encode_point(point)
+    x0 = encode_point(point, profile.effective_capacity_ah)
     base_ref = refit(problem, x0, None, max_seconds=opt.effect_seconds,
                      max_nfev=15 if opt.split == "chronological" else 40)
     x_base = base_ref.x
