@@ -123,11 +123,19 @@ def c20_solution(cell: str, ambient_c: float, charge: bool = True):
     return sim.solve(initial_soc=1.0)
 
 
+#: V below the lower cut-off an OCV test's solution may reach (a solver's last step past the stop)
+CUT_OFF_OVERSHOOT_V = 0.05
+
+
 def ocv_test(job: Job) -> tuple[np.ndarray, float]:
     """:func:`c20_solution` read as a recording with its sensors' noise (and ``job``'s hysteresis);
     returns the recording and its discharge capacity (Ah)."""
     sol = c20_solution(job.cell, job.ambient_c)
     t = sol["Time [s]"].entries
+    low, lowest = float(parameter_values(job.cell)["Lower voltage cut-off [V]"]), float(np.min(sol["Voltage [V]"].entries))
+    if lowest < low - CUT_OFF_OVERSHOOT_V:  # the experiment's stop at the cut-off was stepped over
+        raise RuntimeError(f"{job.stem}: PyBaMM's C/{OCV_TEST_C:g} discharge ran on to {lowest:.2f} V, past the "
+                           f"{low:g} V lower cut-off: its solution is not a cell's OCV test")
     keep = np.concatenate([[True], np.diff(t) > 1e-6])
     capacity = float(np.max(sol["Discharge capacity [A.h]"].entries))
     current = sol["Current [A]"].entries[keep]
@@ -207,9 +215,18 @@ def build_cell(cell: str, ambient_c: float, workdir: Path, seed: int, hysteresis
     return f"{cell} {_temp_tag(ambient_c)}: {capacity:.4f} Ah, {len(DRIVES)} drives, {len(PULSE_DRIVES)} pulse test(s)"
 
 
+#: how a line of ``build``'s output starts when a cell-ambient could not be built
+NOT_BUILT = "not built: "
+
+
 def _build_one(args: tuple[str, float, str, int, float]) -> str:
+    """:func:`build_cell`'s line, or :data:`NOT_BUILT` and why where PyBaMM's solution is not a
+    cell's (the other cell-ambients still build)."""
     cell, ambient, workdir, seed, hysteresis_v = args
-    return build_cell(cell, ambient, Path(workdir), seed, hysteresis_v)
+    try:
+        return build_cell(cell, ambient, Path(workdir), seed, hysteresis_v)
+    except RuntimeError as exc:
+        return f"{NOT_BUILT}{exc}"
 
 
 @dataclass(frozen=True)
@@ -301,10 +318,12 @@ def main(argv: list[str] | None = None) -> int:
     ambients = [float(x) for x in a.ambients.split(",") if x]
     if a.command == "build":
         jobs = [(c, t, str(a.workdir), a.seed, a.hysteresis_mv / 1000.0) for c in cells for t in ambients]
+        not_built = 0
         with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as ex:
             for line in ex.map(_build_one, jobs):
-                print(line, flush=True)
-        return 0
+                not_built += line.startswith(NOT_BUILT)
+                print(line, flush=True, file=sys.stderr if line.startswith(NOT_BUILT) else sys.stdout)
+        return 2 if not_built else 0
     ocv_ambients = None if a.ocv_ambients is None else tuple(float(x) for x in a.ocv_ambients.split(",") if x)
     if a.fit_drive == PULSE_DRIVE and ocv_ambients is None:
         ocv_ambients = ()
