@@ -16,6 +16,7 @@ from service.cell.fitting import (
     decode,
     excited_window,
     fit_parameters,
+    kinetics_bounds,
     point_from_x,
     search_bounds,
 )
@@ -459,10 +460,14 @@ def test_a_small_cells_resistances_are_within_the_search() -> None:
 def test_search_bounds_scale_below_the_smallest_cell_they_were_set_on() -> None:
     kinetics = KINETICS_BOUNDS["ln_i0_a"]
     for cap in (BOUNDS_MIN_CAPACITY_AH, 2.9, 50.0):  # as set, for every cell that size or larger
-        assert search_bounds(cap) == BOUNDS | {"ln_i0_a": kinetics}
+        assert search_bounds(cap) == BOUNDS
+        assert list(search_bounds(cap)) == list(BOUNDS)  # the search's coordinate order
+        assert kinetics_bounds(cap) == {"ln_i0_a": kinetics}
     ratio = 5.0
     small = search_bounds(BOUNDS_MIN_CAPACITY_AH / ratio)
+    assert list(small) == list(BOUNDS)
     for name, (lo, hi) in BOUNDS.items():
         widened = hi + math.log(ratio) if name in ("ln_r_ohm", "ln_r_ct", "ln_r_df") else hi
         assert small[name] == pytest.approx((lo, widened))
-    assert small["ln_i0_a"] == pytest.approx((kinetics[0] - math.log(ratio), kinetics[1]))
+    assert kinetics_bounds(BOUNDS_MIN_CAPACITY_AH / ratio)["ln_i0_a"] == pytest.approx(
+        (kinetics[0] - math.log(ratio), kinetics[1]))

@@ -82,7 +82,8 @@ BASE_NAMES = tuple(BOUNDS)
 #: the bounds above are for a cell of at least this capacity: the cells they were set on ran from
 #: 0.87 Ah (PyBaMM's Marquis2019) to 5.1 Ah.  A smaller cell has proportionally larger resistances
 #: and smaller currents (a 0.17 Ah cell's charge transfer at 0 °C is over 1 Ω, and a strongly
-#: non-linear exchange current under 0.05 A), so :func:`search_bounds` widens them by the ratio.
+#: non-linear exchange current under 0.05 A), so :func:`search_bounds` and :func:`kinetics_bounds`
+#: widen them by the ratio.
 BOUNDS_MIN_CAPACITY_AH = 0.85
 #: the resistance coordinates, whose upper bounds scale as 1 / capacity below it
 RESISTANCE_NAMES = ("ln_r_ohm", "ln_r_ct", "ln_r_df")
@@ -94,15 +95,20 @@ def small_cell_ratio(capacity_ah: float) -> float:
 
 
 def search_bounds(capacity_ah: float) -> dict[str, tuple[float, float]]:
-    """:data:`BOUNDS` and :data:`KINETICS_BOUNDS` for a cell of ``capacity_ah``: below
-    :data:`BOUNDS_MIN_CAPACITY_AH` the resistances' upper bounds rise and the exchange current's
-    lower bound falls by the cell's :func:`small_cell_ratio`, so the search spans the same range
-    of resistance x capacity and exchange current in C as on the cells the bounds were set on.
-    The other bounds (times, orders, the largest exchange current) do not scale with size."""
+    """:data:`BOUNDS` for a cell of ``capacity_ah`` (same coordinates, same order): below
+    :data:`BOUNDS_MIN_CAPACITY_AH` the resistances' upper bounds rise by the cell's
+    :func:`small_cell_ratio`, so the search spans the same range of resistance x capacity as on the
+    cells the bounds were set on.  Times and orders do not scale with size."""
     widen = math.log(small_cell_ratio(capacity_ah))
-    out = {k: ((lo, hi + widen) if k in RESISTANCE_NAMES else (lo, hi)) for k, (lo, hi) in BOUNDS.items()}
+    return {k: ((lo, hi + widen) if k in RESISTANCE_NAMES else (lo, hi)) for k, (lo, hi) in BOUNDS.items()}
+
+
+def kinetics_bounds(capacity_ah: float) -> dict[str, tuple[float, float]]:
+    """:data:`KINETICS_BOUNDS` for a cell of ``capacity_ah``: below :data:`BOUNDS_MIN_CAPACITY_AH`
+    the exchange current's lower bound falls by the cell's :func:`small_cell_ratio` (the same range
+    in C); its upper, practically linear end (:data:`LINEAR_I0_A`) does not move."""
     lo, hi = KINETICS_BOUNDS["ln_i0_a"]
-    return out | {"ln_i0_a": (lo - widen, hi)}
+    return {"ln_i0_a": (lo - math.log(small_cell_ratio(capacity_ah)), hi)}
 
 
 @dataclass
@@ -316,7 +322,7 @@ def encode_point(point: ParameterPoint, capacity_ah: float = BOUNDS_MIN_CAPACITY
         math.log(point.r_ohm), math.log(point.r_ct), math.log(tau_ct), point.m,
         math.log(point.r_df), math.log(max(tau_df / tau_ct, 1e-12)), point.n,
     ])
-    lo, hi = np.array([b for k, b in search_bounds(capacity_ah).items() if k in BOUNDS]).T
+    lo, hi = np.array(list(search_bounds(capacity_ah).values())).T
     return np.clip(x, lo, hi)
 
 
@@ -450,7 +456,7 @@ def fit_parameters(
         temp_c = float(law_ref_temp_c)
 
     cell_bounds = search_bounds(profile.effective_capacity_ah)
-    base_bounds = {k: cell_bounds[k] for k in BOUNDS}
+    base_bounds = dict(cell_bounds)
     for name, bound in (("min_order", min_order), ("min_slow_order", min_slow_order)):
         if bound is not None and not 0.0 < bound < 1.0:
             raise ValueError(f"{name} must be in (0, 1), got {bound}")
@@ -470,8 +476,8 @@ def fit_parameters(
         base_bounds[key] = (lo_b, hi_b)
     for key, value in (pinned or {}).items():
         base_bounds[key] = pinned_bounds(value, *cell_bounds[key])
-    kinetics_bounds = {"ln_i0_a": cell_bounds["ln_i0_a"]}
-    extra_bounds = ((HYSTERESIS_BOUNDS if fit_hysteresis else {}) | (kinetics_bounds if fit_kinetics else {})
+    extra_bounds = ((HYSTERESIS_BOUNDS if fit_hysteresis else {})
+                    | (kinetics_bounds(profile.effective_capacity_ah) if fit_kinetics else {})
                     | (TEMPERATURE_LAW_BOUNDS if temperature_law else {}))
     bounds = list(base_bounds.values()) + list(extra_bounds.values())
     lo, hi = np.array(bounds).T

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from service.cell.fitting import BOUNDS, FitSegment, search_bounds
+from service.cell.fitting import FitSegment, search_bounds
 from service.cell.profile import CellProfile
 from service.diagnosis.effects import Context, Effect
 from service.diagnosis.simulation import base_mods, simulate_candidates
@@ -56,8 +56,8 @@ class RefitResult:
 def refit(problem: Problem, x_base: np.ndarray, effect: Effect | None, max_seconds: float = 20.0,
           max_nfev: int = 40) -> RefitResult:
     t0 = time.perf_counter()
-    cell_bounds = search_bounds(problem.profile.effective_capacity_ah)
-    bounds = [cell_bounds[k] for k in BOUNDS] + (list(effect.bounds) if effect else [])
+    base = search_bounds(problem.profile.effective_capacity_ah)
+    bounds = list(base.values()) + (list(effect.bounds) if effect else [])
     lo, hi = np.array(bounds, dtype=float).T
     # starting points: the base fit plus each of the extension's starts, one vectorised pass
     if effect is None:
