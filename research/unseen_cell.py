@@ -321,8 +321,9 @@ def main(argv: list[str] | None = None) -> int:
         not_built = 0
         with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as ex:
             for line in ex.map(_build_one, jobs):
-                not_built += line.startswith(NOT_BUILT)
-                print(line, flush=True, file=sys.stderr if line.startswith(NOT_BUILT) else sys.stdout)
+                failed = line.startswith(NOT_BUILT)
+                not_built += failed
+                print(line, flush=True, file=sys.stderr if failed else sys.stdout)
         return 2 if not_built else 0
     ocv_ambients = None if a.ocv_ambients is None else tuple(float(x) for x in a.ocv_ambients.split(",") if x)
     if a.fit_drive == PULSE_DRIVE and ocv_ambients is None:
