@@ -22,7 +22,13 @@ from service.characterisation.characterise import (
     ecm_start_point,
     say_flat_joint_ocv,
 )
-from service.characterisation.ecm2rc_fit import R_MAX_OHM, TAU1_BOUNDS_S, fit_ecm2rc, r_max_ohm, simulate_ecm2rc
+from service.characterisation.ecm2rc_fit import (
+    R_MAX_OHM,
+    TAU1_BOUNDS_S,
+    fit_ecm2rc,
+    r_max_ohm,
+    simulate_ecm2rc,
+)
 from service.estimators.ecm2rc_ekf import Ecm2RcEkf, ecm_parameters
 from service.recording import Recording
 
