@@ -43,6 +43,7 @@ from service.commands.common_args import (
     probability,
     progress_enabled,
     refuse_overwriting_inputs,
+    refuse_shared_outputs,
     relative_sigma,
     sensor_temperature_sigma,
     setup_logging,
@@ -159,10 +160,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{path}: no such file")
     for flag, out in (("--record", args.record), ("--truth-out", args.truth_out)):
         refuse_overwriting_inputs(out, [path, getattr(args, "cell", None)], flag)
+    refuse_shared_outputs([("--record", args.record), ("--truth-out", args.truth_out)])
     mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
     if mf4_files and not installed("asammdf"):
         raise UserError(f"{mf4_files[0]}: MF4 {install_hint('asammdf')}")
     config = _config(args)
+    if args.stop is not None and args.stop <= 0:
+        raise UserError(f"--stop {args.stop:g} plays no frame (it counts seconds from the first frame); give a later time")
     if args.stop is not None and args.start is not None and args.stop <= args.start:
         raise UserError(f"--stop ({args.stop:g} s) must be after --start ({args.start:g} s)")
     try:

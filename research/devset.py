@@ -372,6 +372,7 @@ RULE_GRID: dict[str, tuple[float, ...]] = {
     "kinetics_max_i0_c": (0.10, 0.12, 0.15, 0.18, 0.20),
     "relax_min_ratio": (0.15, 0.20, 0.30),
     "relax_min_z": (3.0, 5.0),
+    "direct_max_rise_rel": (0.10, 0.15, 0.20, 0.30),
 }
 #: ``rules --wide-grid``: the axes whose chosen value sits at an edge of :data:`RULE_GRID`, extended past it
 #: (a check that the choice is not held by the grid's edge; docs/results/diagnose.md)

@@ -135,6 +135,23 @@ def check_sample_step(recording: Recording) -> None:
                         "scores a slow log offline)")
 
 
+def check_decodable(recording: Recording) -> None:
+    """Refuse a recording whose voltages or temperatures lie outside the ranges the service
+    accepts from the bus (the demo config's ``mapping.voltage_range_v``, ``temperature_range_c``):
+    the daemon would count every such sample out of range and the demo would score nothing."""
+    from service.config import MappingConfig
+    from service.errors import UserError
+    from service.validation import InputFileError, check_values
+
+    mapping = MappingConfig()
+    try:
+        check_values(recording.path, {"voltage_v": recording.voltage_v, "temperature_c": recording.temperature_c},
+                     {"voltage_v": mapping.voltage_range_v, "temperature_c": mapping.temperature_range_c})
+    except InputFileError as exc:
+        raise UserError(f"{exc} (the range the service reads from the bus: mapping.voltage_range_v, "
+                        "mapping.temperature_range_c)") from None
+
+
 def _generated_input_dbc(n_cells: int, workdir: Path) -> Path:
     """A BMS DBC for a pack larger than the shipped one, made by the generator of the shipped
     ones (same layout: 4 cells per voltage frame, one temperature sensor per 4 cells)."""
@@ -207,6 +224,7 @@ def run_demo(
     recording = load_recording(recording_path)
     check_current_sign(recording)  # a charge-positive log would replay every cell the wrong way
     check_sample_step(recording)
+    check_decodable(recording)
     if seconds is not None:
         stop_i = int(np.searchsorted(recording.time_s, recording.time_s[0] + float(seconds), side="right"))
         recording = recording.slice(0, max(2, stop_i))

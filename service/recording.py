@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,22 +62,23 @@ class Recording:
         )
 
 
+#: a number as the CSV reader (numpy.loadtxt) takes it: plain decimal or exponent, nan or inf;
+#: Python's float() also takes digit separators ("4_1") and non-ASCII digits, which loadtxt refuses
+PLAIN_NUMBER = re.compile(r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|nan|inf(?:inity)?)", re.IGNORECASE)
+
+
 def _first_unparsable(path: Path, text: str, idx: list[int], cols: list[str]) -> str:
-    """'row N: C: ...' for the first value that is not a number (N = file line)."""
-    reader = csv.reader(io.StringIO(text, newline=""))
-    try:
-        next(reader, None)
-        for line, row in enumerate(reader, start=2):
-            if not row:
-                continue
-            for i, name in zip(idx, cols):
-                cell = row[i] if i < len(row) else ""
-                try:
-                    float(cell)
-                except ValueError:
-                    return f"row {line}: {name}: {cell!r} is not a number"
-    except csv.Error as exc:
-        return f"row {reader.line_num}: not CSV: {exc}"
+    """'row N: C: ...' for the first value that is not a plain number (N = file line), read the
+    way the loader reads it: fields split at commas, nothing unquoted."""
+    for line, raw in enumerate(text.splitlines()[1:], start=2):
+        if not raw.strip():
+            continue
+        row = raw.split(",")
+        for i, name in zip(idx, cols):
+            cell = row[i].strip() if i < len(row) else ""
+            if not PLAIN_NUMBER.fullmatch(cell):
+                return (f"row {line}: {name}: {cell!r} is not a plain number (digits, '.', an exponent; "
+                        "no quotes, digit separators or non-ASCII digits)")
     return "a row could not be read"
 
 

@@ -852,3 +852,65 @@ def test_an_environment_override_is_named_when_misspelt_or_bad(tmp_path: Path, c
     code, err = run_cli(capsys, ["check"])
     assert_one_line_error(code, err, "pack.n_cells: Input should be greater than or equal to 1 "
                                      "(the environment overrides the file: SOCD_PACK__N_CELLS)")
+
+
+@pytest.mark.parametrize("value, shown", [('"3.7"', "'\"3.7\"'"), ("3_7", "'3_7'"), ("３.７", "'３.７'")])
+def test_a_number_the_reader_cannot_take_is_named_with_its_row(tmp_path: Path, capsys, value: str, shown: str) -> None:
+    """Quotes, digit separators and non-ASCII digits: Python's float() takes the last two, the CSV reader
+    takes none, so the message names the row and the value instead of 'a row could not be read'."""
+    rec = _with(tmp_path, "odd.csv", 4, 2, value)
+    code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet"])
+    assert_one_line_error(code, err, f"odd.csv: row 6: voltage_v: {shown} is not a plain number")
+
+
+def test_evaluate_writes_no_plot_or_trace_when_a_later_recording_is_refused(tmp_path: Path, capsys) -> None:
+    """The truth of every recording is checked before the first is run: the good first file's traces
+    are not left behind when the second's truth cannot be."""
+    good = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    rows = "\n".join(f"{t},{1000.0 if t % 20 < 10 else 0.0},{3.7 - 0.001 * t},25.0" for t in range(60))
+    bad = _recording(tmp_path, "milliamps.csv", rows)
+    code, err = run_cli(capsys, ["evaluate", str(good), str(bad), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet",
+                                 "--estimator", "coulomb", "--traces", str(tmp_path / "tr")])
+    assert_one_line_error(code, err, "milliamps.csv")
+    assert not (tmp_path / "tr").exists() or not any((tmp_path / "tr").iterdir())
+
+
+def test_evaluate_never_writes_traces_over_a_recording(tmp_path: Path, capsys) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    other = _recording(tmp_path, "ok_traces.csv", GOOD_ROWS)
+    before = other.read_bytes()
+    code, err = run_cli(capsys, ["evaluate", str(rec), str(other), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet",
+                                 "--estimator", "coulomb", "--traces", str(tmp_path)])
+    assert_one_line_error(code, err, "--traces")
+    assert other.read_bytes() == before
+
+
+@pytest.mark.parametrize("command", ["diagnose", "replay"])
+def test_two_outputs_onto_one_file_are_refused(tmp_path: Path, capsys, command: str) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    same = str(tmp_path / ("same.json" if command == "diagnose" else "same.csv"))
+    argv = {"diagnose": ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--json", same,
+                         "--save-profile", same],
+            "replay": ["replay", str(rec), "--no-send", "--quiet", "--record", same, "--truth-out", same]}[command]
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, "give each output a file of its own")
+    assert not Path(same).exists()
+
+
+def test_replay_stop_at_zero_is_refused(tmp_path: Path, capsys) -> None:
+    path = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, _replay_argv(path, tmp_path, "--stop", "0"))
+    assert_one_line_error(code, err, "--stop 0 plays no frame")
+    assert not (tmp_path / "out.asc").exists()
+
+
+def test_demo_refuses_a_recording_outside_what_the_service_reads(tmp_path: Path, capsys) -> None:
+    """A temperature of -45 °C passes the recording's plausibility range but not the -40 °C the
+    service decodes from the bus: every sample was counted out of range and the demo wrote a JSON
+    of NaNs with exit 1."""
+    rows = "\n".join(f"{t},{1.0 if t % 20 < 10 else 0.0},{3.7 - 0.001 * t},-45.0" for t in range(60))
+    rec = _recording(tmp_path, "cold.csv", rows)
+    out = tmp_path / "demo.json"
+    code, err = run_cli(capsys, ["demo", "--recording", str(rec), "--cells", "2", "--json", str(out)])
+    assert_one_line_error(code, err, "cold.csv: row 2: temperature_c: -45 is outside")
+    assert "mapping.temperature_range_c" in err and not out.exists()

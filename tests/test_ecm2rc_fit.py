@@ -22,7 +22,13 @@ from service.characterisation.characterise import (
     ecm_start_point,
     say_flat_joint_ocv,
 )
-from service.characterisation.ecm2rc_fit import TAU1_BOUNDS_S, fit_ecm2rc, simulate_ecm2rc
+from service.characterisation.ecm2rc_fit import (
+    R_MAX_OHM,
+    TAU1_BOUNDS_S,
+    fit_ecm2rc,
+    r_max_ohm,
+    simulate_ecm2rc,
+)
 from service.estimators.ecm2rc_ekf import Ecm2RcEkf, ecm_parameters
 from service.recording import Recording
 
@@ -64,6 +70,26 @@ def test_recovers_parameters_with_a_known_ocv():
     assert fit.r2 == pytest.approx(TRUE["r2"], rel=0.15)
     assert fit.tau1_s == pytest.approx(TRUE["tau1_s"], rel=0.25)
     assert fit.tau2_s == pytest.approx(TRUE["tau2_s"], rel=0.25)
+    assert fit.rmse_mv < 1.5
+    assert fit.at_bounds() == []
+
+
+def test_a_small_cells_resistances_above_the_large_cell_bound_are_recovered():
+    """A 0.05 Ah cell's resistances are ~40 x a 2 Ah cell's: R0 3 Ω lies above R_MAX_OHM, which a
+    cell this small raises (as the fractional fit's bounds), so the fit recovers it, not the bound."""
+    cap, scale = 0.05, 120.0
+    true = {"r0": TRUE["r0"] * scale, "r1": TRUE["r1"] * scale, "tau1_s": TRUE["tau1_s"],
+            "r2": TRUE["r2"] * scale, "tau2_s": TRUE["tau2_s"]}
+    assert true["r0"] > R_MAX_OHM and r_max_ohm(cap) > true["r2"]
+    assert r_max_ohm(CAPACITY_AH) == r_max_ohm(0.85) == R_MAX_OHM
+    n = 5000
+    t = np.arange(n, dtype=float)
+    cur = drive(n, 0) * cap / CAPACITY_AH
+    grid = np.linspace(0, 1, 201)
+    v = simulate_ecm2rc(FitSegment(t, cur, np.zeros(n), np.full(n, 25.0), 0.95), cap, grid, ocv_curve(grid), **true)
+    v = v + np.random.default_rng(100).normal(0.0, 0.001, n)
+    fit = fit_ecm2rc([FitSegment(t, cur, v, np.full(n, 25.0), 0.95)], cap, ocv_soc=grid, ocv_v=ocv_curve(grid))
+    assert fit.r0 == pytest.approx(true["r0"], rel=0.03)
     assert fit.rmse_mv < 1.5
     assert fit.at_bounds() == []
 

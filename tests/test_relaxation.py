@@ -166,3 +166,19 @@ def test_relaxation_limit_extrapolates_a_first_order_decay_and_keeps_a_settled_r
     assert relaxation_limit(t, settled) == settled[-1]
     drifting = 3.7 + 1e-6 * t  # a straight line: equal steps, no decay to extrapolate
     assert relaxation_limit(t, drifting) == drifting[-1]
+
+
+def test_a_small_cells_slow_branch_above_the_large_cell_bound_is_recovered():
+    """On a 0.02 Ah cell a slow branch of 1.6 Ω (the 2 Ah lab test's 16 mΩ at 1/100 of the size) is
+    above R_BOUNDS_OHM's 1 Ω, which a cell this small raises; the measurement recovers it."""
+    from service.characterisation.relaxation import R_BOUNDS_OHM
+
+    cap, r_s, tau_s = 0.02, 1.6, 3400.0
+    assert r_s > R_BOUNDS_OHM[1]
+    t = np.arange(0.0, 600.0 + 1440.0 + 7200.0, 5.0)
+    i = np.where((t >= 600.0) & (t < 2040.0), 0.01, 0.0)  # a 0.5C discharge, then a two-hour rest
+    v = 3.7 - rc_voltage(t, i, r_s, tau_s) + np.random.default_rng(0).normal(0.0, 0.2e-3, t.size)
+    rec = Recording(Path("small.csv"), t, i, v, np.full(t.size, 25.0))
+    slow = measure_slow_relaxation([rec], cap)
+    assert slow.r_ohm == pytest.approx(r_s, rel=0.1)
+    assert slow.tau_s == pytest.approx(tau_s, rel=0.15)

@@ -1648,12 +1648,13 @@ python -m research.devset rules --workdir out/devset --json out/devset_rules.jso
           devset_table("devset_rules.json"), 90, ("needs:pybamm",)),
     Table("devset_rules_wide", "diagnose.md", """\
 # the set and its evidence are devset_rules'
-python -m research.devset rules --workdir out/devset --wide-grid --json out/devset_rules_wide.json""",
+python -m research.devset rules --workdir out/devset --wide-grid --hold direct_max_rise_rel=0.2 \\
+    --json out/devset_rules_wide.json""",
           devset_summary_table("devset_rules_wide.json"), 5, ("needs:devset_rules", "needs:pybamm")),
     Table("devset_hysteresis_levels", "diagnose.md", """\
 # the set and its evidence are devset_rules'; the other rules held at the product's values
 H="--hold min_rel_gain=0.25 --hold min_rel_gain_nominated=0.05 --hold min_abs_gain_noise=1 --hold min_delta_bic=0"
-H="$H --hold kinetics_max_i0_c=0.15 --hold relax_min_ratio=0.15 --hold relax_min_z=5"
+H="$H --hold kinetics_max_i0_c=0.15 --hold relax_min_ratio=0.15 --hold relax_min_z=5 --hold direct_max_rise_rel=0.2"
 python -m research.devset rules --workdir out/devset --search-hysteresis $H --json out/devset_hysteresis_levels.json""",
           devset_summary_table("devset_hysteresis_levels.json"), 2, ("needs:devset_rules", "needs:pybamm")),
     Table("validate", "diagnose.md", "python -m research.validate --seeds 3 --workdir out/validate --json out/validate.json",

@@ -34,7 +34,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.optimize import lsq_linear, minimize
 
 from service.cell.coulomb import coulomb_soc
-from service.cell.fitting import FitSegment
+from service.cell.fitting import FitSegment, small_cell_ratio
 from service.cell.ocv import EXTRAPOLATION_SPAN, OcvTable
 from service.characterisation.ocv_choices import OCV_SMOOTH_WEIGHT
 
@@ -43,7 +43,7 @@ TAU1_BOUNDS_S = (1.0, 100.0)
 TAU2_BOUNDS_S = (10.0, 1000.0)
 #: the slow branch is at least this many times slower than the fast one (no label switching)
 MIN_TAU_RATIO = 2.0
-#: resistance bounds [ohm]
+#: resistance bound [ohm] of a cell of BOUNDS_MIN_CAPACITY_AH or more (higher for a smaller cell: r_max_ohm)
 R_MAX_OHM = 2.0
 #: OCV knots on [0, 1] when the OCV is fitted
 OCV_KNOTS = 81
@@ -71,6 +71,7 @@ class Ecm2RcFit:
     tau2_s: float
     rmse_mv: float
     n_samples: int
+    r_max_ohm: float = R_MAX_OHM  # the resistances' search bound (r_max_ohm)
 
     def ocv_on(self, grid: np.ndarray) -> np.ndarray:
         """The OCV on ``grid`` (monotone cubic through the knots; linear beyond them)."""
@@ -84,7 +85,7 @@ class Ecm2RcFit:
             if val <= lo * 1.001 or val >= hi * 0.999:
                 out.append(f"{name} = {val:.3g} s")
         for name, val in (("R0", self.r0), ("R1", self.r1), ("R2", self.r2)):
-            if val <= 1e-6 or val >= R_MAX_OHM * 0.999:
+            if val <= 1e-6 or val >= self.r_max_ohm * 0.999:
                 out.append(f"{name} = {val * 1e3:.3g} mΩ")
         return out
 
@@ -99,6 +100,13 @@ class _Prepared:
     dt_s: np.ndarray
     soc: np.ndarray
     starts: np.ndarray
+
+
+def r_max_ohm(capacity_ah: float) -> float:
+    """The resistances' upper bound for a cell of ``capacity_ah``: :data:`R_MAX_OHM`, raised below
+    :data:`service.cell.fitting.BOUNDS_MIN_CAPACITY_AH` by the cell's ``small_cell_ratio``, as the
+    fractional fit's resistance bounds are (a small cell's resistances are proportionally larger)."""
+    return R_MAX_OHM * small_cell_ratio(capacity_ah)
 
 
 def _thin(segments: list[FitSegment], budget: int) -> list[FitSegment]:
@@ -189,8 +197,9 @@ class _LinearProblem:
     with the knot values ``v_j = level + Σ_{i ≤ j} d_i`` (``d ≥ 0``: monotone)."""
 
     def __init__(self, prep: _Prepared, ocv_fixed: np.ndarray | None, knots: np.ndarray,
-                 prior_v: np.ndarray | None, smooth_weight: float, prior_weight: float) -> None:
+                 prior_v: np.ndarray | None, smooth_weight: float, prior_weight: float, r_max: float) -> None:
         self.prep = prep
+        self.r_max = r_max
         self.knots = knots
         self.fixed = ocv_fixed  # OCV at every sample, or None
         n = prep.current_a.size
@@ -219,7 +228,7 @@ class _LinearProblem:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         k = self.ocv_cols.shape[1]
         lo = np.concatenate([[0.0, 0.0, 0.0], [-np.inf] if k else [], np.zeros(max(k - 1, 0))])
-        hi = np.concatenate([[R_MAX_OHM] * 3, [np.inf] if k else [], np.full(max(k - 1, 0), np.inf)])
+        hi = np.concatenate([[self.r_max] * 3, [np.inf] if k else [], np.full(max(k - 1, 0), np.inf)])
         return lo, hi
 
     def design(self, x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -290,7 +299,7 @@ def fit_ecm2rc(
             raise ValueError("ocv_v needs ocv_soc")
         fixed = OcvTable.from_points(np.asarray(ocv_soc, dtype=float), np.asarray(ocv_v, dtype=float)).ocv(prep.soc, 25.0)
     prior = None if prior_v is None else np.asarray(prior_v, dtype=float)
-    problem = _LinearProblem(prep, fixed, knots, prior, smooth_weight, prior_weight)
+    problem = _LinearProblem(prep, fixed, knots, prior, smooth_weight, prior_weight, r_max_ohm(capacity_ah))
 
     # candidate columns for the grid, computed once
     g1 = np.geomspace(*TAU1_BOUNDS_S, TAU_GRID_POINTS)
@@ -331,7 +340,7 @@ def fit_ecm2rc(
     r0, r1, r2 = (max(float(c), 0.0) for c in coef[:3])
     return Ecm2RcFit(
         ocv_soc=out_soc, ocv_v=out_v, r0=r0, r1=r1, tau1_s=t1, r2=r2, tau2_s=t2, rmse_mv=1000.0 * float(np.sqrt(np.mean(resid**2))),
-        n_samples=int(resid.size),
+        n_samples=int(resid.size), r_max_ohm=problem.r_max,
     )
 
 

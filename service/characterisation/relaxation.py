@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from service.cell.fitting import small_cell_ratio
 from service.cell.profile import BranchSpec
 from service.characterisation.ocv_sources import load_level_a, rest_spans
 from service.recording import Recording
@@ -37,7 +38,8 @@ from service.recording import Recording
 LONG_REST_S = 1800.0
 #: rest samples earlier than this after the rest's start are left out (the fast branches)
 SETTLE_S = 300.0
-#: search range of the slow time constant [s] and resistance [Ω]
+#: search range of the slow time constant [s] and resistance [Ω] (the resistance's upper end for a cell
+#: of service.cell.fitting.BOUNDS_MIN_CAPACITY_AH or more; raised for a smaller cell by its small_cell_ratio)
 TAU_BOUNDS_S = (300.0, 1.0e5)
 R_BOUNDS_OHM = (1.0e-5, 1.0)
 
@@ -122,7 +124,7 @@ def measure_slow_relaxation(recordings: list[Recording], capacity_ah: float) -> 
         return np.concatenate(out)
 
     lo = [math.log(R_BOUNDS_OHM[0]), math.log(TAU_BOUNDS_S[0])] + [0.0] * n_rest
-    hi = [math.log(R_BOUNDS_OHM[1]), math.log(TAU_BOUNDS_S[1])] + [10.0] * n_rest
+    hi = [math.log(R_BOUNDS_OHM[1] * small_cell_ratio(capacity_ah)), math.log(TAU_BOUNDS_S[1])] + [10.0] * n_rest
     levels = [float(rec.voltage_v[idx[-1]]) for rec, spans in cases for idx in spans]
     best = None
     for tau0 in (600.0, 3000.0, 15000.0):

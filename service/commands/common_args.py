@@ -276,6 +276,19 @@ def refuse_overwriting_inputs(output: str | Path | None, inputs: Sequence[str | 
             raise UserError(f"{flag} {output} is one of the input files; write the result elsewhere")
 
 
+def refuse_shared_outputs(outputs: Sequence[tuple[str, str | Path | None]]) -> None:
+    """Raise :class:`UserError` where two of a command's outputs (``(flag, path)``; ``None`` or
+    ``-`` not given as a file) are one file: the second written would replace the first."""
+    seen: dict[Path, str] = {}
+    for flag, path in outputs:
+        if path is None or str(path) == "-":
+            continue
+        key = Path(path).resolve()
+        if key in seen:
+            raise UserError(f"{flag} {path} is also {seen[key]}'s file; give each output a file of its own")
+        seen[key] = flag
+
+
 # ---------------------------------------------------------------------------------------
 # deprecated spellings
 # ---------------------------------------------------------------------------------------

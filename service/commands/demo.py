@@ -85,6 +85,13 @@ def _demo(args: argparse.Namespace) -> int:
                                   capacity_estimation="off" if args.freeze_capacity else None)
     except (FileNotFoundError, ProfileError) as exc:
         raise UserError(str(exc)) from None
+    if result.steps == 0:
+        # every sample was refused on the way in: a result of NaNs is no demo; say why, write nothing
+        why = ", ".join(f"{k} {v}" for k, v in result.counters.items()
+                        if v and any(w in k for w in ("range", "error", "reject", "stale", "waiting"))) or "no counter says why"
+        raise UserError(f"{result.recording}: no sample was estimated ({result.frames_in} frames in; {why}); "
+                        "its values may lie at the edge of what the service reads from the bus "
+                        "(mapping.voltage_range_v, mapping.temperature_range_c)")
     out = text_stream(args)
     print(summary_text(result), file=out)
     if plot is not None:
@@ -92,5 +99,5 @@ def _demo(args: argparse.Namespace) -> int:
     else:
         print(f"plot: not written ({install_hint('matplotlib')})", file=out)
     write_json(args.json, result.to_json())
-    return 0 if result.steps > 0 else 1
+    return 0
 

@@ -34,6 +34,7 @@ from service.commands.common_args import (
     positive_float,
     progress_enabled,
     refuse_overwriting_inputs,
+    refuse_shared_outputs,
     setup_logging,
     write_json,
 )
@@ -142,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
     inputs = [args.recording, args.ocv, getattr(args, "cell", None)]
     refuse_overwriting_inputs(args.save_profile, inputs, "--save-profile")
     refuse_overwriting_inputs(args.json, inputs, "--json")
+    refuse_shared_outputs([("--json", args.json), ("--save-profile", args.save_profile)])
     profile, fit_base = _profile_from_args(args)
     averaged = to_fit_period([load_recording(args.recording)], args.fit_period)
     rec = averaged[0].recording

@@ -157,6 +157,10 @@ def run(args: argparse.Namespace) -> int:
         twice = next(n for n in names_seen if names_seen.count(n) > 1)
         raise UserError(f"two recordings are named {twice}: their --traces / --plots files would overwrite "
                         "each other; rename one, or run them apart")
+    if args.traces:
+        for rec in recordings:
+            refuse_overwriting_inputs(Path(args.traces) / f"{rec.name}_traces.csv",
+                                      [*args.recordings, args.cell, args.settings], "--traces")
     results: list[EstimatorScore] = []
     total = sum(len(r) for r in recordings) * len(estimators)
     bar = open_progress(progress_enabled(args), "evaluate", total, unit="samples")

@@ -38,6 +38,7 @@ from service.commands.common_args import (
     positive_int,
     progress_enabled,
     refuse_overwriting_inputs,
+    refuse_shared_outputs,
     resistance_share,
     setup_logging,
 )
@@ -203,8 +204,9 @@ def run(args: argparse.Namespace) -> int:
     refuse_overwriting_inputs(args.output, [*args.recordings, args.ocv], "-o")
     if args.report is not None:
         refuse_overwriting_inputs(args.report, [*args.recordings, args.ocv], "--report")
-        if args.report == "-" or Path(args.report).resolve() == Path(args.output).resolve():
+        if args.report == "-":
             raise UserError(f"--report {args.report}: give a file of its own, apart from the profile (-o)")
+        refuse_shared_outputs([("-o", args.output), ("--report", args.report)])
     if not args.capacity_ah > 0:
         raise UserError(f"--capacity-ah must be > 0, got {args.capacity_ah}")
     if args.max_tau_df is not None and args.max_tau_df < MIN_TAU_DF_CAP_S:

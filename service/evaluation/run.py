@@ -51,6 +51,14 @@ def wrong_start(truth0: float, error: float) -> float:
     return truth0 - error if truth0 > 0.8 else truth0 + error
 
 
+def scored_truth(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
+    """The part of ``rec`` scored and its truth SOC (:func:`truth_and_start`), a counted truth checked."""
+    part, truth = truth_and_start(rec, capacity_ah, full_at)
+    if part.soc_true is None:
+        check_counted_truth(part, truth, capacity_ah)
+    return part, truth
+
+
 def evaluate_recordings(
     recordings: Sequence[Recording],
     profile: CellProfile,
@@ -66,16 +74,16 @@ def evaluate_recordings(
     ``full_at``: per recording, the full-charge point as :func:`truth_and_start` takes it
     (default: every file's start).  ``current_bias_c``: a current-sensor offset in units of
     1C added to the current the estimators read (the truth keeps the recorded current).
-    A generator, so a caller can write each recording's traces before the next one runs.
+    A generator, so a caller can write each recording's traces before the next one runs; every
+    recording's truth is worked out (and refused, if it cannot be) before the first one runs, so a
+    bad file late in the list leaves no output of the files before it.
     """
     full = list(full_at) if full_at is not None else [None] * len(recordings)
     if len(full) != len(recordings):
         raise ValueError(f"{len(full)} full-charge points for {len(recordings)} recordings")
     capacity = profile.effective_capacity_ah
-    for rec, fa in zip(recordings, full):
-        part, truth = truth_and_start(rec, capacity, fa)
-        if part.soc_true is None:
-            check_counted_truth(part, truth, capacity)
+    truths = [scored_truth(rec, capacity, fa) for rec, fa in zip(recordings, full)]
+    for rec, (part, truth) in zip(recordings, truths):
         soc0 = wrong_start(float(truth[0]), init_soc_error)
         # the samples up to the start: the start sample's own interval is spent here, and
         # the scored part's first step has dt = 0 (Recording.dt_s), so nothing is counted twice
