@@ -914,3 +914,20 @@ def test_demo_refuses_a_recording_outside_what_the_service_reads(tmp_path: Path,
     code, err = run_cli(capsys, ["demo", "--recording", str(rec), "--cells", "2", "--json", str(out)])
     assert_one_line_error(code, err, "cold.csv: row 2: temperature_c: -45 is outside")
     assert "mapping.temperature_range_c" in err and not out.exists()
+
+
+@pytest.mark.parametrize("edit, field", [
+    (("capacity_ah = ", "capacity_ah = 1e9\nx_ = "), "capacity_ah"),
+    (("r_ohm = ", "r_ohm = 1e6\nx_ = "), "r_ohm"),
+    (("capacity_scale = 1.0", "capacity_scale = 1e6"), "capacity_scale"),
+    (("current_bias_a = 0.0", "current_bias_a = 1e9"), "current_bias_a"),
+])
+def test_a_profile_value_no_cell_can_have_is_refused(tmp_path: Path, capsys, edit: tuple[str, str], field: str) -> None:
+    """A hand-edited profile with a value no lithium cell has (a 1e9 A sensor offset, a 1 MΩ resistance)
+    ran to a voltage RMSE of 2e11 mV with exit 0; it is refused on load, naming the field."""
+    path = _profile_with(tmp_path, "odd.toml", *edit)
+    path.write_text("\n".join(ln for ln in path.read_text().splitlines() if not ln.startswith("x_ = ")) + "\n")
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(path), "--quiet", "--estimator", "coulomb"])
+    assert_one_line_error(code, err, str(path))
+    assert field in err, err

@@ -33,6 +33,12 @@ from service.validation import RecordingBounds
 SCHEMA_VERSION = 1
 #: °C: the temperatures a profile's points may sit at (the range a recording's may lie in)
 TEMP_RANGE_C = RecordingBounds().temperature_c
+#: plausibility bounds of a profile's values: beyond them a value is a unit or typing error (a
+#: hand-edited profile), which would otherwise run to a meaningless estimate with exit 0
+PLAUSIBLE_MAX_OHM = 1.0e4  # any resistance; a coin cell's are tens of ohms, a 1 mAh micro-cell's hundreds
+PLAUSIBLE_MAX_CAPACITY_AH = 1.0e5
+PLAUSIBLE_CAPACITY_SCALE = (0.1, 10.0)  # effective capacity over the stated one
+PLAUSIBLE_MAX_BIAS_C = 1.0  # a current-sensor offset, as a fraction of 1C
 GAS_CONSTANT = 8.314462618  # J/(mol K)
 FARADAY = 96485.33212  # C/mol
 KELVIN = 273.15
@@ -74,11 +80,11 @@ class ParameterPoint(_Strict):
     """MTS-FOM parameters at one temperature (Zeng Fig. 1).  C's are CPE coefficients."""
 
     temp_c: float = Field(25.0, ge=TEMP_RANGE_C[0], le=TEMP_RANGE_C[1])
-    r_ohm: float = Field(gt=0, description="ohmic resistance, ohm")
-    r_ct: float = Field(gt=0, description="charge-transfer resistance, ohm")
+    r_ohm: float = Field(gt=0, le=PLAUSIBLE_MAX_OHM, description="ohmic resistance, ohm")
+    r_ct: float = Field(gt=0, le=PLAUSIBLE_MAX_OHM, description="charge-transfer resistance, ohm")
     c_dl: float = Field(gt=0, description="double-layer CPE coefficient, F s^(m-1)")
     m: float = Field(gt=0, le=1, description="charge-transfer CPE order")
-    r_df: float = Field(gt=0, description="diffusion resistance, ohm")
+    r_df: float = Field(gt=0, le=PLAUSIBLE_MAX_OHM, description="diffusion resistance, ohm")
     c_df: float = Field(gt=0, description="diffusion CPE coefficient, F s^(n-1)")
     n: float = Field(gt=0, le=1, description="diffusion CPE order")
     i0_a: float | None = Field(
@@ -121,7 +127,7 @@ class ArrheniusSpec(_Strict):
 class BranchSpec(_Strict):
     """An extra CPE branch (e.g. a slow diffusion time constant)."""
 
-    r: float = Field(gt=0)
+    r: float = Field(gt=0, le=PLAUSIBLE_MAX_OHM)
     c: float = Field(gt=0)
     alpha: float = Field(1.0, gt=0, le=1)
 
@@ -186,7 +192,7 @@ class Extensions(_Strict):
     by ``socd fit --soc-resistance``)."""
 
     current_bias_a: float = 0.0
-    capacity_scale: float = Field(1.0, gt=0)
+    capacity_scale: float = Field(1.0, ge=PLAUSIBLE_CAPACITY_SCALE[0], le=PLAUSIBLE_CAPACITY_SCALE[1])
     arrhenius: ArrheniusSpec | None = None
     extra_branches: list[BranchSpec] = []
     kinetics_i0_a: float | None = Field(None, gt=0, description="Butler-Volmer exchange current")
@@ -208,10 +214,10 @@ class Ecm2RcPoint(_Strict):
     """Textbook 2-RC parameters at one temperature (``V = OCV - R0 I - U1 - U2``)."""
 
     temp_c: float = Field(25.0, ge=TEMP_RANGE_C[0], le=TEMP_RANGE_C[1])
-    r0: float = Field(gt=0, description="ohmic resistance, ohm")
-    r1: float = Field(ge=0, description="fast RC branch resistance, ohm")
+    r0: float = Field(gt=0, le=PLAUSIBLE_MAX_OHM, description="ohmic resistance, ohm")
+    r1: float = Field(ge=0, le=PLAUSIBLE_MAX_OHM, description="fast RC branch resistance, ohm")
     tau1_s: float = Field(gt=0, description="fast RC branch time constant, s")
-    r2: float = Field(ge=0, description="slow RC branch resistance, ohm")
+    r2: float = Field(ge=0, le=PLAUSIBLE_MAX_OHM, description="slow RC branch resistance, ohm")
     tau2_s: float = Field(gt=0, description="slow RC branch time constant, s")
     fit_rmse_mv: float | None = Field(None, ge=0, description="fit RMSE on the characterisation data, mV")
 
@@ -261,7 +267,7 @@ class CellProfile(_Strict):
     schema_version: int = Field(SCHEMA_VERSION, description="profile format; a later one is from a newer socd, "
                                 "which this one cannot read")
     name: str = "cell"
-    capacity_ah: float = Field(gt=0)
+    capacity_ah: float = Field(gt=0, le=PLAUSIBLE_MAX_CAPACITY_AH)
     #: the G-L short memory the parameters were fitted with, in seconds (``L`` samples × the fit
     #: data's sample period): the estimators run the model with ``L = span / h`` at their own
     #: sample period ``h`` (:mod:`service.cell.memory`); None (a profile from before): ``L`` as set
@@ -291,6 +297,15 @@ class CellProfile(_Strict):
             raise ValueError("i0_a must be given at every temperature or at none "
                              f"(given at {[p.temp_c for p in v if p.i0_a is not None]})")
         return ordered
+
+    @model_validator(mode="after")
+    def _plausible_bias(self) -> CellProfile:
+        """A current-sensor offset beyond :data:`PLAUSIBLE_MAX_BIAS_C` × 1C is no sensor offset."""
+        bias = self.extensions.current_bias_a
+        if not abs(bias) <= PLAUSIBLE_MAX_BIAS_C * self.capacity_ah:
+            raise ValueError(f"extensions.current_bias_a {bias:g} A is beyond {PLAUSIBLE_MAX_BIAS_C:g}C of this "
+                             f"{self.capacity_ah:g} Ah cell: a current-sensor offset that size is a unit or typing error")
+        return self
 
     @model_validator(mode="after")
     def _kinetic_floor(self) -> CellProfile:
