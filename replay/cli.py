@@ -227,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
         except InputFileError as exc:
             raise UserError(str(exc)) from None
         warn_unknown_ids(path, ids, config)
+        warn_unfinished_asc(path, total)
         if args.time_offset:
             frames = _offset(read_log(path), args.time_offset)
         else:
@@ -327,6 +328,24 @@ def warn_unknown_ids(path: Path, ids: Counter[tuple[int, bool]], config) -> None
     print(f"socd replay: warning: {sum(unknown.values())} of {sum(ids.values())} frames in {path} carry IDs the "
           f"input DBC {config.dbc.input} does not define ({shown}{more}): they are sent as logged, and a socd "
           f"daemon on this config counts them as rejected", file=sys.stderr)
+
+
+#: the line an ASC log's writer (python-can, Vector tools) closes the file with
+ASC_END = "End TriggerBlock"
+
+
+def warn_unfinished_asc(path: Path, frames: int) -> None:
+    """Say when a plain ASC log does not end with :data:`ASC_END`: its writer did not close it (a
+    logger that stopped, a file cut in a copy), so the replay plays the frames up to the cut only."""
+    if path.suffix.lower() != ".asc":
+        return
+    with path.open("rb") as fh:
+        fh.seek(max(0, path.stat().st_size - 4096))
+        tail = fh.read().decode("utf-8", errors="replace").strip()
+    last = tail.splitlines()[-1].strip() if tail else ""
+    if not last.startswith(ASC_END):
+        print(f"socd replay: warning: {path} does not end with '{ASC_END}': the log may have been cut short; "
+              f"the {frames} frames read up to its end are replayed", file=sys.stderr)
 
 
 def _offset(frames, offset):

@@ -931,3 +931,16 @@ def test_a_profile_value_no_cell_can_have_is_refused(tmp_path: Path, capsys, edi
     code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(path), "--quiet", "--estimator", "coulomb"])
     assert_one_line_error(code, err, str(path))
     assert field in err, err
+
+
+def test_an_asc_log_cut_short_replays_with_a_warning(tmp_path: Path, capsys) -> None:
+    """An ASC log whose writer did not close it (no 'End TriggerBlock') replays the frames it has, and
+    says so; a closed one says nothing."""
+    whole = tmp_path / "whole.asc"
+    _write_log(whole, [1.0 + 0.1 * k for k in range(30)])
+    cut = tmp_path / "cut.asc"
+    cut.write_text(whole.read_text().split("End TriggerBlock")[0].rsplit("\n", 3)[0] + "\n")
+    for path, warned in ((whole, False), (cut, True)):
+        code, err = run_cli(capsys, ["replay", str(path), "--no-send", "--fast", "--quiet"])
+        assert code == 0, err
+        assert ("does not end with 'End TriggerBlock'" in err) is warned, err
