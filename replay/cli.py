@@ -227,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
         except InputFileError as exc:
             raise UserError(str(exc)) from None
         warn_unknown_ids(path, ids, config)
-        warn_unfinished_asc(path, total)
+        warn_cut_log(path, total)
         if args.time_offset:
             frames = _offset(read_log(path), args.time_offset)
         else:
@@ -334,18 +334,32 @@ def warn_unknown_ids(path: Path, ids: Counter[tuple[int, bool]], config) -> None
 ASC_END = "End TriggerBlock"
 
 
-def warn_unfinished_asc(path: Path, frames: int) -> None:
-    """Say when a plain ASC log does not end with :data:`ASC_END`: its writer did not close it (a
-    logger that stopped, a file cut in a copy), so the replay plays the frames up to the cut only."""
-    if path.suffix.lower() != ".asc":
-        return
-    with path.open("rb") as fh:
-        fh.seek(max(0, path.stat().st_size - 4096))
-        tail = fh.read().decode("utf-8", errors="replace").strip()
-    last = tail.splitlines()[-1].strip() if tail else ""
-    if not last.startswith(ASC_END):
-        print(f"socd replay: warning: {path} does not end with '{ASC_END}': the log may have been cut short; "
-              f"the {frames} frames read up to its end are replayed", file=sys.stderr)
+def log_cut_short(path: Path) -> str | None:
+    """Why a plain ASC or BLF log looks cut short, or None: an ASC log without :data:`ASC_END` (its
+    writer did not close it), a BLF log smaller than the size its header states (a copy cut off)."""
+    suffix = path.suffix.lower()
+    if suffix == ".asc":
+        with path.open("rb") as fh:
+            fh.seek(max(0, path.stat().st_size - 4096))
+            tail = fh.read().decode("utf-8", errors="replace").strip()
+        last = tail.splitlines()[-1].strip() if tail else ""
+        return None if last.startswith(ASC_END) else f"it does not end with '{ASC_END}'"
+    if suffix == ".blf":
+        import can
+
+        with can.BLFReader(str(path)) as reader:
+            stated = int(reader.file_size)
+        size = path.stat().st_size
+        return f"it holds {size} of the {stated} bytes its header states" if 0 < size < stated else None
+    return None
+
+
+def warn_cut_log(path: Path, frames: int) -> None:
+    """Say when a log looks cut short (:func:`log_cut_short`): the replay plays the frames up to the cut."""
+    why = log_cut_short(path)
+    if why is not None:
+        print(f"socd replay: warning: {path}: {why}, so the log may have been cut short; the {frames} frames "
+              "read up to its end are replayed", file=sys.stderr)
 
 
 def _offset(frames, offset):
