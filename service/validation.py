@@ -23,6 +23,7 @@ import codecs
 import gc
 import logging
 import math
+import struct
 import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -258,6 +259,8 @@ def check_can_log(path: str | Path, suffixes: Sequence[str],
         except Exception as exc:  # noqa: BLE001 - python-can's readers raise many kinds on bad files
             where = f"frame {n + 1}" if n else "start"
             detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            if isinstance(exc, struct.error):  # a binary reader ran past the end of the file's bytes
+                detail = f"the file ends inside a binary record, or is not this format ({detail})"
             error = InputFileError(f"{path}: cannot read as a {suffix[1:]} CAN log at {where}: {detail}")
     finally:
         gc.collect()

@@ -948,3 +948,21 @@ def test_a_log_cut_short_replays_with_a_warning(tmp_path: Path, capsys, suffix: 
         code, err = run_cli(capsys, ["replay", str(path), "--no-send", "--fast", "--quiet"])
         assert code == 0, err
         assert ("may have been cut short" in err) is warned, err
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs Linux's /dev/full (a device that is always full)")
+def test_a_json_that_cannot_be_written_is_named(tmp_path: Path, capsys) -> None:
+    """A write that fails after the work (a full disk) names the file, not only the OS's words."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet",
+                                 "--estimator", "coulomb", "--no-bar", "--json", "/dev/full"])
+    assert_one_line_error(code, err, "/dev/full: cannot write the JSON")
+
+
+def test_a_blf_log_shorter_than_its_header_is_named_so(tmp_path: Path, capsys) -> None:
+    whole = tmp_path / "whole.blf"
+    _write_log(whole, [1.0 + 0.1 * k for k in range(30)])
+    stub = tmp_path / "stub.blf"
+    stub.write_bytes(whole.read_bytes()[:40])
+    code, err = run_cli(capsys, ["replay", str(stub), "--no-send", "--fast", "--quiet"])
+    assert_one_line_error(code, err, "stub.blf: cannot read as a blf CAN log at start: the file ends inside")

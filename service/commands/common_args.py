@@ -450,5 +450,8 @@ def write_json(dest: str | None, obj: Any) -> None:
         sys.stdout.flush()
         return
     path = Path(dest)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text + "\n")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text + "\n")
+    except OSError as exc:  # a full disk, a device, a folder made read-only after the check
+        raise UserError(f"{path}: cannot write the JSON: {exc.strerror or exc}") from None
