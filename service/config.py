@@ -689,6 +689,17 @@ def load_config(path: str | Path | None = None, *, check_files: bool = True) -> 
     return config
 
 
+def dbc_load_problem(exc: BaseException) -> str:
+    """cantools' error on a DBC it cannot parse, in one readable line: the parser's first line, cut to
+    a length a terminal shows (a binary file puts its bytes in it), and what an index error from the
+    parser means (cantools passes it on in its own error's text): a file that ends mid-definition."""
+    detail = " ".join(str(exc).split()) or type(exc).__name__
+    detail = detail if len(detail) <= 120 and detail.isprintable() else repr(detail[:80]) + "..."
+    if isinstance(exc, (IndexError, KeyError)) or "index out of range" in detail:
+        return f"the file ends inside a definition, or is no DBC (cantools: {detail})"
+    return detail
+
+
 def _load_config_dbc(config: SocdConfig, field: str, source: str):
     p = getattr(config.dbc, field)
     try:
@@ -696,8 +707,7 @@ def _load_config_dbc(config: SocdConfig, field: str, source: str):
     except FileNotFoundError:
         raise ConfigError(f"{source}: dbc.{field}: no such file {p}{_no_packaged(p, dbc_path)}") from None
     except Exception as exc:  # cantools raises many kinds for a bad file
-        detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConfigError(f"{source}: dbc.{field}: cannot load DBC {p}: {detail}") from None
+        raise ConfigError(f"{source}: dbc.{field}: cannot load DBC {p}: {dbc_load_problem(exc)}") from None
 
 
 def check_config_files(config: SocdConfig, source: str = "<config>") -> None:

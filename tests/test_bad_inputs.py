@@ -966,3 +966,13 @@ def test_a_blf_log_shorter_than_its_header_is_named_so(tmp_path: Path, capsys) -
     stub.write_bytes(whole.read_bytes()[:40])
     code, err = run_cli(capsys, ["replay", str(stub), "--no-send", "--fast", "--quiet"])
     assert_one_line_error(code, err, "stub.blf: cannot read as a blf CAN log at start: the file ends inside")
+
+
+def test_a_dbc_cut_short_is_named_so(tmp_path: Path, capsys) -> None:
+    """cantools answers a DBC that ends inside its header with 'list index out of range'; the
+    message says what that means."""
+    dbc = tmp_path / "cut.dbc"
+    dbc.write_bytes(Path(DEFAULT_INPUT_DBC).read_bytes()[:300])
+    code, err = run_cli(capsys, ["check", "--config", str(_config_file(tmp_path, dbc))])
+    assert code == 2 and "Traceback" not in err, err
+    assert "cut.dbc: the file ends inside a definition" in err, err

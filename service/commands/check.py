@@ -71,7 +71,7 @@ def check_config(path: Path | None) -> CheckResult:
 
 
 def _check_dbcs(config: Any, res: CheckResult) -> dict[str, Any]:
-    from service.config import load_dbc
+    from service.config import dbc_load_problem, load_dbc
 
     dbs = {}
     for which in ("input", "output"):
@@ -81,7 +81,7 @@ def _check_dbcs(config: Any, res: CheckResult) -> dict[str, Any]:
         except FileNotFoundError:
             res.problem(f"dbc.{which}", f"no such file {p}")
         except Exception as exc:  # noqa: BLE001 - cantools raises many kinds for a bad file
-            res.problem(f"dbc.{which}", f"cannot load DBC {p}: {' '.join(str(exc).split())}")
+            res.problem(f"dbc.{which}", f"cannot load DBC {p}: {dbc_load_problem(exc)}")
     return dbs
 
 
