@@ -976,3 +976,51 @@ def test_a_dbc_cut_short_is_named_so(tmp_path: Path, capsys) -> None:
     code, err = run_cli(capsys, ["check", "--config", str(_config_file(tmp_path, dbc))])
     assert code == 2 and "Traceback" not in err, err
     assert "cut.dbc: the file ends inside a definition" in err, err
+
+
+@pytest.mark.parametrize("body, field", [
+    ("[ecm2rc_ekf]\nvoltage_noise_v = \"abc\"\n", "ecm2rc_ekf.voltage_noise_v"),
+    ("[ecm2rc_ekf]\nvoltage_noise_v = 1e300\n", "ecm2rc_ekf.voltage_noise_v"),
+    ("[ecm2rc_ekf]\nvoltage_noise_v = nan\n", "ecm2rc_ekf.voltage_noise_v"),
+    ("[ecm2rc_ekf]\nsoc_clip = 0.5\n", "ecm2rc_ekf.soc_clip"),
+    ("[ecm2rc_ekf]\nadaptive_noise_shape = \"bogus\"\n", "ecm2rc_ekf.adaptive_noise_shape"),
+    ("[ecm2rc_ekf]\nsoc0_std = 0\n", "ecm2rc_ekf.soc0_std"),
+    ("ecm2rc_ekf = 3\n", "'ecm2rc_ekf' must be a table"),
+    ("voltage_noise_v = 0.5\n[estimator]\n", "voltage_noise_v beside the [estimator] table"),
+])
+def test_settings_the_filters_cannot_run_on_are_refused(tmp_path: Path, capsys, body: str, field: str) -> None:
+    """The 2-RC EKF's tuning was checked by name only: a string, an overflow or a scalar for a range
+    crashed inside the filter, and NaN or 0 ran to a row of nan or a filter that never corrects; a key
+    beside an [estimator] table was dropped without a word."""
+    settings = tmp_path / "s.toml"
+    settings.write_text(body)
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet",
+                                 "--estimator", "ecm2rc-ekf", "--settings", str(settings)])
+    assert_one_line_error(code, err, field)
+
+
+def test_fit_refuses_a_recording_given_twice(tmp_path: Path, capsys) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    copy = tmp_path / "copy.csv"
+    shutil.copy(rec, copy)
+    for second, said in ((rec, "the same file as"), (copy, "a copy of")):
+        code, err = run_cli(capsys, ["fit", str(rec), str(second), "--capacity-ah", "2.9", "-o", str(tmp_path / "c.toml")])
+        assert_one_line_error(code, err, said)
+        assert not (tmp_path / "c.toml").exists()
+
+
+def test_bench_and_demo_never_write_over_an_input_or_each_other(tmp_path: Path, capsys) -> None:
+    cell = tmp_path / "cell.toml"
+    shutil.copy(DEFAULT_CELL_PROFILE, cell)
+    before = cell.read_bytes()
+    code, err = run_cli(capsys, ["bench", "--cells", "2", "--steps", "20", "--reference-steps", "5",
+                                 "--cell", str(cell), "--json", str(cell)])
+    assert_one_line_error(code, err, "is one of the input files")
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["demo", "--recording", str(rec), "--cells", "2", "--json", str(rec)])
+    assert_one_line_error(code, err, "is one of the input files")
+    both = str(tmp_path / "same.png")
+    code, err = run_cli(capsys, ["demo", "--recording", str(rec), "--cells", "2", "--json", both, "--plot", both])
+    assert_one_line_error(code, err, "give each output a file of its own")
+    assert cell.read_bytes() == before and rec.read_text().startswith(HEADER)

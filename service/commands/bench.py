@@ -18,6 +18,7 @@ from service.commands.common_args import (
     add_common_arguments,
     float_in,
     int_range,
+    refuse_overwriting_inputs,
     setup_logging,
     text_stream,
     write_json,
@@ -71,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from service.estimators.settings import EstimatorSettings
 
     setup_logging(args)
+    refuse_overwriting_inputs(args.json, [args.cell], "--json")
     if args.latency and args.simulate:
         raise UserError("--latency and --simulate are two different measurements: give one")
     defaults = (20, 10_000, 1_000) if args.simulate else (200, 400, 40)

@@ -289,6 +289,25 @@ def refuse_shared_outputs(outputs: Sequence[tuple[str, str | Path | None]]) -> N
         seen[key] = flag
 
 
+def refuse_repeated_inputs(paths: Sequence[str | Path]) -> None:
+    """Raise :class:`UserError` where one input file is given twice, by the same path or as a copy
+    with the same bytes: its data would count twice (a fit would weigh it double, and its OCV rows
+    from one test would be read as two)."""
+    import hashlib
+
+    seen: dict[str, Path] = {}
+    for given in paths:
+        p = Path(given)
+        try:
+            key = hashlib.sha256(p.read_bytes()).hexdigest()
+        except OSError:
+            continue  # the loader names a file it cannot read
+        if key in seen:
+            same = "the same file as" if p.resolve() == seen[key].resolve() else "a copy of"
+            raise UserError(f"{p}: {same} {seen[key]}, given before; give each recording once")
+        seen[key] = p
+
+
 # ---------------------------------------------------------------------------------------
 # deprecated spellings
 # ---------------------------------------------------------------------------------------

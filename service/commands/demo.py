@@ -15,6 +15,8 @@ from service.commands.common_args import (
     non_negative_float,
     plot_file,
     positive_float,
+    refuse_overwriting_inputs,
+    refuse_shared_outputs,
     relative_sigma,
     setup_logging,
     text_stream,
@@ -72,6 +74,9 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
     if args.recording is not None and not args.recording.is_file():
         raise UserError(f"{args.recording}: no such recording")
+    for flag, out in (("--json", args.json), ("--plot", args.plot)):
+        refuse_overwriting_inputs(out, [args.recording, args.cell], flag)
+    refuse_shared_outputs([("--json", args.json), ("--plot", args.plot)])
     plot = args.plot
     if not installed("matplotlib"):
         if plot is not None:

@@ -115,12 +115,24 @@ def load_settings(path: str | None) -> tuple[EstimatorSettings, dict]:
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{path}: cannot read settings: {exc}") from exc
     ekf = raw.pop("ecm2rc_ekf", {})
+    if not isinstance(ekf, dict):
+        raise UserError(f"{path}: 'ecm2rc_ekf' must be a table of EKF tuning options, got {ekf!r}")
     known = [f.name for f in fields(EkfTuning)]
     for key, value in ekf.items():  # checked here, whether or not the EKF runs, before the long work
         if key not in known:
             raise UserError(f"{path}: field 'ecm2rc_ekf.{key}' is not an EKF tuning option; known: {', '.join(known)}")
         if not isinstance(value, (int, float, str)) or isinstance(value, bool):
             raise UserError(f"{path}: field 'ecm2rc_ekf.{key}': expected a number or a string, got {value!r}")
+    if "estimator" in raw and len(raw) > 1:
+        # with an [estimator] table the top level holds nothing else: a key beside it would be dropped
+        others = ", ".join(sorted(k for k in raw if k != "estimator"))
+        raise UserError(f"{path}: {others} beside the [estimator] table would be ignored; put pipeline settings "
+                        "under [estimator] (or all at the top level) and the 2-RC EKF's under [ecm2rc_ekf]")
+    try:
+        EkfTuning(**ekf)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise UserError(f"{path}: field 'ecm2rc_ekf.{'.'.join(map(str, err['loc']))}': {err['msg']}") from exc
     try:
         return EstimatorSettings.model_validate(raw.get("estimator", raw)), ekf
     except ValidationError as exc:

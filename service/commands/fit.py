@@ -8,6 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from pydantic import ValidationError
+
 from service.cell.ocv import load_ocv_csv
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
@@ -38,6 +40,7 @@ from service.commands.common_args import (
     positive_int,
     progress_enabled,
     refuse_overwriting_inputs,
+    refuse_repeated_inputs,
     refuse_shared_outputs,
     resistance_share,
     setup_logging,
@@ -212,6 +215,7 @@ def run(args: argparse.Namespace) -> int:
     if args.max_tau_df is not None and args.max_tau_df < MIN_TAU_DF_CAP_S:
         raise UserError(f"--max-tau-df {args.max_tau_df:g}: the cap must be at least {MIN_TAU_DF_CAP_S:g} s, the "
                         "textbook 2-RC's least time constant; a faster diffusion branch is no diffusion branch")
+    refuse_repeated_inputs(args.recordings)
     originals = [load_recording(p) for p in args.recordings]
     averaged = to_fit_period(originals, args.fit_period)
     recs = [a.recording for a in averaged]
@@ -230,6 +234,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         candidates = [fit_candidate(args, recs, full, table, out.stem, k, bar) for k in range(args.candidates)]
         pick = choose(candidates, originals, full, log, bar)
+    except ValidationError as exc:  # the fit's result broke a profile rule: the data did not determine it
+        err = exc.errors()[0]
+        raise UserError(f"the fit made no valid profile from {', '.join(map(str, args.recordings))}: "
+                        f"{'.'.join(map(str, err['loc']))}: {' '.join(err['msg'].split())}; the recordings do "
+                        "not determine it (a drive or rests over more of the SOC range would)") from exc
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     finally:

@@ -45,9 +45,12 @@ clipped to ``soc_clip`` after each update.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import fields
+from typing import Literal
 
 import numpy as np
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.cell.model import kinetic_overpotential
 from service.cell.ocv import OcvTable
@@ -61,7 +64,7 @@ from service.recording import Recording
 N_STATES = 3
 
 
-@dataclass(frozen=True)
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid", allow_inf_nan=False))
 class EkfTuning:
     """Noise constants and guards of the 2-RC EKF.
 
@@ -73,29 +76,29 @@ class EkfTuning:
     the scored files the default is as good as the per-cell choices.
     """
 
-    voltage_noise_v: float = 0.01
+    voltage_noise_v: float = Field(0.01, gt=0, le=1)
     #: current-sensor σ as a fraction of 1C (scale-free, as the pipeline's ``current_noise_c``)
-    current_noise_c: float = 0.009
+    current_noise_c: float = Field(0.009, ge=0, le=10)
     #: the same σ in A, overriding ``current_noise_c`` when set
-    current_noise_a: float | None = None
-    soc_noise_per_sqrt_s: float = 1e-5
-    u_noise_v_per_sqrt_s: float = 2e-4
-    soc0_std: float = 0.2
-    u0_std_v: float = 0.005
-    temp_update_c: float = 0.5
+    current_noise_a: float | None = Field(None, ge=0, le=1000)
+    soc_noise_per_sqrt_s: float = Field(1e-5, ge=0, le=1)
+    u_noise_v_per_sqrt_s: float = Field(2e-4, ge=0, le=1)
+    soc0_std: float = Field(0.2, gt=0, le=1)
+    u0_std_v: float = Field(0.005, ge=0, le=1)
+    temp_update_c: float = Field(0.5, gt=0, le=100)
     #: covariance matching of the measurement noise over about this many samples (0 = off);
     #: the same adaptive rule as the pipeline's ``adaptive_noise_samples``, so the baseline
     #: gets every tuning aid the pipeline gets
-    adaptive_noise_samples: int = 300
+    adaptive_noise_samples: int = Field(300, ge=0, le=100000)
     #: 'uniform' or 'load' (see service.estimators.adaptive_noise), as the pipeline's setting
-    adaptive_noise_shape: str = "uniform"
+    adaptive_noise_shape: Literal["uniform", "load"] = "uniform"
     #: SOC in [0, 1] (DESIGN), the same bound as the pipeline's filter
     soc_clip: tuple[float, float] = (0.0, 1.0)
     #: the measurement Jacobian's dOCV/dSOC: 0 = the table's slope at the estimate (the textbook
     #: linearisation); > 0 = the secant over ± this much SOC, which reads a fitted table's flat
     #: steps (a monotone fit's active constraint) as the rise across them
     #: (``loco_ekf_ocv_slope`` in docs/results/tuning.md)
-    ocv_slope_span_soc: float = 0.0
+    ocv_slope_span_soc: float = Field(0.0, ge=0, le=0.5)
 
 
 def ecm_parameters(profile: CellProfile, temp_c: np.ndarray) -> dict[str, np.ndarray]:
