@@ -1024,3 +1024,17 @@ def test_bench_and_demo_never_write_over_an_input_or_each_other(tmp_path: Path, 
     code, err = run_cli(capsys, ["demo", "--recording", str(rec), "--cells", "2", "--json", both, "--plot", both])
     assert_one_line_error(code, err, "give each output a file of its own")
     assert cell.read_bytes() == before and rec.read_text().startswith(HEADER)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+def test_an_output_onto_a_pipe_or_an_empty_name_is_refused(tmp_path: Path, capsys) -> None:
+    """--json onto a named pipe waited for ever after the run for a reader; -o '' wrote into the
+    current folder."""
+    fifo = tmp_path / "out.json"
+    os.mkfifo(fifo)
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--quiet",
+                                 "--estimator", "coulomb", "--no-bar", "--json", str(fifo)])
+    assert code == 2 and "is a pipe or socket" in err and "Traceback" not in err, err
+    code, err = run_cli(capsys, ["schema", "-o", ""])
+    assert code == 2 and "an empty name" in err and "Traceback" not in err, err

@@ -238,8 +238,13 @@ def output_file(*suffixes: str) -> Callable[[str], str]:
         if text == "-":
             return text
         path = Path(text)
+        if not text.strip():
+            raise argparse.ArgumentTypeError("an empty name; give a file name")
         if path.is_dir():
             raise argparse.ArgumentTypeError(f"{text} is a folder; give a file name")
+        if path.is_fifo() or path.is_socket():
+            # a write would wait, after the whole run, for a reader that may never come
+            raise argparse.ArgumentTypeError(f"{text} is a pipe or socket, not a file; give a file name (or - for stdout)")
         if suffixes and path.suffix.lower() not in suffixes:
             raise argparse.ArgumentTypeError(f"{text}: expected a {' or '.join(suffixes)} file")
         why = _writable_place(path)
@@ -257,6 +262,8 @@ def plot_file(text: str) -> Path:
 def output_dir(text: str) -> str:
     """A folder to write files into (made if missing): not an existing file."""
     path = Path(text)
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty name; give a folder")
     if path.exists() and not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is a file; give a folder")
     why = _writable_place(path / "x")
