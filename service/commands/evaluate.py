@@ -9,6 +9,7 @@ from dataclasses import asdict, fields
 from pathlib import Path
 
 import numpy as np
+from pydantic import ValidationError
 
 from service.cell.profile import ProfileError, load_profile
 from service.cell.truth import per_recording
@@ -26,6 +27,7 @@ from service.commands.common_args import (
     write_json,
 )
 from service.commands.progress import open_progress
+from service.errors import validation_message
 from service.estimators.registry import ESTIMATORS, UnknownEstimator, create
 from service.estimators.settings import EstimatorSettings
 from service.evaluation.aggregate import summarise, summary_lines
@@ -103,8 +105,6 @@ def load_settings(path: str | None) -> tuple[EstimatorSettings, dict]:
         return EstimatorSettings(), {}
     import tomllib
 
-    from pydantic import ValidationError
-
     from service.estimators.ecm2rc_ekf import EkfTuning
     from service.validation import InputFileError, read_text
 
@@ -131,13 +131,19 @@ def load_settings(path: str | None) -> tuple[EstimatorSettings, dict]:
     try:
         EkfTuning(**ekf)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        raise UserError(f"{path}: field 'ecm2rc_ekf.{'.'.join(map(str, err['loc']))}': {err['msg']}") from exc
+        raise settings_error(path, exc, "ecm2rc_ekf") from exc
     try:
         return EstimatorSettings.model_validate(raw.get("estimator", raw)), ekf
     except ValidationError as exc:
-        err = exc.errors()[0]
-        raise UserError(f"{path}: field '{'.'.join(map(str, err['loc']))}': {err['msg']}") from exc
+        raise settings_error(path, exc) from exc
+
+
+def settings_error(path: str, exc: ValidationError, table: str | None = None) -> UserError:
+    """One line for a settings file's first invalid field (``table``: the TOML table it sits in), as
+    a cell profile's are named (:func:`service.cell.profile.load_profile`)."""
+    err = exc.errors()[0]
+    field = ".".join(map(str, ([table] if table else []) + list(err["loc"])))
+    return UserError(f"{path}: {f'field {field!r}: ' if field else ''}{validation_message(err)}")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -46,6 +46,7 @@ from service.commands.common_args import (
     setup_logging,
 )
 from service.commands.progress import open_progress
+from service.errors import validation_message
 from service.recording import Recording, load_recording
 
 if TYPE_CHECKING:
@@ -237,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
     except ValidationError as exc:  # the fit's result broke a profile rule: the data did not determine it
         err = exc.errors()[0]
         raise UserError(f"the fit made no valid profile from {', '.join(map(str, args.recordings))}: "
-                        f"{'.'.join(map(str, err['loc']))}: {' '.join(err['msg'].split())}; the recordings do "
+                        f"{'.'.join(map(str, err['loc']))}: {' '.join(validation_message(err).split())}; the recordings do "
                         "not determine it (a drive or rests over more of the SOC range would)") from exc
     except ValueError as exc:
         raise UserError(str(exc)) from exc
