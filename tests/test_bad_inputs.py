@@ -1038,3 +1038,43 @@ def test_an_output_onto_a_pipe_or_an_empty_name_is_refused(tmp_path: Path, capsy
     assert code == 2 and "is a pipe or socket" in err and "Traceback" not in err, err
     code, err = run_cli(capsys, ["schema", "-o", ""])
     assert code == 2 and "an empty name" in err and "Traceback" not in err, err
+
+
+def test_a_capacity_many_times_too_large_is_warned_of() -> None:
+    """The bundled drive with its own profile: the capacity it was characterised with passes, in whole
+    and in a 10-minute window; a hundred times it, which passes every C-rate rule (its peak is still
+    0.05C), is named with the factor the voltage reads."""
+    from service.cell.profile import load_profile
+    from service.cell.truth import capacity_slip
+    from service.recording import load_recording
+
+    profile = load_profile(DEFAULT_CELL_PROFILE)
+    table, capacity = profile.ocv_table(), profile.effective_capacity_ah
+    rec = load_recording(Path(__file__).resolve().parents[1] / "service" / "data" / "pan18650pf_25C_US06.csv")
+    assert capacity_slip(rec, table, capacity, "--capacity-ah") is None
+    window = rec.time_s < rec.time_s[0] + 600.0
+    head = type(rec)(**{**rec.__dict__, **{k: v[window] for k, v in rec.__dict__.items()
+                                          if isinstance(v, np.ndarray) and v.shape == rec.time_s.shape}})
+    assert capacity_slip(head, table, capacity, "--capacity-ah") is None
+    slip = capacity_slip(rec, table, 100 * capacity, "--capacity-ah")
+    assert slip is not None and f"--capacity-ah {100 * capacity:g} Ah" in slip and "times too large" in slip, slip
+
+
+def test_diagnose_warns_of_a_capacity_many_times_too_large_before_it_fits(tmp_path: Path, capsys) -> None:
+    rec = Path(__file__).resolve().parents[1] / "service" / "data" / "pan18650pf_25C_US06.csv"
+    text = DEFAULT_CELL_PROFILE.read_text()
+    cell = tmp_path / "cell.toml"
+    cell.write_text(text.replace("capacity_ah = 2.77", "capacity_ah = 277.0", 1))
+    assert cell.read_text() != text
+    # --save-effect without --save-profile is refused after the input checks, so nothing is fitted
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(cell), "--save-effect", "none", "-q"])
+    assert code == 2 and "warning" in err and "the profile's capacity_ah 277 Ah" in err, err
+    assert "times too large" in err and "--save-effect needs --save-profile" in err, err
+
+
+def test_evaluate_warns_of_a_profile_capacity_many_times_too_large(tmp_path: Path, capsys) -> None:
+    rec = Path(__file__).resolve().parents[1] / "service" / "data" / "pan18650pf_25C_US06.csv"
+    cell = tmp_path / "cell.toml"
+    cell.write_text(DEFAULT_CELL_PROFILE.read_text().replace("capacity_ah = 2.77", "capacity_ah = 277.0", 1))
+    code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(cell), "--estimator", "coulomb", "--no-bar", "-q"])
+    assert code == 0 and "socd evaluate: warning:" in err and "times too large" in err, err

@@ -133,6 +133,60 @@ def check_counted_span(rec: Recording, capacity_ah: float) -> None:
                         f"or the capacity is wrong for this recording{count_hint(rec)}")
 
 
+#: a sample counts as settled light load at or under this share of the recording's largest current
+#: (by the current alone: the capacity it would be a C-rate of is what is being checked) ...
+LIGHT_LOAD_SHARE = 0.1
+#: ... after this long at light load
+LIGHT_LOAD_SETTLE_S = 30.0
+#: how much of the settled light-load voltage's range is not read as SOC, half at each end
+#: (the polarisation left after a pulse, hysteresis, the OCV's temperature dependence)
+CAPACITY_SLIP_ALLOWANCE_V = 0.2
+#: the SOC span counted with the capacity given, times this, is the most the cell may have moved:
+#: a capacity off by less than this factor is the diagnosis's ``capacity`` effect, not a slip
+CAPACITY_SLIP_FACTOR = 3.0
+#: and the voltage must read at least this span of SOC: on 10 to 30 min windows of every shared real
+#: recording, with the right capacity, it read at most 0.30 (a -20 °C pulse test's relaxation)
+CAPACITY_SLIP_MIN_SPAN = 0.4
+
+
+def settled_light_load(rec: Recording) -> np.ndarray:
+    """Samples at light load (:data:`LIGHT_LOAD_SHARE` of the largest current) for at least
+    :data:`LIGHT_LOAD_SETTLE_S` since the last heavier one."""
+    light = np.abs(rec.current_a) <= LIGHT_LOAD_SHARE * float(np.max(np.abs(rec.current_a)))
+    last_heavy = np.maximum.accumulate(np.where(light, -1, np.arange(light.size)))
+    since = np.where(last_heavy >= 0, rec.time_s - rec.time_s[np.maximum(last_heavy, 0)], np.inf)
+    return light & (since >= LIGHT_LOAD_SETTLE_S)
+
+
+def capacity_slip(rec: Recording, table, capacity_ah: float, source: str) -> str | None:
+    """Why ``capacity_ah`` looks many times too large for ``rec``, or None: the settled light-load
+    voltage (:func:`settled_light_load`), read on the OCV ``table`` with
+    :data:`CAPACITY_SLIP_ALLOWANCE_V` taken off its range, spans at least
+    :data:`CAPACITY_SLIP_MIN_SPAN` of SOC and more than :data:`CAPACITY_SLIP_FACTOR` times what the
+    charge counted with ``capacity_ah`` moves. A capacity given ten or a hundred times too large reads a
+    drive as a few per cent of SOC or less, and a diagnosis names whatever absorbs the voltage it cannot
+    explain. A flat OCV (LFP) rarely shows it. Too small a capacity is :func:`check_counted_span`'s."""
+    if len(rec) < 2:
+        return None
+    counted = coulomb_soc(rec.time_s, rec.current_a, capacity_ah, 0.0)
+    span = float(np.max(counted) - np.min(counted))
+    settled = settled_light_load(rec)
+    if np.count_nonzero(settled) < 10:
+        return None
+    lo, hi = np.percentile(rec.voltage_v[settled], [1.0, 99.0])
+    if hi - lo <= CAPACITY_SLIP_ALLOWANCE_V:
+        return None
+    ends = np.array([lo, hi]) + np.array([1.0, -1.0]) * CAPACITY_SLIP_ALLOWANCE_V / 2
+    soc_lo, soc_hi = table.soc_from_ocv(ends, float(np.median(rec.temperature_c)))
+    read = float(soc_hi - soc_lo)
+    if read < max(CAPACITY_SLIP_FACTOR * span, CAPACITY_SLIP_MIN_SPAN):
+        return None
+    return (f"{rec.path}: its voltage at rest or light load reads the OCV table across {read:.2f} of the cell or more "
+            f"({1e3 * lo:.0f}-{1e3 * hi:.0f} mV), but the charge counted with {source} {capacity_ah:g} Ah moves the SOC "
+            f"across only {span:.3f}: the capacity looks {read / max(span, 1e-9):.0f} times too large for this "
+            "recording (is it in the right unit?)")
+
+
 def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
     """The part of ``rec`` to score and its truth SOC.
 

@@ -133,7 +133,12 @@ def _profile_from_args(args):
 
 def run(args: argparse.Namespace) -> int:
     from service.cell.profile import save_profile
-    from service.cell.truth import check_counted_span, check_current_scale, check_current_sign
+    from service.cell.truth import (
+        capacity_slip,
+        check_counted_span,
+        check_current_scale,
+        check_current_sign,
+    )
     from service.characterisation.block_average import describe, to_fit_period
     from service.diagnosis.effects import EFFECTS
     from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
@@ -163,8 +168,11 @@ def run(args: argparse.Namespace) -> int:
     if len(rec) < 100:
         raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
     check_current_sign(rec)
-    check_current_scale(rec, profile.effective_capacity_ah, "--capacity-ah" if fit_base else "the profile's capacity_ah")
+    source = "--capacity-ah" if fit_base else "the profile's capacity_ah"
+    check_current_scale(rec, profile.effective_capacity_ah, source)
     check_counted_span(rec, profile.effective_capacity_ah)
+    if (slip := capacity_slip(rec, profile.ocv_table(), profile.effective_capacity_ah, source)) is not None:
+        print(f"socd diagnose: warning: {slip}", file=sys.stderr)
     if not fit_base and (beyond := profile.temperatures_beyond_fit(rec.temperature_c)) is not None:
         print(f"socd diagnose: warning: {rec.path.name}: {beyond}", file=sys.stderr)
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:

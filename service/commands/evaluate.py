@@ -12,7 +12,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from service.cell.profile import ProfileError, load_profile
-from service.cell.truth import per_recording
+from service.cell.truth import capacity_slip, per_recording
 from service.cli import UserError
 from service.commands.common_args import (
     add_cell_argument,
@@ -170,6 +170,9 @@ def run(args: argparse.Namespace) -> int:
     for rec in recordings:
         if (beyond := profile.temperatures_beyond_fit(rec.temperature_c)) is not None:
             print(f"socd evaluate: warning: {rec.path.name}: {beyond}", file=sys.stderr)
+        if (slip := capacity_slip(rec, profile.ocv_table(), profile.effective_capacity_ah,
+                                  "the profile's capacity_ah")) is not None:
+            print(f"socd evaluate: warning: {slip}", file=sys.stderr)
     names_seen = [r.name for r in recordings]
     if (args.traces or args.plots) and len(set(names_seen)) < len(names_seen):
         twice = next(n for n in names_seen if names_seen.count(n) > 1)
