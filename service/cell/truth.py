@@ -145,7 +145,8 @@ CAPACITY_SLIP_ALLOWANCE_V = 0.2
 #: a capacity off by less than this factor is the diagnosis's ``capacity`` effect, not a slip
 CAPACITY_SLIP_FACTOR = 3.0
 #: and the voltage must read at least this span of SOC: on 10 to 30 min windows of every shared real
-#: recording, with the right capacity, it read at most 0.30 (a -20 °C pulse test's relaxation)
+#: recording, with the right capacity, it read at most 0.30 (a -20 °C pulse test's relaxation); an OCV
+#: table fitted without an OCV test can still read more where it is flat and wrong
 CAPACITY_SLIP_MIN_SPAN = 0.4
 
 
@@ -184,7 +185,7 @@ def capacity_slip(rec: Recording, table, capacity_ah: float, source: str) -> str
     return (f"{rec.path}: its voltage at rest or light load reads the OCV table across {read:.2f} of the cell or more "
             f"({1e3 * lo:.0f}-{1e3 * hi:.0f} mV), but the charge counted with {source} {capacity_ah:g} Ah moves the SOC "
             f"across only {span:.3f}: the capacity looks {read / max(span, 1e-9):.0f} times too large for this "
-            "recording (is it in the right unit?)")
+            "recording (is it in the right unit?), or the OCV table is far off the cell where it reads")
 
 
 def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
