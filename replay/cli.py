@@ -151,6 +151,7 @@ def _config(args):
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args)
+    from service.config import DEFAULT_CONFIG
     from service.validation import InputFileError, check_can_log
 
     path = Path(args.input)
@@ -158,13 +159,16 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{path}: is a folder, not a recording or CAN log")
     if not path.is_file():
         raise UserError(f"{path}: no such file")
-    for flag, out in (("--record", args.record), ("--truth-out", args.truth_out)):
-        refuse_overwriting_inputs(out, [path, getattr(args, "cell", None)], flag)
     refuse_shared_outputs([("--record", args.record), ("--truth-out", args.truth_out)])
     mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
     if mf4_files and not installed("asammdf"):
         raise UserError(f"{mf4_files[0]}: MF4 {install_hint('asammdf')}")
     config = _config(args)
+    # every file the replay reads, the config's own included, is an input an output must not replace
+    inputs = [path, getattr(args, "cell", None), args.config or DEFAULT_CONFIG, config.cell_profile,
+              config.dbc.input, config.dbc.output]
+    for flag, out in (("--record", args.record), ("--truth-out", args.truth_out)):
+        refuse_overwriting_inputs(out, inputs, flag)
     if args.stop is not None and args.stop <= 0:
         raise UserError(f"--stop {args.stop:g} plays no frame (it counts seconds from the first frame); give a later time")
     if args.stop is not None and args.start is not None and args.stop <= args.start:

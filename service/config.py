@@ -120,9 +120,26 @@ class BusConfig(_Section):
         return kw
 
 
+def special_file_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be one of the config's files, or None: it exists but is no regular file
+    (a named pipe blocks whoever opens it for reading; a device such as ``/dev/null`` would be
+    replaced by the first checkpoint written). A missing file is each field's own check."""
+    if path.exists() and not path.is_dir() and not path.is_file():
+        return f"{path} is a device, named pipe or socket, not a regular file"
+    return None
+
+
+def _regular_file(v: Path | None) -> Path | None:
+    if v is not None and (problem := special_file_problem(v)) is not None:
+        raise ValueError(problem)
+    return v
+
+
 class DbcConfig(_Section):
     input: Path = DEFAULT_INPUT_DBC
     output: Path = DEFAULT_OUTPUT_DBC
+
+    _files = field_validator("input", "output")(_regular_file)
 
 
 class CellVoltageMap(_Section):
@@ -349,6 +366,8 @@ class ZenohConfig(_Section):
         "them at Zenoh's default. Relative paths resolve against the socd config file's directory.",
     )
 
+    _file = field_validator("config_file")(_regular_file)
+
     @field_validator("listen", "connect")
     @classmethod
     def _endpoints(cls, v: list[str]) -> list[str]:
@@ -401,6 +420,8 @@ class CheckpointConfig(_Section):
         overwritten by the next save."""
         if str(v) in ("", ".") or v.is_dir():
             raise ValueError(f"{str(v) or '(empty)'} is a folder; give the checkpoint's file path")
+        if (problem := special_file_problem(v)) is not None:
+            raise ValueError(f"{problem}; give the checkpoint's file path (the service replaces it at every save)")
         try:
             with v.open("rb") as f:
                 head = f.read(len(CHECKPOINT_MAGIC))
@@ -440,6 +461,8 @@ class SocdConfig(BaseSettings):
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     cell_profile: Path = DEFAULT_CELL_PROFILE
     estimator: EstimatorSettings = EstimatorSettings()
+
+    _profile_file = field_validator("cell_profile")(_regular_file)
     output: OutputConfig = OutputConfig()
     zenoh: ZenohConfig = ZenohConfig()
     checkpoint: CheckpointConfig = CheckpointConfig()
@@ -662,6 +685,8 @@ def load_config(path: str | Path | None = None, *, check_files: bool = True) -> 
     frames the encoder writes, and that ``cell_profile`` exists.
     """
     path = find_config(path)
+    if (problem := special_file_problem(path)) is not None:
+        raise ConfigError(f"{path}: cannot read config: {problem}")
     try:
         text = path.read_text(encoding="utf-8-sig")  # a BOM from a Windows editor is not TOML
     except OSError as exc:

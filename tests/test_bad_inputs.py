@@ -1078,3 +1078,57 @@ def test_evaluate_warns_of_a_profile_capacity_many_times_too_large(tmp_path: Pat
     cell.write_text(DEFAULT_CELL_PROFILE.read_text().replace("capacity_ah = 2.77", "capacity_ah = 277.0", 1))
     code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(cell), "--estimator", "coulomb", "--no-bar", "-q"])
     assert code == 0 and "socd evaluate: warning:" in err and "times too large" in err, err
+
+
+def test_an_output_onto_a_hard_link_of_an_input_is_refused(tmp_path: Path, capsys) -> None:
+    cell = tmp_path / "cell.toml"
+    shutil.copy(DEFAULT_CELL_PROFILE, cell)
+    os.link(cell, tmp_path / "same.toml")
+    code, err = run_cli(capsys, ["bench", "--cell", str(cell), "--json", str(tmp_path / "same.toml"),
+                                 "--cells", "1", "--steps", "10", "--reference-steps", "2"])
+    assert_one_line_error(code, err, "is one of the input files")
+    assert cell.read_text() == DEFAULT_CELL_PROFILE.read_text()
+
+
+def test_bench_counts_its_default_profile_as_an_input(tmp_path: Path, capsys, monkeypatch) -> None:
+    """Without --cell, bench reads the bundled profile: --json onto it is refused (here a copy stands
+    in for the bundled file, so a failure cannot destroy the checkout's)."""
+    import service.config
+
+    stand_in = tmp_path / "bundled.toml"
+    shutil.copy(DEFAULT_CELL_PROFILE, stand_in)
+    monkeypatch.setattr(service.config, "DEFAULT_CELL_PROFILE", stand_in)
+    code, err = run_cli(capsys, ["bench", "--json", str(stand_in), "--cells", "1", "--steps", "10",
+                                 "--reference-steps", "2"])
+    assert_one_line_error(code, err, "is one of the input files")
+    assert stand_in.read_text() == DEFAULT_CELL_PROFILE.read_text()
+
+
+@pytest.mark.parametrize("target", ["config", "profile", "dbc"])
+def test_replay_truth_out_never_replaces_a_file_its_config_names(tmp_path: Path, capsys, target: str) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    dbc, cell = tmp_path / "in.dbc", tmp_path / "cell.toml"
+    shutil.copy(DEFAULT_INPUT_DBC, dbc)
+    shutil.copy(DEFAULT_CELL_PROFILE, cell)
+    cfg = _config_file(tmp_path, dbc)
+    cfg.write_text(cfg.read_text().replace(str(DEFAULT_CELL_PROFILE), str(cell)))
+    victim = {"config": cfg, "profile": cell, "dbc": dbc}[target]
+    before = victim.read_bytes()
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--config", str(cfg), "--truth-out", str(victim)))
+    assert_one_line_error(code, err, "is one of the input files")
+    assert victim.read_bytes() == before
+
+
+@pytest.mark.parametrize("field", ["checkpoint", "dbc_input", "dbc_output", "profile", "zenoh", "the_config"])
+def test_check_refuses_a_pipe_or_device_among_the_config_files(tmp_path: Path, capsys, field: str) -> None:
+    """A named pipe blocked the reader forever; a device as the checkpoint (/dev/null) would have been
+    replaced by a regular file at the first save."""
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    lines = {"checkpoint": '[checkpoint]\npath = "/dev/null"', "dbc_input": f'[dbc]\ninput = "{pipe}"',
+             "dbc_output": f'[dbc]\noutput = "{pipe}"', "profile": f'cell_profile = "{pipe}"',
+             "zenoh": f'[zenoh]\nconfig_file = "{pipe}"', "the_config": ""}
+    cfg = tmp_path / "socd.toml"
+    cfg.write_text(lines[field] + "\n")
+    code, err = run_cli(capsys, ["check", "--config", str(pipe if field == "the_config" else cfg)])
+    assert_one_line_error(code, err, "not a regular file")

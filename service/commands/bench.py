@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from service.estimators.settings import EstimatorSettings
 
     setup_logging(args)
-    refuse_overwriting_inputs(args.json, [args.cell], "--json")
+    refuse_overwriting_inputs(args.json, [args.cell or DEFAULT_CELL_PROFILE], "--json")
     if args.latency and args.simulate:
         raise UserError("--latency and --simulate are two different measurements: give one")
     defaults = (20, 10_000, 1_000) if args.simulate else (200, 400, 40)

@@ -272,14 +272,26 @@ def output_dir(text: str) -> str:
     return text
 
 
+def same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name one file: the same path once links are resolved, or two hard links
+    to one inode."""
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist yet
+        return False
+
+
 def refuse_overwriting_inputs(output: str | Path | None, inputs: Sequence[str | Path | None], flag: str) -> None:
-    """Raise :class:`UserError` where ``output`` is one of the command's own input files: writing
+    """Raise :class:`UserError` where ``output`` is one of the command's own input files (by path,
+    link or hard link; a caller lists the defaults it reads too, e.g. the bundled profile): writing
     it would destroy the data the command was given."""
     if output is None or str(output) == "-":
         return
-    out = Path(output).resolve()
+    out = Path(output)
     for given in inputs:
-        if given is not None and Path(given).resolve() == out:
+        if given is not None and same_file(Path(given), out):
             raise UserError(f"{flag} {output} is one of the input files; write the result elsewhere")
 
 

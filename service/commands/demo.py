@@ -62,7 +62,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 def _demo(args: argparse.Namespace) -> int:
     from service.cell.profile import ProfileError
-    from service.demo import run_demo, summary_text, write_plot
+    from service.config import DEFAULT_CELL_PROFILE
+    from service.demo import bundled_recording, run_demo, summary_text, write_plot
     from service.extras import install_hint, installed
 
     setup_logging(args)
@@ -74,8 +75,9 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
     if args.recording is not None and not args.recording.is_file():
         raise UserError(f"{args.recording}: no such recording")
+    inputs = [args.recording or bundled_recording(), args.cell or DEFAULT_CELL_PROFILE]
     for flag, out in (("--json", args.json), ("--plot", args.plot)):
-        refuse_overwriting_inputs(out, [args.recording, args.cell], flag)
+        refuse_overwriting_inputs(out, inputs, flag)
     refuse_shared_outputs([("--json", args.json), ("--plot", args.plot)])
     plot = args.plot
     if not installed("matplotlib"):

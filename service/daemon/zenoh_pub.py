@@ -53,6 +53,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -108,6 +109,11 @@ def config_from_section(z: Any):
     if path is None:
         return zenoh_config(z.mode, z.listen, z.connect, z.scouting_multicast)
     import zenoh
+
+    from service.config import special_file_problem
+
+    if (problem := special_file_problem(Path(path))) is not None:  # a pipe would block the read
+        raise ZenohConfigError(f"zenoh.config_file: {problem}")
 
     try:
         cfg = zenoh.Config.from_file(str(path))
