@@ -132,6 +132,18 @@ def test_run_gives_up_after_max_bus_retries(tmp_path, capsys) -> None:
     assert "giving up" in err
 
 
+def test_run_retries_a_backend_that_raises_its_own_kind_of_error(tmp_path, capsys) -> None:
+    """python-can's socketcand backend without host and port raises TypeError (a vendor backend
+    without its library, NameError): a failed open like any other, retried and given up on in one
+    line, not a traceback."""
+    path = _run_config(tmp_path, '[bus]\ninterface = "socketcand"\nchannel = "127.0.0.1"\n'
+                                 'reconnect_initial_s = 0.05\nreconnect_max_s = 0.1\n')
+    rc = main(["run", "--config", str(path), "--max-bus-retries", "1", "--log-level", "error"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "Traceback" not in err, err
+    assert "cannot open CAN bus socketcand:127.0.0.1 after 2 attempts" in err and "host" in err, err
+
+
 def test_run_flags_override_the_config_bus(tmp_path, capsys) -> None:
     path = _run_config(tmp_path, '[bus]\ninterface = "virtual"\nchannel = "cfg"\n'
                                  'reconnect_initial_s = 0.05\nreconnect_max_s = 0.1\n')

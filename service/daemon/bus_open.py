@@ -41,7 +41,11 @@ class BusOpener:
                     f"cannot open CAN bus {self.bus.interface}:{self.bus.channel} after {self.failures} "
                     f"attempts ({exc}); giving up (bus.max_open_retries = {self.max_retries}, "
                     f"--max-bus-retries 0 retries for ever)") from exc
-            raise
+            if isinstance(exc, (can.CanError, OSError, ValueError)):
+                raise
+            # a backend's own kind (a missing vendor library raises NameError, a socketcand bus without
+            # host and port TypeError) is a failed open like the others, counted and retried
+            raise can.CanInitializationError(f"{type(exc).__name__}: {exc}") from exc
         self.failures = 0
         self.opened_once = True
         return opened
