@@ -1132,3 +1132,50 @@ def test_check_refuses_a_pipe_or_device_among_the_config_files(tmp_path: Path, c
     cfg.write_text(lines[field] + "\n")
     code, err = run_cli(capsys, ["check", "--config", str(pipe if field == "the_config" else cfg)])
     assert_one_line_error(code, err, "not a regular file")
+
+
+@pytest.mark.parametrize("case", ["absolute_zero", "huge_ea", "entropic", "correction_lengths", "correction_volts",
+                                  "surface_gain", "tiny_order", "tiny_c_df", "soc_resistance_no_temps"])
+def test_a_profile_extension_beyond_plausible_is_refused(tmp_path: Path, capsys, case: str) -> None:
+    """Extensions crashed the commands (a reference temperature at absolute zero divided by zero; lists
+    of unequal length), overflowed (a CPE order of 0.001), wrote NaN into the JSON (a 1e12 J/mol
+    activation energy, a C of 1e-300) or moved the OCV by volts; each is refused on load, naming it."""
+    ext = {
+        "absolute_zero": ("[extensions.arrhenius]\nref_temp_c = -273.15\n", "ref_temp_c"),
+        "huge_ea": ("[extensions.arrhenius]\nea_r_ohm_j_mol = 1e12\n", "ea_r_ohm_j_mol"),
+        "entropic": ("[extensions.arrhenius]\nentropic_v_per_k = 10.0\n", "entropic_v_per_k"),
+        "correction_lengths": ("[extensions.ocv_correction]\nsoc = [0.0, 0.5, 1.0]\ndelta_v = [0.0, 0.01]\n",
+                               "delta_v has 2 values"),
+        "correction_volts": ("[extensions.ocv_correction]\nsoc = [0.0, 1.0]\ndelta_v = [50.0, 50.0]\n", "beyond"),
+        "surface_gain": ("[extensions.diffusion_surface]\ntau_s = 100.0\ngain = 100.0\n", "gain"),
+        "soc_resistance_no_temps": ("[extensions.soc_resistance]\nsoc = [0.0, 1.0]\ntemps_c = []\n"
+                                    "r_ohm_scale = []\nr_pol_scale = []\n", "temps_c"),
+    }
+    text = Path(DEFAULT_CELL_PROFILE).read_text()
+    if case == "tiny_order":
+        text = text.replace("m = 0.6161674309222125", "m = 0.001", 1)
+        field = "parameters.0.m"
+    elif case == "tiny_c_df":
+        start = text.index("c_df = ")
+        text = text[:start] + "c_df = 1e-300" + text[text.index("\n", start):]
+        field = "time constant"
+    else:
+        block, field = ext[case]
+        text = text.replace("[notes]", block + "\n[notes]", 1)
+    path = tmp_path / f"{case}.toml"
+    path.write_text(text)
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["evaluate", str(rec), "--cell", str(path), "--quiet"])
+    assert_one_line_error(code, err, str(path))
+    assert field in err, err
+
+
+def test_json_output_writes_a_value_that_is_not_finite_as_null(tmp_path: Path, capsys) -> None:
+    import json
+
+    from service.commands.common_args import write_json
+
+    out = tmp_path / "r.json"
+    write_json(str(out), {"a": float("nan"), "b": [1.0, float("inf")], "c": np.float64(2.5)})
+    assert json.loads(out.read_text()) == {"a": None, "b": [1.0, None], "c": 2.5}
+    assert "2 value(s) in the JSON were not finite" in capsys.readouterr().err

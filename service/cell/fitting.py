@@ -316,11 +316,12 @@ def diffusion_tau(ln_tau: np.ndarray | float, max_tau_s: float | None) -> np.nda
 def encode_point(point: ParameterPoint, capacity_ah: float = BOUNDS_MIN_CAPACITY_AH) -> np.ndarray:
     """A :class:`ParameterPoint` -> base search coordinates (clipped into the bounds of a cell of
     ``capacity_ah``, :func:`search_bounds`)."""
-    tau_ct = (point.r_ct * point.c_dl) ** (1.0 / point.m)
-    tau_df = (point.r_df * point.c_df) ** (1.0 / point.n)
+    # tau = (R C)^(1/order), taken in logs: a small order overflows the power
+    ln_tau_ct = math.log(point.r_ct * point.c_dl) / point.m
+    ln_tau_df = math.log(point.r_df * point.c_df) / point.n
     x = np.array([
-        math.log(point.r_ohm), math.log(point.r_ct), math.log(tau_ct), point.m,
-        math.log(point.r_df), math.log(max(tau_df / tau_ct, 1e-12)), point.n,
+        math.log(point.r_ohm), math.log(point.r_ct), ln_tau_ct, point.m,
+        math.log(point.r_df), max(ln_tau_df - ln_tau_ct, math.log(1e-12)), point.n,
     ])
     lo, hi = np.array(list(search_bounds(capacity_ah).values())).T
     return np.clip(x, lo, hi)

@@ -15,6 +15,7 @@ Files are TOML (``.toml``) or JSON (anything else), chosen by suffix.
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from dataclasses import dataclass
 from itertools import pairwise
@@ -39,6 +40,27 @@ PLAUSIBLE_MAX_OHM = 1.0e4  # any resistance; a coin cell's are tens of ohms, a 1
 PLAUSIBLE_MAX_CAPACITY_AH = 1.0e5
 PLAUSIBLE_CAPACITY_SCALE = (0.1, 10.0)  # effective capacity over the stated one
 PLAUSIBLE_MAX_BIAS_C = 1.0  # a current-sensor offset, as a fraction of 1C
+# the extensions' parameters: each several times what socd diagnose fits at most, so a saved effect
+# always loads and a hand edit that would move the voltage by volts (or overflow it) does not
+PLAUSIBLE_MAX_HYSTERESIS_V = 0.5  # the half-gap U_H (diagnose: 0.15 V)
+PLAUSIBLE_MAX_EA_J_MOL = 1.5e5  # an activation energy (cells: 20-80 kJ/mol; diagnose: 80 kJ/mol)
+PLAUSIBLE_MAX_ENTROPIC_V_K = 0.01  # dOCV/dT (cells: under 1 mV/K; diagnose: 1 mV/K)
+PLAUSIBLE_MAX_OCV_CORRECTION_V = 0.5  # an additive OCV correction (diagnose: 0.15 V)
+PLAUSIBLE_MAX_SURFACE_GAIN = 2.0  # a surface SOC deficit per 1C (diagnose: 0.5)
+# a CPE branch: its order and its time constant (R C)^(1/order) (socd fit: orders from 0.3,
+# time constants 0.1 s to about 10 days)
+PLAUSIBLE_MIN_ORDER = 0.1
+PLAUSIBLE_TAU_S = (1e-4, 1e8)
+
+
+def cpe_tau_problem(r: float, c: float, order: float, what: str) -> str | None:
+    """Why the time constant ``(r c)^(1/order)`` of a CPE branch is implausible, or None (taken in
+    logs: a small order overflows the power)."""
+    ln_tau = (math.log(r) + math.log(c)) / order if r > 0 and c > 0 else -math.inf
+    lo, hi = PLAUSIBLE_TAU_S
+    if not math.log(lo) <= ln_tau <= math.log(hi):
+        return f"{what}'s time constant (R C)^(1/order) is outside {lo:g}-{hi:g} s"
+    return None
 GAS_CONSTANT = 8.314462618  # J/(mol K)
 FARADAY = 96485.33212  # C/mol
 KELVIN = 273.15
@@ -83,14 +105,22 @@ class ParameterPoint(_Strict):
     r_ohm: float = Field(gt=0, le=PLAUSIBLE_MAX_OHM, description="ohmic resistance, ohm")
     r_ct: float = Field(gt=0, le=PLAUSIBLE_MAX_OHM, description="charge-transfer resistance, ohm")
     c_dl: float = Field(gt=0, description="double-layer CPE coefficient, F s^(m-1)")
-    m: float = Field(gt=0, le=1, description="charge-transfer CPE order")
+    m: float = Field(ge=PLAUSIBLE_MIN_ORDER, le=1, description="charge-transfer CPE order")
     r_df: float = Field(gt=0, le=PLAUSIBLE_MAX_OHM, description="diffusion resistance, ohm")
     c_df: float = Field(gt=0, description="diffusion CPE coefficient, F s^(n-1)")
-    n: float = Field(gt=0, le=1, description="diffusion CPE order")
+    n: float = Field(ge=PLAUSIBLE_MIN_ORDER, le=1, description="diffusion CPE order")
     i0_a: float | None = Field(
         None, gt=0, description="Butler-Volmer exchange current at this temperature, A (the apparent "
         "resistance falls as the current rises; None = linear charge transfer)",
     )
+
+    @model_validator(mode="after")
+    def _time_constants(self) -> ParameterPoint:
+        for problem in (cpe_tau_problem(self.r_ct, self.c_dl, self.m, "the charge-transfer branch"),
+                        cpe_tau_problem(self.r_df, self.c_df, self.n, "the diffusion branch")):
+            if problem is not None:
+                raise ValueError(f"{problem} at {self.temp_c:g} °C")
+        return self
 
 
 class HysteresisSpec(_Strict):
@@ -104,7 +134,7 @@ class HysteresisSpec(_Strict):
     cell just charged (``U_h = +U_H``) sits on a charge-branch table, not ``U_H`` above it.
     """
 
-    u_h_max_v: float = Field(0.0, ge=0)
+    u_h_max_v: float = Field(0.0, ge=0, le=PLAUSIBLE_MAX_HYSTERESIS_V)
     rate: float = Field(30.0, gt=0)
     table_branch: Literal["mean", "charge", "discharge"] = "mean"
 
@@ -117,11 +147,11 @@ class HysteresisSpec(_Strict):
 class ArrheniusSpec(_Strict):
     """Resistances scale as exp(Ea/R (1/T - 1/T_ref)); entropic OCV slope dOCV/dT."""
 
-    ref_temp_c: float = 25.0
-    ea_r_ohm_j_mol: float = 0.0
-    ea_r_ct_j_mol: float = 0.0
-    ea_r_df_j_mol: float = 0.0
-    entropic_v_per_k: float = 0.0
+    ref_temp_c: float = Field(25.0, ge=TEMP_RANGE_C[0], le=TEMP_RANGE_C[1])
+    ea_r_ohm_j_mol: float = Field(0.0, ge=-PLAUSIBLE_MAX_EA_J_MOL, le=PLAUSIBLE_MAX_EA_J_MOL)
+    ea_r_ct_j_mol: float = Field(0.0, ge=-PLAUSIBLE_MAX_EA_J_MOL, le=PLAUSIBLE_MAX_EA_J_MOL)
+    ea_r_df_j_mol: float = Field(0.0, ge=-PLAUSIBLE_MAX_EA_J_MOL, le=PLAUSIBLE_MAX_EA_J_MOL)
+    entropic_v_per_k: float = Field(0.0, ge=-PLAUSIBLE_MAX_ENTROPIC_V_K, le=PLAUSIBLE_MAX_ENTROPIC_V_K)
 
 
 class BranchSpec(_Strict):
@@ -129,7 +159,13 @@ class BranchSpec(_Strict):
 
     r: float = Field(gt=0, le=PLAUSIBLE_MAX_OHM)
     c: float = Field(gt=0)
-    alpha: float = Field(1.0, gt=0, le=1)
+    alpha: float = Field(1.0, ge=PLAUSIBLE_MIN_ORDER, le=1)
+
+    @model_validator(mode="after")
+    def _time_constant(self) -> BranchSpec:
+        if (problem := cpe_tau_problem(self.r, self.c, self.alpha, "the extra branch")) is not None:
+            raise ValueError(problem)
+        return self
 
 
 class OcvCorrectionSpec(_Strict):
@@ -137,6 +173,18 @@ class OcvCorrectionSpec(_Strict):
 
     soc: list[float]
     delta_v: list[float]
+
+    @model_validator(mode="after")
+    def _shape(self) -> OcvCorrectionSpec:
+        if len(self.soc) < 2 or any(b <= a for a, b in pairwise(self.soc)):
+            raise ValueError("soc must be strictly increasing with at least 2 points")
+        if not (-0.5 <= self.soc[0] and self.soc[-1] <= 1.5):
+            raise ValueError(f"soc must lie in [-0.5, 1.5], got {self.soc[0]:g} to {self.soc[-1]:g}")
+        if len(self.delta_v) != len(self.soc):
+            raise ValueError(f"delta_v has {len(self.delta_v)} values, soc has {len(self.soc)}")
+        if not all(abs(d) <= PLAUSIBLE_MAX_OCV_CORRECTION_V for d in self.delta_v):
+            raise ValueError(f"delta_v holds a correction beyond ±{PLAUSIBLE_MAX_OCV_CORRECTION_V:g} V")
+        return self
 
 
 class SurfaceDiffusionSpec(_Strict):
@@ -155,8 +203,9 @@ class SurfaceDiffusionSpec(_Strict):
     reads its OCV at the surface.  The 2-RC EKF baseline ignores the term.
     """
 
-    tau_s: float = Field(gt=0, description="surface-bulk relaxation time constant, s")
-    gain: float = Field(ge=0, description="steady-state surface SOC deficit per 1C, fraction")
+    tau_s: float = Field(gt=0, le=1e7, description="surface-bulk relaxation time constant, s")
+    gain: float = Field(ge=0, le=PLAUSIBLE_MAX_SURFACE_GAIN,
+                        description="steady-state surface SOC deficit per 1C, fraction")
 
 
 class SocResistanceSpec(_Strict):
@@ -173,8 +222,12 @@ class SocResistanceSpec(_Strict):
     def _shape(self) -> SocResistanceSpec:
         if len(self.soc) < 2 or any(b <= a for a, b in pairwise(self.soc)):
             raise ValueError("soc must be strictly increasing with at least 2 points")
+        if not (-0.5 <= self.soc[0] and self.soc[-1] <= 1.5):
+            raise ValueError(f"soc must lie in [-0.5, 1.5], got {self.soc[0]:g} to {self.soc[-1]:g}")
         if len(set(self.temps_c)) != len(self.temps_c):
             raise ValueError(f"duplicate temperatures: {self.temps_c}")
+        if not self.temps_c or any(b <= a for a, b in pairwise(self.temps_c)):
+            raise ValueError(f"temps_c must be increasing with at least 1 temperature, got {self.temps_c}")
         for name in ("r_ohm_scale", "r_pol_scale"):
             rows = getattr(self, name)
             if len(rows) != len(self.temps_c):

@@ -478,11 +478,29 @@ def _plain(x: Any) -> Any:
     raise TypeError(f"{type(x).__name__} is not JSON serialisable")
 
 
+def finite_json(obj: Any) -> tuple[Any, int]:
+    """``obj`` with every non-finite float (NaN, ±inf: not JSON) as None, and how many there were."""
+    if isinstance(obj, float):
+        return (obj, 0) if math.isfinite(obj) else (None, 1)
+    if isinstance(obj, dict):
+        items = [(k, finite_json(v)) for k, v in obj.items()]
+        return {k: v for k, (v, _) in items}, sum(n for _, (_, n) in items)
+    if isinstance(obj, (list, tuple)):
+        parts = [finite_json(v) for v in obj]
+        return [v for v, _ in parts], sum(n for _, n in parts)
+    return obj, 0
+
+
 def write_json(dest: str | None, obj: Any) -> None:
-    """Write ``obj`` as JSON to ``dest`` (a path, ``-`` for stdout, None for nowhere)."""
+    """Write ``obj`` as JSON to ``dest`` (a path, ``-`` for stdout, None for nowhere); a value that is
+    not finite (a model that diverged) is written as null, and a warning says how many."""
     if dest is None:
         return
-    text = json.dumps(obj, indent=1, default=_plain)
+    obj, not_finite = finite_json(json.loads(json.dumps(obj, default=_plain)))
+    if not_finite:
+        print(f"socd: warning: {not_finite} value(s) in the JSON were not finite (NaN or infinity: a model that "
+              "diverged) and are written as null", file=sys.stderr)
+    text = json.dumps(obj, indent=1, allow_nan=False)
     if dest == "-":
         sys.stdout.write(text + "\n")
         sys.stdout.flush()
