@@ -728,11 +728,65 @@ def dbc_load_problem(exc: BaseException) -> str:
 def _load_config_dbc(config: SocdConfig, field: str, source: str):
     p = getattr(config.dbc, field)
     try:
-        return load_dbc(p)
+        db = load_dbc(p)
     except FileNotFoundError:
         raise ConfigError(f"{source}: dbc.{field}: no such file {p}{_no_packaged(p, dbc_path)}") from None
     except Exception as exc:  # cantools raises many kinds for a bad file
         raise ConfigError(f"{source}: dbc.{field}: cannot load DBC {p}: {dbc_load_problem(exc)}") from None
+    if (twice := shared_frame_id(db)) is not None:
+        raise ConfigError(f"{source}: dbc.{field}: {twice}")
+    return db
+
+
+def shared_frame_id(db: Any) -> str | None:
+    """Two messages of a DBC with one frame ID, or None: cantools keeps the later one for the ID, so
+    every frame would decode as that message."""
+    seen: dict[tuple[int, bool], str] = {}
+    for msg in db.messages:
+        key = (msg.frame_id, bool(msg.is_extended_frame))
+        if key in seen:
+            return (f"messages {seen[key]} and {msg.name} share frame ID 0x{msg.frame_id:X}: every frame of that ID "
+                    f"would decode as {msg.name}")
+        seen[key] = msg.name
+    return None
+
+
+#: what socd sends in the output DBC's signals, beyond the cell indices: SOC in %
+OUTPUT_SOC_SIGNALS = ("SOCD_Soc", "SOCD_SocMin", "SOCD_SocMean", "SOCD_SocMax")
+OUTPUT_CELL_INDEX_SIGNALS = ("SOCD_SocCellIndex", "SOCD_ParCellIndex", "SOCD_SocMinCell", "SOCD_SocMaxCell")
+
+
+def signal_reach(sig: Any) -> tuple[float, float]:
+    """The physical values a DBC signal can carry: its raw range through scale and offset, within
+    its minimum and maximum."""
+    n = int(sig.length)
+    raw = (-(2 ** (n - 1)), 2 ** (n - 1) - 1) if sig.is_signed else (0, 2 ** n - 1)
+    lo, hi = sorted(r * sig.scale + sig.offset for r in raw)
+    if sig.minimum is not None:
+        lo = max(lo, float(sig.minimum))
+    if sig.maximum is not None:
+        hi = min(hi, float(sig.maximum))
+    return lo, hi
+
+
+def output_range_problems(db_out: Any, n_cells: int) -> Iterator[str]:
+    """Output signals that cannot carry what socd sends: SOC over 0-100 %, a cell index up to
+    ``n_cells - 1``; encoded anyway, such a signal would publish a clipped or wrapped value."""
+    needs = {**{name: (0.0, 100.0) for name in OUTPUT_SOC_SIGNALS},
+             **{name: (0.0, float(n_cells - 1)) for name in OUTPUT_CELL_INDEX_SIGNALS}}
+    for msg_name in OUTPUT_MESSAGES:
+        for sig in db_out.get_message_by_name(msg_name).signals:
+            if sig.name not in needs:
+                continue
+            if not sig.scale:
+                yield f"{msg_name}.{sig.name} has a scale factor of 0"
+                continue
+            lo, hi = signal_reach(sig)
+            want_lo, want_hi = needs[sig.name]
+            step = abs(sig.scale) / 2
+            if lo > want_lo + step or hi < want_hi - step:
+                yield (f"{msg_name}.{sig.name} carries {lo:g} to {hi:g}, but socd sends {want_lo:g} to {want_hi:g}"
+                       + (f" (cell indices of {n_cells} cells)" if sig.name in OUTPUT_CELL_INDEX_SIGNALS else " (SOC in %)"))
 
 
 def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
@@ -749,6 +803,8 @@ def check_config_files(config: SocdConfig, source: str = "<config>") -> None:
             for s in sig_names:
                 if s not in have:
                     raise ConfigError(f"{source}: dbc.output: signal {s!r} missing from {msg_name}")
+        for problem in output_range_problems(db_out, config.pack.n_cells):
+            raise ConfigError(f"{source}: dbc.output: {problem}")
     if not config.cell_profile.is_file():
         raise ConfigError(
             f"{source}: cell_profile: no such file {config.cell_profile}"
@@ -789,6 +845,9 @@ def mapping_problems(config: SocdConfig, db_in: Any) -> Iterator[tuple[str, str]
         msg, sig = by_name[name]
         if sig.is_multiplexer:
             yield where, f"signal {name!r} is the multiplexer switch of {msg.name}, not a measurement"
+            continue
+        if not sig.scale:
+            yield where, f"signal {name!r} of {msg.name} has a scale factor of 0: every raw value decodes to its offset"
             continue
         if where == "mapping.time_signal" and sig.multiplexer_ids:
             yield where, f"signal {name!r} is multiplexed in {msg.name}; a time must be in every frame of its message"

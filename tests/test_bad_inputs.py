@@ -1179,3 +1179,36 @@ def test_json_output_writes_a_value_that_is_not_finite_as_null(tmp_path: Path, c
     write_json(str(out), {"a": float("nan"), "b": [1.0, float("inf")], "c": np.float64(2.5)})
     assert json.loads(out.read_text()) == {"a": None, "b": [1.0, None], "c": 2.5}
     assert "2 value(s) in the JSON were not finite" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("case", ["shared_frame_id", "input_scale_zero", "soc_too_narrow", "index_too_narrow"])
+def test_check_and_run_refuse_a_dbc_that_would_decode_or_publish_wrong(tmp_path: Path, capsys, case: str) -> None:
+    """Each passed `socd check` and then went wrong without a word: two messages on one frame ID (every
+    voltage frame decoded as temperatures, no cell ever estimated), a mapped signal of scale 0 (replay
+    crashed dividing by it), an output SOC signal of 4 bits (every cell published as 0.15 %), a cell
+    index of 2 bits on an 8-cell pack (cells 4-7 never published)."""
+    dbc_in, dbc_out = tmp_path / "in.dbc", tmp_path / "out.dbc"
+    text_in, text_out = DEFAULT_INPUT_DBC.read_text(), DEFAULT_OUTPUT_DBC.read_text()
+    edits = {
+        "shared_frame_id": ("in", "BO_ 288 BMS_CellTemps:", "BO_ 272 BMS_CellTemps:", "share frame ID 0x110"),
+        "input_scale_zero": ("in", "SG_ BMS_Cell001_V", None, "scale factor of 0"),
+        "soc_too_narrow": ("out", "SG_ SOCD_Soc m0 : 8|16@1+ (0.01,0.0) [0|100]",
+                           "SG_ SOCD_Soc m0 : 8|4@1+ (0.01,0.0) [0|0.15]", "SOCD_Soc carries 0 to 0.15"),
+        "index_too_narrow": ("out", "SG_ SOCD_SocCellIndex M : 0|8@1+ (1,0) [0|255]",
+                             "SG_ SOCD_SocCellIndex M : 0|2@1+ (1,0) [0|3]", "SOCD_SocCellIndex carries 0 to 3"),
+    }
+    which, old, new, expected = edits[case]
+    if case == "input_scale_zero":  # the first cell voltage signal's factor set to 0
+        line = next(ln for ln in text_in.splitlines() if old in ln)
+        start = line.index("(")
+        new, old = line[:start] + "(0," + line[line.index(",", start) + 1:], line
+    assert old in (text_in if which == "in" else text_out), old
+    dbc_in.write_text(text_in.replace(old, new, 1) if which == "in" else text_in)
+    dbc_out.write_text(text_out.replace(old, new, 1) if which == "out" else text_out)
+    cfg = tmp_path / "socd.toml"
+    cfg.write_text(f'[dbc]\ninput = "{dbc_in}"\noutput = "{dbc_out}"\n[pack]\nn_cells = 8\n'
+                   f'[checkpoint]\npath = "{tmp_path / "state.npz"}"\n')
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert code == 2 and expected in err and "Traceback" not in err, err
+    code, err = run_cli(capsys, ["run", "--config", str(cfg)])
+    assert_one_line_error(code, err, expected)

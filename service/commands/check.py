@@ -61,7 +61,7 @@ def check_config(path: Path | None) -> CheckResult:
     if "input" in dbs:
         _check_mapping(config, dbs["input"], res)
     if "output" in dbs and config.output.can_enabled:
-        _check_output(dbs["output"], res)
+        _check_output(dbs["output"], config.pack.n_cells, res)
     profile = _check_profile(config, res)
     _check_bus(config, res)
     _check_zenoh(config, res)
@@ -71,17 +71,23 @@ def check_config(path: Path | None) -> CheckResult:
 
 
 def _check_dbcs(config: Any, res: CheckResult) -> dict[str, Any]:
-    from service.config import dbc_load_problem, load_dbc
+    from service.config import dbc_load_problem, load_dbc, shared_frame_id
 
     dbs = {}
     for which in ("input", "output"):
         p = getattr(config.dbc, which)
         try:
-            dbs[which] = load_dbc(p)
+            db = load_dbc(p)
         except FileNotFoundError:
             res.problem(f"dbc.{which}", f"no such file {p}")
+            continue
         except Exception as exc:  # noqa: BLE001 - cantools raises many kinds for a bad file
             res.problem(f"dbc.{which}", f"cannot load DBC {p}: {dbc_load_problem(exc)}")
+            continue
+        if (twice := shared_frame_id(db)) is not None:
+            res.problem(f"dbc.{which}", twice)
+            continue
+        dbs[which] = db
     return dbs
 
 
@@ -92,8 +98,8 @@ def _check_mapping(config: Any, db: Any, res: CheckResult) -> None:
         res.problem(where, why)
 
 
-def _check_output(db: Any, res: CheckResult) -> None:
-    from service.config import OUTPUT_MESSAGES
+def _check_output(db: Any, n_cells: int, res: CheckResult) -> None:
+    from service.config import OUTPUT_MESSAGES, output_range_problems
 
     for msg_name, sig_names in OUTPUT_MESSAGES.items():
         try:
@@ -105,6 +111,9 @@ def _check_output(db: Any, res: CheckResult) -> None:
         for s in sig_names:
             if s not in have:
                 res.problem("dbc.output", f"signal {s!r} missing from {msg_name}")
+    if res.ok:
+        for problem in output_range_problems(db, n_cells):
+            res.problem("dbc.output", problem)
 
 
 def _check_profile(config: Any, res: CheckResult) -> Any:
