@@ -1212,3 +1212,19 @@ def test_check_and_run_refuse_a_dbc_that_would_decode_or_publish_wrong(tmp_path:
     assert code == 2 and expected in err and "Traceback" not in err, err
     code, err = run_cli(capsys, ["run", "--config", str(cfg)])
     assert_one_line_error(code, err, expected)
+
+
+def test_fit_says_when_a_one_branch_ocv_table_is_read_as_the_mean(tmp_path: Path, capsys) -> None:
+    from service.cell.ocv import ocv_table_branch
+
+    table = tmp_path / "charge.csv"
+    table.write_text("soc,ocv_charge_v\n0,3.0\n0.5,3.6\n1,4.1\n")
+    assert ocv_table_branch(table) == "charge"
+    mean = tmp_path / "mean.csv"
+    mean.write_text("soc,ocv_v\n0,3.0\n0.5,3.6\n1,4.1\n")
+    assert ocv_table_branch(mean) is None
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    # the recording is too short to fit; the notice comes first, even with -q
+    _, err = run_cli(capsys, ["fit", str(rec), "--ocv", str(table), "--capacity-ah", "2.9", "-q",
+                              "-o", str(tmp_path / "c.toml")])
+    assert "its only OCV column is the charge branch (ocv_charge_v), read here as the mean OCV" in err, err

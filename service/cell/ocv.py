@@ -157,6 +157,29 @@ def make_monotone(ocv_row: np.ndarray, min_step_v: float = 1e-6) -> np.ndarray:
 OCV_COLUMNS = ("ocv_v", "ocv_avg_v", "ocv_discharge_v", "ocv_charge_v")
 
 
+#: the columns that hold one branch of the OCV (a charge or a discharge test), not the mean
+ONE_BRANCH_COLUMNS = {"ocv_charge_v": "charge", "ocv_discharge_v": "discharge"}
+
+
+def ocv_column(header: list[str]) -> str | None:
+    """The OCV column an OCV table's ``header`` gives (the first of :data:`OCV_COLUMNS`), or None."""
+    return next((c for c in OCV_COLUMNS if c in header), None)
+
+
+def ocv_table_branch(path) -> str | None:
+    """``charge`` or ``discharge`` where the OCV table at ``path`` holds only that branch's column
+    (:data:`ONE_BRANCH_COLUMNS`), else None."""
+    import csv
+    import io
+    from pathlib import Path
+
+    from service.validation import read_text
+
+    header = [h.strip() for h in next(csv.reader(io.StringIO(read_text(Path(path), "OCV table"))), [])]
+    col = ocv_column(header)
+    return ONE_BRANCH_COLUMNS.get(col) if col is not None else None
+
+
 #: plausibility of an OCV table's values: SOC as a fraction or in percent, a cell's OCV in volts
 #: V: the range a lithium cell's open-circuit voltage lies in
 OCV_V_RANGE = (0.0, 6.0)
@@ -220,7 +243,7 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
     header = [h.strip() for h in rows[0]]
     if "soc" not in header:
         raise ValueError(f"{path}: OCV table needs a 'soc' column; header is {','.join(header)}")
-    col = next((c for c in OCV_COLUMNS if c in header), None)
+    col = ocv_column(header)
     if col is None:
         raise ValueError(f"{path}: OCV table needs one of columns {', '.join(OCV_COLUMNS)}")
     i_soc, i_ocv = header.index("soc"), header.index(col)

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
-from service.cell.ocv import load_ocv_csv
+from service.cell.ocv import load_ocv_csv, ocv_table_branch
 from service.cell.profile import save_profile
 from service.cell.truth import per_recording
 from service.characterisation.ocv_choices import (
@@ -232,6 +232,10 @@ def run(args: argparse.Namespace) -> int:
     log = fit_report(args, bar)
     if (line := describe(averaged, args.fit_period)) is not None:
         log.say(line)
+    if args.ocv and (branch := ocv_table_branch(args.ocv)) is not None and branch != args.ocv_branch:
+        log.say(f"{args.ocv}: its only OCV column is the {branch} branch (ocv_{branch}_v), read here as the "
+                f"{args.ocv_branch} OCV (--ocv-branch {args.ocv_branch}); --ocv-branch {branch} with --hysteresis "
+                "reads it as that branch", notice=True)
     try:
         candidates = [fit_candidate(args, recs, full, table, out.stem, k, bar) for k in range(args.candidates)]
         pick = choose(candidates, originals, full, log, bar)
