@@ -291,6 +291,12 @@ def run(args: argparse.Namespace) -> int:
         what = ", ".join(f"{name} {n}x" for name, n in pack.clipped.most_common())
         print(f"socd replay: warning: values beyond their signal's minimum/maximum in {config.dbc.input} were "
               f"sent clipped to it: {what}", file=sys.stderr)
+    lost = [] if pack is None else [f"{name} {pack.zeroed[name]} of {n}" for name, n in pack.nonzero.items()
+                                    if pack.zeroed[name] > n / 2]
+    if lost:
+        print(f"socd replay: warning: most values of a signal in {config.dbc.input} are smaller than half its step "
+              f"and were sent as its offset (a scale in the mapping, e.g. mapping.current_scale, too large?): "
+              f"{', '.join(lost)}", file=sys.stderr)
     verb = "sent" if send else ("recorded to " + str(args.record) if args.record else "built (--no-send: no bus, no --record)")
     print(f"socd replay: {stats.frames_sent} frames {verb}, {stats.frames_failed} failed, "
           f"{stats.span_s:.1f} s of recording in {stats.duration_s:.1f} s"

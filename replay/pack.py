@@ -74,6 +74,10 @@ class PackRecording:
     #: measured values (cell voltages, temperatures, current) beyond their input-DBC signal's declared
     #: minimum/maximum, sent clipped to it, per signal; counted as the frames are built (lazy: as played)
     clipped: Counter = field(default_factory=Counter)
+    #: measured values that encode as their signal's offset though they differ from it, and those
+    #: that differ at all, per signal (:class:`FrameBuilder`)
+    zeroed: Counter = field(default_factory=Counter)
+    nonzero: Counter = field(default_factory=Counter)
 
     @property
     def n_cells(self) -> int:
@@ -184,6 +188,8 @@ class _Template:
     fixed: dict[str, float]
     pack_voltage: list[str]
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: per measured signal, (scale, offset): a value within half a step of the offset encodes as it
+    steps: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @property
     def measured(self) -> set[str]:
@@ -211,6 +217,11 @@ class FrameBuilder:
         self._mods: dict[int, int] = {}
         #: measured values clipped to their signal's range, per signal
         self.clipped: Counter = Counter()
+        #: measured values that differ from their signal's offset by less than half its step, so
+        #: encode as the offset (a current scaled a thousand times too small reads 0 A), per signal,
+        #: and the measured values that differ from it at all
+        self.zeroed: Counter = Counter()
+        self.nonzero: Counter = Counter()
         for m in self.db.messages:
             names = [s.name for s in m.signals]
             mapped = [n for n in names if n in volt_of or n in temp_of or n in (mp.current_signal, time_name)]
@@ -256,6 +267,8 @@ class FrameBuilder:
                 for sig in m.signals:  # a value beyond the bits themselves stops the replay (_frame)
                     if sig.minimum is not None and sig.maximum is not None and sig.maximum > sig.minimum:
                         t.ranges[sig.name] = (float(sig.minimum), float(sig.maximum))
+                    if sig.name in t.measured and sig.scale:
+                        t.steps[sig.name] = (abs(float(sig.scale)), float(sig.offset))
                 (self.current_templates if t.current else self.time_templates if t.time else self.templates).append(t)
 
     def _frame(self, t: _Template, values: dict[str, float], ts: float) -> can.Message:
@@ -275,6 +288,10 @@ class FrameBuilder:
                 values[n] = r[0] if v < r[0] else r[1]
                 if n in t.measured:
                     self.clipped[n] += 1
+        for n, (step, offset) in t.steps.items():
+            if n in values and values[n] != offset:
+                self.nonzero[n] += 1
+                self.zeroed[n] += abs(values[n] - offset) < step / 2
         try:
             data = m.encode(values, scaling=True, padding=False, strict=False)
         except (ValueError, OverflowError) as exc:  # a signal too narrow for its own declared range
@@ -347,7 +364,7 @@ def pack_frames(
         extra = np.repeat(pack.sensor_temperature_c[:, :1], n_sensors - pack.sensor_temperature_c.shape[1], 1)
         pack.sensor_temperature_c = np.hstack([pack.sensor_temperature_c, extra])
     builder = FrameBuilder(config, db)
-    pack.clipped = builder.clipped
+    pack.clipped, pack.zeroed, pack.nonzero = builder.clipped, builder.zeroed, builder.nonzero
     frames = iter_pack_frames(pack, builder)
     return (frames if lazy else list(frames)), pack
 

@@ -1228,3 +1228,14 @@ def test_fit_says_when_a_one_branch_ocv_table_is_read_as_the_mean(tmp_path: Path
     _, err = run_cli(capsys, ["fit", str(rec), "--ocv", str(table), "--capacity-ah", "2.9", "-q",
                               "-o", str(tmp_path / "c.toml")])
     assert "its only OCV column is the charge branch (ocv_charge_v), read here as the mean OCV" in err, err
+
+
+def test_replay_warns_when_a_mapping_scale_rounds_the_current_away(tmp_path: Path, capsys) -> None:
+    """mapping.current_scale = 1000 sent 0 A in every current frame without a word (a scale that clips
+    was already warned of)."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    cfg = _config_file(tmp_path, DEFAULT_INPUT_DBC, "[mapping]\ncurrent_scale = 1000.0\n")
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--config", str(cfg), "--cells", "8"))
+    assert code == 0 and "sent as its offset" in err and "BMS_PackCurrent 30 of 30" in err, err
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--cells", "8"))
+    assert code == 0 and "sent as its offset" not in err, err
