@@ -1149,7 +1149,7 @@ def test_a_profile_extension_beyond_plausible_is_refused(tmp_path: Path, capsys,
         "correction_volts": ("[extensions.ocv_correction]\nsoc = [0.0, 1.0]\ndelta_v = [50.0, 50.0]\n", "beyond"),
         "surface_gain": ("[extensions.diffusion_surface]\ntau_s = 100.0\ngain = 100.0\n", "gain"),
         "soc_resistance_no_temps": ("[extensions.soc_resistance]\nsoc = [0.0, 1.0]\ntemps_c = []\n"
-                                    "r_ohm_scale = []\nr_pol_scale = []\n", "temps_c"),
+                                    + "r_ohm_scale = []\nr_pol_scale = []\n", "temps_c"),
     }
     text = Path(DEFAULT_CELL_PROFILE).read_text()
     if case == "tiny_order":
