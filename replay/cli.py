@@ -24,6 +24,7 @@ from collections import Counter
 from pathlib import Path
 
 import can
+import numpy as np
 
 from replay.faults import FaultSpec
 from replay.pack import SpreadSpec, pack_frames
@@ -149,6 +150,19 @@ def _config(args):
     return config
 
 
+def truth_leaves_cell(pack) -> str | None:
+    """Where the first cell's true SOC leaves [0, 1] (beyond a rounding), or None."""
+    outside = (pack.truth_soc < -1e-3) | (pack.truth_soc > 1.0 + 1e-3)
+    rows = np.flatnonzero(outside.any(axis=1))
+    if rows.size == 0:
+        return None
+    k = int(rows[0])
+    cell = int(np.flatnonzero(outside[k])[0])
+    reach = float(pack.truth_soc[:, cell].min() if pack.truth_soc[k, cell] < 0 else pack.truth_soc[:, cell].max())
+    return (f"cell {cell}'s true SOC leaves [0, 1] {pack.time_s[k] - pack.time_s[0]:.0f} s into the recording "
+            f"and reaches {reach:.3f}")
+
+
 def run(args: argparse.Namespace) -> int:
     setup_logging(args)
     from service.config import DEFAULT_CONFIG
@@ -204,6 +218,9 @@ def run(args: argparse.Namespace) -> int:
                                        start_soc=args.soc0, time_offset_s=args.time_offset, lazy=True)
         except ValueError as exc:
             raise UserError(str(exc)) from None
+        if (leaves := truth_leaves_cell(pack)) is not None:
+            print(f"socd replay: warning: {leaves}; the voltages sent beyond it are the OCV table's extrapolation "
+                  "(give a --soc0 further from that end, or a shorter --stop)", file=sys.stderr)
         if args.cells:
             # the fault injector reads the config's whole mapping; the pack replayed is narrower
             for cell, _ in args.stuck_cell:

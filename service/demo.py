@@ -107,6 +107,11 @@ SHIPPED_DBC_CELLS = 96
 DEFAULT_CAPACITY_SPREAD = 0.02
 
 
+#: a demo whose pack empties (or fills) before this share of the drive is refused: the start SOC
+#: leaves no room for the drive, and a few seconds of it show nothing
+MIN_DEMO_SHARE = 0.1
+
+
 def within_every_cell(recording: Recording, truth_soc: np.ndarray) -> tuple[Recording, int | None]:
     """``recording`` up to the first sample where a cell's true SOC leaves [0, 1], and that cell.
 
@@ -239,7 +244,18 @@ def run_demo(
     spread = SpreadSpec(capacity=capacity_spread, resistance=0.05, soc=0.02, temperature_c=0.5)
     lazy_frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc,
                                     lazy=True)
+    full_span = float(recording.time_s[-1] - recording.time_s[0])
     recording, emptied = within_every_cell(recording, pack.truth_soc)
+    kept = float(recording.time_s[-1] - recording.time_s[0])
+    if emptied is not None and kept < MIN_DEMO_SHARE * full_span:
+        import shutil
+
+        from service.errors import UserError
+
+        shutil.rmtree(workdir, ignore_errors=True)
+        start = "the start SOC" + (f" {start_soc:g}" if start_soc is not None else "")
+        raise UserError(f"cell {emptied}'s true SOC leaves [0, 1] {kept:.0f} s into the {full_span:.0f} s drive: "
+                        f"{start} leaves the pack no room for it; give a --soc0 further from that end")
     if emptied is None:
         frames = list(lazy_frames)
     else:  # the same pack over the shorter recording (the spread is drawn from the seed alone)

@@ -1239,3 +1239,15 @@ def test_replay_warns_when_a_mapping_scale_rounds_the_current_away(tmp_path: Pat
     assert code == 0 and "sent as its offset" in err and "BMS_PackCurrent 30 of 30" in err, err
     code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--cells", "8"))
     assert code == 0 and "sent as its offset" not in err, err
+
+
+def test_a_start_soc_the_drive_runs_past_is_named(tmp_path: Path, capsys) -> None:
+    """--soc0 0 on a discharge: replay sent a negative truth SOC and voltages beyond the OCV table without a
+    word (now a warning naming the cell and when), and the demo stopped after 1 s of the drive (refused)."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--cells", "8", "--soc0", "0"))
+    assert code == 0 and "true SOC leaves [0, 1]" in err, err
+    code, err = run_cli(capsys, _replay_argv(rec, tmp_path, "--cells", "8", "--soc0", "0.5"))
+    assert code == 0 and "true SOC leaves" not in err, err
+    code, err = run_cli(capsys, ["demo", "--recording", str(rec), "--soc0", "0", "--cells", "2"])
+    assert_one_line_error(code, err, "leaves the pack no room for it")
