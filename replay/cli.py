@@ -46,6 +46,7 @@ from service.commands.common_args import (
     refuse_overwriting_inputs,
     refuse_shared_outputs,
     relative_sigma,
+    replay_speed,
     sensor_temperature_sigma,
     setup_logging,
     start_soc_sigma,
@@ -88,7 +89,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     g.add_argument("--truth-out", metavar="FILE.csv", type=output_file(), help="write per-cell truth SOC")
 
     g = p.add_argument_group("pacing")
-    g.add_argument("--speed", type=non_negative_float, default=None, help="1 = real time (default), 10 = ten times "
+    g.add_argument("--speed", type=replay_speed, default=None, help="1 = real time (default), 10 = ten times "
                    "faster, 0 = as fast as possible")
     g.add_argument("--fast", action="store_true", help="same as --speed 0")
     g.add_argument("--loop", nargs="?", const=True, default=False, type=positive_int, metavar="N",
@@ -172,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
     if path.is_dir():
         raise UserError(f"{path}: is a folder, not a recording or CAN log")
     if not path.is_file():
-        raise UserError(f"{path}: no such file")
+        raise UserError(f"{path}: " + ("not a regular file (a pipe, socket or device)" if path.exists() else "no such file"))
     refuse_shared_outputs([("--record", args.record), ("--truth-out", args.truth_out)])
     mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
     if mf4_files and not installed("asammdf"):

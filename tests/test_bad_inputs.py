@@ -1251,3 +1251,23 @@ def test_a_start_soc_the_drive_runs_past_is_named(tmp_path: Path, capsys) -> Non
     assert code == 0 and "true SOC leaves" not in err, err
     code, err = run_cli(capsys, ["demo", "--recording", str(rec), "--soc0", "0", "--cells", "2"])
     assert_one_line_error(code, err, "leaves the pack no room for it")
+
+
+@pytest.mark.parametrize("case", ["replay_speed", "demo_speed", "schema_dash", "replay_pipe", "demo_pipe", "empty_cell"])
+def test_flags_named_plainly(tmp_path: Path, capsys, case: str) -> None:
+    """A speed-up of 1e-12 ended in "timestamp out of range for platform time_t" (1e-9 ran for ever), `schema -o -`
+    made a folder named '-', a pipe given as a recording was "no such file", and an empty --cell read as '.'."""
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    argv, expected = {
+        "replay_speed": (_replay_argv(rec, tmp_path, "--speed", "1e-12"), "argument --speed"),
+        "demo_speed": (["demo", "--speed", "1e-9"], "argument --speed"),
+        "schema_dash": (["schema", "-o", "-"], "'-' is no folder"),
+        "replay_pipe": (_replay_argv(pipe, tmp_path), "not a regular file"),
+        "demo_pipe": (["demo", "--recording", str(pipe)], "not a regular file"),
+        "empty_cell": (["evaluate", str(rec), "--cell", ""], "an empty name"),
+    }[case]
+    code, err = run_cli(capsys, argv)
+    assert code == 2 and expected in err and "Traceback" not in err, err
+    assert not (Path.cwd() / "-").exists()

@@ -75,6 +75,21 @@ def non_negative_float(text: str) -> float:
     return x
 
 
+#: the slowest replay speed-up taken (a thousandth of real time): below it a replay of seconds runs
+#: for days, and a timestamp runs past what the platform's time_t holds
+MIN_REPLAY_SPEED = 1e-3
+MAX_REPLAY_SPEED = 1e6
+
+
+def replay_speed(text: str) -> float:
+    """0 (as fast as possible) or a speed-up in [:data:`MIN_REPLAY_SPEED`, :data:`MAX_REPLAY_SPEED`]."""
+    x = _float(text)
+    if x != 0 and not MIN_REPLAY_SPEED <= x <= MAX_REPLAY_SPEED:
+        raise argparse.ArgumentTypeError(f"must be 0 (as fast as possible) or a speed-up in "
+                                         f"[{MIN_REPLAY_SPEED:g}, {MAX_REPLAY_SPEED:g}], got {text}")
+    return x
+
+
 def finite_float(text: str) -> float:
     return _float(text)
 
@@ -264,6 +279,8 @@ def output_dir(text: str) -> str:
     path = Path(text)
     if not text.strip():
         raise argparse.ArgumentTypeError("an empty name; give a folder")
+    if text == "-":  # stdout elsewhere (--json -): a folder named "-" is never what was meant
+        raise argparse.ArgumentTypeError("'-' is no folder; leave the flag out for stdout, or give a folder")
     if path.exists() and not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is a file; give a folder")
     why = _writable_place(path / "x")
@@ -357,6 +374,8 @@ def _alias(parser: Any, old: str, new: str, dest: str, type: Callable | None = N
 def cell_file(text: str) -> str:
     """A cell profile path; a name that is no file but is a bundled profile (``panasonic_18650pf``
     or ``panasonic_18650pf.toml``) is that profile, so an installed socd can use its own."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty name; give a cell profile file or a bundled profile's name")
     if Path(text).exists():
         return text
     from service.assets import profile_path

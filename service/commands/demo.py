@@ -12,12 +12,12 @@ from service.commands.common_args import (
     add_common_arguments,
     add_soc0_argument,
     int_range,
-    non_negative_float,
     plot_file,
     positive_float,
     refuse_overwriting_inputs,
     refuse_shared_outputs,
     relative_sigma,
+    replay_speed,
     setup_logging,
     text_stream,
     write_json,
@@ -38,7 +38,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     parser.add_argument("--cells", type=int_range(1, MAX_DEMO_CELLS), default=8, help=f"cells in the pack, 1-{MAX_DEMO_CELLS} (default 8)")
-    parser.add_argument("--speed", type=non_negative_float, default=0.0,
+    parser.add_argument("--speed", type=replay_speed, default=0.0,
                         help="replay speed: 1 = real time, 0 = as fast as possible (default 0)")
     parser.add_argument("--seconds", type=positive_float, default=None, metavar="S",
                         help="replay only the first S seconds of the recording")
@@ -74,7 +74,8 @@ def _demo(args: argparse.Namespace) -> int:
     if args.seconds is not None and args.seconds <= 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
     if args.recording is not None and not args.recording.is_file():
-        raise UserError(f"{args.recording}: no such recording")
+        raise UserError(f"{args.recording}: " + ("not a regular file (a pipe, socket or device)"
+                                                 if args.recording.exists() else "no such recording"))
     inputs = [args.recording or bundled_recording(), args.cell or DEFAULT_CELL_PROFILE]
     for flag, out in (("--json", args.json), ("--plot", args.plot)):
         refuse_overwriting_inputs(out, inputs, flag)
