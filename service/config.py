@@ -622,8 +622,12 @@ def build_config(raw: dict[str, Any], source: str = "<config>", base_dir: Path |
         if overrides:  # the bad value may be the environment's, not the file's
             text += f" (the environment overrides the file: {', '.join(overrides)})"
         raise ConfigError(text) from None
-    except ValueError as exc:  # pragma: no cover - pydantic wraps these, belt and braces
-        raise ConfigError(f"{source}: {exc}") from None
+    except ValueError as exc:  # pydantic-settings' SettingsError: an override it cannot parse
+        text = f"{source}: {exc}"
+        if overrides:
+            text += (f" (the environment overrides the file: {', '.join(overrides)}; a list or table there is "
+                     """JSON, e.g. SOCD_ZENOH__LISTEN='["tcp/127.0.0.1:7447"]')""")
+        raise ConfigError(text) from None
 
 
 def override_names(model: type[BaseModel], prefix: str) -> Iterator[str]:

@@ -1271,3 +1271,10 @@ def test_flags_named_plainly(tmp_path: Path, capsys, case: str) -> None:
     code, err = run_cli(capsys, argv)
     assert code == 2 and expected in err and "Traceback" not in err, err
     assert not (Path.cwd() / "-").exists()
+
+
+def test_an_environment_override_that_is_no_json_list_is_named(capsys, monkeypatch) -> None:
+    monkeypatch.setenv("SOCD_ZENOH__LISTEN", "tcp/127.0.0.1:7447")
+    code, err = run_cli(capsys, ["check"])
+    assert_one_line_error(code, err, "SOCD_ZENOH__LISTEN")
+    assert "JSON" in err, err
