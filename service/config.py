@@ -330,9 +330,13 @@ def endpoint_problem(e: str) -> str | None:
     proto, _, address = e.partition("/")
     if not proto or not address or not proto.replace("-", "").isalnum():
         return f"{e!r} is not a Zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)"
-    _, sep, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    if proto not in LINK_PROTOCOLS:
+        return f"{e!r}: Zenoh has no link protocol {proto!r} ({', '.join(LINK_PROTOCOLS)})"
+    host, sep, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
     if proto in PORTED_PROTOCOLS and not (sep and port.isdigit()):
         return f"{e!r}: a {proto} endpoint needs a numeric port (<host>:<port>, e.g. tcp/127.0.0.1:7447)"
+    if proto in PORTED_PROTOCOLS and not host:
+        return f"{e!r}: a {proto} endpoint needs a host before the port (e.g. tcp/127.0.0.1:7447, tcp/[::]:7447)"
     if sep and port.isdigit() and int(port) > 65535:
         return f"{e!r}: port {port} is outside 0..65535"
     return None
@@ -341,6 +345,8 @@ def endpoint_problem(e: str) -> str | None:
 #: Zenoh link protocols addressed by host and port (Zenoh failed on a bad port with "invalid port
 #: value" at every retry, naming neither the endpoint nor the field)
 PORTED_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+#: every link protocol Zenoh has (an unknown one failed at each reconnect with "Unicast not supported")
+LINK_PROTOCOLS = (*PORTED_PROTOCOLS, "unixsock-stream", "unixpipe", "serial", "vsock")
 
 
 def key_chunk_problem(v: str) -> str | None:

@@ -1278,3 +1278,15 @@ def test_an_environment_override_that_is_no_json_list_is_named(capsys, monkeypat
     code, err = run_cli(capsys, ["check"])
     assert_one_line_error(code, err, "SOCD_ZENOH__LISTEN")
     assert "JSON" in err, err
+
+
+@pytest.mark.parametrize("endpoint, expected", [("foo/bar", "no link protocol 'foo'"),
+                                                ("tcp/:7447", "needs a host before the port")])
+def test_check_refuses_a_zenoh_endpoint_the_session_cannot_open(tmp_path: Path, capsys, endpoint: str,
+                                                                  expected: str) -> None:
+    """Both passed check; run then retried for ever ("Unicast not supported for foo protocol") or went
+    down at once with no reason given."""
+    cfg = tmp_path / "socd.toml"
+    cfg.write_text(f'[zenoh]\nconnect = ["{endpoint}"]\n')
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert_one_line_error(code, err, expected)
