@@ -168,6 +168,19 @@ class BranchSpec(_Strict):
         return self
 
 
+#: the SOC knots of an extension's table may reach a little beyond [0, 1] (a recording's counted SOC does)
+SOC_KNOT_RANGE = (-0.5, 1.5)
+
+
+def check_soc_knots(soc: list[float]) -> None:
+    """Raise ValueError unless ``soc`` is at least two strictly increasing knots within :data:`SOC_KNOT_RANGE`."""
+    if len(soc) < 2 or any(b <= a for a, b in pairwise(soc)):
+        raise ValueError("soc must be strictly increasing with at least 2 points")
+    lo, hi = SOC_KNOT_RANGE
+    if not (lo <= soc[0] and soc[-1] <= hi):
+        raise ValueError(f"soc must lie in [{lo:g}, {hi:g}], got {soc[0]:g} to {soc[-1]:g}")
+
+
 class OcvCorrectionSpec(_Strict):
     """Additive correction ΔOCV(SOC) to the table."""
 
@@ -176,10 +189,7 @@ class OcvCorrectionSpec(_Strict):
 
     @model_validator(mode="after")
     def _shape(self) -> OcvCorrectionSpec:
-        if len(self.soc) < 2 or any(b <= a for a, b in pairwise(self.soc)):
-            raise ValueError("soc must be strictly increasing with at least 2 points")
-        if not (-0.5 <= self.soc[0] and self.soc[-1] <= 1.5):
-            raise ValueError(f"soc must lie in [-0.5, 1.5], got {self.soc[0]:g} to {self.soc[-1]:g}")
+        check_soc_knots(self.soc)
         if len(self.delta_v) != len(self.soc):
             raise ValueError(f"delta_v has {len(self.delta_v)} values, soc has {len(self.soc)}")
         if not all(abs(d) <= PLAUSIBLE_MAX_OCV_CORRECTION_V for d in self.delta_v):
@@ -220,10 +230,7 @@ class SocResistanceSpec(_Strict):
 
     @model_validator(mode="after")
     def _shape(self) -> SocResistanceSpec:
-        if len(self.soc) < 2 or any(b <= a for a, b in pairwise(self.soc)):
-            raise ValueError("soc must be strictly increasing with at least 2 points")
-        if not (-0.5 <= self.soc[0] and self.soc[-1] <= 1.5):
-            raise ValueError(f"soc must lie in [-0.5, 1.5], got {self.soc[0]:g} to {self.soc[-1]:g}")
+        check_soc_knots(self.soc)
         if len(set(self.temps_c)) != len(self.temps_c):
             raise ValueError(f"duplicate temperatures: {self.temps_c}")
         if not self.temps_c or any(b <= a for a, b in pairwise(self.temps_c)):
