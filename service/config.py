@@ -467,8 +467,6 @@ class SocdConfig(BaseSettings):
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     cell_profile: Path = DEFAULT_CELL_PROFILE
     estimator: EstimatorSettings = EstimatorSettings()
-
-    _profile_file = field_validator("cell_profile")(_regular_file)
     output: OutputConfig = OutputConfig()
     zenoh: ZenohConfig = ZenohConfig()
     checkpoint: CheckpointConfig = CheckpointConfig()
@@ -486,6 +484,8 @@ class SocdConfig(BaseSettings):
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         # the file arrives as init kwargs; the environment overrides it
         return (env_settings, init_settings)
+
+    _profile_file = field_validator("cell_profile")(_regular_file)
 
     @model_validator(mode="after")
     def _consistent(self) -> SocdConfig:
