@@ -24,10 +24,9 @@ from collections import Counter
 from pathlib import Path
 
 import can
-import numpy as np
 
 from replay.faults import FaultSpec
-from replay.pack import SpreadSpec, pack_frames
+from replay.pack import SpreadSpec, first_outside_unit, pack_frames
 from replay.player import LOG_SUFFIXES, log_format, play, read_log
 from service.bus.cli_args import BusConfigError, add_bus_arguments, bus_flags_given, resolve_bus
 from service.bus.decoder import frame_key, message_key
@@ -153,12 +152,9 @@ def _config(args):
 
 def truth_leaves_cell(pack) -> str | None:
     """Where the first cell's true SOC leaves [0, 1] (beyond a rounding), or None."""
-    outside = (pack.truth_soc < -1e-3) | (pack.truth_soc > 1.0 + 1e-3)
-    rows = np.flatnonzero(outside.any(axis=1))
-    if rows.size == 0:
+    if (first := first_outside_unit(pack.truth_soc, margin=1e-3)) is None:
         return None
-    k = int(rows[0])
-    cell = int(np.flatnonzero(outside[k])[0])
+    k, cell = first
     reach = float(pack.truth_soc[:, cell].min() if pack.truth_soc[k, cell] < 0 else pack.truth_soc[:, cell].max())
     return (f"cell {cell}'s true SOC leaves [0, 1] {pack.time_s[k] - pack.time_s[0]:.0f} s into the recording "
             f"and reaches {reach:.3f}")

@@ -369,6 +369,16 @@ def pack_frames(
     return (frames if lazy else list(frames)), pack
 
 
+def first_outside_unit(truth_soc: np.ndarray, margin: float = 0.0) -> tuple[int, int] | None:
+    """``(sample, cell)`` where a cell's true SOC (``[T, N]``) first leaves [-margin, 1 + margin], or None."""
+    outside = (truth_soc < -margin) | (truth_soc > 1.0 + margin)
+    rows = np.flatnonzero(outside.any(axis=1))
+    if rows.size == 0:
+        return None
+    k = int(rows[0])
+    return k, int(np.flatnonzero(outside[k])[0])
+
+
 def narrow_config(config: SocdConfig, n_cells: int) -> SocdConfig:
     """The same config for the first ``n_cells`` cells (sensors covering none are dropped)."""
     mp = config.mapping

@@ -118,12 +118,12 @@ def within_every_cell(recording: Recording, truth_soc: np.ndarray) -> tuple[Reco
     A pack built from one recorded cell gives a cell with less capacity (or a lower start) than the
     recorded one a true SOC below 0 before the recording ends; a real pack's BMS stops the drive
     when its weakest cell is empty, and a SOC outside [0, 1] is no truth to score against."""
-    outside = (truth_soc < 0.0) | (truth_soc > 1.0)
-    rows = np.flatnonzero(outside.any(axis=1))
-    if rows.size == 0:
+    from replay.pack import first_outside_unit
+
+    if (first := first_outside_unit(truth_soc)) is None:
         return recording, None
-    k = int(rows[0])
-    return recording.slice(0, max(2, k)), int(np.flatnonzero(outside[k])[0])
+    k, cell = first
+    return recording.slice(0, max(2, k)), cell
 
 
 def check_sample_step(recording: Recording) -> None:
