@@ -167,11 +167,11 @@ def run(args: argparse.Namespace) -> int:
     full = per_recording(args.full_at, len(args.recordings), "--full-at")
     refuse_overwriting_inputs(args.json, [*args.recordings, args.cell, args.settings], "--json")
     recordings = [load_recording(p) for p in args.recordings]  # validate all before the long work
+    table = profile.ocv_table()
     for rec in recordings:
         if (beyond := profile.temperatures_beyond_fit(rec.temperature_c)) is not None:
             print(f"socd evaluate: warning: {rec.path.name}: {beyond}", file=sys.stderr)
-        if (slip := capacity_slip(rec, profile.ocv_table(), profile.effective_capacity_ah,
-                                  "the profile's capacity_ah")) is not None:
+        if (slip := capacity_slip(rec, table, profile.effective_capacity_ah, "the profile's capacity_ah")) is not None:
             print(f"socd evaluate: warning: {slip}", file=sys.stderr)
     names_seen = [r.name for r in recordings]
     if (args.traces or args.plots) and len(set(names_seen)) < len(names_seen):
