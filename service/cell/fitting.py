@@ -48,6 +48,7 @@ from service.cell.profile import (
     HysteresisSpec,
     ParameterPoint,
     lift_to_ohmic_floor,
+    ln_cpe_tau,
     ohmic_floor_ohm,
 )
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
@@ -316,9 +317,8 @@ def diffusion_tau(ln_tau: np.ndarray | float, max_tau_s: float | None) -> np.nda
 def encode_point(point: ParameterPoint, capacity_ah: float = BOUNDS_MIN_CAPACITY_AH) -> np.ndarray:
     """A :class:`ParameterPoint` -> base search coordinates (clipped into the bounds of a cell of
     ``capacity_ah``, :func:`search_bounds`)."""
-    # tau = (R C)^(1/order), taken in logs: a small order overflows the power
-    ln_tau_ct = math.log(point.r_ct * point.c_dl) / point.m
-    ln_tau_df = math.log(point.r_df * point.c_df) / point.n
+    ln_tau_ct = ln_cpe_tau(point.r_ct, point.c_dl, point.m)
+    ln_tau_df = ln_cpe_tau(point.r_df, point.c_df, point.n)
     x = np.array([
         math.log(point.r_ohm), math.log(point.r_ct), ln_tau_ct, point.m,
         math.log(point.r_df), max(ln_tau_df - ln_tau_ct, math.log(1e-12)), point.n,

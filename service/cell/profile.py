@@ -53,10 +53,15 @@ PLAUSIBLE_MIN_ORDER = 0.1
 PLAUSIBLE_TAU_S = (1e-4, 1e8)
 
 
+def ln_cpe_tau(r: float, c: float, order: float) -> float:
+    """ln of a CPE branch's time constant ``(r c)^(1/order)`` (Zeng Fig. 1), taken in logs: a small
+    order overflows the power; ``-inf`` for a branch without resistance or capacitance."""
+    return (math.log(r) + math.log(c)) / order if r > 0 and c > 0 else -math.inf
+
+
 def cpe_tau_problem(r: float, c: float, order: float, what: str) -> str | None:
-    """Why the time constant ``(r c)^(1/order)`` of a CPE branch is implausible, or None (taken in
-    logs: a small order overflows the power)."""
-    ln_tau = (math.log(r) + math.log(c)) / order if r > 0 and c > 0 else -math.inf
+    """Why the time constant ``(r c)^(1/order)`` of a CPE branch is implausible, or None."""
+    ln_tau = ln_cpe_tau(r, c, order)
     lo, hi = PLAUSIBLE_TAU_S
     if not math.log(lo) <= ln_tau <= math.log(hi):
         return f"{what}'s time constant (R C)^(1/order) is outside {lo:g}-{hi:g} s"
