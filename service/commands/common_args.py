@@ -339,7 +339,7 @@ def refuse_repeated_inputs(paths: Sequence[str | Path]) -> None:
         except OSError:
             continue  # the loader names a file it cannot read
         if key in seen:
-            same = "the same file as" if p.resolve() == seen[key].resolve() else "a copy of"
+            same = "the same file as" if same_file(p, seen[key]) else "a copy of"
             raise UserError(f"{p}: {same} {seen[key]}, given before; give each recording once")
         seen[key] = p
 
