@@ -757,6 +757,29 @@ def test_a_real_checkpoint_file_at_the_path_is_accepted(tmp_path: Path, capsys) 
     assert code == 0, err
 
 
+@pytest.mark.parametrize("where", ["proc", "under_a_file"])
+def test_a_checkpoint_path_the_service_cannot_write_is_named_by_check(tmp_path: Path, capsys, where: str) -> None:
+    """`socd check` said OK to a checkpoint under /proc (as root too: permission bits let root write
+    anywhere, the file system does not) and under a path whose folder is a file; `socd run` then
+    estimated for hours and lost its state at every restart."""
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("x")
+    path = {"proc": Path("/proc/socd-test/state.npz"), "under_a_file": a_file / "state.npz"}[where]
+    cfg = _config_with(tmp_path, f'[checkpoint]\npath = "{path}"\n')
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert_one_line_error(code, err, "c.toml: checkpoint.path: ")
+    assert str(path) in err and sorted(p.name for p in tmp_path.iterdir()) == ["c.toml", "notes.txt"]
+
+
+def test_check_leaves_no_probe_file_in_a_writable_checkpoint_folder(tmp_path: Path, capsys) -> None:
+    folder = tmp_path / "state"
+    folder.mkdir()
+    cfg = _config_with(tmp_path, f'[checkpoint]\npath = "{folder / "s.npz"}"\n')
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert code == 0, err
+    assert list(folder.iterdir()) == []
+
+
 @pytest.mark.parametrize("section, field", [("mapping", "current_sign"), ("pack", "n_cells"),
                                             ("estimator", "memory_length"), ("bus", "max_open_retries")])
 def test_a_boolean_for_a_number_in_a_config_is_refused(tmp_path: Path, capsys, section: str, field: str) -> None:

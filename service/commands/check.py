@@ -5,7 +5,7 @@ the config's fields (pydantic), both DBCs, every mapped signal in the input DBC 
 close name when there is one), multiplexed signals (a mapped signal must not be a
 multiplexer switch, and its multiplexer values must fit the switch signal), the output
 DBC's frames, cell indices and temperature coverage, the cell profile, the bus interface
-name and the Zenoh config file.
+name, the Zenoh config file and whether the checkpoint's folder takes a new file.
 """
 
 from __future__ import annotations
@@ -65,6 +65,7 @@ def check_config(path: Path | None) -> CheckResult:
     profile = _check_profile(config, res)
     _check_bus(config, res)
     _check_zenoh(config, res)
+    _check_checkpoint(config, res)
     if res.ok:
         res.summary = _summary(config, dbs, profile)
     return res
@@ -146,6 +147,13 @@ def _check_zenoh(config: Any, res: CheckResult) -> None:
         config_from_section(config.zenoh)
     except ZenohConfigError as exc:
         res.problem("zenoh.config_file", str(exc).split(": ", 1)[1])
+
+
+def _check_checkpoint(config: Any, res: CheckResult) -> None:
+    from service.daemon.checkpoint import checkpoint_write_problem
+
+    if (problem := checkpoint_write_problem(config.checkpoint.path)) is not None:
+        res.problem("checkpoint.path", problem)
 
 
 def _summary(config: Any, dbs: dict[str, Any], profile: Any) -> list[str]:

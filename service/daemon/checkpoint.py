@@ -131,6 +131,29 @@ def save_checkpoint(
     return path
 
 
+def checkpoint_write_problem(path: str | Path) -> str | None:
+    """Why :func:`save_checkpoint` could not write ``path``, or None.
+
+    The save creates the missing folders on the way and a temporary file beside the target, so
+    the nearest folder that exists must take a new file.  Tried with a temporary file there,
+    removed at once: permission bits do not tell (root writes anywhere by them, yet not into a
+    read-only or virtual file system such as ``/proc``)."""
+    path = Path(path)
+    folder = path.parent
+    while not folder.exists() and folder.parent != folder:
+        folder = folder.parent
+    if not folder.is_dir():
+        return f"{folder} is not a folder, so the checkpoint {path} cannot be written"
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".probe", dir=folder)
+    except OSError as exc:
+        return (f"cannot create a file in {folder} ({exc.strerror or exc}): the service could not save "
+                f"its state to {path}")
+    os.close(fd)
+    os.unlink(name)
+    return None
+
+
 def _fsync_dir(directory: Path) -> None:
     # Makes the rename itself durable; not every platform lets a directory be opened.
     try:

@@ -62,7 +62,7 @@ import numpy as np
 from service.bus.types import PackSample, PackSnapshot
 from service.cell.profile import CellProfile, load_profile
 from service.daemon.can_rx import CanReceiver, ReceiverClosed
-from service.daemon.checkpoint import load_checkpoint, profile_hash, save_checkpoint
+from service.daemon.checkpoint import checkpoint_write_problem, load_checkpoint, profile_hash, save_checkpoint
 from service.daemon.health import HealthMonitor, wall_time_of
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
 from service.estimators.pack_view import OcvEnergy, PackView, pack_view
@@ -282,6 +282,9 @@ class Daemon:
     def restore(self) -> str:
         """Load the checkpoint if it is usable; return the outcome ("restored" or a reason)."""
         path = Path(self.config.checkpoint.path)
+        if (problem := checkpoint_write_problem(path)) is not None:
+            # the service still estimates and publishes; only its state will not survive a restart
+            log.warning("%s; estimating without saving state (socd check reports it)", problem)
         res = load_checkpoint(path, n_cells=self.n, profile_sha256=self.profile_sha256)
         if res.ok:
             try:
