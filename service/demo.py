@@ -22,6 +22,7 @@ import asyncio
 import json
 import logging
 import os
+import shutil
 import socket
 import sys
 import tempfile
@@ -206,17 +207,9 @@ def run_demo(
 
     ``capacity_spread``: σ of the cells' relative capacity (clipped at ±3σ);
     ``capacity_estimation``: overrides ``estimator.capacity_estimation`` ("off" freezes it)."""
-    import zenoh
-
-    from replay.pack import SpreadSpec, pack_frames
-    from replay.player import play
-    from service.bus.encoder import decode_output
     from service.cell.profile import load_profile
     from service.cell.truth import check_current_sign
     from service.config import DEFAULT_CELL_PROFILE
-    from service.daemon.daemon import Daemon
-    from service.daemon.zenoh_pub import zenoh_config
-    from service.evaluation.metrics import within_2sigma_pct
     from service.recording import load_recording
 
     if recording_path is None:
@@ -235,6 +228,28 @@ def run_demo(
         recording = recording.slice(0, max(2, stop_i))
 
     workdir = Path(tempfile.mkdtemp(prefix="socd-demo-"))
+    try:  # the checkpoint and a generated DBC live there: removed however the demo ends
+        return _demo_in(workdir, recording, recording_path, profile, profile_path, cells=cells, speed=speed,
+                        start_soc=start_soc, seed=seed, faults=faults, status=status, live=live,
+                        capacity_spread=capacity_spread, capacity_estimation=capacity_estimation)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _demo_in(workdir: Path, recording: Recording, recording_path: Path, profile: Any, profile_path: Path, *,
+             cells: int, speed: float, start_soc: float | None, seed: int, faults: Any,
+             status: TextIO | bool | None, live: bool | None, capacity_spread: float,
+             capacity_estimation: str | None) -> tuple[DemoResult, dict[str, np.ndarray]]:
+    """:func:`run_demo` from the pack's frames on: replay, estimate, publish, score (files in ``workdir``)."""
+    import zenoh
+
+    from replay.pack import SpreadSpec, pack_frames
+    from replay.player import play
+    from service.bus.encoder import decode_output
+    from service.daemon.daemon import Daemon
+    from service.daemon.zenoh_pub import zenoh_config
+    from service.evaluation.metrics import within_2sigma_pct
+
     channel = f"socd-demo-{os.getpid()}-{time.monotonic_ns()}"
     port = free_port()
     config = _demo_config(cells, channel, port, workdir, profile_path)
@@ -248,11 +263,8 @@ def run_demo(
     recording, emptied = within_every_cell(recording, pack.truth_soc)
     kept = float(recording.time_s[-1] - recording.time_s[0])
     if emptied is not None and kept < MIN_DEMO_SHARE * full_span:
-        import shutil
-
         from service.errors import UserError
 
-        shutil.rmtree(workdir, ignore_errors=True)
         start = "the start SOC" + (f" {start_soc:g}" if start_soc is not None else "")
         raise UserError(f"cell {emptied}'s true SOC leaves [0, 1] {kept:.0f} s into the {full_span:.0f} s drive: "
                         f"{start} leaves the pack no room for it; give a --soc0 further from that end")

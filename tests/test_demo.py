@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +29,13 @@ def _check(out: Path, cells: int) -> dict:
     return data
 
 
-def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
     from service.demo import bundled_recording
+
+    scratch = tmp_path / "tmp"  # the demo's temporary folder (its checkpoint) is removed at the end
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
 
     try:
         bundled_recording()
@@ -42,6 +48,7 @@ def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureF
     text = capsys.readouterr().out
     assert "SOC error vs truth" in text and "Zenoh messages received" in text
     assert json.loads(out.read_text())["soc_within_2sigma_pct"] is None  # nothing scored past 600 s
+    assert list(scratch.iterdir()) == []
 
 
 def test_demo_with_a_given_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
