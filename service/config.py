@@ -36,13 +36,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from service.assets import config_path, dbc_path, example_configs, profile_path
-from service.errors import validation_message
+from service.errors import UserError, validation_message
 from service.estimators.settings import EstimatorSettings
 from service.strict_numbers import NoBooleanNumbers
 
 log = logging.getLogger(__name__)
 #: environment variables with this prefix override the config file (nested with ``__``)
 ENV_PREFIX = "SOCD_"
+#: nests an override into a section: SOCD_BUS__CHANNEL sets [bus] channel
+ENV_NESTED_DELIMITER = "__"
 
 DEFAULT_INPUT_DBC = dbc_path("bms_pack.dbc")
 DEFAULT_OUTPUT_DBC = dbc_path("socd_output.dbc")
@@ -60,8 +62,10 @@ OUTPUT_MESSAGES: dict[str, tuple[str, ...]] = {
 }
 
 
-class ConfigError(Exception):
-    """A configuration that cannot be used; the message is ``<file>: <field.path>: <msg>``."""
+class ConfigError(UserError):
+    """A configuration that cannot be used; the message is ``<file>: <field.path>: <msg>``.  A
+    :class:`UserError`, so a command that builds a config without catching it (``demo``,
+    ``bench --latency``: a bad ``SOCD_*`` override) still exits 2 with the message."""
 
 
 class _Section(NoBooleanNumbers, BaseModel):
@@ -457,7 +461,7 @@ class SocdConfig(BaseSettings):
 
     model_config = SettingsConfigDict(
         env_prefix=ENV_PREFIX,
-        env_nested_delimiter="__",
+        env_nested_delimiter=ENV_NESTED_DELIMITER,
         extra="forbid",
         case_sensitive=False,
     )
@@ -653,12 +657,17 @@ def known_overrides() -> tuple[str, ...]:
 
 
 def unknown_override(name: str) -> str | None:
-    """A warning for a ``SOCD_*`` variable that sets no config field (a typo is otherwise ignored)."""
+    """A warning for a ``SOCD_*`` variable that sets no config field.  One outside every section is
+    ignored (a typo would otherwise pass unseen); one inside a section (``SOCD_BUS__CHANEL``) is an
+    unknown field of it, which the config then refuses, as it refuses one in the file."""
     known = known_overrides()
     if name.upper() in known:
         return None
     near = difflib.get_close_matches(name.upper(), known, n=1)
-    return (f"environment variable {name} sets no config field; it is ignored"
+    section = name.upper()[len(ENV_PREFIX):].split(ENV_NESTED_DELIMITER, 1)[0]
+    inside = ENV_NESTED_DELIMITER in name and f"{ENV_PREFIX}{section}" in known
+    return (f"environment variable {name} sets no config field"
+            + (f" of [{section.lower()}], which refuses it" if inside else "; it is ignored")
             + (f" (did you mean {near[0]}?)" if near else ""))
 
 
