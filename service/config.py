@@ -570,18 +570,29 @@ _PATH_FIELDS = (("dbc", "input"), ("dbc", "output"), ("cell_profile",), ("checkp
 
 #: input files socd ships a default of: field -> the packaged file of a given name
 _PACKAGED = {("dbc", "input"): dbc_path, ("dbc", "output"): dbc_path, ("cell_profile",): profile_path}
+#: the folders of socd's own layout (the repository's and the package's): a relative path that is a bare
+#: name or goes through one of them (the examples' ``../dbc/bms_pack.dbc``, ``configs/vcan0.toml``) and is
+#: not there is socd's packaged file of that name; any other missing path stays missing and is reported,
+#: so a config or DBC of one's own that was not deployed is never replaced by the example
+PACKAGED_LAYOUT_FOLDERS = ("", "configs", "dbc", "cells")
+
+
+def packaged_layout(p: Path) -> bool:
+    """Whether the missing relative path ``p`` may stand for socd's packaged file of its name."""
+    return p.parent.name in PACKAGED_LAYOUT_FOLDERS
 
 
 def resolve_path(keys: tuple[str, ...], value: str | Path, base: Path) -> Path:
     """A config path made absolute: against ``base``; for an input file that is not there,
-    the packaged file of that name if socd ships one (else ``base / value``, which
-    :func:`check_config_files` reports as missing)."""
+    the packaged file of that name if socd ships one and the path is of socd's layout
+    (:func:`packaged_layout`; else ``base / value``, which :func:`check_config_files` reports as
+    missing)."""
     p = Path(value).expanduser()
     if p.is_absolute():
         return p
     local = (base / p).resolve()
     packaged = _PACKAGED.get(keys)
-    if packaged is not None and not local.exists() and packaged(p.name).is_file():
+    if packaged is not None and not local.exists() and packaged_layout(p) and packaged(p.name).is_file():
         return packaged(p.name)
     return local
 
@@ -681,15 +692,15 @@ def _deepcopy(d: Any) -> Any:
 
 def find_config(path: str | Path | None) -> Path:
     """The config file ``path`` names: the file itself if it exists (or is absolute), else the
-    packaged example of that relative path or file name (``socketcan_can0.toml``); ``None``
-    is the packaged ``default.toml``."""
+    packaged example of that relative path or file name (``socketcan_can0.toml``,
+    ``configs/vcan0.toml``; :func:`packaged_layout`); ``None`` is the packaged ``default.toml``."""
     if path is None:
         return DEFAULT_CONFIG
     p = Path(path).expanduser()
     if p.is_absolute() or p.exists():
         return p
-    for candidate in (config_path(str(p)), config_path(p.name)):
-        if candidate.is_file():
+    for candidate in (config_path(str(p)), config_path(p.name) if packaged_layout(p) else None):
+        if candidate is not None and candidate.is_file():
             log.info("config %s: not in the working directory; using socd's example %s", p, candidate)
             return candidate
     return p

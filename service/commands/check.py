@@ -48,10 +48,11 @@ class CheckResult:
 
 def check_config(path: Path | None) -> CheckResult:
     """Every problem of the config at ``path`` (the bundled default when None)."""
-    from service.config import DEFAULT_CONFIG, ConfigError, load_config
+    from service.config import DEFAULT_CONFIG, ConfigError, find_config, load_config
 
     source = str(path if path is not None else DEFAULT_CONFIG)
     res = CheckResult(source)
+    read = find_config(path)
     try:
         config = load_config(path, check_files=False)
     except ConfigError as exc:
@@ -68,6 +69,8 @@ def check_config(path: Path | None) -> CheckResult:
     _check_checkpoint(config, res)
     if res.ok:
         res.summary = _summary(config, dbs, profile)
+        if path is not None and read != Path(path).expanduser():
+            res.summary.insert(0, f"config        {read} (socd's example of that name)")
     return res
 
 
