@@ -92,8 +92,8 @@ def test_seeded(recording, cfg, profile, generated):
 
 
 def test_start_soc_from_rest_and_given(recording, profile, cfg):
-    soc0 = estimate_start_soc(recording, profile)
-    assert 0.9 < soc0 <= 1.0
+    start = estimate_start_soc(recording, profile)
+    assert 0.9 < start.soc <= 1.0 and "read from the OCV at" in start.source
     _, pack = pack_frames(recording, cfg, profile, N, start_soc=0.5, time_offset_s=1000.0)
     assert pack.soc_ref[0] == 0.5 and pack.time_s[0] == 1000.0
 
