@@ -177,6 +177,8 @@ class Daemon:
         self._ckpt_lock = threading.Lock()
         self.samples = 0
         self.steps = 0
+        #: whether the checkpoint written when the run ended was saved (None while running)
+        self.final_checkpoint_saved: bool | None = None
         self._slow_due_t: float | None = None
         self.step_time_s = 0.0
         self.can_frames_out = 0
@@ -237,7 +239,7 @@ class Daemon:
             for t in tasks | {stop_task}:
                 t.cancel()
             await asyncio.gather(*tasks, stop_task, return_exceptions=True)
-            self.save_checkpoint()
+            self.final_checkpoint_saved = self.save_checkpoint()
             if self.publisher is not None:
                 self.publisher.stop()
             self.receiver.close()
