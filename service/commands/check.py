@@ -16,14 +16,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from service.commands.common_args import add_common_arguments, setup_logging
+from service.commands.common_args import add_common_arguments, plain_text, setup_logging
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "check",
         help="validate a config and its DBC mapping (exit 0 with a summary, 2 with every problem)",
-        description=__doc__.split("\n\n")[1],
+        description=plain_text(__doc__.split("\n\n")[1]),
     )
     p.add_argument("--config", type=Path, metavar="FILE", help="socd TOML config (default: the bundled default)")
     add_common_arguments(p)

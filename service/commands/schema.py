@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from service.commands.common_args import add_common_arguments, output_dir, setup_logging
+from service.commands.common_args import add_common_arguments, output_dir, plain_text, setup_logging
 
 EXAMPLE_PACK = "pack0"
 EXAMPLE_PREFIX = "bms"
@@ -27,7 +27,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "schema",
         help="write the JSON Schemas of the config and of the Zenoh payloads, and an example of each",
-        description=__doc__.split("\n\n")[0],
+        description=plain_text(__doc__.split("\n\n")[0]),
     )
     p.add_argument("-o", "--output", type=output_dir, metavar="DIR",
                    help="write <name>.schema.json and <name>.example.json here (default: one JSON document on stdout)")
