@@ -62,7 +62,12 @@ import numpy as np
 from service.bus.types import PackSample, PackSnapshot
 from service.cell.profile import CellProfile, load_profile
 from service.daemon.can_rx import CanReceiver, ReceiverClosed
-from service.daemon.checkpoint import checkpoint_write_problem, load_checkpoint, profile_hash, save_checkpoint
+from service.daemon.checkpoint import (
+    checkpoint_write_problem,
+    load_checkpoint,
+    profile_hash,
+    save_checkpoint,
+)
 from service.daemon.health import HealthMonitor, wall_time_of
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
 from service.estimators.pack_view import OcvEnergy, PackView, pack_view
