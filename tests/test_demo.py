@@ -86,7 +86,8 @@ def test_demo_estimates_with_the_given_cell_profile(tmp_path: Path, capsys: pyte
     assert runs[None]["final_soc_pct"] != runs["panasonic_18650pf_nokinetics"]["final_soc_pct"]
     capsys.readouterr()
     assert main(["demo", "--cell", str(tmp_path / "none.toml")]) == 2
-    assert "none.toml" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "none.toml" in err and "bundled profiles, by name: calce_a123, " in err
 
 
 def test_demo_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
