@@ -119,9 +119,8 @@ def estimate_start_soc(recording: Recording, profile: CellProfile, rest_current_
     """SOC at the first sample from the first (near-)rest voltage (the end of the rest the recording
     opens with, if it does), counted back to t0; settled when the current had rested
     :data:`SETTLED_REST_S` there (an opening rest counts from the first sample: what came before is
-    unknown).  A later, longer rest is not used: counting
-    back to the start over a drive with the profile's capacity moves the start as much as the
-    relaxation does."""
+    unknown).  A later, longer rest is not used: counting back to the start over a drive with the
+    profile's capacity moves the start as much as the relaxation does."""
     table = profile.ocv_table()
     capacity = profile.effective_capacity_ah
     limit = rest_current_a if rest_current_a is not None else 0.02 * capacity
