@@ -39,6 +39,7 @@ from service.commands.common_args import (
     float_in,
     non_negative_float,
     output_file,
+    plain_text,
     positive_int,
     probability,
     progress_enabled,
@@ -59,7 +60,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     p = subparsers.add_parser(
         "replay",
         help="play a recording or CAN log onto a bus (real time or faster, with faults)",
-        description=__doc__.split("\n\n")[0],
+        description=plain_text(__doc__.split("\n\n")[0]),
         epilog="Cell recordings are expanded to a pack; python-can logs are played as they are.",
     )
     p.add_argument("input", help="cell recording CSV, or a python-can log (" + ", ".join(LOG_SUFFIXES)
@@ -75,13 +76,13 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     add_soc0_argument(g, old_start_soc_alias=True,
                       help="SOC at the first sample, 0..1 (default: from the first rest voltage)")
     g.add_argument("--spread-capacity", type=relative_sigma, default=0.0, metavar="REL",
-                   help="σ of capacity (relative)")
+                   help="σ of the cells' capacity, relative, clipped at ±3σ (default 0: every cell the profile's; socd demo uses 0.02)")
     g.add_argument("--spread-resistance", type=relative_sigma, default=0.0, metavar="REL",
-                   help="σ of R_ohm (relative)")
+                   help="σ of the cells' R_ohm, relative, clipped at ±3σ (default 0; socd demo uses 0.05)")
     g.add_argument("--spread-soc", type=start_soc_sigma, default=0.0, metavar="SOC",
-                   help="σ of start SOC (absolute, 0-0.2; draws are clipped at ±3σ)")
+                   help="σ of start SOC (absolute, 0-0.2; draws are clipped at ±3σ; default 0)")
     g.add_argument("--spread-temperature", type=sensor_temperature_sigma, default=0.0, metavar="DEGC",
-                   help="σ of per-sensor temperature offset, K (0-10; draws are clipped at ±3σ)")
+                   help="σ of per-sensor temperature offset, K (0-10; draws are clipped at ±3σ; default 0)")
     g.add_argument("--seed", type=SEED, default=0, help="seed of the spread and the faults (default 0)")
     g.add_argument("--time-offset", type=float_in(-1e10, 1e10, "an offset in s"), default=0.0, metavar="S",
                    help="add to frame timestamps (|S| up to 1e10: Unix times fit)")
@@ -229,6 +230,10 @@ def run(args: argparse.Namespace) -> int:
         total = per_sample * len(pack) if args.start is None and args.stop is None else None
         if args.truth_out:
             pack.write_truth_csv(args.truth_out)
+            if pack.start is not None and not pack.start.settled:
+                print(f"socd replay: warning: {args.truth_out}: the truth starts at {100 * pack.start.soc:.1f} % SOC, "
+                      f"{pack.start.source}, where the voltage was still relaxing: it may be a few % off; give --soc0",
+                      file=sys.stderr)
     else:
         if log_format(path) is None:
             raise UserError(f"{path}: not a cell recording and not a python-can log "

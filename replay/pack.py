@@ -78,6 +78,8 @@ class PackRecording:
     #: that differ at all, per signal (:class:`FrameBuilder`)
     zeroed: Counter = field(default_factory=Counter)
     nonzero: Counter = field(default_factory=Counter)
+    #: the recorded cell's true SOC at the first sample and where it came from
+    start: StartSoc | None = None
 
     @property
     def n_cells(self) -> int:
@@ -98,17 +100,56 @@ class PackRecording:
                             *(f"{x:.6f}" for x in self.truth_soc[k])])
 
 
-def estimate_start_soc(recording: Recording, profile: CellProfile, rest_current_a: float | None = None) -> float:
-    """SOC at the first sample from the first (near-)rest voltage, counted back to t0."""
+#: a rest (current within 2 % of 1C) shorter than this leaves a cold cell's voltage minutes from its OCV:
+#: a truth placed from it may be a few % off, and the demo says so
+SETTLED_REST_S = 300.0
+
+
+@dataclass(frozen=True)
+class StartSoc:
+    """The truth's SOC at a recording's first sample and where it came from (``source``, for the
+    user); ``settled``: False where it was read from a voltage still relaxing (a few % off)."""
+
+    soc: float
+    source: str
+    settled: bool = True
+
+
+def estimate_start_soc(recording: Recording, profile: CellProfile, rest_current_a: float | None = None) -> StartSoc:
+    """SOC at the first sample from the first (near-)rest voltage (the end of the rest the recording
+    opens with, if it does), counted back to t0; settled when the current had rested
+    :data:`SETTLED_REST_S` there (an opening rest counts from the first sample: what came before is
+    unknown).  A later, longer rest is not used: counting back to the start over a drive with the
+    profile's capacity moves the start as much as the relaxation does."""
     table = profile.ocv_table()
     capacity = profile.effective_capacity_ah
     limit = rest_current_a if rest_current_a is not None else 0.02 * capacity
-    rest = np.flatnonzero(np.abs(recording.current_a) <= limit)
+    t = recording.time_s
+    at_rest = np.abs(recording.current_a) <= limit
+    last_load = np.maximum.accumulate(np.where(at_rest, -1, np.arange(at_rest.size)))
+    rested_s = t - np.where(last_load >= 0, t[np.maximum(last_load, 0)], t[0])
+    rest = np.flatnonzero(at_rest)
     k = int(rest[0]) if rest.size else 0
+    if k == 0 and at_rest[0]:  # the rest the recording opens with: its end is the most relaxed voltage in it
+        k = int(np.argmin(at_rest)) - 1 if not at_rest.all() else at_rest.size - 1
     soc_k = float(table.soc_from_ocv(recording.voltage_v[k], recording.temperature_c[k]))
     dq = recording.current_a * recording.dt_s()  # backward ZOH
-    soc0 = soc_k + float(dq[1:k + 1].sum()) / (SECONDS_PER_HOUR * capacity)
-    return float(np.clip(soc0, 0.0, 1.0))
+    soc0 = float(np.clip(soc_k + float(dq[1:k + 1].sum()) / (SECONDS_PER_HOUR * capacity), 0.0, 1.0))
+    where = f"the OCV at {t[k] - t[0]:.0f} s, {rested_s[k]:.0f} s into a rest" if at_rest[k] else \
+        f"the OCV at the first sample, under {recording.current_a[0]:.3g} A (the recording has no rest)"
+    return StartSoc(soc0, f"read from {where}, counted back to the start",
+                    bool(at_rest[k] and rested_s[k] >= SETTLED_REST_S))
+
+
+def truth_start(recording: Recording, profile: CellProfile, start_soc: float | None) -> StartSoc:
+    """The replay truth's start: ``start_soc`` given, else the recording's own ``soc_true``, else
+    :func:`estimate_start_soc`."""
+    if start_soc is not None:
+        return StartSoc(float(start_soc), "given (--soc0)")
+    if recording.soc_true is not None and np.isfinite(recording.soc_true[0]):
+        # a recorded truth beats an OCV reading
+        return StartSoc(float(np.clip(recording.soc_true[0], 0.0, 1.0)), "the recording's soc_true")
+    return estimate_start_soc(recording, profile)
 
 
 def expand_pack(
@@ -137,12 +178,8 @@ def expand_pack(
 
     capacity = profile.effective_capacity_ah
     cap_i = capacity * (1.0 + d_cap)
-    if start_soc is not None:
-        soc0 = float(start_soc)
-    elif recording.soc_true is not None and np.isfinite(recording.soc_true[0]):
-        soc0 = float(np.clip(recording.soc_true[0], 0.0, 1.0))  # a recorded truth beats an OCV reading
-    else:
-        soc0 = estimate_start_soc(recording, profile)
+    start = truth_start(recording, profile, start_soc)
+    soc0 = start.soc
     i = recording.current_a
     q_ah = np.cumsum(i * recording.dt_s()) / SECONDS_PER_HOUR  # backward ZOH, first step 0
     soc_ref = soc0 - q_ah / capacity
@@ -169,6 +206,7 @@ def expand_pack(
         delta_r_ohm=float(np.median(r_ohm)) * delta_r,
         sensor_temperature_c=sensor_t,
         source=str(recording.path),
+        start=start,
     )
 
 

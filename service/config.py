@@ -36,13 +36,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from service.assets import config_path, dbc_path, example_configs, profile_path
-from service.errors import validation_message
+from service.errors import UserError, validation_message
 from service.estimators.settings import EstimatorSettings
 from service.strict_numbers import NoBooleanNumbers
 
 log = logging.getLogger(__name__)
 #: environment variables with this prefix override the config file (nested with ``__``)
 ENV_PREFIX = "SOCD_"
+#: nests an override into a section: SOCD_BUS__CHANNEL sets [bus] channel
+ENV_NESTED_DELIMITER = "__"
 
 DEFAULT_INPUT_DBC = dbc_path("bms_pack.dbc")
 DEFAULT_OUTPUT_DBC = dbc_path("socd_output.dbc")
@@ -60,8 +62,10 @@ OUTPUT_MESSAGES: dict[str, tuple[str, ...]] = {
 }
 
 
-class ConfigError(Exception):
-    """A configuration that cannot be used; the message is ``<file>: <field.path>: <msg>``."""
+class ConfigError(UserError):
+    """A configuration that cannot be used; the message is ``<file>: <field.path>: <msg>``.  A
+    :class:`UserError`, so a command that builds a config without catching it (``demo``,
+    ``bench --latency``: a bad ``SOCD_*`` override) still exits 2 with the message."""
 
 
 class _Section(NoBooleanNumbers, BaseModel):
@@ -457,7 +461,7 @@ class SocdConfig(BaseSettings):
 
     model_config = SettingsConfigDict(
         env_prefix=ENV_PREFIX,
-        env_nested_delimiter="__",
+        env_nested_delimiter=ENV_NESTED_DELIMITER,
         extra="forbid",
         case_sensitive=False,
     )
@@ -566,18 +570,29 @@ _PATH_FIELDS = (("dbc", "input"), ("dbc", "output"), ("cell_profile",), ("checkp
 
 #: input files socd ships a default of: field -> the packaged file of a given name
 _PACKAGED = {("dbc", "input"): dbc_path, ("dbc", "output"): dbc_path, ("cell_profile",): profile_path}
+#: the folders of socd's own layout (the repository's and the package's): a relative path that is a bare
+#: name or goes through one of them (the examples' ``../dbc/bms_pack.dbc``, ``configs/vcan0.toml``) and is
+#: not there is socd's packaged file of that name; any other missing path stays missing and is reported,
+#: so a config or DBC of one's own that was not deployed is never replaced by the example
+PACKAGED_LAYOUT_FOLDERS = ("", "configs", "dbc", "cells")
+
+
+def packaged_layout(p: Path) -> bool:
+    """Whether the missing relative path ``p`` may stand for socd's packaged file of its name."""
+    return p.parent.name in PACKAGED_LAYOUT_FOLDERS
 
 
 def resolve_path(keys: tuple[str, ...], value: str | Path, base: Path) -> Path:
     """A config path made absolute: against ``base``; for an input file that is not there,
-    the packaged file of that name if socd ships one (else ``base / value``, which
-    :func:`check_config_files` reports as missing)."""
+    the packaged file of that name if socd ships one and the path is of socd's layout
+    (:func:`packaged_layout`; else ``base / value``, which :func:`check_config_files` reports as
+    missing)."""
     p = Path(value).expanduser()
     if p.is_absolute():
         return p
     local = (base / p).resolve()
     packaged = _PACKAGED.get(keys)
-    if packaged is not None and not local.exists() and packaged(p.name).is_file():
+    if packaged is not None and not local.exists() and packaged_layout(p) and packaged(p.name).is_file():
         return packaged(p.name)
     return local
 
@@ -653,12 +668,17 @@ def known_overrides() -> tuple[str, ...]:
 
 
 def unknown_override(name: str) -> str | None:
-    """A warning for a ``SOCD_*`` variable that sets no config field (a typo is otherwise ignored)."""
+    """A warning for a ``SOCD_*`` variable that sets no config field.  One outside every section is
+    ignored (a typo would otherwise pass unseen); one inside a section (``SOCD_BUS__CHANEL``) is an
+    unknown field of it, which the config then refuses, as it refuses one in the file."""
     known = known_overrides()
     if name.upper() in known:
         return None
     near = difflib.get_close_matches(name.upper(), known, n=1)
-    return (f"environment variable {name} sets no config field; it is ignored"
+    section = name.upper()[len(ENV_PREFIX):].split(ENV_NESTED_DELIMITER, 1)[0]
+    inside = ENV_NESTED_DELIMITER in name and f"{ENV_PREFIX}{section}" in known
+    return (f"environment variable {name} sets no config field"
+            + (f" of [{section.lower()}], which refuses it" if inside else "; it is ignored")
             + (f" (did you mean {near[0]}?)" if near else ""))
 
 
@@ -672,15 +692,15 @@ def _deepcopy(d: Any) -> Any:
 
 def find_config(path: str | Path | None) -> Path:
     """The config file ``path`` names: the file itself if it exists (or is absolute), else the
-    packaged example of that relative path or file name (``socketcan_can0.toml``); ``None``
-    is the packaged ``default.toml``."""
+    packaged example of that relative path or file name (``socketcan_can0.toml``,
+    ``configs/vcan0.toml``; :func:`packaged_layout`); ``None`` is the packaged ``default.toml``."""
     if path is None:
         return DEFAULT_CONFIG
     p = Path(path).expanduser()
     if p.is_absolute() or p.exists():
         return p
-    for candidate in (config_path(str(p)), config_path(p.name)):
-        if candidate.is_file():
+    for candidate in (config_path(str(p)), config_path(p.name) if packaged_layout(p) else None):
+        if candidate is not None and candidate.is_file():
             log.info("config %s: not in the working directory; using socd's example %s", p, candidate)
             return candidate
     return p

@@ -22,13 +22,14 @@ import asyncio
 import json
 import logging
 import os
+import shutil
 import socket
 import sys
 import tempfile
 import threading
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -97,6 +98,11 @@ class DemoResult:
     status_flags: dict[str, bool]
     counters: dict[str, int] = field(default_factory=dict)
     faults: dict[str, int] = field(default_factory=dict)
+    #: the recorded cell's true SOC at the first sample, %, and where it came from
+    truth_start_soc_pct: float | None = None
+    truth_start: str = ""
+    #: False where the start was read from a voltage still relaxing (the truth may be a few % off)
+    truth_start_settled: bool = True
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -206,23 +212,17 @@ def run_demo(
 
     ``capacity_spread``: σ of the cells' relative capacity (clipped at ±3σ);
     ``capacity_estimation``: overrides ``estimator.capacity_estimation`` ("off" freezes it)."""
-    import zenoh
-
-    from replay.pack import SpreadSpec, pack_frames
-    from replay.player import play
-    from service.bus.encoder import decode_output
     from service.cell.profile import load_profile
     from service.cell.truth import check_current_sign
     from service.config import DEFAULT_CELL_PROFILE
-    from service.daemon.daemon import Daemon
-    from service.daemon.zenoh_pub import zenoh_config
-    from service.evaluation.metrics import within_2sigma_pct
     from service.recording import load_recording
 
+    start_note = None
     if recording_path is None:
         recording_path = bundled_recording()
         if start_soc is None:
-            start_soc = 1.0  # the bundled drive starts at the end of a CC-CV charge (data README)
+            start_soc = 1.0
+            start_note = "the bundled drive's: it starts at the end of a CC-CV charge (data README)"
     recording_path = Path(recording_path)
     profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
     profile = load_profile(profile_path)
@@ -235,6 +235,28 @@ def run_demo(
         recording = recording.slice(0, max(2, stop_i))
 
     workdir = Path(tempfile.mkdtemp(prefix="socd-demo-"))
+    try:  # the checkpoint and a generated DBC live there: removed however the demo ends
+        return _demo_in(workdir, recording, recording_path, profile, profile_path, cells=cells, speed=speed,
+                        start_soc=start_soc, start_note=start_note, seed=seed, faults=faults, status=status, live=live,
+                        capacity_spread=capacity_spread, capacity_estimation=capacity_estimation)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _demo_in(workdir: Path, recording: Recording, recording_path: Path, profile: Any, profile_path: Path, *,
+             cells: int, speed: float, start_soc: float | None, start_note: str | None, seed: int, faults: Any,
+             status: TextIO | bool | None, live: bool | None, capacity_spread: float,
+             capacity_estimation: str | None) -> tuple[DemoResult, dict[str, np.ndarray]]:
+    """:func:`run_demo` from the pack's frames on: replay, estimate, publish, score (files in ``workdir``)."""
+    import zenoh
+
+    from replay.pack import SpreadSpec, pack_frames
+    from replay.player import play
+    from service.bus.encoder import decode_output
+    from service.daemon.daemon import Daemon
+    from service.daemon.zenoh_pub import zenoh_config
+    from service.evaluation.metrics import within_2sigma_pct
+
     channel = f"socd-demo-{os.getpid()}-{time.monotonic_ns()}"
     port = free_port()
     config = _demo_config(cells, channel, port, workdir, profile_path)
@@ -248,11 +270,8 @@ def run_demo(
     recording, emptied = within_every_cell(recording, pack.truth_soc)
     kept = float(recording.time_s[-1] - recording.time_s[0])
     if emptied is not None and kept < MIN_DEMO_SHARE * full_span:
-        import shutil
-
         from service.errors import UserError
 
-        shutil.rmtree(workdir, ignore_errors=True)
         start = "the start SOC" + (f" {start_soc:g}" if start_soc is not None else "")
         raise UserError(f"cell {emptied}'s true SOC leaves [0, 1] {kept:.0f} s into the {full_span:.0f} s drive: "
                         f"{start} leaves the pack no room for it; give a --soc0 further from that end")
@@ -264,6 +283,12 @@ def run_demo(
         status = sys.stdout  # looked up now: the caller may have redirected it
     elif status is False:
         status = None
+    if start_note is not None and pack.start is not None:
+        pack.start = replace(pack.start, source=start_note)
+    if pack.start is not None and not pack.start.settled:
+        log.warning("the truth's start SOC %.1f %% is %s: the voltage there was still relaxing, so the truth "
+                    "and every SOC error may be a few %% off; give --soc0 (1 if the recording starts at the end "
+                    "of a full charge)", 100 * pack.start.soc, pack.start.source)
     if emptied is not None and status is not None:
         print(f"replay stops at {recording.time_s[-1] - recording.time_s[0]:.0f} s, where cell {emptied} is "
               "empty (or full), as the pack's BMS would stop the drive", file=status)
@@ -405,6 +430,9 @@ def run_demo(
         status_flags=daemon.status_flags(),
         counters=counters,
         faults=dict(replay_stats[0].faults) if replay_stats else {},
+        truth_start_soc_pct=None if pack.start is None else round(100 * pack.start.soc, 3),
+        truth_start="" if pack.start is None else pack.start.source,
+        truth_start_settled=pack.start is None or pack.start.settled,
     )
     traces = {"t_s": t - (pack.time_s[0] if len(pack.time_s) else 0.0), "soc": soc, "truth": truth, "std": std}
     return result, traces
@@ -482,6 +510,9 @@ def summary_text(r: DemoResult) -> str:
          f"p50 {r.latency_ms.get('estimate_p50')} / {r.latency_ms.get('publish_p50')}, "
          f"p99 {r.latency_ms.get('estimate_p99')} / {r.latency_ms.get('publish_p99')}"),
     ]
+    if r.truth_start_soc_pct is not None:
+        lines.insert(3, f"truth: the recorded cell starts at {r.truth_start_soc_pct:.1f} % SOC, {r.truth_start}"
+                     + ("" if r.truth_start_settled else " (still relaxing there: give --soc0 for a truth to trust)"))
     raised = [k for k, v in r.status_flags.items() if v]
     lines.append("status flags: " + (", ".join(sorted(raised)) if raised else "none"))
     return "\n".join(lines)

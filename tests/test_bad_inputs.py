@@ -866,6 +866,19 @@ def test_replay_refuses_a_stuck_cell_beyond_the_pack_it_replays(tmp_path: Path, 
     assert not (tmp_path / "out.asc").exists()
 
 
+@pytest.mark.parametrize("command", [["demo", "--seconds", "10"], ["bench", "--latency", "--seconds", "1"]])
+def test_a_misspelt_override_inside_a_section_stops_every_command_in_one_line(capsys, monkeypatch, caplog,
+                                                                              command: list[str]) -> None:
+    """`SOCD_BUS__CHANEL=can0` crashed `socd demo` and `socd bench --latency` with a traceback, after a
+    warning that said the variable was ignored (`check`, `run` and `replay` refused it)."""
+    monkeypatch.setenv("SOCD_BUS__CHANEL", "can0")
+    with caplog.at_level("WARNING", logger="service.config"):
+        code, err = run_cli(capsys, command)
+    assert_one_line_error(code, err, "bus.chanel: Extra inputs are not permitted")
+    assert "SOCD_BUS__CHANEL sets no config field of [bus], which refuses it (did you mean SOCD_BUS__CHANNEL?)" \
+        in caplog.text
+
+
 def test_an_environment_override_is_named_when_misspelt_or_bad(tmp_path: Path, capsys, monkeypatch, caplog) -> None:
     """`SOCD_PAK__N_CELLS=3` was ignored without a word, and a bad `SOCD_PACK__N_CELLS=0` was reported
     against the config file alone."""

@@ -121,12 +121,26 @@ def test_schema_files_validate_their_examples(tmp_path: Path, capsys) -> None:
     capsys.readouterr()
     assert main(["schema"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert set(doc) == set(models) and doc["summary"]["key"] == "bms/pack0/summary"
+    assert set(doc) == set(models) | {"config"} and doc["summary"]["key"] == "bms/pack0/summary"
     assert doc["cell_soc"]["example"] == json.loads((out / "cell_soc.example.json").read_text())
     # -o onto a file is refused
     f = tmp_path / "file"
     f.write_text("x")
     assert main(["schema", "-o", str(f)]) == 2
+
+
+def test_schema_writes_the_configs_schema_and_the_default_config_as_its_example(tmp_path: Path) -> None:
+    """The README says `socd schema` prints the config's JSON schema; it printed the payloads' alone."""
+    from service.config import SocdConfig, load_config
+
+    out = tmp_path / "schema"
+    assert main(["schema", "-o", str(out)]) == 0
+    schema = json.loads((out / "config.schema.json").read_text())
+    assert schema == SocdConfig.model_json_schema()
+    assert {"bus", "dbc", "mapping", "estimator", "zenoh", "checkpoint", "pack"} <= set(schema["properties"])
+    example = json.loads((out / "config.example.json").read_text())
+    assert example == load_config(None, check_files=False).model_dump(mode="json")
+    assert SocdConfig.model_validate(example).pack.n_cells == example["pack"]["n_cells"]
 
 
 def test_docs_examples_are_what_socd_schema_writes(tmp_path: Path) -> None:

@@ -447,6 +447,8 @@ def test_kill9_then_restart_resumes_from_checkpoint(tmp_path: Path) -> None:
         proc.send_signal(signal.SIGTERM)
         proc.wait(15)
         assert proc.returncode == 0, "".join(log.lines[-20:])
+        # it says how the run ended (it said nothing): what it estimated, where the state went
+        assert f"state saved to {ckpt}" in log.wait_for("socd run: stopped after", 5)
     finally:
         stop_replay.set()
         for p in procs:

@@ -230,3 +230,27 @@ def test_bus_kwargs():
     assert cfg.bus.bus_kwargs() == {"interface": "virtual", "channel": "vcan0", "receive_own_messages": False}
     cfg = build_config({"bus": {"interface": "socketcan", "channel": "can0", "fd": True, "data_bitrate": 2000000}})
     assert cfg.bus.bus_kwargs()["bitrate"] == 500000 and cfg.bus.bus_kwargs()["data_bitrate"] == 2000000
+
+
+@pytest.mark.parametrize("given", ["vcan0.toml", "configs/vcan0.toml", "user_dbc_example/acme.toml"])
+def test_a_name_of_socds_layout_finds_the_packaged_example(tmp_path, monkeypatch, given):
+    """From any folder, the README's ``--config configs/vcan0.toml`` and an example's own name load
+    the packaged example."""
+    monkeypatch.chdir(tmp_path)
+    assert load_config(given).bus.interface in ("socketcan", "virtual")
+
+
+def test_a_missing_config_of_ones_own_is_not_replaced_by_the_example(tmp_path, monkeypatch):
+    """``--config nosuch/vcan0.toml`` loaded the packaged vcan0.toml and `socd check` said OK."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"nosuch/vcan0\.toml: cannot read config"):
+        load_config("nosuch/vcan0.toml")
+
+
+def test_a_missing_dbc_of_ones_own_is_named_not_replaced_by_the_example(tmp_path, profile):
+    """``[dbc] input = "mine/bms_pack.dbc"`` not deployed: the packaged DBC of that name was decoded
+    without a word.  The examples' own ``../dbc/bms_pack.dbc`` still finds the packaged one."""
+    with pytest.raises(ConfigError, match=r"dbc\.input: no such file .*mine/bms_pack\.dbc"):
+        load_config(write(tmp_path, f'cell_profile = "{profile}"\n[dbc]\ninput = "mine/bms_pack.dbc"\n'))
+    cfg = load_config(write(tmp_path, f'cell_profile = "{profile}"\n[dbc]\ninput = "../dbc/bms_pack.dbc"\n'))
+    assert cfg.dbc.input.name == "bms_pack.dbc" and cfg.dbc.input.is_file()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +29,13 @@ def _check(out: Path, cells: int) -> dict:
     return data
 
 
-def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
     from service.demo import bundled_recording
+
+    scratch = tmp_path / "tmp"  # the demo's temporary folder (its checkpoint) is removed at the end
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
 
     try:
         bundled_recording()
@@ -41,20 +47,31 @@ def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureF
     assert plot.stat().st_size > 10_000
     text = capsys.readouterr().out
     assert "SOC error vs truth" in text and "Zenoh messages received" in text
+    assert "truth: the recorded cell starts at 100.0 % SOC, the bundled drive's" in text
     assert json.loads(out.read_text())["soc_within_2sigma_pct"] is None  # nothing scored past 600 s
+    assert list(scratch.iterdir()) == []
 
 
-def test_demo_with_a_given_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_demo_with_a_given_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                     monkeypatch: pytest.MonkeyPatch) -> None:
     rec = SHARED / "pan18650pf_25C_US06.csv"
     if not rec.is_file():
         pytest.skip(f"{rec} not present")
     out = tmp_path / "demo.json"
-    assert main(["demo", "--cells", "3", "--seconds", "700", "--recording", str(rec), "--json", str(out)]) == 0
+    monkeypatch.chdir(tmp_path)  # --no-plot: nothing in the working folder but the JSON asked for
+    assert main(["demo", "--cells", "3", "--seconds", "700", "--recording", str(rec), "--json", str(out),
+                 "--no-plot"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo.json"]
     data = _check(out, 3)
     assert data["recording"] == rec.name and data["seconds_replayed"] == pytest.approx(700, abs=2)
     # past 600 s the demo says how often the truth lies within the σ the service published
     assert 0.0 <= data["soc_within_2sigma_pct"] <= 100.0
-    assert "within its published 2σ" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "within its published 2σ" in out
+    # no --soc0: the truth's start is read from the voltage 1 s into the drive's first pause, and the
+    # demo says so (a 0 °C drive read 13 % "error" that was its own truth's, without a word)
+    assert data["truth_start"].startswith("read from the OCV at 31 s") and not data["truth_start_settled"]
+    assert "still relaxing there: give --soc0" in out
 
 
 def test_demo_estimates_with_the_given_cell_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -69,7 +86,8 @@ def test_demo_estimates_with_the_given_cell_profile(tmp_path: Path, capsys: pyte
     assert runs[None]["final_soc_pct"] != runs["panasonic_18650pf_nokinetics"]["final_soc_pct"]
     capsys.readouterr()
     assert main(["demo", "--cell", str(tmp_path / "none.toml")]) == 2
-    assert "none.toml" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "none.toml" in err and "bundled profiles, by name: calce_a123, " in err
 
 
 def test_demo_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:

@@ -92,8 +92,8 @@ def test_seeded(recording, cfg, profile, generated):
 
 
 def test_start_soc_from_rest_and_given(recording, profile, cfg):
-    soc0 = estimate_start_soc(recording, profile)
-    assert 0.9 < soc0 <= 1.0
+    start = estimate_start_soc(recording, profile)
+    assert 0.9 < start.soc <= 1.0 and "read from the OCV at" in start.source
     _, pack = pack_frames(recording, cfg, profile, N, start_soc=0.5, time_offset_s=1000.0)
     assert pack.soc_ref[0] == 0.5 and pack.time_s[0] == 1000.0
 
@@ -256,3 +256,20 @@ def test_no_generated_cell_starts_above_full(recording, profile):
     pack = expand_pack(recording, profile, 64, SpreadSpec(soc=0.05), seed=3, start_soc=0.99)
     assert pack.truth_soc[0].max() <= 1.0
     assert pack.truth_soc[0].min() < 0.97  # the spread is still there below full
+
+
+def test_truth_out_says_when_its_start_was_read_from_a_voltage_still_relaxing(tmp_path, capsys):
+    """A drive that opens under load had its truth placed from the voltage one second into its first
+    pause, without a word; with --soc0 nothing is said."""
+    from service.cli import main
+
+    rows = "\n".join(f"{t},{1.0 if t % 20 < 10 else 0.0},{3.9 - 0.001 * t},25.0" for t in range(120))
+    rec = tmp_path / "drive.csv"
+    rec.write_text("time_s,current_a,voltage_v,temperature_c\n" + rows + "\n")
+    argv = ["replay", str(rec), "--no-send", "--record", str(tmp_path / "out.asc"), "--quiet",
+            "--truth-out", str(tmp_path / "truth.csv")]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "truth.csv: the truth starts at" in err and "read from the OCV at 10 s, 1 s into a rest" in err
+    assert main([*argv, "--soc0", "0.8"]) == 0
+    assert "the truth starts at" not in capsys.readouterr().err

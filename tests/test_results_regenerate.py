@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -25,10 +26,12 @@ def regen():
     return module
 
 
-def socd(*args: str) -> None:
-    """A real ``socd`` run in its own process (``socd bench`` pins its process to one core)."""
+def socd(*args: str, tmpdir: Path | None = None) -> None:
+    """A real ``socd`` run in its own process (``socd bench`` pins its process to one core); ``tmpdir``:
+    its temporary files' folder (``TMPDIR``)."""
+    env = None if tmpdir is None else {**os.environ, "TMPDIR": str(tmpdir)}
     done = subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=ROOT, capture_output=True, text=True,
-                          check=False)
+                          check=False, env=env)
     assert done.returncode == 0, done.stderr
 
 
@@ -53,8 +56,13 @@ def test_bench_table_carries_the_run_s_figures(regen, bench_json):
 
 def test_latency_table_carries_the_run_s_figures(regen, tmp_path):
     """A short real ``socd bench --latency`` (the service, a virtual bus, Zenoh on 127.0.0.1):
-    every estimate reached the subscriber, and the table shows the run's percentiles."""
-    socd("bench", "--latency", "--cells", "8", "--seconds", "2", "--warmup", "1", "--json", str(tmp_path / "lat.json"))
+    every estimate reached the subscriber, and the table shows the run's percentiles; the run's
+    checkpoint folder is gone afterwards (each run left one in /tmp)."""
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    socd("bench", "--latency", "--cells", "8", "--seconds", "2", "--warmup", "1", "--json", str(tmp_path / "lat.json"),
+         tmpdir=scratch)
+    assert list(scratch.iterdir()) == []
     got = json.loads((tmp_path / "lat.json").read_text())
     assert got["cells"] == 8 and got["samples_measured"] > 0 and got["frames_rejected"] == 0
     assert got["delivered_summary_ms"]["n"] > 0 and got["delivered_last_cell_ms"]["n"] > 0

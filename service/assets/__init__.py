@@ -45,6 +45,11 @@ def profile_path(name: str) -> Path:
     return asset_path(CONFIG_DIR_NAME, PROFILE_DIR_NAME, name)
 
 
+def bundled_profiles() -> list[str]:
+    """Names of the bundled cell profiles (``--cell`` takes them without the suffix)."""
+    return sorted(p.stem for p in asset_path(CONFIG_DIR_NAME, PROFILE_DIR_NAME).glob("*.toml"))
+
+
 def example_configs() -> list[str]:
     """Names of the packaged example configs, relative to the configs directory."""
     root = asset_path(CONFIG_DIR_NAME)

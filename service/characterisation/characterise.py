@@ -442,7 +442,8 @@ def characterise(
         whole[key].append(rec)
     temps = sorted(groups)
     ref_t = min(temps, key=lambda t: abs(t - 25.0))
-    rep.say(f"temperature groups: {', '.join(f'{t:g} °C ({len(groups[t])} rec.)' for t in temps)}; reference {ref_t:g} °C")
+    rep.say(f"temperature groups (each recording's median measured temperature, to {TEMP_GROUP_C:g} °C): "
+            f"{', '.join(f'{t:g} °C ({len(groups[t])} rec.)' for t in temps)}; reference {ref_t:g} °C")
     extra_branches: list[BranchSpec] = []
     slow_note = None
     if slow_branch:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import shutil
 import tempfile
 import threading
 import time
@@ -91,18 +92,28 @@ def _config(n_cells: int, channel: str, port: int, workdir: Path, profile_path: 
 def run_latency(cells: int = 200, rate_hz: float = 10.0, seconds: float = 60.0, warmup_s: float = 5.0,
                 profile_path: Path | None = None) -> LatencyResult:
     """Run the service for ``warmup_s + seconds`` of real time and measure (see the module doc)."""
-    import zenoh
-
-    from replay.pack import FrameBuilder
     from service.cell.profile import load_profile
     from service.config import DEFAULT_CELL_PROFILE
-    from service.daemon.daemon import Daemon
-    from service.daemon.zenoh_pub import zenoh_config
-    from service.demo import free_port
 
     profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
     profile = load_profile(profile_path)
     workdir = Path(tempfile.mkdtemp(prefix="socd-bench-latency-"))
+    try:  # the checkpoint and a generated DBC live there: removed however the run ends
+        return _latency_in(workdir, profile, profile_path, cells, rate_hz, seconds, warmup_s)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _latency_in(workdir: Path, profile: Any, profile_path: Path, cells: int, rate_hz: float, seconds: float,
+                warmup_s: float) -> LatencyResult:
+    """:func:`run_latency` from the config on (its files in ``workdir``)."""
+    import zenoh
+
+    from replay.pack import FrameBuilder
+    from service.daemon.daemon import Daemon
+    from service.daemon.zenoh_pub import zenoh_config
+    from service.demo import free_port
+
     channel = f"socd-bench-{os.getpid()}-{time.monotonic_ns()}"
     port = free_port()
     config = _config(cells, channel, port, workdir, profile_path)

@@ -16,14 +16,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from service.commands.common_args import add_common_arguments, setup_logging
+from service.commands.common_args import add_common_arguments, plain_text, setup_logging
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "check",
         help="validate a config and its DBC mapping (exit 0 with a summary, 2 with every problem)",
-        description=__doc__.split("\n\n")[1],
+        description=plain_text(__doc__.split("\n\n")[1]),
     )
     p.add_argument("--config", type=Path, metavar="FILE", help="socd TOML config (default: the bundled default)")
     add_common_arguments(p)
@@ -48,10 +48,11 @@ class CheckResult:
 
 def check_config(path: Path | None) -> CheckResult:
     """Every problem of the config at ``path`` (the bundled default when None)."""
-    from service.config import DEFAULT_CONFIG, ConfigError, load_config
+    from service.config import DEFAULT_CONFIG, ConfigError, find_config, load_config
 
     source = str(path if path is not None else DEFAULT_CONFIG)
     res = CheckResult(source)
+    read = find_config(path)
     try:
         config = load_config(path, check_files=False)
     except ConfigError as exc:
@@ -68,6 +69,8 @@ def check_config(path: Path | None) -> CheckResult:
     _check_checkpoint(config, res)
     if res.ok:
         res.summary = _summary(config, dbs, profile)
+        if path is not None and read != Path(path).expanduser():
+            res.summary.insert(0, f"config        {read} (socd's example of that name)")
     return res
 
 

@@ -28,6 +28,7 @@ import json
 import logging
 import math
 import os
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -42,6 +43,12 @@ LOG_LEVELS = ("debug", "info", "warning", "error")
 # value types (argparse ``type=``): raise ArgumentTypeError with a message that reads
 # after "argument --flag: "
 # ---------------------------------------------------------------------------------------
+def plain_text(doc: str) -> str:
+    """A docstring's reStructuredText made plain for ``--help``: ``x`` and :func:`x` become x."""
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", doc)
+    return text.replace("``", "")
+
+
 def _float(text: str) -> float:
     try:
         x = float(text)

@@ -45,7 +45,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--recording", type=Path, default=None, help="a recording CSV instead of the bundled one")
     add_soc0_argument(parser, old_start_soc_alias=True,
                       help="true SOC at the recording's first sample, 0-1 (default: 1.0 for the bundled "
-                           "drive, which starts fully charged; else estimated from the first rest voltage)")
+                           "drive, which starts fully charged; else the recording's soc_true, else read from "
+                           "the first rest voltage; the summary says which, and when that voltage was still "
+                           "relaxing)")
     add_cell_argument(parser, help="cell profile the service estimates with and the pack is built from "
                       "(default: the bundled Panasonic 18650PF profile)")
     parser.add_argument("--seed", type=SEED, default=0, help="seed of the per-cell spread (default 0)")
@@ -53,9 +55,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         help="σ of the cells' relative capacity, clipped at 3σ (default 0.02 = 2 %%)")
     parser.add_argument("--freeze-capacity", action="store_true",
                         help="estimate with the profile's capacity (estimator.capacity_estimation = 'off')")
-    parser.add_argument("--plot", type=plot_file, default=None, metavar="FILE",
-                        help=f"PNG of SOC vs truth (default {DEFAULT_PLOT} where matplotlib, of the "
-                             "'fit' extra, is installed)")
+    plots = parser.add_mutually_exclusive_group()
+    plots.add_argument("--plot", type=plot_file, default=None, metavar="FILE",
+                       help=f"PNG of SOC vs truth (default {DEFAULT_PLOT} in the working folder where matplotlib, "
+                            "of the 'fit' extra, is installed)")
+    plots.add_argument("--no-plot", action="store_true", help="write no plot")
     add_common_arguments(parser, json_out="the figures")
     parser.set_defaults(func=_demo)
 
@@ -84,7 +88,7 @@ def _demo(args: argparse.Namespace) -> int:
     if not installed("matplotlib"):
         if plot is not None:
             raise UserError(f"--plot {install_hint('matplotlib')}")
-    elif plot is None:
+    elif plot is None and not args.no_plot:
         plot = DEFAULT_PLOT
     try:
         result, traces = run_demo(args.cells, args.speed, args.seconds, recording_path=args.recording,
@@ -104,7 +108,7 @@ def _demo(args: argparse.Namespace) -> int:
     print(summary_text(result), file=out)
     if plot is not None:
         print(f"plot: {write_plot(plot, traces, result)}", file=out)
-    else:
+    elif not args.no_plot:
         print(f"plot: not written ({install_hint('matplotlib')})", file=out)
     write_json(args.json, result.to_json())
     return 0

@@ -31,6 +31,7 @@ from service.commands.common_args import (
     json_to_stdout,
     output_dir,
     output_file,
+    plain_text,
     positive_float,
     progress_enabled,
     refuse_overwriting_inputs,
@@ -45,7 +46,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "diagnose",
         help="locate model/recording mismatch, name the missing physics, refit and score it held-out",
-        description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[-1].strip(),
+        description=plain_text(__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[-1].strip()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recording", help="recording CSV (time_s,current_a,voltage_v,temperature_c)")
@@ -61,14 +62,17 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "it is not significant (your call, e.g. from other evidence); 'none' saves the base model")
     p.add_argument("--fit-fraction", type=_fit_fraction, default=0.6, help="share of the duration fitted (default 0.6)")
     p.add_argument("--split", choices=("chronological", "interleaved", "blocks"), default="chronological",
-                   help="held-out protocol: the last 40 %% of the duration (default), or blocks 2,4,7,9 of 10")
+                   help="held-out part: 'chronological' the last 40 %% of the duration (default); 'interleaved' "
+                        "blocks 2, 4, 7 and 9 of 10; 'blocks' alternating blocks of about 10 minutes, every "
+                        "second one held out"),
     add_soc0_argument(p, help="known initial SOC in [0, 1] (default: from the opening rest voltage)")
     p.add_argument("--effects", help="comma-separated subset of candidate effects to try (default: all)")
     p.add_argument("--nominal-ambient-c", type=_ambient, default=25.0, metavar="C",
                    help="the ambient a nominal recording is in (default 25 °C); a recording that opens 5 K or more "
                    "away from it and whose temperature then moves by 2 K or more has its temperature effect "
                    "nominated; 'none' judges the temperature only by how well a constant ambient explains it")
-    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--seed", type=SEED, default=0,
+                   help="seed of the base model's and each effect's global search (default 0)")
     add_fit_period_argument(p, what="the diagnosis (its rules were chosen on 1 s recordings)")
     add_common_arguments(p, progress=True, json_out="the result", bounds=True)
     p.set_defaults(func=run)

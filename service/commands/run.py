@@ -13,6 +13,7 @@ import asyncio
 import logging
 import sys
 from pathlib import Path
+from typing import Any
 
 from service.bus.cli_args import add_bus_arguments
 from service.cli import UserError
@@ -94,4 +95,15 @@ def _run(args: argparse.Namespace) -> int:
         return 1
     except MetricsError as exc:
         raise UserError(str(exc)) from None
+    print(f"socd run: {stop_summary(daemon)}", file=sys.stderr)
     return 0
+
+
+def stop_summary(daemon: Any) -> str:
+    """One line on how a run ended: what it estimated and whether its state was saved."""
+    counters = daemon.counters()
+    saved = (f"state saved to {daemon.config.checkpoint.path}" if daemon.final_checkpoint_saved
+             else "no state saved (nothing estimated)" if daemon.samples == 0
+             else f"state NOT saved to {daemon.config.checkpoint.path} (see the log)")
+    return (f"stopped after {daemon.samples} samples of {daemon.n} cells "
+            f"({counters.get('frames_in', 0)} frames in, {counters.get('frames_rejected', 0)} rejected); {saved}")

@@ -1,11 +1,12 @@
-"""``socd schema [-o DIR]``: the JSON Schemas of the Zenoh payloads and an example of each.
+"""``socd schema [-o DIR]``: the JSON Schemas of the config and of the Zenoh payloads, and an example of each.
 
-The schemas are the pydantic models' own (:mod:`service.daemon.payloads`); the examples are
-built by the publisher's own code (:func:`service.daemon.zenoh_pub.build_payloads` and
+The schemas are the pydantic models' own (:class:`service.config.SocdConfig`,
+:mod:`service.daemon.payloads`).  The config's example is the bundled default config as
+``socd run`` reads it (its paths resolved on this machine); the payloads' examples are built by
+the publisher's own code (:func:`service.daemon.zenoh_pub.build_payloads` and
 :class:`service.daemon.health.HealthMonitor`) from a two-cell round with illustrative values,
 so they have exactly the shape the daemon publishes.  With ``-o DIR`` it writes
-``<name>.schema.json`` and ``<name>.example.json`` per payload; without, one JSON document
-on stdout.
+``<name>.schema.json`` and ``<name>.example.json`` for each; without, one JSON document on stdout.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from service.commands.common_args import add_common_arguments, output_dir, setup_logging
+from service.commands.common_args import add_common_arguments, output_dir, plain_text, setup_logging
 
 EXAMPLE_PACK = "pack0"
 EXAMPLE_PREFIX = "bms"
@@ -25,8 +26,8 @@ EXAMPLE_PREFIX = "bms"
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "schema",
-        help="write the JSON Schemas of the Zenoh payloads and an example payload of each",
-        description=__doc__.split("\n\n")[0],
+        help="write the JSON Schemas of the config and of the Zenoh payloads, and an example of each",
+        description=plain_text(__doc__.split("\n\n")[0]),
     )
     p.add_argument("-o", "--output", type=output_dir, metavar="DIR",
                    help="write <name>.schema.json and <name>.example.json here (default: one JSON document on stdout)")
@@ -47,8 +48,16 @@ class PayloadDoc:
         return self.model.model_json_schema()
 
 
+def config_doc() -> PayloadDoc:
+    """The service config (TOML; ``SOCD_*`` variables override it), the bundled default as its example."""
+    from service.config import ENV_NESTED_DELIMITER, ENV_PREFIX, SocdConfig, load_config
+
+    key = f"config file (TOML; {ENV_PREFIX}<SECTION>{ENV_NESTED_DELIMITER}<FIELD> overrides)"
+    return PayloadDoc("config", key, SocdConfig, load_config(None, check_files=False))
+
+
 def payload_docs() -> list[PayloadDoc]:
-    """Every Zenoh payload with an example built by the publisher's code."""
+    """The config, then every Zenoh payload with an example built by the publisher's code."""
     import numpy as np
 
     from service.bus.types import STATUS_FLAGS
@@ -95,7 +104,7 @@ def payload_docs() -> list[PayloadDoc]:
     snapshot = Snapshot(pack=EXAMPLE_PACK, t_s=t_s, cells=p.cells, params=p.params, summary=p.summary,
                         health=p.health)
     k = keys(EXAMPLE_PREFIX, EXAMPLE_PACK)
-    return [
+    return [config_doc(),
         PayloadDoc("cell_soc", f"{k.base}/cell/<i>/soc", CellSoc, p.cells[0]),
         PayloadDoc("cell_params", f"{k.base}/cell/<i>/params", CellParams, p.params[0]),
         PayloadDoc("summary", k.summary, Summary, p.summary),

@@ -62,7 +62,12 @@ import numpy as np
 from service.bus.types import PackSample, PackSnapshot
 from service.cell.profile import CellProfile, load_profile
 from service.daemon.can_rx import CanReceiver, ReceiverClosed
-from service.daemon.checkpoint import checkpoint_write_problem, load_checkpoint, profile_hash, save_checkpoint
+from service.daemon.checkpoint import (
+    checkpoint_write_problem,
+    load_checkpoint,
+    profile_hash,
+    save_checkpoint,
+)
 from service.daemon.health import HealthMonitor, wall_time_of
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
 from service.estimators.pack_view import OcvEnergy, PackView, pack_view
@@ -177,6 +182,8 @@ class Daemon:
         self._ckpt_lock = threading.Lock()
         self.samples = 0
         self.steps = 0
+        #: whether the checkpoint written when the run ended was saved (None while running)
+        self.final_checkpoint_saved: bool | None = None
         self._slow_due_t: float | None = None
         self.step_time_s = 0.0
         self.can_frames_out = 0
@@ -237,7 +244,7 @@ class Daemon:
             for t in tasks | {stop_task}:
                 t.cancel()
             await asyncio.gather(*tasks, stop_task, return_exceptions=True)
-            self.save_checkpoint()
+            self.final_checkpoint_saved = self.save_checkpoint()
             if self.publisher is not None:
                 self.publisher.stop()
             self.receiver.close()
