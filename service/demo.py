@@ -222,7 +222,7 @@ def run_demo(
         recording_path = bundled_recording()
         if start_soc is None:
             start_soc = 1.0
-            start_note = "the bundled drive's: it starts at the end of a CC-CV charge (data README)"
+            start_note = "as the bundled drive starts at the end of a CC-CV charge (service/data/README.md)"
     recording_path = Path(recording_path)
     profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
     profile = load_profile(profile_path)

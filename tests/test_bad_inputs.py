@@ -771,6 +771,13 @@ def test_a_checkpoint_path_the_service_cannot_write_is_named_by_check(tmp_path: 
     assert str(path) in err and sorted(p.name for p in tmp_path.iterdir()) == ["c.toml", "notes.txt"]
 
 
+def test_a_checkpoint_path_from_the_environment_is_named_as_the_environments(capsys, monkeypatch) -> None:
+    monkeypatch.setenv("SOCD_CHECKPOINT__PATH", "/proc/socd-test/x.npz")
+    code, err = run_cli(capsys, ["check"])
+    assert_one_line_error(code, err, "checkpoint.path: cannot create files or folders in /proc")
+    assert "(the path is SOCD_CHECKPOINT__PATH's, which overrides the file)" in err
+
+
 def test_check_leaves_no_probe_file_in_a_writable_checkpoint_folder(tmp_path: Path, capsys) -> None:
     folder = tmp_path / "state"
     folder.mkdir()

@@ -47,7 +47,7 @@ def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureF
     assert plot.stat().st_size > 10_000
     text = capsys.readouterr().out
     assert "SOC error vs truth" in text and "Zenoh messages received" in text
-    assert "truth: the recorded cell starts at 100.0 % SOC, the bundled drive's" in text
+    assert "truth: the recorded cell starts at 100.0 % SOC, as the bundled drive starts at the end" in text
     assert json.loads(out.read_text())["soc_within_2sigma_pct"] is None  # nothing scored past 600 s
     assert list(scratch.iterdir()) == []
 

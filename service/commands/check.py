@@ -11,6 +11,7 @@ name, the Zenoh config file and whether the checkpoint's folder takes a new file
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -156,7 +157,9 @@ def _check_checkpoint(config: Any, res: CheckResult) -> None:
     from service.daemon.checkpoint import checkpoint_write_problem
 
     if (problem := checkpoint_write_problem(config.checkpoint.path)) is not None:
-        res.problem("checkpoint.path", problem)
+        env = "SOCD_CHECKPOINT__PATH"
+        res.problem("checkpoint.path", problem + (f" (the path is {env}'s, which overrides the file)"
+                                                   if env in os.environ else ""))
 
 
 def _summary(config: Any, dbs: dict[str, Any], profile: Any) -> list[str]:

@@ -147,8 +147,8 @@ def checkpoint_write_problem(path: str | Path) -> str | None:
     try:
         fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".probe", dir=folder)
     except OSError as exc:
-        return (f"cannot create a file in {folder} ({exc.strerror or exc}): the service could not save "
-                f"its state to {path}")
+        return (f"cannot create files or folders in {folder} ({exc.strerror or exc}): the service could not "
+                f"save its state to {path}")
     os.close(fd)
     os.unlink(name)
     return None
