@@ -674,7 +674,7 @@ def unknown_override(name: str) -> str | None:
     known = known_overrides()
     if name.upper() in known:
         return None
-    near = difflib.get_close_matches(name.upper(), known, n=1)
+    near = difflib.get_close_matches(name.upper(), known, n=1, cutoff=0.8)  # SOCD_FOO is no SOCD_ZENOH
     section = name.upper()[len(ENV_PREFIX):].split(ENV_NESTED_DELIMITER, 1)[0]
     inside = ENV_NESTED_DELIMITER in name and f"{ENV_PREFIX}{section}" in known
     return (f"environment variable {name} sets no config field"

@@ -771,6 +771,15 @@ def test_a_checkpoint_path_the_service_cannot_write_is_named_by_check(tmp_path: 
     assert str(path) in err and sorted(p.name for p in tmp_path.iterdir()) == ["c.toml", "notes.txt"]
 
 
+def test_an_unknown_override_far_from_every_field_suggests_none(caplog, monkeypatch, capsys) -> None:
+    """`SOCD_FOO` was asked whether it meant `SOCD_ZENOH`."""
+    monkeypatch.setenv("SOCD_FOO", "1")
+    with caplog.at_level("WARNING", logger="service.config"):
+        code, err = run_cli(capsys, ["check"])
+    assert code == 0, err
+    assert "SOCD_FOO sets no config field; it is ignored" in caplog.text and "did you mean" not in caplog.text
+
+
 def test_a_checkpoint_path_from_the_environment_is_named_as_the_environments(capsys, monkeypatch) -> None:
     monkeypatch.setenv("SOCD_CHECKPOINT__PATH", "/proc/socd-test/x.npz")
     code, err = run_cli(capsys, ["check"])
