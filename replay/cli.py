@@ -230,10 +230,8 @@ def run(args: argparse.Namespace) -> int:
         total = per_sample * len(pack) if args.start is None and args.stop is None else None
         if args.truth_out:
             pack.write_truth_csv(args.truth_out)
-            if pack.start is not None and not pack.start.settled:
-                print(f"socd replay: warning: {args.truth_out}: the truth starts at {100 * pack.start.soc:.1f} % SOC, "
-                      f"{pack.start.source}, where the voltage was still relaxing: it may be a few % off; give --soc0",
-                      file=sys.stderr)
+            if (caution := pack.start.caution()) is not None:
+                print(f"socd replay: warning: {args.truth_out}: {caution}", file=sys.stderr)
     else:
         if log_format(path) is None:
             raise UserError(f"{path}: not a cell recording and not a python-can log "

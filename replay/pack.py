@@ -69,6 +69,8 @@ class PackRecording:
     soc_ref: np.ndarray  # [T] the recorded cell's SOC
     capacity_ah: np.ndarray  # [N]
     delta_r_ohm: np.ndarray  # [N]
+    #: the recorded cell's true SOC at the first sample and where it came from
+    start: StartSoc
     sensor_temperature_c: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # [T, S]
     source: str = ""
     #: measured values (cell voltages, temperatures, current) beyond their input-DBC signal's declared
@@ -78,8 +80,6 @@ class PackRecording:
     #: that differ at all, per signal (:class:`FrameBuilder`)
     zeroed: Counter = field(default_factory=Counter)
     nonzero: Counter = field(default_factory=Counter)
-    #: the recorded cell's true SOC at the first sample and where it came from
-    start: StartSoc | None = None
 
     @property
     def n_cells(self) -> int:
@@ -113,6 +113,14 @@ class StartSoc:
     soc: float
     source: str
     settled: bool = True
+
+    def caution(self) -> str | None:
+        """What a user should know of a start read from a voltage still relaxing, or None."""
+        if self.settled:
+            return None
+        return (f"the truth starts at {100 * self.soc:.1f} % SOC, {self.source}, where the voltage was still "
+                "relaxing: the truth and every SOC error against it may be a few % off; give --soc0 (1 if the "
+                "recording starts at the end of a full charge)")
 
 
 def estimate_start_soc(recording: Recording, profile: CellProfile, rest_current_a: float | None = None) -> StartSoc:

@@ -667,6 +667,13 @@ def known_overrides() -> tuple[str, ...]:
     return tuple(sorted(override_names(SocdConfig, ENV_PREFIX)))
 
 
+def override_of(*keys: str) -> str | None:
+    """The environment variable that sets the field at ``keys`` (``"checkpoint", "path"``) as it is
+    spelt in the environment, or None where none does."""
+    wanted = ENV_PREFIX + ENV_NESTED_DELIMITER.join(keys).upper()
+    return next((k for k in os.environ if k.upper() == wanted), None)
+
+
 def unknown_override(name: str) -> str | None:
     """A warning for a ``SOCD_*`` variable that sets no config field.  One outside every section is
     ignored (a typo would otherwise pass unseen); one inside a section (``SOCD_BUS__CHANEL``) is an

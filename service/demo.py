@@ -96,13 +96,13 @@ class DemoResult:
     cpu_pct: float
     latency_ms: dict[str, float | None]
     status_flags: dict[str, bool]
+    #: the recorded cell's true SOC at the first sample, %, and where it came from
+    truth_start_soc_pct: float
+    truth_start: str
+    #: False where the start was read from a voltage still relaxing (the truth may be a few % off)
+    truth_start_settled: bool
     counters: dict[str, int] = field(default_factory=dict)
     faults: dict[str, int] = field(default_factory=dict)
-    #: the recorded cell's true SOC at the first sample, %, and where it came from
-    truth_start_soc_pct: float | None = None
-    truth_start: str = ""
-    #: False where the start was read from a voltage still relaxing (the truth may be a few % off)
-    truth_start_settled: bool = True
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -283,12 +283,10 @@ def _demo_in(workdir: Path, recording: Recording, recording_path: Path, profile:
         status = sys.stdout  # looked up now: the caller may have redirected it
     elif status is False:
         status = None
-    if start_note is not None and pack.start is not None:
+    if start_note is not None:
         pack.start = replace(pack.start, source=start_note)
-    if pack.start is not None and not pack.start.settled:
-        log.warning("the truth's start SOC %.1f %% is %s: the voltage there was still relaxing, so the truth "
-                    "and every SOC error may be a few %% off; give --soc0 (1 if the recording starts at the end "
-                    "of a full charge)", 100 * pack.start.soc, pack.start.source)
+    if (caution := pack.start.caution()) is not None:
+        log.warning("%s", caution)
     if emptied is not None and status is not None:
         print(f"replay stops at {recording.time_s[-1] - recording.time_s[0]:.0f} s, where cell {emptied} is "
               "empty (or full), as the pack's BMS would stop the drive", file=status)
@@ -430,9 +428,9 @@ def _demo_in(workdir: Path, recording: Recording, recording_path: Path, profile:
         status_flags=daemon.status_flags(),
         counters=counters,
         faults=dict(replay_stats[0].faults) if replay_stats else {},
-        truth_start_soc_pct=None if pack.start is None else round(100 * pack.start.soc, 3),
-        truth_start="" if pack.start is None else pack.start.source,
-        truth_start_settled=pack.start is None or pack.start.settled,
+        truth_start_soc_pct=round(100 * pack.start.soc, 3),
+        truth_start=pack.start.source,
+        truth_start_settled=pack.start.settled,
     )
     traces = {"t_s": t - (pack.time_s[0] if len(pack.time_s) else 0.0), "soc": soc, "truth": truth, "std": std}
     return result, traces
@@ -500,6 +498,8 @@ def summary_text(r: DemoResult) -> str:
         + (f", RMSE after 600 s {r.soc_rmse_after_600s_pct:.2f} %" if r.soc_rmse_after_600s_pct is not None else "")
         + (f", within its published 2σ {r.soc_within_2sigma_pct:.0f} % of the time after 600 s"
            if r.soc_within_2sigma_pct is not None else ""),
+        (f"truth: the recorded cell starts at {r.truth_start_soc_pct:.1f} % SOC, {r.truth_start}"
+         + ("" if r.truth_start_settled else " (still relaxing there: give --soc0 for a truth to trust)")),
         "per cell RMSE %: " + " ".join(f"{x:.2f}" for x in r.per_cell_rmse_pct)
         + (f"  (worst: cell {worst})" if r.per_cell_rmse_pct else ""),
         "per cell capacity error %: " + " ".join(f"{x:+.2f}" for x in r.capacity_err_pct)
@@ -510,9 +510,6 @@ def summary_text(r: DemoResult) -> str:
          f"p50 {r.latency_ms.get('estimate_p50')} / {r.latency_ms.get('publish_p50')}, "
          f"p99 {r.latency_ms.get('estimate_p99')} / {r.latency_ms.get('publish_p99')}"),
     ]
-    if r.truth_start_soc_pct is not None:
-        lines.insert(3, f"truth: the recorded cell starts at {r.truth_start_soc_pct:.1f} % SOC, {r.truth_start}"
-                     + ("" if r.truth_start_settled else " (still relaxing there: give --soc0 for a truth to trust)"))
     raised = [k for k, v in r.status_flags.items() if v]
     lines.append("status flags: " + (", ".join(sorted(raised)) if raised else "none"))
     return "\n".join(lines)

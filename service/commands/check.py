@@ -11,7 +11,6 @@ name, the Zenoh config file and whether the checkpoint's folder takes a new file
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,7 +54,7 @@ def check_config(path: Path | None) -> CheckResult:
     res = CheckResult(source)
     read = find_config(path)
     try:
-        config = load_config(path, check_files=False)
+        config = load_config(read, check_files=False)
     except ConfigError as exc:
         res.problems.extend(str(exc).splitlines())
         return res
@@ -154,12 +153,12 @@ def _check_zenoh(config: Any, res: CheckResult) -> None:
 
 
 def _check_checkpoint(config: Any, res: CheckResult) -> None:
+    from service.config import override_of
     from service.daemon.checkpoint import checkpoint_write_problem
 
     if (problem := checkpoint_write_problem(config.checkpoint.path)) is not None:
-        env = "SOCD_CHECKPOINT__PATH"
-        res.problem("checkpoint.path", problem + (f" (the path is {env}'s, which overrides the file)"
-                                                   if env in os.environ else ""))
+        env = override_of("checkpoint", "path")
+        res.problem("checkpoint.path", problem + (f" (the path is {env}'s, which overrides the file)" if env else ""))
 
 
 def _summary(config: Any, dbs: dict[str, Any], profile: Any) -> list[str]:
