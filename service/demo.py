@@ -36,21 +36,12 @@ from typing import TYPE_CHECKING, Any, TextIO
 import can
 import numpy as np
 
+from service.assets import bundled_recording
+
 if TYPE_CHECKING:
     from service.recording import Recording
 
 log = logging.getLogger(__name__)
-
-DATA_DIR = Path(__file__).resolve().parent / "data"
-
-
-def bundled_recording() -> Path:
-    """The drive-cycle excerpt shipped in ``service/data`` (a ``*.csv`` recording)."""
-    found = sorted(p for p in DATA_DIR.glob("*.csv") if not p.name.endswith("_truth.csv"))
-    if not found:
-        raise FileNotFoundError(f"no bundled recording (*.csv) in {DATA_DIR}")
-    preferred = [p for p in found if any(k in p.name.lower() for k in ("drive", "us06", "udds", "la92", "cycle"))]
-    return (preferred or found)[0]
 
 
 def free_port() -> int:

@@ -656,7 +656,7 @@ def test_a_current_logged_with_charge_positive_is_refused(tmp_path: Path, capsys
     jumps up at every large current step, which a cell's ohmic drop never does in socd's convention.
     Each command says so in one line; ``socd diagnose``, which has no full point to count from, ran
     on it before and blamed the model."""
-    from service.demo import bundled_recording
+    from service.assets import bundled_recording
     from service.recording import load_recording, save_recording
 
     rec = load_recording(bundled_recording())

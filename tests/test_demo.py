@@ -31,7 +31,7 @@ def _check(out: Path, cells: int) -> dict:
 
 def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                          monkeypatch: pytest.MonkeyPatch) -> None:
-    from service.demo import bundled_recording
+    from service.assets import bundled_recording
 
     scratch = tmp_path / "tmp"  # the demo's temporary folder (its checkpoint) is removed at the end
     scratch.mkdir()
@@ -101,9 +101,10 @@ def test_the_replay_stops_where_a_cell_of_the_pack_is_empty() -> None:
     be emptied before the recorded cell is: the demo replays up to the first of them, so every
     truth it scores is a SOC in [0, 1]; the 8-cell default pack keeps the whole drive."""
     from replay.pack import SpreadSpec, expand_pack
+    from service.assets import bundled_recording
     from service.cell.profile import load_profile
     from service.config import DEFAULT_CELL_PROFILE
-    from service.demo import bundled_recording, within_every_cell
+    from service.demo import within_every_cell
     from service.recording import load_recording
 
     profile, rec = load_profile(DEFAULT_CELL_PROFILE), load_recording(bundled_recording())

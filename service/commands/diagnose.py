@@ -34,6 +34,8 @@ from service.commands.common_args import (
     plain_text,
     positive_float,
     progress_enabled,
+    recording_file,
+    recording_help,
     refuse_overwriting_inputs,
     refuse_shared_outputs,
     setup_logging,
@@ -49,7 +51,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         description=plain_text(__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[-1].strip()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (time_s,current_a,voltage_v,temperature_c)")
+    p.add_argument("recording", type=recording_file, help=recording_help("recording CSV (time_s,current_a,voltage_v,temperature_c)"))
     src = p.add_mutually_exclusive_group(required=True)
     add_cell_argument(src, help="cell profile (TOML/JSON) to start from")
     src.add_argument("--ocv", help="OCV(SOC) table CSV (soc + ocv_v/ocv_avg_v/...); needs --capacity-ah")
