@@ -209,12 +209,10 @@ def run_demo(
     from service.recording import load_recording
 
     start_note = None
-    if recording_path is None:
-        recording_path = bundled_recording()
-        if start_soc is None:
-            start_soc = 1.0
-            start_note = "as the bundled drive starts at the end of a CC-CV charge (service/data/README.md)"
-    recording_path = Path(recording_path)
+    recording_path = Path(recording_path) if recording_path is not None else bundled_recording()
+    if start_soc is None and recording_path.resolve() == bundled_recording().resolve():
+        start_soc = 1.0
+        start_note = "as the bundled drive starts at the end of a CC-CV charge (service/data/README.md)"
     profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
     profile = load_profile(profile_path)
     recording = load_recording(recording_path)

@@ -74,6 +74,19 @@ def test_demo_with_a_given_recording(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert "still relaxing there: give --soc0" in out
 
 
+def test_the_shipped_recording_named_starts_as_the_default_demo(tmp_path: Path) -> None:
+    """``--recording pan18650pf_25C_US06`` is the demo's own drive: its truth starts full, as without it."""
+    from service.assets import bundled_recording
+
+    runs = {}
+    for name, extra in (("default", []), ("named", ["--recording", bundled_recording().stem])):
+        out = tmp_path / f"{name}.json"
+        assert main(["demo", "--cells", "2", "--seconds", "60", "--no-plot", "--json", str(out), *extra]) == 0
+        runs[name] = json.loads(out.read_text())
+    assert runs["named"]["truth_start"] == runs["default"]["truth_start"]
+    assert runs["named"]["truth_start_soc_pct"] == runs["default"]["truth_start_soc_pct"] == 100.0
+
+
 def test_demo_estimates_with_the_given_cell_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``--cell`` replaces the bundled profile (the service estimates with it, the pack is built
     from it): another profile gives other estimates on the same drive; a missing one is named."""
