@@ -696,6 +696,60 @@ def test_no_shared_recording_looks_logged_charge_positive() -> None:
     assert flagged >= 60, flagged
 
 
+def _drive_with_a_pause(tmp_path: Path, pause_s: int) -> tuple[Path, float]:
+    """The bundled US06 with ``pause_s`` of rows cut out where the current resumes under load (a logger
+    that lost them): the sample after the pause holds its current over the whole pause."""
+    from service.assets import bundled_recording
+    from service.recording import load_recording, save_recording
+
+    rec = load_recording(bundled_recording())
+    # a pause that ends on the drive's first sample above 5 A after 2000 s
+    end = int(np.argmax((rec.time_s > 2000.0) & (rec.current_a > 5.0)))
+    keep = (rec.time_s <= rec.time_s[end] - pause_s) | (np.arange(len(rec)) >= end)
+    path = save_recording(tmp_path / "paused.csv", np.column_stack(
+        [rec.time_s[keep], rec.current_a[keep], rec.voltage_v[keep], rec.temperature_c[keep]]))
+    return path, float(rec.current_a[end])
+
+
+@pytest.mark.parametrize("command", ["fit", "evaluate", "diagnose"])
+def test_a_pause_in_the_logging_under_load_is_refused(tmp_path: Path, capsys, command: str) -> None:
+    """Five minutes of a drive not logged: the truth and every filter held the resumed 5.8 A over the
+    pause, and `socd evaluate` scored the estimators 0.50 -> 2.9 % against that truth with exit 0."""
+    paused, resumed_a = _drive_with_a_pause(tmp_path, 300)
+    argv = {"fit": ["fit", str(paused), "--capacity-ah", "2.77", "-q", "-o", str(tmp_path / "cell.toml")],
+            "evaluate": ["evaluate", "--cell", str(DEFAULT_CELL_PROFILE), str(paused), "-q"],
+            "diagnose": ["diagnose", str(paused), "--cell", str(DEFAULT_CELL_PROFILE)]}[command]
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, "paused.csv: time_s jumps by 300 s after ")
+    assert f"to {round(resumed_a, 4):g} A" in err and "split the recording there" in err  # as saved: 4 decimals
+    assert not (tmp_path / "cell.toml").exists()
+
+
+def test_pauses_at_rest_and_in_a_constant_current_stretch_are_not_refused() -> None:
+    """Sparse logging is not a gap: a pulse test logged every 300 s at rest, a C/20 discharge logged
+    every 600 s, and every shared recording pass; a 5-minute hole in a drive does not."""
+    from service.cell.truth import unlogged_charge
+    from service.recording import Recording, load_recording
+
+    t = np.concatenate([np.arange(0.0, 100.0), 100.0 + 300.0 * np.arange(1, 5), np.arange(1300.0, 1400.0)])
+    i = np.where(t < 50, 3.0, 0.0)  # a pulse, then rest logged sparsely
+    rest = Recording(Path("rest.csv"), t, i, np.full(t.size, 3.7), np.full(t.size, 25.0))
+    assert unlogged_charge(rest, 2.77, "c") is None
+    t = 600.0 * np.arange(60)
+    cc = Recording(Path("cc.csv"), t, np.full(t.size, 0.14), np.linspace(4.1, 3.0, t.size), np.full(t.size, 25.0))
+    assert unlogged_charge(cc, 2.77, "c") is None
+
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    files = [p for p in sorted(shared.glob("real/*/*.csv")) + sorted(shared.glob("synthetic/*.csv"))
+             if "soc_table" not in p.name and not (p.parent.name == "synthetic" and p.stem.endswith("_ocv"))]
+    if not files:
+        pytest.skip("../shared/data is not here")
+    capacity_ah = {"pan18650pf": 2.77, "calce20r": 1.999, "calce_a123": 1.041}  # the cells' own (READMEs)
+    for path in files:
+        cap = next((c for prefix, c in capacity_ah.items() if path.name.startswith(prefix)), 1.0)
+        assert unlogged_charge(load_recording(path), cap, "c") is None, path.name
+
+
 def test_fit_refuses_a_diffusion_cap_below_the_2rc_fast_bound(tmp_path: Path, capsys) -> None:
     """``--max-tau-df 0.001`` made the diffusion branch a resistor, and the profile kept the 2-RC
     start's τ2 of hundreds of seconds anyway."""

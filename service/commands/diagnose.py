@@ -144,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         check_counted_span,
         check_current_scale,
         check_current_sign,
+        check_unlogged_charge,
     )
     from service.characterisation.block_average import describe, to_fit_period
     from service.diagnosis.effects import EFFECTS
@@ -177,6 +178,7 @@ def run(args: argparse.Namespace) -> int:
     source = "--capacity-ah" if fit_base else "the profile's capacity_ah"
     check_current_scale(rec, profile.effective_capacity_ah, source)
     check_counted_span(rec, profile.effective_capacity_ah)
+    check_unlogged_charge(rec, profile.effective_capacity_ah, source)
     if (slip := capacity_slip(rec, profile.ocv_table(), profile.effective_capacity_ah, source)) is not None:
         print(f"socd diagnose: warning: {slip}", file=sys.stderr)
     if not fit_base and (beyond := profile.temperatures_beyond_fit(rec.temperature_c)) is not None:
