@@ -452,6 +452,23 @@ def test_diagnose_refuses_an_effects_list_that_names_none(tmp_path: Path, capsys
     assert_one_line_error(code, err, "--effects names no effect")
 
 
+@pytest.mark.parametrize("effects, named", [("capacity,capacity", "--effects: capacity given more than once"),
+                                             ("capacity, kinetics,capacity", "--effects: capacity given more than once"),
+                                             ("ocv,kinetics,ocv,kinetics", "--effects: ocv, kinetics given more than once")])
+def test_diagnose_refuses_an_effect_named_twice(tmp_path: Path, capsys, effects: str, named: str) -> None:
+    """``--effects capacity,capacity`` dropped the second name without a word."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--effects", effects])
+    assert_one_line_error(code, err, named)
+
+
+def test_diagnose_names_an_unknown_effect_once(tmp_path: Path, capsys) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--effects",
+                                 "magic,capacity,magic"])
+    assert_one_line_error(code, err, "--effects: unknown effect(s) magic; choose from")
+
+
 def test_diagnose_refuses_a_capacity_it_would_ignore(tmp_path: Path, capsys) -> None:
     rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
     code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--capacity-ah", "3"])
