@@ -452,6 +452,23 @@ def test_diagnose_refuses_an_effects_list_that_names_none(tmp_path: Path, capsys
     assert_one_line_error(code, err, "--effects names no effect")
 
 
+@pytest.mark.parametrize("effects, named", [("capacity,capacity", "--effects: capacity given more than once"),
+                                             ("capacity, kinetics,capacity", "--effects: capacity given more than once"),
+                                             ("ocv,kinetics,ocv,kinetics", "--effects: ocv, kinetics given more than once")])
+def test_diagnose_refuses_an_effect_named_twice(tmp_path: Path, capsys, effects: str, named: str) -> None:
+    """``--effects capacity,capacity`` dropped the second name without a word."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--effects", effects])
+    assert_one_line_error(code, err, named)
+
+
+def test_diagnose_names_an_unknown_effect_once(tmp_path: Path, capsys) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--effects",
+                                 "magic,capacity,magic"])
+    assert_one_line_error(code, err, "--effects: unknown effect(s) magic; choose from")
+
+
 def test_diagnose_refuses_a_capacity_it_would_ignore(tmp_path: Path, capsys) -> None:
     rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
     code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--capacity-ah", "3"])
@@ -885,6 +902,35 @@ def test_a_boolean_inside_a_list_of_numbers_is_refused(tmp_path: Path, capsys) -
     prof.write_text(text[:start] + "true, " + text[text.index(",", start) + 1:])
     code, err = run_cli(capsys, ["evaluate", "--cell", str(prof), str(_recording(tmp_path, "ok.csv", GOOD_ROWS))])
     assert_one_line_error(code, err, "soc: numbers are expected, and it holds a boolean")
+
+
+#: a bus that cannot open, given up at once: were the config accepted, `socd run` would exit 1, not hang
+_DEAD_BUS = ('[bus]\ninterface = "socketcan"\nchannel = "socdnosuch0"\nmax_open_retries = 1\n'
+             "reconnect_initial_s = 0.05\n")
+
+
+@pytest.mark.parametrize("command", ["check", "run"])
+@pytest.mark.parametrize("field, value, names", [
+    ("voltage_range_v", "[4.8, 4.8]", "mapping.voltage_range_v: must be [low, high] with low < high, got [4.8, 4.8]"),
+    ("voltage_range_v", "[-5.0, -1.0]", "mapping.voltage_range_v: [-5.0, -1.0] lies wholly outside 0.5 to 6 V"),
+    ("voltage_range_v", "[1500.0, 4800.0]", "mapping.voltage_range_v: [1500.0, 4800.0] lies wholly outside"),
+    ("temperature_range_c", "[233.0, 363.0]", "mapping.temperature_range_c: [233.0, 363.0] lies wholly outside"),
+    ("current_range_a", "[5.0, 1000.0]", "mapping.current_range_a: [5.0, 1000.0] leaves out 0 A"),
+])
+def test_a_plausibility_range_that_rejects_every_value_is_refused(tmp_path: Path, capsys, command: str,
+                                                                   field: str, value: str, names: str) -> None:
+    """`socd check` said OK to a voltage range below 0 V (or in mV, a temperature range in K, a current
+    range leaving out rest): the decoder then counted every value out of range."""
+    cfg = _config_with(tmp_path, f"{_DEAD_BUS}[mapping]\n{field} = {value}\n")
+    code, err = run_cli(capsys, [command, "--config", str(cfg)])
+    assert_one_line_error(code, err, f"c.toml: {names}")
+
+
+def test_a_narrowed_plausibility_range_is_still_accepted(tmp_path: Path, capsys) -> None:
+    cfg = _config_with(tmp_path, "[mapping]\nvoltage_range_v = [5.5, 7.0]\ntemperature_range_c = [-80.0, -50.0]\n"
+                                 "current_range_a = [-5.0, 0.0]\n")
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert code == 0, err
 
 
 @pytest.mark.parametrize("endpoint", ["tcp/127.0.0.1", "tcp/localhost:7447x", "tcp/127.0.0.1:-1"])

@@ -101,6 +101,22 @@ def _note(args: argparse.Namespace, message: str) -> None:
         print(f"socd diagnose: {message}", file=sys.stderr, flush=True)
 
 
+def _effects_from_arg(text: str, known: tuple[str, ...]) -> tuple[str, ...]:
+    """The candidate effects ``--effects`` names, in its order; :class:`UserError` for a list that
+    names none, an unknown name, or a name given twice (the second would silently be dropped)."""
+    effects = [e.strip() for e in text.split(",") if e.strip()]
+    if not effects:
+        raise UserError(f"--effects names no effect ({text!r}); choose from {', '.join(known)}, "
+                        "or leave the flag out for all")
+    bad = list(dict.fromkeys(e for e in effects if e not in known))
+    if bad:
+        raise UserError(f"--effects: unknown effect(s) {', '.join(bad)}; choose from {', '.join(known)}")
+    twice = list(dict.fromkeys(e for e in effects if effects.count(e) > 1))
+    if twice:
+        raise UserError(f"--effects: {', '.join(twice)} given more than once; name each effect once")
+    return tuple(effects)
+
+
 def _profile_from_args(args):
     from pydantic import ValidationError
 
@@ -163,15 +179,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"socd diagnose: {line}", file=sys.stderr)
     if not 0.2 <= args.fit_fraction <= 0.9:
         raise UserError(f"--fit-fraction must be in [0.2, 0.9], got {args.fit_fraction:g}")
-    effects = tuple(EFFECTS)
-    if args.effects is not None:
-        effects = tuple(dict.fromkeys(e.strip() for e in args.effects.split(",") if e.strip()))
-        if not effects:
-            raise UserError(f"--effects names no effect ({args.effects!r}); choose from {', '.join(EFFECTS)}, "
-                            "or leave the flag out for all")
-        bad = [e for e in effects if e not in EFFECTS]
-        if bad:
-            raise UserError(f"--effects: unknown effect(s) {', '.join(bad)}; choose from {', '.join(EFFECTS)}")
+    effects = tuple(EFFECTS) if args.effects is None else _effects_from_arg(args.effects, tuple(EFFECTS))
     if len(rec) < 100:
         raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
     check_current_sign(rec)
