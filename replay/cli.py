@@ -43,6 +43,8 @@ from service.commands.common_args import (
     positive_int,
     probability,
     progress_enabled,
+    recording_file,
+    recording_help,
     refuse_overwriting_inputs,
     refuse_shared_outputs,
     relative_sigma,
@@ -63,8 +65,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
         description=plain_text(__doc__.split("\n\n")[0]),
         epilog="Cell recordings are expanded to a pack; python-can logs are played as they are.",
     )
-    p.add_argument("input", help="cell recording CSV, or a python-can log (" + ", ".join(LOG_SUFFIXES)
-                   + ", optionally .gz)")
+    p.add_argument("input", type=recording_file, help=recording_help(
+        "cell recording CSV, or a python-can log (" + ", ".join(LOG_SUFFIXES) + ", optionally .gz)"))
     p.add_argument("--config", help="SocdConfig TOML for the DBC, mapping and pack size "
                    "(default: the packaged default.toml); its [bus] fills bus flags not given")
     add_bus_arguments(p)

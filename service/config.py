@@ -32,13 +32,22 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from service.assets import config_path, dbc_path, example_configs, profile_path
 from service.errors import UserError, validation_message
 from service.estimators.settings import EstimatorSettings
 from service.strict_numbers import NoBooleanNumbers
+from service.validation import RecordingBounds
 
 log = logging.getLogger(__name__)
 #: environment variables with this prefix override the config file (nested with ``__``)
@@ -160,6 +169,33 @@ class TemperatureMap(_Section):
     cells: list[int] = Field(min_length=1)
 
 
+#: the values a cell's voltage and temperature can physically take, per ``[mapping]`` plausibility
+#: range (the recording loaders' bounds): a range wholly outside them counts every value of every
+#: frame as ``out_of_range`` (service.bus.decoder)
+PHYSICAL_SPANS: dict[str, tuple[float, float, str, str]] = {
+    "voltage_range_v": (*RecordingBounds.voltage_v, "V", "a cell's voltage"),
+    "temperature_range_c": (*RecordingBounds.temperature_c, "°C", "a cell's temperature"),
+}
+
+
+def range_problem(field: str, v: tuple[float, float]) -> str | None:
+    """Why the ``[mapping]`` plausibility range ``field`` = ``v`` would reject every value the
+    decoder reads, or None: not low < high, wholly outside what a cell can read
+    (:data:`PHYSICAL_SPANS`), or, for the current, leaving out 0 A (a pack at rest)."""
+    lo, hi = v
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        return f"must be [low, high] with low < high, got {list(v)}"
+    if field in PHYSICAL_SPANS:
+        span_lo, span_hi, unit, what = PHYSICAL_SPANS[field]
+        if hi <= span_lo or lo >= span_hi:
+            return (f"{list(v)} lies wholly outside {span_lo:g} to {span_hi:g} {unit}, where {what} lies: "
+                    "every value would be rejected (out_of_range)")
+    elif not lo <= 0.0 <= hi:
+        return (f"{list(v)} leaves out 0 A: the current of a pack at rest would be rejected (out_of_range), "
+                "and a rejected current gives no sample")
+    return None
+
+
 #: the widest field a signal-name pattern may format (``{number:03d}`` is 3)
 MAX_PATTERN_WIDTH = 16
 
@@ -213,9 +249,9 @@ class MappingConfig(_Section):
 
     @field_validator("voltage_range_v", "temperature_range_c", "current_range_a")
     @classmethod
-    def _range(cls, v: tuple[float, float]) -> tuple[float, float]:
-        if not (math.isfinite(v[0]) and math.isfinite(v[1]) and v[0] < v[1]):
-            raise ValueError(f"must be [low, high] with low < high, got {list(v)}")
+    def _range(cls, v: tuple[float, float], info: ValidationInfo) -> tuple[float, float]:
+        if (problem := range_problem(str(info.field_name), v)) is not None:
+            raise ValueError(problem)
         return v
 
     @field_validator("cell_voltage_pattern", "temperature_pattern")

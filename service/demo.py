@@ -36,21 +36,12 @@ from typing import TYPE_CHECKING, Any, TextIO
 import can
 import numpy as np
 
+from service.assets import bundled_recording
+
 if TYPE_CHECKING:
     from service.recording import Recording
 
 log = logging.getLogger(__name__)
-
-DATA_DIR = Path(__file__).resolve().parent / "data"
-
-
-def bundled_recording() -> Path:
-    """The drive-cycle excerpt shipped in ``service/data`` (a ``*.csv`` recording)."""
-    found = sorted(p for p in DATA_DIR.glob("*.csv") if not p.name.endswith("_truth.csv"))
-    if not found:
-        raise FileNotFoundError(f"no bundled recording (*.csv) in {DATA_DIR}")
-    preferred = [p for p in found if any(k in p.name.lower() for k in ("drive", "us06", "udds", "la92", "cycle"))]
-    return (preferred or found)[0]
 
 
 def free_port() -> int:
@@ -218,12 +209,10 @@ def run_demo(
     from service.recording import load_recording
 
     start_note = None
-    if recording_path is None:
-        recording_path = bundled_recording()
-        if start_soc is None:
-            start_soc = 1.0
-            start_note = "as the bundled drive starts at the end of a CC-CV charge (service/data/README.md)"
-    recording_path = Path(recording_path)
+    recording_path = Path(recording_path) if recording_path is not None else bundled_recording()
+    if start_soc is None and recording_path.resolve() == bundled_recording().resolve():
+        start_soc = 1.0
+        start_note = "as the bundled drive starts at the end of a CC-CV charge (service/data/README.md)"
     profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
     profile = load_profile(profile_path)
     recording = load_recording(recording_path)

@@ -452,6 +452,23 @@ def test_diagnose_refuses_an_effects_list_that_names_none(tmp_path: Path, capsys
     assert_one_line_error(code, err, "--effects names no effect")
 
 
+@pytest.mark.parametrize("effects, named", [("capacity,capacity", "--effects: capacity given more than once"),
+                                             ("capacity, kinetics,capacity", "--effects: capacity given more than once"),
+                                             ("ocv,kinetics,ocv,kinetics", "--effects: ocv, kinetics given more than once")])
+def test_diagnose_refuses_an_effect_named_twice(tmp_path: Path, capsys, effects: str, named: str) -> None:
+    """``--effects capacity,capacity`` dropped the second name without a word."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--effects", effects])
+    assert_one_line_error(code, err, named)
+
+
+def test_diagnose_names_an_unknown_effect_once(tmp_path: Path, capsys) -> None:
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--effects",
+                                 "magic,capacity,magic"])
+    assert_one_line_error(code, err, "--effects: unknown effect(s) magic; choose from")
+
+
 def test_diagnose_refuses_a_capacity_it_would_ignore(tmp_path: Path, capsys) -> None:
     rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
     code, err = run_cli(capsys, ["diagnose", str(rec), "--cell", str(DEFAULT_CELL_PROFILE), "--capacity-ah", "3"])
@@ -656,7 +673,7 @@ def test_a_current_logged_with_charge_positive_is_refused(tmp_path: Path, capsys
     jumps up at every large current step, which a cell's ohmic drop never does in socd's convention.
     Each command says so in one line; ``socd diagnose``, which has no full point to count from, ran
     on it before and blamed the model."""
-    from service.demo import bundled_recording
+    from service.assets import bundled_recording
     from service.recording import load_recording, save_recording
 
     rec = load_recording(bundled_recording())
@@ -694,6 +711,60 @@ def test_no_shared_recording_looks_logged_charge_positive() -> None:
         up, steps = current_sign_steps(replace(rec, current_a=-rec.current_a))
         flagged += steps >= SIGN_MIN_STEPS and up > SIGN_AGREEMENT * steps
     assert flagged >= 60, flagged
+
+
+def _drive_with_a_pause(tmp_path: Path, pause_s: int) -> tuple[Path, float]:
+    """The bundled US06 with ``pause_s`` of rows cut out where the current resumes under load (a logger
+    that lost them): the sample after the pause holds its current over the whole pause."""
+    from service.assets import bundled_recording
+    from service.recording import load_recording, save_recording
+
+    rec = load_recording(bundled_recording())
+    # a pause that ends on the drive's first sample above 5 A after 2000 s
+    end = int(np.argmax((rec.time_s > 2000.0) & (rec.current_a > 5.0)))
+    keep = (rec.time_s <= rec.time_s[end] - pause_s) | (np.arange(len(rec)) >= end)
+    path = save_recording(tmp_path / "paused.csv", np.column_stack(
+        [rec.time_s[keep], rec.current_a[keep], rec.voltage_v[keep], rec.temperature_c[keep]]))
+    return path, float(rec.current_a[end])
+
+
+@pytest.mark.parametrize("command", ["fit", "evaluate", "diagnose"])
+def test_a_pause_in_the_logging_under_load_is_refused(tmp_path: Path, capsys, command: str) -> None:
+    """Five minutes of a drive not logged: the truth and every filter held the resumed 5.8 A over the
+    pause, and `socd evaluate` scored the estimators 0.50 -> 2.9 % against that truth with exit 0."""
+    paused, resumed_a = _drive_with_a_pause(tmp_path, 300)
+    argv = {"fit": ["fit", str(paused), "--capacity-ah", "2.77", "-q", "-o", str(tmp_path / "cell.toml")],
+            "evaluate": ["evaluate", "--cell", str(DEFAULT_CELL_PROFILE), str(paused), "-q"],
+            "diagnose": ["diagnose", str(paused), "--cell", str(DEFAULT_CELL_PROFILE)]}[command]
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, "paused.csv: time_s jumps by 300 s after ")
+    assert f"to {round(resumed_a, 4):g} A" in err and "split the recording there" in err  # as saved: 4 decimals
+    assert not (tmp_path / "cell.toml").exists()
+
+
+def test_pauses_at_rest_and_in_a_constant_current_stretch_are_not_refused() -> None:
+    """Sparse logging is not a gap: a pulse test logged every 300 s at rest, a C/20 discharge logged
+    every 600 s, and every shared recording pass; a 5-minute hole in a drive does not."""
+    from service.cell.truth import unlogged_charge
+    from service.recording import Recording, load_recording
+
+    t = np.concatenate([np.arange(0.0, 100.0), 100.0 + 300.0 * np.arange(1, 5), np.arange(1300.0, 1400.0)])
+    i = np.where(t < 50, 3.0, 0.0)  # a pulse, then rest logged sparsely
+    rest = Recording(Path("rest.csv"), t, i, np.full(t.size, 3.7), np.full(t.size, 25.0))
+    assert unlogged_charge(rest, 2.77, "c") is None
+    t = 600.0 * np.arange(60)
+    cc = Recording(Path("cc.csv"), t, np.full(t.size, 0.14), np.linspace(4.1, 3.0, t.size), np.full(t.size, 25.0))
+    assert unlogged_charge(cc, 2.77, "c") is None
+
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    files = [p for p in sorted(shared.glob("real/*/*.csv")) + sorted(shared.glob("synthetic/*.csv"))
+             if "soc_table" not in p.name and not (p.parent.name == "synthetic" and p.stem.endswith("_ocv"))]
+    if not files:
+        pytest.skip("../shared/data is not here")
+    capacity_ah = {"pan18650pf": 2.77, "calce20r": 1.999, "calce_a123": 1.041}  # the cells' own (READMEs)
+    for path in files:
+        cap = next((c for prefix, c in capacity_ah.items() if path.name.startswith(prefix)), 1.0)
+        assert unlogged_charge(load_recording(path), cap, "c") is None, path.name
 
 
 def test_fit_refuses_a_diffusion_cap_below_the_2rc_fast_bound(tmp_path: Path, capsys) -> None:
@@ -831,6 +902,35 @@ def test_a_boolean_inside_a_list_of_numbers_is_refused(tmp_path: Path, capsys) -
     prof.write_text(text[:start] + "true, " + text[text.index(",", start) + 1:])
     code, err = run_cli(capsys, ["evaluate", "--cell", str(prof), str(_recording(tmp_path, "ok.csv", GOOD_ROWS))])
     assert_one_line_error(code, err, "soc: numbers are expected, and it holds a boolean")
+
+
+#: a bus that cannot open, given up at once: were the config accepted, `socd run` would exit 1, not hang
+_DEAD_BUS = ('[bus]\ninterface = "socketcan"\nchannel = "socdnosuch0"\nmax_open_retries = 1\n'
+             "reconnect_initial_s = 0.05\n")
+
+
+@pytest.mark.parametrize("command", ["check", "run"])
+@pytest.mark.parametrize("field, value, names", [
+    ("voltage_range_v", "[4.8, 4.8]", "mapping.voltage_range_v: must be [low, high] with low < high, got [4.8, 4.8]"),
+    ("voltage_range_v", "[-5.0, -1.0]", "mapping.voltage_range_v: [-5.0, -1.0] lies wholly outside 0.5 to 6 V"),
+    ("voltage_range_v", "[1500.0, 4800.0]", "mapping.voltage_range_v: [1500.0, 4800.0] lies wholly outside"),
+    ("temperature_range_c", "[233.0, 363.0]", "mapping.temperature_range_c: [233.0, 363.0] lies wholly outside"),
+    ("current_range_a", "[5.0, 1000.0]", "mapping.current_range_a: [5.0, 1000.0] leaves out 0 A"),
+])
+def test_a_plausibility_range_that_rejects_every_value_is_refused(tmp_path: Path, capsys, command: str,
+                                                                   field: str, value: str, names: str) -> None:
+    """`socd check` said OK to a voltage range below 0 V (or in mV, a temperature range in K, a current
+    range leaving out rest): the decoder then counted every value out of range."""
+    cfg = _config_with(tmp_path, f"{_DEAD_BUS}[mapping]\n{field} = {value}\n")
+    code, err = run_cli(capsys, [command, "--config", str(cfg)])
+    assert_one_line_error(code, err, f"c.toml: {names}")
+
+
+def test_a_narrowed_plausibility_range_is_still_accepted(tmp_path: Path, capsys) -> None:
+    cfg = _config_with(tmp_path, "[mapping]\nvoltage_range_v = [5.5, 7.0]\ntemperature_range_c = [-80.0, -50.0]\n"
+                                 "current_range_a = [-5.0, 0.0]\n")
+    code, err = run_cli(capsys, ["check", "--config", str(cfg)])
+    assert code == 0, err
 
 
 @pytest.mark.parametrize("endpoint", ["tcp/127.0.0.1", "tcp/localhost:7447x", "tcp/127.0.0.1:-1"])

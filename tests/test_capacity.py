@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 
 from replay.pack import SpreadSpec, expand_pack
+from service.assets import bundled_recording
 from service.bus.encoder import OutputEncoder, decode_output
 from service.bus.types import PackSnapshot
 from service.cell.profile import load_profile
 from service.config import DEFAULT_CELL_PROFILE
 from service.daemon.payloads import PARAMS_SCHEMA_VERSION, CellParams
-from service.demo import bundled_recording
 from service.estimators.capacity import CapacityEstimator
 from service.estimators.pipeline import PackEstimator
 from service.estimators.settings import EstimatorSettings

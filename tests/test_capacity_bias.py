@@ -9,8 +9,8 @@ import pytest
 
 from research.capacity_bias import capacity_bias, main
 from research.model_drive import model_drive
+from service.assets import bundled_recording
 from service.config import DEFAULT_CELL_PROFILE
-from service.demo import bundled_recording
 from service.recording import load_recording, save_recording
 
 pytestmark = pytest.mark.research

@@ -147,3 +147,28 @@ def test_cell_names_a_bundled_profile_when_no_such_file(tmp_path, monkeypatch) -
     own = tmp_path / "panasonic_18650pf.toml"
     own.write_text("x")
     assert cell_file("panasonic_18650pf.toml") == "panasonic_18650pf.toml"
+
+
+def test_a_recording_socd_ships_is_taken_by_its_name(tmp_path, monkeypatch, capsys) -> None:
+    """An installed socd runs evaluate, fit, diagnose and replay on the drive its demo replays by name;
+    a file of that name in the working folder wins, a path is never replaced, and a missing
+    recording's error names the one socd ships."""
+    from service.assets import bundled_recording
+    from service.commands.common_args import recording_file
+
+    monkeypatch.chdir(tmp_path)
+    shipped = bundled_recording()
+    assert recording_file(shipped.stem) == str(shipped)
+    assert recording_file(shipped.name) == str(shipped)
+    assert recording_file("no_such_drive") == "no_such_drive"
+    assert recording_file(f"sub/{shipped.name}") == f"sub/{shipped.name}"
+    (tmp_path / shipped.name).write_text("x")
+    assert recording_file(shipped.name) == shipped.name
+
+    for argv in (["evaluate", "--cell", "panasonic_18650pf"], ["replay", "--no-send"]):
+        parsed = build_parser().parse_args([*argv, shipped.stem])
+        assert str(shipped) in (getattr(parsed, "recordings", None) or [getattr(parsed, "input", None)])
+
+    assert main(["evaluate", "--cell", "panasonic_18650pf", "-q", "missing_drive.csv"]) == 2
+    err = capsys.readouterr().err
+    assert "missing_drive.csv: cannot read recording: no such file" in err and shipped.stem in err

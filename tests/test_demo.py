@@ -31,7 +31,7 @@ def _check(out: Path, cells: int) -> dict:
 
 def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                          monkeypatch: pytest.MonkeyPatch) -> None:
-    from service.demo import bundled_recording
+    from service.assets import bundled_recording
 
     scratch = tmp_path / "tmp"  # the demo's temporary folder (its checkpoint) is removed at the end
     scratch.mkdir()
@@ -74,6 +74,19 @@ def test_demo_with_a_given_recording(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert "still relaxing there: give --soc0" in out
 
 
+def test_the_shipped_recording_named_starts_as_the_default_demo(tmp_path: Path) -> None:
+    """``--recording pan18650pf_25C_US06`` is the demo's own drive: its truth starts full, as without it."""
+    from service.assets import bundled_recording
+
+    runs = {}
+    for name, extra in (("default", []), ("named", ["--recording", bundled_recording().stem])):
+        out = tmp_path / f"{name}.json"
+        assert main(["demo", "--cells", "2", "--seconds", "60", "--no-plot", "--json", str(out), *extra]) == 0
+        runs[name] = json.loads(out.read_text())
+    assert runs["named"]["truth_start"] == runs["default"]["truth_start"]
+    assert runs["named"]["truth_start_soc_pct"] == runs["default"]["truth_start_soc_pct"] == 100.0
+
+
 def test_demo_estimates_with_the_given_cell_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``--cell`` replaces the bundled profile (the service estimates with it, the pack is built
     from it): another profile gives other estimates on the same drive; a missing one is named."""
@@ -101,9 +114,10 @@ def test_the_replay_stops_where_a_cell_of_the_pack_is_empty() -> None:
     be emptied before the recorded cell is: the demo replays up to the first of them, so every
     truth it scores is a SOC in [0, 1]; the 8-cell default pack keeps the whole drive."""
     from replay.pack import SpreadSpec, expand_pack
+    from service.assets import bundled_recording
     from service.cell.profile import load_profile
     from service.config import DEFAULT_CELL_PROFILE
-    from service.demo import bundled_recording, within_every_cell
+    from service.demo import within_every_cell
     from service.recording import load_recording
 
     profile, rec = load_profile(DEFAULT_CELL_PROFILE), load_recording(bundled_recording())

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import math
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from service.assets import profile_path
 from service.cell.coulomb import coulomb_soc
 from service.cell.hysteresis import hysteresis_decay, hysteresis_step
 from service.cell.model import MtsFom, soc_step
@@ -234,11 +237,11 @@ def test_profile_save_load_round_trip(tmp_path: Path, nmc_profile_factory, suffi
     save_profile(prof, path)
     assert not list(path.parent.glob("*.tmp"))
     loaded = load_profile(path)
-    assert loaded == prof
+    assert_same_profile(loaded, prof)
     a, b = prof.parameters_at(np.array([0.0, 17.0, 33.0])), loaded.parameters_at(np.array([0.0, 17.0, 33.0]))
     for k in a.__dict__:
-        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
-    np.testing.assert_array_equal(prof.ocv_table().ocv_v, loaded.ocv_table().ocv_v)
+        np.testing.assert_allclose(getattr(b, k), getattr(a, k), rtol=SAVED_REL_TOL, atol=0)
+    np.testing.assert_allclose(loaded.ocv_table().ocv_v, prof.ocv_table().ocv_v, rtol=SAVED_REL_TOL, atol=0)
     if suffix == ".json":
         json.loads(path.read_text())  # a plain JSON document
 
@@ -246,7 +249,64 @@ def test_profile_save_load_round_trip(tmp_path: Path, nmc_profile_factory, suffi
 def test_profile_without_optional_parts_round_trips(tmp_path: Path, nmc_profile: CellProfile) -> None:
     for name in ("p.toml", "p.json"):
         save_profile(nmc_profile, tmp_path / name)
-        assert load_profile(tmp_path / name) == nmc_profile
+        assert_same_profile(load_profile(tmp_path / name), nmc_profile)
+
+
+#: a saved profile's floats keep 12 significant digits: read back, each is this close to the original
+SAVED_REL_TOL = 1e-11
+#: a float literal in a TOML or JSON text
+FLOAT_LITERAL = re.compile(r"(?<![\w.])-?(\d+\.\d*(?:[eE][-+]?\d+)?|\d+[eE][-+]?\d+)")
+
+
+def _significant_digits(literal: str) -> int:
+    mantissa = re.split("[eE]", literal.lstrip("-"))[0].replace(".", "")
+    return len(mantissa.lstrip("0").rstrip("0")) or 1
+
+
+def _assert_close(got: object, want: object, where: str) -> None:
+    if isinstance(want, dict):
+        assert isinstance(got, dict) and got.keys() == want.keys(), where
+        for k in want:
+            _assert_close(got[k], want[k], f"{where}.{k}")
+    elif isinstance(want, list):
+        assert isinstance(got, list) and len(got) == len(want), where
+        for k, (g, w) in enumerate(zip(got, want, strict=True)):
+            _assert_close(g, w, f"{where}[{k}]")
+    elif isinstance(want, float):
+        assert isinstance(got, float) and math.isclose(got, want, rel_tol=SAVED_REL_TOL, abs_tol=0.0), (where, got, want)
+    else:
+        assert got == want, where
+
+
+def assert_same_profile(got: CellProfile, want: CellProfile) -> None:
+    """Every field equal, floats within :data:`SAVED_REL_TOL` relative (what a save keeps)."""
+    _assert_close(got.model_dump(mode="json"), want.model_dump(mode="json"), "profile")
+
+
+@pytest.mark.parametrize("suffix", [".toml", ".json"])
+@pytest.mark.parametrize("source", ["calce_a123", "noisy"])
+def test_a_saved_profile_has_no_float_noise_and_reads_back_within_1e_11(tmp_path: Path, nmc_profile_factory,
+                                                                         source: str, suffix: str) -> None:
+    """`socd fit` wrote `0.17500000000000002` and `0.9999990000000001`: floats keep 12 significant digits
+    on write, through lists of lists, and the profile in memory keeps all of its digits."""
+    if source == "calce_a123":  # a bundled profile a fit wrote with the noise
+        prof = load_profile(profile_path("calce_a123.toml"))
+    else:
+        base = nmc_profile_factory(temps_c=(5.0, 25.0))
+        prof = base.model_copy(update={
+            "capacity_ah": 0.1 + 0.2,  # 0.30000000000000004
+            "ocv": base.ocv.model_copy(update={"ocv_v": [[v + 0.1 * 3 for v in row] for row in base.ocv.ocv_v]}),
+            "parameters": [pt.model_copy(update={"r_ohm": 0.1 * 1.75}) for pt in base.parameters],
+        })
+    before = prof.model_dump(mode="json")
+    noisy = [x for x in FLOAT_LITERAL.findall(json.dumps(before)) if _significant_digits(x) >= 16]
+    assert noisy, "the profile should carry float noise for this test to mean anything"
+    path = tmp_path / f"cell{suffix}"
+    save_profile(prof, path)
+    text = path.read_text()
+    assert max(_significant_digits(x) for x in FLOAT_LITERAL.findall(text)) <= 12
+    assert_same_profile(load_profile(path), prof)
+    assert prof.model_dump(mode="json") == before  # only the file is rounded
 
 
 def _raw(prof: CellProfile) -> dict:

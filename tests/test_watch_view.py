@@ -13,8 +13,11 @@ import numpy as np
 import pytest
 from rich.console import Console
 
+from replay.pack import FrameBuilder
+from service.bus.decoder import VALUE_REJECTS, FrameDecoder
 from service.cell.ocv import OcvTable
-from service.commands.watch import PackView, watch
+from service.commands.watch import VALUE_REJECT_COUNTERS, PackView, watch
+from service.config import build_config
 from service.daemon.health import HealthMonitor
 from service.daemon.payloads import CellSoc, Health, Summary
 from service.daemon.zenoh_pub import PublishRound, ZenohPublisher
@@ -108,6 +111,21 @@ def test_stale_and_diverged_cells_are_coloured() -> None:
     assert re.search(rf"\x1b\[(1;)?31m\s*{DIVERGED}!", ansi), "diverged cell not red"
     assert re.search(rf"\x1b\[33m\s*{v.cells[STALE].soc_pct:.2f}", ansi), "stale SOC not yellow"
     assert not re.search(r"\x1b\[(1;)?3[13]m\s*0~?!?\x1b", ansi)  # cell 0 is neither
+
+
+def test_values_rejected_one_by_one_are_shown_beside_rejected_frames() -> None:
+    """A voltage range the cells read above rejects every voltage value, never a frame: the counters
+    line said "rejected 0" while the decoder counted each value out of range."""
+    cfg = build_config({"pack": {"n_cells": 12}, "mapping": {"voltage_range_v": [1.5, 3.0]}})
+    decoder, builder = FrameDecoder(cfg), FrameBuilder(cfg)
+    for k in range(5):
+        for frame in builder.frames_for_sample(0.1 * k, 1.0, np.full(12, 3.6), np.full(3, 25.0)):
+            decoder.feed(frame)
+    assert decoder.rejected == 0 and decoder.counters["out_of_range"] == 60
+    v = _view()
+    v.health = HealthMonitor(pack="p").payload(1.0, decoder.counters)
+    assert "rejected 0 frames, 60 values" in _render(v, "cell", 120)
+    assert VALUE_REJECT_COUNTERS == VALUE_REJECTS
 
 
 def _port() -> int:

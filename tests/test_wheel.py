@@ -1,7 +1,8 @@
 """The built package works on its own: ``python -m build`` (sdist, then the wheel from it), the
 wheel installed with its core dependencies only in a fresh venv outside the checkout, and
-``socd demo`` run from an empty directory — the packaged DBCs, profile and drive cycle, the
-generated-DBC import, the whole chain, and no research or plotting library in the daemon.
+``socd demo`` and ``socd replay`` of the shipped recording by its name run from an empty directory:
+the packaged DBCs, profile and drive cycle, the generated-DBC import, the whole chain, and no
+research or plotting library in the daemon.
 
 Slow (a build, a venv and a pip install from the index; about a minute) and needs PyPI.
 """
@@ -44,6 +45,12 @@ def test_wheel_installed_in_a_fresh_venv_runs_the_demo(tmp_path: Path) -> None:
     rmse = re.search(r"^SOC error vs truth: RMSE (\d+\.\d+) %", done.stdout, re.MULTILINE)
     assert rmse and float(rmse.group(1)) < 10.0, done.stdout
     assert "plot: not written (needs matplotlib, which is not installed: pip install 'socd[fit]')" in done.stdout
+
+    # the recording the package ships, named alone, replayed to a log
+    done = _run([str(socd), "replay", "pan18650pf_25C_US06", "--no-send", "--cells", "2", "--record", "drive.asc"],
+                cwd=work, timeout=120)
+    assert "frames recorded to drive.asc, 0 failed" in done.stdout + done.stderr
+    assert (work / "drive.asc").stat().st_size > 0
 
     # installed from the wheel, not imported from the checkout
     where = _run([str(python), "-c", "import service; print(service.__file__)"], cwd=work, timeout=60)

@@ -1,4 +1,5 @@
-"""The files socd ships: the DBCs, the example configs and the bundled cell profiles.
+"""The files socd ships: the DBCs, the example configs, the bundled cell profiles and the
+bundled drive recording (``service/data``).
 
 They live in the repository's top-level ``dbc/`` and ``configs/``; ``service/assets/dbc`` and
 ``service/assets/configs`` are symbolic links to those directories, so a source checkout, an
@@ -16,6 +17,10 @@ from pathlib import Path
 DBC_DIR_NAME = "dbc"
 CONFIG_DIR_NAME = "configs"
 PROFILE_DIR_NAME = "cells"
+#: the recordings shipped with the package, beside this package (``service/data``)
+DATA_DIR = Path(__file__).resolve().parent.parent / "data"
+#: recording names in the data directory that the demo takes for a drive cycle, in preference
+DRIVE_NAME_HINTS = ("drive", "us06", "udds", "la92", "cycle")
 
 
 def asset_path(*parts: str) -> Path:
@@ -57,3 +62,29 @@ def example_configs() -> list[str]:
         str(p.relative_to(root)) for p in root.rglob("*.toml")
         if p.parent.name != PROFILE_DIR_NAME and "experiments" not in p.parts
     )
+
+
+def bundled_recordings() -> list[Path]:
+    """The recordings (``*.csv``) shipped in ``service/data``."""
+    return sorted(p for p in DATA_DIR.glob("*.csv") if not p.name.endswith("_truth.csv"))
+
+
+def bundled_recording() -> Path:
+    """The drive-cycle recording the demo replays: the first bundled recording named like a drive."""
+    found = bundled_recordings()
+    if not found:
+        raise FileNotFoundError(f"no bundled recording (*.csv) in {DATA_DIR}")
+    preferred = [p for p in found if any(k in p.name.lower() for k in DRIVE_NAME_HINTS)]
+    return (preferred or found)[0]
+
+
+def bundled_recording_named(name: str) -> Path | None:
+    """The bundled recording called ``name`` (with or without ``.csv``), or None."""
+    stem = name.removesuffix(".csv")
+    return next((p for p in bundled_recordings() if p.stem == stem), None)
+
+
+def bundled_recording_hint() -> str:
+    """`` (socd ships NAME: ...)`` for a message about a recording file that is not there."""
+    names = [p.stem for p in bundled_recordings()]
+    return f" (socd ships the recording {', '.join(names)}: give its name alone)" if names else ""

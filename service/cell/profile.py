@@ -20,7 +20,7 @@ import tomllib
 from dataclasses import dataclass
 from itertools import pairwise
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -611,9 +611,28 @@ def load_profile(path: str | Path) -> CellProfile:
         raise ProfileError(f"{path}: {where}{validation_message(first)}") from exc
 
 
+#: significant digits a saved profile keeps of each float: what a fit determines, and no binary
+#: float noise (``0.17500000000000002`` is written ``0.175``); the profile in memory keeps all of them
+SAVED_SIGNIFICANT_DIGITS = 12
+
+
+def rounded_floats(value: Any, digits: int = SAVED_SIGNIFICANT_DIGITS) -> Any:
+    """``value`` with every float, through dicts and lists of any depth, rounded to ``digits``
+    significant digits (a new structure; ints, bools, strings and None as they are)."""
+    if isinstance(value, float):
+        return float(f"{value:.{digits}g}")
+    if isinstance(value, dict):
+        return {k: rounded_floats(v, digits) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [rounded_floats(v, digits) for v in value]
+    return value
+
+
 def save_profile(profile: CellProfile, path: str | Path) -> None:
+    """Write ``profile`` as TOML (``.toml``) or JSON (else), floats to :data:`SAVED_SIGNIFICANT_DIGITS`
+    significant digits, through a temporary file beside it."""
     path = Path(path)
-    data = profile.model_dump(mode="json", exclude_none=True)
+    data = rounded_floats(profile.model_dump(mode="json", exclude_none=True))
     if path.suffix == ".toml":
         import tomli_w
 

@@ -9,6 +9,7 @@ import numpy as np
 from service.cell.coulomb import coulomb_soc
 from service.errors import UserError
 from service.recording import Recording
+from service.validation import HELD_CURRENT_A
 
 
 def per_recording(values: list[str] | None, n: int, flag: str) -> list[str | None]:
@@ -188,6 +189,51 @@ def capacity_slip(rec: Recording, table, capacity_ah: float, source: str) -> str
             "recording (is it in the right unit?), or the OCV table is far off the cell where it reads")
 
 
+#: s: a step between samples at least this long, and ...
+UNLOGGED_MIN_STEP_S = 60.0
+#: ... this many times the recording's median step, is a pause in the logging
+UNLOGGED_STEP_FACTOR = 10.0
+#: a pause over which the held current counts more than this share of the capacity, with the current
+#: not the same on both sides, is refused: the charge that flowed while nothing was logged is not known
+#: (a pulse test's sparse logging at rest counts about 0.5 % of a Panasonic 18650PF, under it)
+UNLOGGED_MAX_SHARE = 0.01
+#: the current on both sides of a pause within this share of the larger (plus
+#: :data:`HELD_CURRENT_A`) is one constant-current stretch logged sparsely (a C/20 OCV test), not a gap
+CONSTANT_CURRENT_SHARE = 0.05
+
+
+def unlogged_charge(rec: Recording, capacity_ah: float, source: str) -> str | None:
+    """Why ``rec`` has a pause in its logging whose charge is not known, or None.
+
+    Each sample's current is held over the interval before it (:func:`coulomb_soc`).  Over a
+    pause (:data:`UNLOGGED_MIN_STEP_S`, :data:`UNLOGGED_STEP_FACTOR`) where the current differs on
+    its two sides, that counts the resumed current over the whole pause; where it counts more than
+    :data:`UNLOGGED_MAX_SHARE` of ``capacity_ah``, the truth and every filter's current integral
+    after it are off by an amount no sample shows."""
+    if len(rec) < 3:
+        return None
+    step = np.diff(rec.time_s)
+    before, after = rec.current_a[:-1], rec.current_a[1:]
+    paused = step >= np.maximum(UNLOGGED_MIN_STEP_S, UNLOGGED_STEP_FACTOR * float(np.median(step)))
+    changed = np.abs(after - before) > (CONSTANT_CURRENT_SHARE * np.maximum(np.abs(after), np.abs(before))
+                                        + HELD_CURRENT_A)
+    counted_ah = np.abs(after) * step / 3600.0
+    bad = paused & changed & (counted_ah > UNLOGGED_MAX_SHARE * capacity_ah)
+    if not bad.any():
+        return None
+    k = int(np.argmax(bad))
+    return (f"{rec.path}: time_s jumps by {step[k]:g} s after {rec.time_s[k]:.10g} s while the current changes from "
+            f"{before[k]:g} to {after[k]:g} A: holding {after[k]:g} A over that pause counts {counted_ah[k]:.3g} Ah "
+            f"({100 * counted_ah[k] / capacity_ah:.2g} % of {source} {capacity_ah:g} Ah) that no sample saw, "
+            "and the charge that did flow is not known: split the recording there")
+
+
+def check_unlogged_charge(rec: Recording, capacity_ah: float, source: str = "the capacity") -> None:
+    """Raise :class:`UserError` where :func:`unlogged_charge` finds a pause whose charge is not known."""
+    if (why := unlogged_charge(rec, capacity_ah, source)) is not None:
+        raise UserError(why)
+
+
 def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | None) -> tuple[Recording, np.ndarray]:
     """The part of ``rec`` to score and its truth SOC.
 
@@ -195,6 +241,7 @@ def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | N
     CC-CV charge, or ``None`` (the file's start; with ``soc_true`` the recorded truth).
     """
     check_current_sign(rec)
+    check_unlogged_charge(rec, capacity_ah)
     if full_at is None:
         start = 0
     elif full_at == "auto":
@@ -202,8 +249,8 @@ def truth_and_start(rec: Recording, capacity_ah: float, full_at: str | float | N
     else:
         t = float(full_at)
         if not rec.time_s[0] <= t <= rec.time_s[-1]:
-            raise UserError(f"{rec.path}: --full-at {t:g} s is outside the recording "
-                            f"({rec.time_s[0]:g}..{rec.time_s[-1]:g} s)")
+            raise UserError(f"{rec.path}: --full-at {t:.10g} s is outside the recording "
+                            f"({rec.time_s[0]:.10g}..{rec.time_s[-1]:.10g} s)")
         start = int(np.searchsorted(rec.time_s, t))
     part = rec.slice(start)
     if part.soc_true is not None:

@@ -392,6 +392,28 @@ def cell_file(text: str) -> str:
     return str(bundled) if "/" not in text and bundled.is_file() else text
 
 
+def recording_file(text: str) -> str:
+    """A recording path; a bare name that is no file but names a recording shipped with socd
+    (``pan18650pf_25C_US06`` or ``pan18650pf_25C_US06.csv``, :func:`service.assets.bundled_recordings`)
+    is that recording, so an installed socd can run every command on the drive its demo replays."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty name; give a recording file")
+    if Path(text).exists() or "/" in text:
+        return text
+    from service.assets import bundled_recording_named
+
+    bundled = bundled_recording_named(text)
+    return str(bundled) if bundled is not None else text
+
+
+def recording_help(text: str) -> str:
+    """``text`` with the name of the recording socd ships, which :func:`recording_file` takes alone."""
+    from service.assets import bundled_recordings
+
+    names = [p.stem for p in bundled_recordings()]
+    return text + (f"; or the name of a recording socd ships: {', '.join(names)}" if names else "")
+
+
 def add_cell_argument(parser: Any, *, required: bool = False, help: str | None = None,
                       old_profile_alias: bool = False) -> None:
     """``--cell CELL_FILE`` (``--profile`` kept as a hidden alias where it was used)."""

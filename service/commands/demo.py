@@ -14,6 +14,7 @@ from service.commands.common_args import (
     int_range,
     plot_file,
     positive_float,
+    recording_file,
     refuse_overwriting_inputs,
     refuse_shared_outputs,
     relative_sigma,
@@ -42,7 +43,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         help="replay speed: 1 = real time, 0 = as fast as possible (default 0)")
     parser.add_argument("--seconds", type=positive_float, default=None, metavar="S",
                         help="replay only the first S seconds of the recording")
-    parser.add_argument("--recording", type=Path, default=None, help="a recording CSV instead of the bundled one")
+    parser.add_argument("--recording", type=lambda t: Path(recording_file(t)), default=None, help="a recording CSV instead of the bundled one")
     add_soc0_argument(parser, old_start_soc_alias=True,
                       help="true SOC at the recording's first sample, 0-1 (default: 1.0 for the bundled "
                            "drive, which starts fully charged; else the recording's soc_true, else read from "
@@ -65,9 +66,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from service.assets import bundled_recording
     from service.cell.profile import ProfileError
     from service.config import DEFAULT_CELL_PROFILE
-    from service.demo import bundled_recording, run_demo, summary_text, write_plot
+    from service.demo import run_demo, summary_text, write_plot
     from service.extras import install_hint, installed
 
     setup_logging(args)

@@ -34,6 +34,8 @@ from service.commands.common_args import (
     plain_text,
     positive_float,
     progress_enabled,
+    recording_file,
+    recording_help,
     refuse_overwriting_inputs,
     refuse_shared_outputs,
     setup_logging,
@@ -49,7 +51,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         description=plain_text(__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[-1].strip()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", help="recording CSV (time_s,current_a,voltage_v,temperature_c)")
+    p.add_argument("recording", type=recording_file, help=recording_help("recording CSV (time_s,current_a,voltage_v,temperature_c)"))
     src = p.add_mutually_exclusive_group(required=True)
     add_cell_argument(src, help="cell profile (TOML/JSON) to start from")
     src.add_argument("--ocv", help="OCV(SOC) table CSV (soc + ocv_v/ocv_avg_v/...); needs --capacity-ah")
@@ -99,6 +101,22 @@ def _note(args: argparse.Namespace, message: str) -> None:
         print(f"socd diagnose: {message}", file=sys.stderr, flush=True)
 
 
+def _effects_from_arg(text: str, known: tuple[str, ...]) -> tuple[str, ...]:
+    """The candidate effects ``--effects`` names, in its order; :class:`UserError` for a list that
+    names none, an unknown name, or a name given twice (the second would silently be dropped)."""
+    effects = [e.strip() for e in text.split(",") if e.strip()]
+    if not effects:
+        raise UserError(f"--effects names no effect ({text!r}); choose from {', '.join(known)}, "
+                        "or leave the flag out for all")
+    bad = list(dict.fromkeys(e for e in effects if e not in known))
+    if bad:
+        raise UserError(f"--effects: unknown effect(s) {', '.join(bad)}; choose from {', '.join(known)}")
+    twice = list(dict.fromkeys(e for e in effects if effects.count(e) > 1))
+    if twice:
+        raise UserError(f"--effects: {', '.join(twice)} given more than once; name each effect once")
+    return tuple(effects)
+
+
 def _profile_from_args(args):
     from pydantic import ValidationError
 
@@ -142,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
         check_counted_span,
         check_current_scale,
         check_current_sign,
+        check_unlogged_charge,
     )
     from service.characterisation.block_average import describe, to_fit_period
     from service.diagnosis.effects import EFFECTS
@@ -160,21 +179,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"socd diagnose: {line}", file=sys.stderr)
     if not 0.2 <= args.fit_fraction <= 0.9:
         raise UserError(f"--fit-fraction must be in [0.2, 0.9], got {args.fit_fraction:g}")
-    effects = tuple(EFFECTS)
-    if args.effects is not None:
-        effects = tuple(dict.fromkeys(e.strip() for e in args.effects.split(",") if e.strip()))
-        if not effects:
-            raise UserError(f"--effects names no effect ({args.effects!r}); choose from {', '.join(EFFECTS)}, "
-                            "or leave the flag out for all")
-        bad = [e for e in effects if e not in EFFECTS]
-        if bad:
-            raise UserError(f"--effects: unknown effect(s) {', '.join(bad)}; choose from {', '.join(EFFECTS)}")
+    effects = tuple(EFFECTS) if args.effects is None else _effects_from_arg(args.effects, tuple(EFFECTS))
     if len(rec) < 100:
         raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
     check_current_sign(rec)
     source = "--capacity-ah" if fit_base else "the profile's capacity_ah"
     check_current_scale(rec, profile.effective_capacity_ah, source)
     check_counted_span(rec, profile.effective_capacity_ah)
+    check_unlogged_charge(rec, profile.effective_capacity_ah, source)
     if (slip := capacity_slip(rec, profile.ocv_table(), profile.effective_capacity_ah, source)) is not None:
         print(f"socd diagnose: warning: {slip}", file=sys.stderr)
     if not fit_base and (beyond := profile.temperatures_beyond_fit(rec.temperature_c)) is not None:

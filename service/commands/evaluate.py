@@ -21,6 +21,8 @@ from service.commands.common_args import (
     full_at,
     output_dir,
     progress_enabled,
+    recording_file,
+    recording_help,
     refuse_overwriting_inputs,
     setup_logging,
     text_stream,
@@ -51,7 +53,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "recordings on which it is below the textbook 2-RC EKF."
         ),
     )
-    p.add_argument("recordings", nargs="+", metavar="RECORDING", help="CSV: time_s,current_a,voltage_v,temperature_c[,soc_true]")
+    p.add_argument("recordings", nargs="+", metavar="RECORDING", type=recording_file, help=recording_help("CSV: time_s,current_a,voltage_v,temperature_c[,soc_true]"))
     add_cell_argument(p, required=True)
     p.add_argument("--estimator", action="append", metavar="NAME",
                    help=f"estimator to run (repeatable; default all: {', '.join(DEFAULT_ESTIMATORS)}); "

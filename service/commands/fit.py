@@ -39,6 +39,8 @@ from service.commands.common_args import (
     positive_float,
     positive_int,
     progress_enabled,
+    recording_file,
+    recording_help,
     refuse_overwriting_inputs,
     refuse_repeated_inputs,
     refuse_shared_outputs,
@@ -79,10 +81,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "the fit recordings' own SOC best is written (--candidates)."
         ),
     )
-    p.add_argument("recordings", nargs="+", metavar="RECORDING",
-                   help="CSV: time_s,current_a,voltage_v,temperature_c (OCV tests, pulse tests, drive cycles; "
-                        "grouped by the cell's median measured temperature, which a drive that warms the cell "
-                        "puts above the ambient)")
+    p.add_argument("recordings", nargs="+", metavar="RECORDING", type=recording_file,
+                   help=recording_help(
+                       "CSV: time_s,current_a,voltage_v,temperature_c (OCV tests, pulse tests, drive cycles; "
+                       "grouped by the cell's median measured temperature, which a drive that warms the cell "
+                       "puts above the ambient)"))
     p.add_argument("--capacity-ah", type=positive_float, required=True, metavar="X", help="cell capacity [Ah]")
     p.add_argument("--full-at", action="append", type=full_at, metavar="S",
                    help="time [s] of the full-charge point ('auto' to detect; once, or once per recording; default: file start)")
