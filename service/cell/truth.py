@@ -193,9 +193,9 @@ def capacity_slip(rec: Recording, table, capacity_ah: float, source: str) -> str
 UNLOGGED_MIN_STEP_S = 60.0
 #: ... this many times the recording's median step, is a pause in the logging
 UNLOGGED_STEP_FACTOR = 10.0
-#: a pause over which the held current counts more than this share of the capacity, with the current
-#: not the same on both sides, is refused: the charge that flowed while nothing was logged is not known
-#: (a pulse test's sparse logging at rest counts about 0.5 % of a Panasonic 18650PF, under it)
+#: a pause that begins under load, over which the held current counts more than this share of the
+#: capacity, with the current not the same on both sides, is refused: the charge that flowed while
+#: nothing was logged is not known
 UNLOGGED_MAX_SHARE = 0.01
 #: the current on both sides of a pause within this share of the larger (plus
 #: :data:`HELD_CURRENT_A`) is one constant-current stretch logged sparsely (a C/20 OCV test), not a gap
@@ -206,8 +206,9 @@ def unlogged_charge(rec: Recording, capacity_ah: float, source: str) -> str | No
     """Why ``rec`` has a pause in its logging whose charge is not known, or None.
 
     Each sample's current is held over the interval before it (:func:`coulomb_soc`).  Over a
-    pause (:data:`UNLOGGED_MIN_STEP_S`, :data:`UNLOGGED_STEP_FACTOR`) where the current differs on
-    its two sides, that counts the resumed current over the whole pause; where it counts more than
+    pause (:data:`UNLOGGED_MIN_STEP_S`, :data:`UNLOGGED_STEP_FACTOR`) that begins under load and
+    where the current differs on its two sides, that counts the resumed current over the whole pause
+    (a pause that begins at rest is a logger's sparse logging there); where it counts more than
     :data:`UNLOGGED_MAX_SHARE` of ``capacity_ah``, the truth and every filter's current integral
     after it are off by an amount no sample shows."""
     if len(rec) < 3:
@@ -218,7 +219,10 @@ def unlogged_charge(rec: Recording, capacity_ah: float, source: str) -> str | No
     changed = np.abs(after - before) > (CONSTANT_CURRENT_SHARE * np.maximum(np.abs(after), np.abs(before))
                                         + HELD_CURRENT_A)
     counted_ah = np.abs(after) * step / 3600.0
-    bad = paused & changed & (counted_ah > UNLOGGED_MAX_SHARE * capacity_ah)
+    # a logger that logs sparsely at rest pauses with no current before it (a pulse test's rests): the
+    # pulse that ends such a pause is held over it, by the logger's timing, not a loss of data
+    loaded = np.abs(before) > HELD_CURRENT_A
+    bad = paused & loaded & changed & (counted_ah > UNLOGGED_MAX_SHARE * capacity_ah)
     if not bad.any():
         return None
     k = int(np.argmax(bad))
