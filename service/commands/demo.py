@@ -15,6 +15,7 @@ from service.commands.common_args import (
     plot_file,
     positive_float,
     recording_file,
+    recording_help,
     refuse_overwriting_inputs,
     refuse_shared_outputs,
     relative_sigma,
@@ -43,7 +44,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         help="replay speed: 1 = real time, 0 = as fast as possible (default 0)")
     parser.add_argument("--seconds", type=positive_float, default=None, metavar="S",
                         help="replay only the first S seconds of the recording")
-    parser.add_argument("--recording", type=lambda t: Path(recording_file(t)), default=None, help="a recording CSV instead of the bundled one")
+    parser.add_argument("--recording", type=lambda t: Path(recording_file(t)), default=None,
+                        help=recording_help("a recording CSV instead of the bundled one"))
     add_soc0_argument(parser, old_start_soc_alias=True,
                       help="true SOC at the recording's first sample, 0-1 (default: 1.0 for the bundled "
                            "drive, which starts fully charged; else the recording's soc_true, else read from "
