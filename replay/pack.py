@@ -149,9 +149,12 @@ def estimate_start_soc(recording: Recording, profile: CellProfile, rest_current_
                     bool(at_rest[k] and rested_s[k] >= SETTLED_REST_S))
 
 
-def truth_start(recording: Recording, profile: CellProfile, start_soc: float | None) -> StartSoc:
-    """The replay truth's start: ``start_soc`` given, else the recording's own ``soc_true``, else
+def truth_start(recording: Recording, profile: CellProfile, start_soc: float | StartSoc | None) -> StartSoc:
+    """The replay truth's start: ``start_soc`` given (a :class:`StartSoc` as it is, with the caller's
+    account of where it came from), else the recording's own ``soc_true``, else
     :func:`estimate_start_soc`."""
+    if isinstance(start_soc, StartSoc):
+        return start_soc
     if start_soc is not None:
         return StartSoc(float(start_soc), "given (--soc0)")
     if recording.soc_true is not None and np.isfinite(recording.soc_true[0]):
@@ -166,7 +169,7 @@ def expand_pack(
     n_cells: int,
     spread: SpreadSpec | None = None,
     seed: int = 0,
-    start_soc: float | None = None,
+    start_soc: float | StartSoc | None = None,
     sensor_of_cell: np.ndarray | None = None,
     time_offset_s: float = 0.0,
 ) -> PackRecording:
@@ -387,7 +390,7 @@ def pack_frames(
     spread: SpreadSpec | None = None,
     seed: int = 0,
     *,
-    start_soc: float | None = None,
+    start_soc: float | StartSoc | None = None,
     time_offset_s: float = 0.0,
     lazy: bool = False,
     db=None,

@@ -29,7 +29,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -39,6 +39,7 @@ import numpy as np
 from service.assets import bundled_recording
 
 if TYPE_CHECKING:
+    from replay.pack import StartSoc
     from service.recording import Recording
 
 log = logging.getLogger(__name__)
@@ -203,16 +204,16 @@ def run_demo(
 
     ``capacity_spread``: σ of the cells' relative capacity (clipped at ±3σ);
     ``capacity_estimation``: overrides ``estimator.capacity_estimation`` ("off" freezes it)."""
+    from replay.pack import StartSoc
     from service.cell.profile import load_profile
     from service.cell.truth import check_current_sign
     from service.config import DEFAULT_CELL_PROFILE
     from service.recording import load_recording
 
-    start_note = None
     recording_path = Path(recording_path) if recording_path is not None else bundled_recording()
+    start: float | StartSoc | None = start_soc
     if start_soc is None and recording_path.resolve() == bundled_recording().resolve():
-        start_soc = 1.0
-        start_note = "as the bundled drive starts at the end of a CC-CV charge (service/data/README.md)"
+        start = StartSoc(1.0, "as the bundled drive starts at the end of a CC-CV charge (service/data/README.md)")
     profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
     profile = load_profile(profile_path)
     recording = load_recording(recording_path)
@@ -226,14 +227,14 @@ def run_demo(
     workdir = Path(tempfile.mkdtemp(prefix="socd-demo-"))
     try:  # the checkpoint and a generated DBC live there: removed however the demo ends
         return _demo_in(workdir, recording, recording_path, profile, profile_path, cells=cells, speed=speed,
-                        start_soc=start_soc, start_note=start_note, seed=seed, faults=faults, status=status, live=live,
+                        start=start, seed=seed, faults=faults, status=status, live=live,
                         capacity_spread=capacity_spread, capacity_estimation=capacity_estimation)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
 
 
 def _demo_in(workdir: Path, recording: Recording, recording_path: Path, profile: Any, profile_path: Path, *,
-             cells: int, speed: float, start_soc: float | None, start_note: str | None, seed: int, faults: Any,
+             cells: int, speed: float, start: float | StartSoc | None, seed: int, faults: Any,
              status: TextIO | bool | None, live: bool | None, capacity_spread: float,
              capacity_estimation: str | None) -> tuple[DemoResult, dict[str, np.ndarray]]:
     """:func:`run_demo` from the pack's frames on: replay, estimate, publish, score (files in ``workdir``)."""
@@ -253,7 +254,7 @@ def _demo_in(workdir: Path, recording: Recording, recording_path: Path, profile:
         config = config.model_copy(update={"estimator": config.estimator.model_copy(
             update={"capacity_estimation": capacity_estimation})})
     spread = SpreadSpec(capacity=capacity_spread, resistance=0.05, soc=0.02, temperature_c=0.5)
-    lazy_frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc,
+    lazy_frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start,
                                     lazy=True)
     full_span = float(recording.time_s[-1] - recording.time_s[0])
     recording, emptied = within_every_cell(recording, pack.truth_soc)
@@ -261,19 +262,17 @@ def _demo_in(workdir: Path, recording: Recording, recording_path: Path, profile:
     if emptied is not None and kept < MIN_DEMO_SHARE * full_span:
         from service.errors import UserError
 
-        start = "the start SOC" + (f" {start_soc:g}" if start_soc is not None else "")
+        given = "the start SOC" + (f" {pack.start.soc:g}" if start is not None else "")
         raise UserError(f"cell {emptied}'s true SOC leaves [0, 1] {kept:.0f} s into the {full_span:.0f} s drive: "
-                        f"{start} leaves the pack no room for it; give a --soc0 further from that end")
+                        f"{given} leaves the pack no room for it; give a --soc0 further from that end")
     if emptied is None:
         frames = list(lazy_frames)
     else:  # the same pack over the shorter recording (the spread is drawn from the seed alone)
-        frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start_soc)
+        frames, pack = pack_frames(recording, config, profile, cells, spread, seed=seed, start_soc=start)
     if status is True:
         status = sys.stdout  # looked up now: the caller may have redirected it
     elif status is False:
         status = None
-    if start_note is not None:
-        pack.start = replace(pack.start, source=start_note)
     if (caution := pack.start.caution()) is not None:
         log.warning("%s", caution)
     if emptied is not None and status is not None:
