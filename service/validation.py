@@ -37,20 +37,13 @@ class InputFileError(ValueError):
     """A file given to a command cannot be used; the message names the file, row and field."""
 
 
-def _missing_hint(what: str) -> str:
-    """What to give instead of a recording that is not there: the one socd ships."""
-    if what != "recording":
-        return ""
-    from service.assets import bundled_recording_hint
-
-    return bundled_recording_hint()
-
-
 def read_text(path: str | Path, what: str) -> str:
     """The text of ``path`` (a ``what``: "recording", "OCV table", ...), or :class:`InputFileError`."""
     path = Path(path)
     if not path.exists():
-        raise InputFileError(f"{path}: cannot read {what}: no such file" + _missing_hint(what))
+        from service.assets import missing_file_hint
+
+        raise InputFileError(f"{path}: cannot read {what}: no such file{missing_file_hint(what)}")
     if not path.is_file():
         raise InputFileError(f"{path}: cannot read {what}: not a file")
     try:

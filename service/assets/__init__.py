@@ -84,7 +84,16 @@ def bundled_recording_named(name: str) -> Path | None:
     return next((p for p in bundled_recordings() if p.stem == stem), None)
 
 
-def bundled_recording_hint() -> str:
-    """`` (socd ships NAME: ...)`` for a message about a recording file that is not there."""
-    names = [p.stem for p in bundled_recordings()]
-    return f" (socd ships the recording {', '.join(names)}: give its name alone)" if names else ""
+def bundled_recording_names() -> list[str]:
+    """Names of the bundled recordings (commands that read recordings take them alone)."""
+    return [p.stem for p in bundled_recordings()]
+
+
+def missing_file_hint(what: str) -> str:
+    """What socd ships in place of a ``what`` file that is not there ("recording", "cell profile"),
+    for the end of the message that names it; empty for a kind socd ships none of."""
+    if what == "recording" and (names := bundled_recording_names()):
+        return f" (socd ships the recording {', '.join(names)}: give its name alone)"
+    if what == "cell profile":
+        return f" (bundled profiles, by name: {', '.join(bundled_profiles())})"
+    return ""

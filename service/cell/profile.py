@@ -590,13 +590,8 @@ def load_profile(path: str | Path) -> CellProfile:
 
     try:
         text = read_text(path, "cell profile")
-    except InputFileError as exc:
-        hint = ""
-        if not path.exists():
-            from service.assets import bundled_profiles
-
-            hint = f" (bundled profiles, by name: {', '.join(bundled_profiles())})"
-        raise ProfileError(f"{exc}{hint}") from None
+    except InputFileError as exc:  # a missing one is named with the bundled profiles (read_text)
+        raise ProfileError(str(exc)) from None
     try:
         raw = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:

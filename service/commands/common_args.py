@@ -408,9 +408,9 @@ def recording_file(text: str) -> str:
 
 def recording_help(text: str) -> str:
     """``text`` with the name of the recording socd ships, which :func:`recording_file` takes alone."""
-    from service.assets import bundled_recordings
+    from service.assets import bundled_recording_names
 
-    names = [p.stem for p in bundled_recordings()]
+    names = bundled_recording_names()
     return text + (f"; or the name of a recording socd ships: {', '.join(names)}" if names else "")
 
 
