@@ -51,7 +51,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         description=plain_text(__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[-1].strip()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recording", type=recording_file, help=recording_help("recording CSV (time_s,current_a,voltage_v,temperature_c)"))
+    p.add_argument("recording", type=recording_file,
+                   help=recording_help("recording CSV (time_s,current_a,voltage_v,temperature_c)"))
     src = p.add_mutually_exclusive_group(required=True)
     add_cell_argument(src, help="cell profile (TOML/JSON) to start from")
     src.add_argument("--ocv", help="OCV(SOC) table CSV (soc + ocv_v/ocv_avg_v/...); needs --capacity-ah")
@@ -66,7 +67,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--split", choices=("chronological", "interleaved", "blocks"), default="chronological",
                    help="held-out part: 'chronological' the last 40 %% of the duration (default); 'interleaved' "
                         "blocks 2, 4, 7 and 9 of 10; 'blocks' alternating blocks of about 10 minutes, every "
-                        "second one held out"),
+                        "second one held out")
     add_soc0_argument(p, help="known initial SOC in [0, 1] (default: from the opening rest voltage)")
     p.add_argument("--effects", help="comma-separated subset of candidate effects to try (default: all)")
     p.add_argument("--nominal-ambient-c", type=_ambient, default=25.0, metavar="C",

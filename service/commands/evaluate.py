@@ -53,7 +53,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "recordings on which it is below the textbook 2-RC EKF."
         ),
     )
-    p.add_argument("recordings", nargs="+", metavar="RECORDING", type=recording_file, help=recording_help("CSV: time_s,current_a,voltage_v,temperature_c[,soc_true]"))
+    p.add_argument("recordings", nargs="+", metavar="RECORDING", type=recording_file,
+                   help=recording_help("CSV: time_s,current_a,voltage_v,temperature_c[,soc_true]"))
     add_cell_argument(p, required=True)
     p.add_argument("--estimator", action="append", metavar="NAME",
                    help=f"estimator to run (repeatable; default all: {', '.join(DEFAULT_ESTIMATORS)}); "
