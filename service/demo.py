@@ -60,6 +60,7 @@ class DemoResult:
     wall_s: float
     frames_in: int
     frames_rejected: int
+    values_rejected: int
     samples: int
     steps: int
     soc_rmse_pct: float
@@ -392,6 +393,7 @@ def _demo_in(workdir: Path, recording: Recording, recording_path: Path, profile:
         wall_s=round(wall, 3),
         frames_in=int(counters.get("frames_in", 0)),
         frames_rejected=int(counters.get("frames_rejected", 0)),
+        values_rejected=int(counters.get("values_rejected", 0)),
         samples=daemon.samples,
         steps=daemon.steps,
         soc_rmse_pct=round(rmse, 4),
@@ -481,7 +483,8 @@ def summary_text(r: DemoResult) -> str:
     lines = [
         (f"replayed {r.seconds_replayed:.0f} s of {r.recording} for {r.cells} cells in {r.wall_s:.1f} s "
          f"({r.frames_per_s:.0f} frames/s, CPU {r.cpu_pct:.0f} % of one core)"),
-        f"frames in {r.frames_in}, rejected {r.frames_rejected}; estimator steps {r.steps}",
+        (f"frames in {r.frames_in}, rejected {r.frames_rejected} (and {r.values_rejected} single values); "
+         f"estimator steps {r.steps}"),
         f"SOC error vs truth: RMSE {r.soc_rmse_pct:.2f} %, MAE {r.soc_mae_pct:.2f} %, max {r.soc_max_err_pct:.2f} %"
         + (f", RMSE after 600 s {r.soc_rmse_after_600s_pct:.2f} %" if r.soc_rmse_after_600s_pct is not None else "")
         + (f", within its published 2σ {r.soc_within_2sigma_pct:.0f} % of the time after 600 s"

@@ -12,14 +12,15 @@ import pytest
 from service.cli import main
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "panasonic_18650pf"
-KEYS = {"cells", "frames_in", "frames_rejected", "soc_rmse_pct", "zenoh_messages", "can_frames_out"}
+KEYS = {"cells", "frames_in", "frames_rejected", "values_rejected", "soc_rmse_pct", "zenoh_messages",
+        "can_frames_out"}
 
 
 def _check(out: Path, cells: int) -> dict:
     data = json.loads(out.read_text())
     assert KEYS <= set(data)
     assert data["cells"] == cells and len(data["per_cell_rmse_pct"]) == cells
-    assert data["frames_in"] > 100 and data["frames_rejected"] == 0
+    assert data["frames_in"] > 100 and data["frames_rejected"] == 0 and data["values_rejected"] == 0
     assert data["steps"] >= data["samples"] - 2 > 50
     assert 0.0 <= data["soc_rmse_pct"] < 10.0
     assert data["zenoh_messages"] > 0 and data["zenoh_by_kind"]["soc"] >= cells

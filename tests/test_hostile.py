@@ -18,6 +18,7 @@ import pytest
 from replay.pack import FrameBuilder, SpreadSpec, pack_frames
 from service.bus.decoder import FRAME_ACCEPTS, REANCHOR_AFTER, REJECT_REASONS, FrameDecoder
 from service.cell.profile import load_profile
+from service.commands.run import stop_summary
 from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config
 from service.daemon.can_rx import CAN_ERR_BUSOFF, CanReceiver
 from service.daemon.daemon import Daemon
@@ -112,6 +113,24 @@ def test_daemon_keeps_estimating_after_a_bad_timestamp(tmp_path: Path) -> None:
     assert d.counters()["timestamp_jump"] == 1 and d.counters()["frames_rejected"] == 1
 
 
+def test_the_run_s_stop_line_counts_values_rejected_one_by_one(tmp_path: Path) -> None:
+    """One cell's voltage outside its plausibility range rejects that value, not its frame: the
+    stop line said "0 rejected" for a run whose decoder refused a value every sample."""
+    config = _daemon_config(tmp_path, N)
+    d = Daemon(config, profile=load_profile(DEFAULT_CELL_PROFILE), install_signal_handlers=False)
+    builder = FrameBuilder(config)
+    voltage = np.full(N, 3.7)
+    voltage[2] = 9.0
+    temperature = np.full(len(config.mapping.temperature_signals), 25.0)
+    for k in range(20):
+        for f in builder.frames_for_sample(0.1 * k, 1.0, voltage, temperature):
+            for s in d.decoder.feed(f):
+                d.on_sample(s)
+    counters = d.counters()
+    assert counters["frames_rejected"] == 0 and counters["values_rejected"] == counters["out_of_range"] == 20
+    assert "0 rejected, 20 values rejected" in stop_summary(d)
+
+
 # -- 2. exact accounting under a flood -----------------------------------------------------------
 def test_counters_add_up_exactly_under_a_100k_frame_flood(cfg) -> None:
     rng = random.Random(29)
@@ -155,6 +174,7 @@ def test_counters_add_up_exactly_under_a_100k_frame_flood(cfg) -> None:
         assert c[reason] > 0, reason
     merged = health.all_counters(c)
     assert merged["frames_rejected"] == dec.rejected
+    assert merged["values_rejected"] == c["out_of_range"] + c["nan"] > 0
     assert merged["frames_in"] == c["frames_decoded"] + c["frames_ignored"] + merged["frames_rejected"]
     # a value rejection is not a frame rejection: those frames are in frames_decoded
     assert c["out_of_range"] + c["nan"] + c["counter_jump"] > 0

@@ -106,4 +106,5 @@ def stop_summary(daemon: Any) -> str:
              else "no state saved (nothing estimated)" if daemon.samples == 0
              else f"state NOT saved to {daemon.config.checkpoint.path} (see the log)")
     return (f"stopped after {daemon.samples} samples of {daemon.n} cells "
-            f"({counters.get('frames_in', 0)} frames in, {counters.get('frames_rejected', 0)} rejected); {saved}")
+            f"({counters.get('frames_in', 0)} frames in, {counters.get('frames_rejected', 0)} rejected, "
+            f"{counters.get('values_rejected', 0)} values rejected); {saved}")

@@ -21,7 +21,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from service.bus.decoder import REJECT_REASONS
+from service.bus.decoder import REJECT_REASONS, VALUE_REJECTS
 from service.daemon.payloads import Health
 
 #: seconds an event flag stays raised after the event
@@ -146,13 +146,15 @@ class HealthMonitor:
         return out
 
     def all_counters(self, decoder_counters: Mapping[str, int] | None = None) -> dict[str, int]:
-        """Own counters merged with the decoder's, plus ``frames_rejected``."""
+        """Own counters merged with the decoder's, plus ``frames_rejected`` (whole frames) and
+        ``values_rejected`` (single values of decoded frames: :data:`VALUE_REJECTS`)."""
         with self._lock:
             out = {k: int(v) for k, v in self.counters.items()}
         if decoder_counters is not None:
             for k, v in decoder_counters.items():
                 out[k] = out.get(k, 0) + int(v)
             out["frames_rejected"] = sum(int(decoder_counters.get(r, 0)) for r in DECODER_REJECT_REASONS)
+            out["values_rejected"] = sum(int(decoder_counters.get(r, 0)) for r in VALUE_REJECTS)
         return out
 
     def uptime_s(self) -> float:
