@@ -55,6 +55,8 @@ import cantools
 from cantools.database import Database, Message, Node, Signal
 from cantools.database.conversion import BaseConversion
 
+from service.cell.profile import FIT_TEMPERATURE_MARGIN_K
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
@@ -82,6 +84,9 @@ STATUS_FLAGS = (
     ("checkpoint_corrupt", "a checkpoint was found unusable at start; SOC initialised from OCV instead"),
     ("clock_reanchored", "the input frames' clock jumped and the decoder re-anchored on it"),
     ("state_aged", "the restored state was older than checkpoint.max_age_s; its SOC sigma was widened"),
+    ("temperature_beyond_fit", (f"a cell reads more than {FIT_TEMPERATURE_MARGIN_K:g} K outside the temperatures its "
+                                "profile was fitted at: its parameters are extrapolated there and its SOC sigma "
+                                "does not allow for that")),
 )
 
 

@@ -17,6 +17,7 @@ import pytest
 
 from replay.pack import FrameBuilder, SpreadSpec, pack_frames
 from service.bus.decoder import FRAME_ACCEPTS, REANCHOR_AFTER, REJECT_REASONS, FrameDecoder
+from service.bus.encoder import OutputEncoder, decode_output
 from service.cell.profile import load_profile
 from service.commands.run import stop_summary
 from service.config import DEFAULT_CELL_PROFILE, DEFAULT_INPUT_DBC, DEFAULT_OUTPUT_DBC, build_config
@@ -129,6 +130,34 @@ def test_the_run_s_stop_line_counts_values_rejected_one_by_one(tmp_path: Path) -
     counters = d.counters()
     assert counters["frames_rejected"] == 0 and counters["values_rejected"] == counters["out_of_range"] == 20
     assert "0 rejected, 20 values rejected" in stop_summary(d)
+
+
+def test_a_cell_far_outside_the_profile_s_temperatures_raises_a_status_flag(tmp_path: Path, caplog) -> None:
+    """The bundled profile was fitted at -20 to 25 degC: a sensor reading 60 degC raises
+    temperature_beyond_fit on the CAN status word (decoded with the shipped DBC), logged once, and
+    it clears when the cells read within the fitted range again."""
+    config = _daemon_config(tmp_path, N)
+    d = Daemon(config, profile=load_profile(DEFAULT_CELL_PROFILE), install_signal_handlers=False)
+    builder, encoder = FrameBuilder(config), OutputEncoder(config)
+    n_sensors = len(config.mapping.temperature_signals)
+
+    def run(k0: int, sensor_c: np.ndarray) -> dict:
+        for k in range(k0, k0 + 20):
+            for f in builder.frames_for_sample(0.1 * k, 1.0, np.full(N, 3.7), sensor_c):
+                for s in d.decoder.feed(f):
+                    d.on_sample(s)
+        (status,) = [o for f in encoder.encode(d.snapshot()) if (o := decode_output(f))["message"] == "SOCD_Status"]
+        return status["flags"]
+
+    hot = np.full(n_sensors, 25.0)
+    hot[0] = 60.0
+    with caplog.at_level("WARNING", logger="service.daemon.daemon"):
+        assert not run(0, np.full(n_sensors, 25.0))["temperature_beyond_fit"]
+        assert run(20, hot)["temperature_beyond_fit"]
+        assert run(40, hot)["temperature_beyond_fit"]
+        assert not run(60, np.full(n_sensors, 30.0))["temperature_beyond_fit"]  # within 10 K of 25 degC
+    warned = [r.getMessage() for r in caplog.records if "temperature_beyond_fit" in r.getMessage()]
+    assert len(warned) == 1 and "60 to 60 °C" in warned[0] and "-20 to 25 °C" in warned[0]
 
 
 # -- 2. exact accounting under a flood -----------------------------------------------------------

@@ -31,6 +31,7 @@ STATUS_FLAGS: tuple[str, ...] = (
     "checkpoint_corrupt",
     "clock_reanchored",
     "state_aged",
+    "temperature_beyond_fit",
 )
 
 

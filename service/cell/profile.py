@@ -399,15 +399,21 @@ class CellProfile(_Strict):
         return float(min(np.min(g_ohm), 1.0))
 
     # -- derived objects ----------------------------------------------------------------
+    def beyond_fit(self, temp_c: np.ndarray) -> np.ndarray:
+        """Where ``temp_c`` lies more than :data:`FIT_TEMPERATURE_MARGIN_K` outside the temperatures
+        this profile's parameters were fitted at (element-wise; NaN is not beyond): there the
+        resistances follow the end segment's Arrhenius slope (:meth:`parameters_at`), which no data
+        checked, up to :data:`EXTRAPOLATE_C` K, and are held beyond."""
+        fitted = [p.temp_c for p in self.parameters]
+        t = np.asarray(temp_c, dtype=float)
+        return (t < min(fitted) - FIT_TEMPERATURE_MARGIN_K) | (t > max(fitted) + FIT_TEMPERATURE_MARGIN_K)
+
     def temperatures_beyond_fit(self, temp_c: np.ndarray) -> str | None:
-        """A sentence when a recording's median temperature ``temp_c`` lies more than
-        :data:`FIT_TEMPERATURE_MARGIN_K` outside the temperatures this profile's parameters were
-        fitted at, else None: there the resistances follow the end segment's Arrhenius slope
-        (:meth:`parameters_at`), which no data checked, up to :data:`EXTRAPOLATE_C` K, and are held
-        beyond.  The median, not the extremes: a drive heats the cell by several kelvin."""
+        """A sentence when a recording's median temperature ``temp_c`` is :meth:`beyond_fit`, else
+        None.  The median, not the extremes: a drive heats the cell by several kelvin."""
         fitted = [p.temp_c for p in self.parameters]
         median = float(np.median(temp_c))
-        if min(fitted) - FIT_TEMPERATURE_MARGIN_K <= median <= max(fitted) + FIT_TEMPERATURE_MARGIN_K:
+        if not self.beyond_fit(np.array(median)):
             return None
         span = f"{fitted[0]:g} °C" if len(fitted) == 1 else f"{min(fitted):g} to {max(fitted):g} °C"
         return (f"recorded at {median:.0f} °C (median), more than {FIT_TEMPERATURE_MARGIN_K:g} K outside the {span} "

@@ -60,7 +60,7 @@ import can
 import numpy as np
 
 from service.bus.types import PackSample, PackSnapshot
-from service.cell.profile import CellProfile, load_profile
+from service.cell.profile import FIT_TEMPERATURE_MARGIN_K, CellProfile, load_profile
 from service.daemon.can_rx import CanReceiver, ReceiverClosed
 from service.daemon.checkpoint import (
     checkpoint_write_problem,
@@ -167,6 +167,7 @@ class Daemon:
         self.restored = False
         self._last_t: float | None = None
         self._last_sample: PackSample | None = None
+        self._beyond_fit_logged = False  # temperature_beyond_fit was raised at the last status
         self._last_sample_mono: float | None = None
         self._last_frame_wall: float | None = None
         self._fresh = np.zeros(self.n, dtype=bool)
@@ -597,6 +598,7 @@ class Daemon:
             self._state_aged and bool(np.any(filter_std > OCV_CONVERGED_STD)))
         clamped = getattr(est, "param_clamped", None)
         flags["param_clamped"] = bool(np.any(clamped)) if clamped is not None else False
+        flags["temperature_beyond_fit"] = self._temperature_beyond_fit(stale)
         if self.publisher is None:
             flags["zenoh_down"] = False
         for name in ("checkpoint_restored", "filter_reset", "bus_error", "zenoh_down", "publish_drops",
@@ -604,6 +606,25 @@ class Daemon:
                      "state_aged"):
             flags.setdefault(name, False)
         return flags
+
+    def _temperature_beyond_fit(self, stale: np.ndarray) -> bool:
+        """Whether a cell with fresh inputs reads a temperature the profile was not fitted near
+        (:meth:`CellProfile.beyond_fit`); logged once each time it starts and stops."""
+        s = self._last_sample
+        beyond = (np.zeros(self.n, dtype=bool) if s is None
+                  else self.profile.beyond_fit(s.temperature_c) & ~np.asarray(stale, dtype=bool))
+        now = bool(beyond.any())
+        if now and not self._beyond_fit_logged:
+            fitted = sorted(p.temp_c for p in self.profile.parameters)
+            log.warning("%d cell(s) read %.0f to %.0f °C, more than %g K outside the %g to %g °C the profile %r "
+                        "was fitted at: their parameters are extrapolated and the SOC σ published does not allow "
+                        "for that (status flag temperature_beyond_fit)", int(beyond.sum()),
+                        float(np.min(s.temperature_c[beyond])), float(np.max(s.temperature_c[beyond])),
+                        FIT_TEMPERATURE_MARGIN_K, fitted[0], fitted[-1], self.profile.name)
+        elif not now and self._beyond_fit_logged:
+            log.info("every cell reads within the profile's fitted temperatures again")
+        self._beyond_fit_logged = now
+        return now
 
     def pack_view(self) -> PackView | None:
         """The pack view (:mod:`service.estimators.pack_view`) over the started cells, with each
