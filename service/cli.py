@@ -11,8 +11,10 @@ import argparse
 import importlib
 import os
 import sys
+import textwrap
 
 from service import __version__
+from service.assets import RESULTS_CITATION, results_note
 from service.errors import UserError
 from service.extras import missing_extra
 from service.validation import use_bounds
@@ -32,6 +34,15 @@ SUBCOMMANDS: dict[str, str] = {
     "check": "service.commands.check",
     "schema": "service.commands.schema",
 }
+
+
+class _WholePaths(argparse.HelpFormatter):
+    """Fills a description or epilog as argparse does, but never breaks a long word or a hyphenated
+    one across lines, so a path in it (``.../site-packages/...``) can be copied whole."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        return textwrap.fill(" ".join(text.split()), width, initial_indent=indent, subsequent_indent=indent,
+                             break_long_words=False, break_on_hyphens=False)
 
 
 def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: BaseException) -> None:
@@ -54,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
             "Battery state estimator: multi-time-scale fractional-order model with online "
             "identification and FO-MI-UKF, served over CAN and Zenoh."
         ),
+        epilog=results_note(),
+        formatter_class=_WholePaths,
     )
     parser.add_argument("--version", action="version", version=f"socd {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -63,6 +76,12 @@ def build_parser() -> argparse.ArgumentParser:
             module.add_subparser(subparsers)
         except Exception as exc:  # noqa: BLE001 - reported through the stand-in command
             _register_broken(subparsers, name, exc)
+    for sub in subparsers.choices.values():
+        # a command whose help cites docs/results/ says where an installed socd keeps it
+        if RESULTS_CITATION in sub.format_help():
+            sub.epilog = f"{sub.epilog}\n\n{results_note()}" if sub.epilog else results_note()
+            if sub.formatter_class is argparse.HelpFormatter:
+                sub.formatter_class = _WholePaths
     return parser
 
 
