@@ -112,6 +112,19 @@ def test_checkpoint_default_is_in_the_state_directory_and_writable(tmp_path, mon
     assert loaded.ok, loaded.detail
 
 
+def test_a_packaged_file_the_code_cites_is_package_data():
+    """`socd demo` says the bundled drive starts full "(service/data/README.md)", a file the wheel did not
+    ship (package data took the recordings only): a user with the wheel could not read the source."""
+    from fnmatch import fnmatch
+
+    patterns = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["service"]
+    cited = {m for f in [*(ROOT / "service").rglob("*.py"), *(ROOT / "replay").rglob("*.py")]
+             for m in re.findall(r"service/(data/[\w.]+\.\w+)", f.read_text())}
+    assert "data/README.md" in cited
+    for name in sorted(cited):
+        assert (ROOT / "service" / name).is_file() and any(fnmatch(name, p) for p in patterns), name
+
+
 def test_missing_extra_names_the_pip_extra():
     declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     assert set(EXTRA_OF_MODULE.values()) <= set(declared)
