@@ -165,6 +165,7 @@ def truth_leaves_cell(pack) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args)
+    from service.assets import missing_file_hint
     from service.config import DEFAULT_CONFIG
     from service.validation import InputFileError, check_can_log
 
@@ -172,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
     if path.is_dir():
         raise UserError(f"{path}: is a folder, not a recording or CAN log")
     if not path.is_file():
-        raise UserError(f"{path}: " + ("not a regular file (a pipe, socket or device)" if path.exists() else "no such file"))
+        raise UserError(f"{path}: " + ("not a regular file (a pipe, socket or device)" if path.exists()
+                                       else f"no such file{missing_file_hint('recording')}"))
     refuse_shared_outputs([("--record", args.record), ("--truth-out", args.truth_out)])
     mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
     if mf4_files and not installed("asammdf"):

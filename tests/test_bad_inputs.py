@@ -1440,3 +1440,13 @@ def test_check_refuses_a_zenoh_endpoint_the_session_cannot_open(tmp_path: Path, 
     cfg.write_text(f'[zenoh]\nconnect = ["{endpoint}"]\n')
     code, err = run_cli(capsys, ["check", "--config", str(cfg)])
     assert_one_line_error(code, err, expected)
+
+
+@pytest.mark.parametrize("argv", [["replay", "--no-send"], ["demo", "--recording"]])
+def test_a_misspelt_recording_name_names_the_one_socd_ships(tmp_path: Path, capsys, monkeypatch, argv: list[str]) -> None:
+    """`socd replay pan18650pf_25C_US6` said only "no such file" and `socd demo --recording` the same
+    typo "no such recording", where evaluate, fit and diagnose name the recording socd ships."""
+    monkeypatch.chdir(tmp_path)
+    code, err = run_cli(capsys, [*argv, "pan18650pf_25C_US6"])
+    assert_one_line_error(code, err, "pan18650pf_25C_US6: no such ")
+    assert "(socd ships the recording pan18650pf_25C_US06: give its name alone)" in err
