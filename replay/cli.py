@@ -213,7 +213,9 @@ def run(args: argparse.Namespace) -> int:
         try:
             profile = load_profile(profile_path)
         except ProfileError as exc:
-            raise UserError(f"{exc} (give --cell or set cell_profile in the config)") from None
+            # a --cell given names itself; the config's profile is worth pointing past
+            raise UserError(str(exc) if args.cell else f"{exc} (the config's cell_profile; give --cell for "
+                            "another)") from None
         spread = SpreadSpec(args.spread_capacity, args.spread_resistance, args.spread_soc, args.spread_temperature)
         try:
             frames, pack = pack_frames(recording, config, profile, args.cells, spread, args.seed,

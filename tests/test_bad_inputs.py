@@ -1450,3 +1450,12 @@ def test_a_misspelt_recording_name_names_the_one_socd_ships(tmp_path: Path, caps
     code, err = run_cli(capsys, [*argv, "pan18650pf_25C_US6"])
     assert_one_line_error(code, err, "pan18650pf_25C_US6: no such ")
     assert "(socd ships the recording pan18650pf_25C_US06: give its name alone)" in err
+
+
+def test_replay_of_a_missing_cell_profile_does_not_ask_for_the_flag_given(tmp_path: Path, capsys) -> None:
+    """`socd replay ... --cell nope` ended its one line with "(give --cell or set cell_profile in the
+    config)": the user had given --cell, and the line already lists the bundled profiles."""
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    code, err = run_cli(capsys, ["replay", str(rec), "--no-send", "--cell", "nope"])
+    assert_one_line_error(code, err, "nope: cannot read cell profile: no such file (bundled profiles, by name: ")
+    assert "give --cell" not in err
