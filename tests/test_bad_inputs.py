@@ -991,7 +991,7 @@ def test_a_misspelt_override_inside_a_section_stops_every_command_in_one_line(ca
     monkeypatch.setenv("SOCD_BUS__CHANEL", "can0")
     with caplog.at_level("WARNING", logger="service.config"):
         code, err = run_cli(capsys, command)
-    assert_one_line_error(code, err, "bus.chanel: Extra inputs are not permitted")
+    assert_one_line_error(code, err, "bus.chanel: unknown key (did you mean channel?)")
     assert "SOCD_BUS__CHANEL sets no config field of [bus], which refuses it (did you mean SOCD_BUS__CHANNEL?)" \
         in caplog.text
 
@@ -1459,3 +1459,19 @@ def test_replay_of_a_missing_cell_profile_does_not_ask_for_the_flag_given(tmp_pa
     code, err = run_cli(capsys, ["replay", str(rec), "--no-send", "--cell", "nope"])
     assert_one_line_error(code, err, "nope: cannot read cell profile: no such file (bundled profiles, by name: ")
     assert "give --cell" not in err
+
+
+@pytest.mark.parametrize("command", ["check", "run"])
+@pytest.mark.parametrize("body, names", [
+    ('[bus]\nchanel = "can0"\n', "c.toml: bus.chanel: unknown key (did you mean channel?)"),
+    ("[estimator]\nmemory_lenght = 8\n", "c.toml: estimator.memory_lenght: unknown key (did you mean memory_length?)"),
+    ('[mapping]\ncells = [{cell = 0, signal = "BMS_Cell001_V", sign = 1}]\n',
+     "c.toml: mapping.cells[0].sign: unknown key (did you mean signal?)"),
+    ("colour = 1\n", "c.toml: colour: unknown key (socd schema lists the keys)"),
+])
+def test_an_unknown_config_key_is_called_so_with_the_key_meant(tmp_path: Path, capsys, command: str, body: str,
+                                                                names: str) -> None:
+    """A misspelt key in a config was refused as pydantic words it, "bus.chanel: Extra inputs are not
+    permitted", which names neither what is wrong with it nor the key the user meant."""
+    code, err = run_cli(capsys, [command, "--config", str(_config_with(tmp_path, body))])
+    assert_one_line_error(code, err, names)
