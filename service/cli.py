@@ -12,6 +12,7 @@ import importlib
 import os
 import sys
 import textwrap
+from typing import NoReturn
 
 from service import __version__
 from service.assets import RESULTS_CITATION, results_note
@@ -45,6 +46,14 @@ class _WholePaths(argparse.HelpFormatter):
                              break_long_words=False, break_on_hyphens=False)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, with its usage errors in one line (``socd fit: error: argument --capacity-ah:
+    must be > 0, got -1``) as socd's other errors are, not under the usage block (17 lines for fit)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: BaseException) -> None:
     reason = missing_extra(exc) or f"unavailable because its module failed to import: {exc}"
     # a module that failed half-way may have added its parser already: reuse it (a second one
@@ -59,7 +68,7 @@ def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: Bas
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="socd",
         description=(
             "Battery state estimator: multi-time-scale fractional-order model with online "

@@ -1475,3 +1475,18 @@ def test_an_unknown_config_key_is_called_so_with_the_key_meant(tmp_path: Path, c
     permitted", which names neither what is wrong with it nor the key the user meant."""
     code, err = run_cli(capsys, [command, "--config", str(_config_with(tmp_path, body))])
     assert_one_line_error(code, err, names)
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["fit", "r.csv", "--capacity-ah", "-1", "-o", "c.toml"], "socd fit: error: argument --capacity-ah: must be > 0, got -1"),
+    (["diagnose", "r.csv", "--ocv", "o.csv", "--capacity-ah", "x"],
+     "socd diagnose: error: argument --capacity-ah: expected a number, got 'x'"),
+    (["evaluate", "r.csv"], "socd evaluate: error: the following arguments are required: --cell"),
+    (["demoo"], "socd: error: argument COMMAND: invalid choice: 'demoo'"),
+])
+def test_a_usage_error_is_one_line(tmp_path: Path, capsys, monkeypatch, argv: list[str], names: str) -> None:
+    """A wrong --capacity-ah printed socd fit's 17-line usage block before the one line that said what
+    was wrong, where every other bad input gets that line alone."""
+    monkeypatch.chdir(tmp_path)
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, names)
