@@ -54,7 +54,7 @@ from service.commands.common_args import (
     start_soc_sigma,
     stuck_cell,
 )
-from service.errors import UserError
+from service.errors import MissingExtra, UserError
 from service.extras import install_hint, installed
 
 
@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
     refuse_shared_outputs([("--record", args.record), ("--truth-out", args.truth_out)])
     mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
     if mf4_files and not installed("asammdf"):
-        raise UserError(f"{mf4_files[0]}: MF4 {install_hint('asammdf')}")
+        raise MissingExtra(f"{mf4_files[0]}: MF4 {install_hint('asammdf')}")
     config = _config(args)
     # every file the replay reads, the config's own included, is an input an output must not replace
     inputs = [path, getattr(args, "cell", None), args.config or DEFAULT_CONFIG, config.cell_profile,

@@ -16,7 +16,7 @@ from typing import NoReturn
 
 from service import __version__
 from service.assets import RESULTS_CITATION, results_note
-from service.errors import UserError
+from service.errors import MissingExtra, UserError
 from service.extras import missing_extra
 from service.validation import use_bounds
 
@@ -107,6 +107,9 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, "bounds", None):  # --bounds: the ranges every recording loader checks
             use_bounds(dict(args.bounds))
         return int(args.func(args) or 0)
+    except MissingExtra as exc:
+        print(f"socd {args.command}: error: {exc}", file=sys.stderr)
+        return 3
     except UserError as exc:
         print(f"socd {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -24,6 +24,7 @@ from service.commands.common_args import (
     text_stream,
     write_json,
 )
+from service.errors import MissingExtra
 
 MAX_DEMO_CELLS = 256  # the output DBC's cell index is 8 bits; above 96 an input DBC is generated
 DEFAULT_PLOT = Path("socd-demo.png")
@@ -92,7 +93,7 @@ def _demo(args: argparse.Namespace) -> int:
     plot = args.plot
     if not installed("matplotlib"):
         if plot is not None:
-            raise UserError(f"--plot {install_hint('matplotlib')}")
+            raise MissingExtra(f"--plot {install_hint('matplotlib')}")
     elif plot is None and not args.no_plot:
         plot = DEFAULT_PLOT
     try:
