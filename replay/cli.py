@@ -26,7 +26,7 @@ from pathlib import Path
 import can
 
 from replay.faults import FaultSpec
-from replay.pack import SpreadSpec, first_outside_unit, pack_frames
+from replay.pack import SpreadSpec, first_outside_unit, known_start, pack_frames
 from replay.player import LOG_SUFFIXES, log_format, play, read_log
 from service.bus.cli_args import BusConfigError, add_bus_arguments, bus_flags_given, resolve_bus
 from service.bus.decoder import frame_key, message_key
@@ -76,7 +76,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     add_cell_argument(g, old_profile_alias=True,
                       help="cell profile for the OCV table (default: the config's cell_profile)")
     add_soc0_argument(g, old_start_soc_alias=True,
-                      help="SOC at the first sample, 0..1 (default: from the first rest voltage)")
+                      help="SOC at the first sample, 0..1 (default: 1 for the bundled drive, which starts "
+                           "fully charged; else from the first rest voltage)")
     g.add_argument("--spread-capacity", type=relative_sigma, default=0.0, metavar="REL",
                    help="σ of the cells' capacity, relative, clipped at ±3σ (default 0: every cell the profile's; socd demo uses 0.02)")
     g.add_argument("--spread-resistance", type=relative_sigma, default=0.0, metavar="REL",
@@ -218,8 +219,9 @@ def run(args: argparse.Namespace) -> int:
                             "another)") from None
         spread = SpreadSpec(args.spread_capacity, args.spread_resistance, args.spread_soc, args.spread_temperature)
         try:
+            start = args.soc0 if args.soc0 is not None else known_start(path)
             frames, pack = pack_frames(recording, config, profile, args.cells, spread, args.seed,
-                                       start_soc=args.soc0, time_offset_s=args.time_offset, lazy=True)
+                                       start_soc=start, time_offset_s=args.time_offset, lazy=True)
         except ValueError as exc:
             raise UserError(str(exc)) from None
         if (leaves := truth_leaves_cell(pack)) is not None:
