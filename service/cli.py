@@ -87,7 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
             _register_broken(subparsers, name, exc)
     for sub in subparsers.choices.values():
         # a command whose help cites docs/results/ says where an installed socd keeps it
-        if RESULTS_CITATION in sub.format_help():
+        # (read from the texts as written: a narrow terminal's help wraps a citation apart)
+        if any(RESULTS_CITATION in (text or "") for text in [sub.description, *(a.help for a in sub._actions)]):
             sub.epilog = f"{sub.epilog}\n\n{results_note()}" if sub.epilog else results_note()
             if sub.formatter_class is argparse.HelpFormatter:
                 sub.formatter_class = _WholePaths

@@ -40,7 +40,7 @@ def test_the_results_a_help_text_cites_are_installed_where_the_help_says(monkeyp
     # the note names the installed folder whole, however long and hyphenated its path and narrow the terminal
     installed = Path("/opt/venvs/bms-tools/lib/python3.11/site-packages/service/assets/results")
     monkeypatch.setattr(assets, "results_dir", lambda: installed)
-    monkeypatch.setenv("COLUMNS", "60")
+    monkeypatch.setenv("COLUMNS", "50")
     helps = {"socd": build_parser().format_help(), **{n: p.format_help() for n, p in _commands().items()}}
     citing = sorted(n for n, text in helps.items() if "docs/results/" in text)
     assert {"socd", "fit", "diagnose"} <= set(citing)
