@@ -28,12 +28,13 @@
 FROM python:3.11-slim AS build
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /src
-# service/assets/{dbc,configs} link to the top-level dbc/ and configs/: copy all of them
+# service/assets/{dbc,configs,results} link to the top-level dbc/, configs/ and docs/results/: copy all of them
 COPY pyproject.toml README.md ./
 COPY service ./service
 COPY replay ./replay
 COPY dbc ./dbc
 COPY configs ./configs
+COPY docs/results ./docs/results
 RUN pip wheel --no-deps --wheel-dir /wheels .
 
 FROM python:3.11-slim

@@ -26,7 +26,7 @@ from pathlib import Path
 import can
 
 from replay.faults import FaultSpec
-from replay.pack import SpreadSpec, first_outside_unit, pack_frames
+from replay.pack import SpreadSpec, first_outside_unit, known_start, pack_frames
 from replay.player import LOG_SUFFIXES, log_format, play, read_log
 from service.bus.cli_args import BusConfigError, add_bus_arguments, bus_flags_given, resolve_bus
 from service.bus.decoder import frame_key, message_key
@@ -54,7 +54,7 @@ from service.commands.common_args import (
     start_soc_sigma,
     stuck_cell,
 )
-from service.errors import UserError
+from service.errors import MissingExtra, UserError
 from service.extras import install_hint, installed
 
 
@@ -76,7 +76,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     add_cell_argument(g, old_profile_alias=True,
                       help="cell profile for the OCV table (default: the config's cell_profile)")
     add_soc0_argument(g, old_start_soc_alias=True,
-                      help="SOC at the first sample, 0..1 (default: from the first rest voltage)")
+                      help="SOC at the first sample, 0..1 (default: 1 for the bundled drive, which starts "
+                           "fully charged; else from the first rest voltage)")
     g.add_argument("--spread-capacity", type=relative_sigma, default=0.0, metavar="REL",
                    help="σ of the cells' capacity, relative, clipped at ±3σ (default 0: every cell the profile's; socd demo uses 0.02)")
     g.add_argument("--spread-resistance", type=relative_sigma, default=0.0, metavar="REL",
@@ -165,6 +166,7 @@ def truth_leaves_cell(pack) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args)
+    from service.assets import missing_file_hint
     from service.config import DEFAULT_CONFIG
     from service.validation import InputFileError, check_can_log
 
@@ -172,11 +174,12 @@ def run(args: argparse.Namespace) -> int:
     if path.is_dir():
         raise UserError(f"{path}: is a folder, not a recording or CAN log")
     if not path.is_file():
-        raise UserError(f"{path}: " + ("not a regular file (a pipe, socket or device)" if path.exists() else "no such file"))
+        raise UserError(f"{path}: " + ("not a regular file (a pipe, socket or device)" if path.exists()
+                                       else f"no such file{missing_file_hint('recording')}"))
     refuse_shared_outputs([("--record", args.record), ("--truth-out", args.truth_out)])
     mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
     if mf4_files and not installed("asammdf"):
-        raise UserError(f"{mf4_files[0]}: MF4 {install_hint('asammdf')}")
+        raise MissingExtra(f"{mf4_files[0]}: MF4 {install_hint('asammdf')}")
     config = _config(args)
     # every file the replay reads, the config's own included, is an input an output must not replace
     inputs = [path, getattr(args, "cell", None), args.config or DEFAULT_CONFIG, config.cell_profile,
@@ -211,11 +214,14 @@ def run(args: argparse.Namespace) -> int:
         try:
             profile = load_profile(profile_path)
         except ProfileError as exc:
-            raise UserError(f"{exc} (give --cell or set cell_profile in the config)") from None
+            # a --cell given names itself; the config's profile is worth pointing past
+            raise UserError(str(exc) if args.cell else f"{exc} (the config's cell_profile; give --cell for "
+                            "another)") from None
         spread = SpreadSpec(args.spread_capacity, args.spread_resistance, args.spread_soc, args.spread_temperature)
         try:
+            start = args.soc0 if args.soc0 is not None else known_start(path)
             frames, pack = pack_frames(recording, config, profile, args.cells, spread, args.seed,
-                                       start_soc=args.soc0, time_offset_s=args.time_offset, lazy=True)
+                                       start_soc=start, time_offset_s=args.time_offset, lazy=True)
         except ValueError as exc:
             raise UserError(str(exc)) from None
         if (leaves := truth_leaves_cell(pack)) is not None:

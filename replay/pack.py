@@ -123,6 +123,16 @@ class StartSoc:
                 "recording starts at the end of a full charge)")
 
 
+def known_start(path: Path) -> StartSoc | None:
+    """The truth's start socd knows for a recording it ships (the bundled drive starts at the end of a
+    CC-CV charge, which its OCV, read a second into its first rest, puts a few % lower), else None."""
+    from service.assets import bundled_recording
+
+    if Path(path).resolve() == bundled_recording().resolve():
+        return StartSoc(1.0, "as the bundled drive starts at the end of a CC-CV charge (service/data/README.md)")
+    return None
+
+
 def estimate_start_soc(recording: Recording, profile: CellProfile, rest_current_a: float | None = None) -> StartSoc:
     """SOC at the first sample from the first (near-)rest voltage (the end of the rest the recording
     opens with, if it does), counted back to t0; settled when the current had rested

@@ -11,9 +11,12 @@ import argparse
 import importlib
 import os
 import sys
+import textwrap
+from typing import NoReturn
 
 from service import __version__
-from service.errors import UserError
+from service.assets import RESULTS_CITATION, results_note
+from service.errors import MissingExtra, UserError
 from service.extras import missing_extra
 from service.validation import use_bounds
 
@@ -34,6 +37,23 @@ SUBCOMMANDS: dict[str, str] = {
 }
 
 
+class _WholePaths(argparse.HelpFormatter):
+    """Fills a description or epilog as argparse does, but never breaks a long word or a hyphenated
+    one across lines, so a path in it (``.../site-packages/...``) can be copied whole."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        return textwrap.fill(" ".join(text.split()), width, initial_indent=indent, subsequent_indent=indent,
+                             break_long_words=False, break_on_hyphens=False)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, with its usage errors in one line (``socd fit: error: argument --capacity-ah:
+    must be > 0, got -1``) as socd's other errors are, not under the usage block (17 lines for fit)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: BaseException) -> None:
     reason = missing_extra(exc) or f"unavailable because its module failed to import: {exc}"
     # a module that failed half-way may have added its parser already: reuse it (a second one
@@ -48,12 +68,14 @@ def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: Bas
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="socd",
         description=(
             "Battery state estimator: multi-time-scale fractional-order model with online "
             "identification and FO-MI-UKF, served over CAN and Zenoh."
         ),
+        epilog=results_note(),
+        formatter_class=_WholePaths,
     )
     parser.add_argument("--version", action="version", version=f"socd {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -63,6 +85,13 @@ def build_parser() -> argparse.ArgumentParser:
             module.add_subparser(subparsers)
         except Exception as exc:  # noqa: BLE001 - reported through the stand-in command
             _register_broken(subparsers, name, exc)
+    for sub in subparsers.choices.values():
+        # a command whose help cites docs/results/ says where an installed socd keeps it
+        # (read from the texts as written: a narrow terminal's help wraps a citation apart)
+        if any(RESULTS_CITATION in (text or "") for text in [sub.description, *(a.help for a in sub._actions)]):
+            sub.epilog = f"{sub.epilog}\n\n{results_note()}" if sub.epilog else results_note()
+            if sub.formatter_class is argparse.HelpFormatter:
+                sub.formatter_class = _WholePaths
     return parser
 
 
@@ -79,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, "bounds", None):  # --bounds: the ranges every recording loader checks
             use_bounds(dict(args.bounds))
         return int(args.func(args) or 0)
+    except MissingExtra as exc:
+        print(f"socd {args.command}: error: {exc}", file=sys.stderr)
+        return 3
     except UserError as exc:
         print(f"socd {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -28,6 +28,7 @@ import os
 import re
 import string
 import tomllib
+import typing
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Literal
@@ -653,10 +654,36 @@ def format_loc(loc: tuple[Any, ...]) -> str:
     return out
 
 
-def format_validation_error(exc: ValidationError, source: str) -> str:
+def _section_model(annotation: Any) -> type[BaseModel] | None:
+    """The model a field holds (``BusConfig``, the ``CellVoltageMap`` of ``list[CellVoltageMap]``), or None."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    return next((m for a in typing.get_args(annotation) if (m := _section_model(a)) is not None), None)
+
+
+def unknown_key_message(model: type[BaseModel], loc: tuple[Any, ...]) -> str:
+    """What to say of a key at ``loc`` that ``model`` has no field for: "unknown key", and the key
+    it may have been meant as (``bus.chanel`` -> channel), found among the keys of its section."""
+    section: type[BaseModel] | None = model
+    for part in loc[:-1]:
+        if section is None:
+            break
+        if not isinstance(part, int):
+            field = section.model_fields.get(str(part))
+            section = _section_model(field.annotation) if field is not None else None
+    keys = list(section.model_fields) if section is not None else []
+    near = difflib.get_close_matches(str(loc[-1]), keys, n=1, cutoff=0.6)
+    return f"unknown key (did you mean {near[0]}?)" if near else "unknown key (socd schema lists the keys)"
+
+
+def format_validation_error(exc: ValidationError, source: str, model: type[BaseModel] | None = None) -> str:
+    """One line per problem, ``<source>: <section.key>: <problem>``; with the ``model`` validated, a key
+    it does not have is called unknown (pydantic's "Extra inputs are not permitted"), with the key meant."""
     lines = []
     for err in exc.errors():
         msg = validation_message(err)
+        if model is not None and err["type"] == "extra_forbidden" and err["loc"]:
+            msg = unknown_key_message(model, tuple(err["loc"]))
         loc = format_loc(tuple(err["loc"]))
         # cross-field checks name their own field at the start of the message
         lines.append(f"{source}: {loc}: {msg}" if loc else f"{source}: {msg}")
@@ -675,7 +702,7 @@ def build_config(raw: dict[str, Any], source: str = "<config>", base_dir: Path |
     try:
         return SocdConfig(**raw)
     except ValidationError as exc:
-        text = format_validation_error(exc, source)
+        text = format_validation_error(exc, source, SocdConfig)
         if overrides:  # the bad value may be the environment's, not the file's
             text += f" (the environment overrides the file: {', '.join(overrides)})"
         raise ConfigError(text) from None

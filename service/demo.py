@@ -205,16 +205,14 @@ def run_demo(
 
     ``capacity_spread``: σ of the cells' relative capacity (clipped at ±3σ);
     ``capacity_estimation``: overrides ``estimator.capacity_estimation`` ("off" freezes it)."""
-    from replay.pack import StartSoc
+    from replay.pack import known_start
     from service.cell.profile import load_profile
     from service.cell.truth import check_current_sign
     from service.config import DEFAULT_CELL_PROFILE
     from service.recording import load_recording
 
     recording_path = Path(recording_path) if recording_path is not None else bundled_recording()
-    start: float | StartSoc | None = start_soc
-    if start_soc is None and recording_path.resolve() == bundled_recording().resolve():
-        start = StartSoc(1.0, "as the bundled drive starts at the end of a CC-CV charge (service/data/README.md)")
+    start: float | StartSoc | None = start_soc if start_soc is not None else known_start(recording_path)
     profile_path = Path(profile_path) if profile_path else DEFAULT_CELL_PROFILE
     profile = load_profile(profile_path)
     recording = load_recording(recording_path)

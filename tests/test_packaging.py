@@ -112,6 +112,19 @@ def test_checkpoint_default_is_in_the_state_directory_and_writable(tmp_path, mon
     assert loaded.ok, loaded.detail
 
 
+def test_a_packaged_file_the_code_cites_is_package_data():
+    """`socd demo` says the bundled drive starts full "(service/data/README.md)", a file the wheel did not
+    ship (package data took the recordings only): a user with the wheel could not read the source."""
+    from fnmatch import fnmatch
+
+    patterns = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["service"]
+    cited = {m for f in [*(ROOT / "service").rglob("*.py"), *(ROOT / "replay").rglob("*.py")]
+             for m in re.findall(r"service/(data/[\w.]+\.\w+)", f.read_text())}
+    assert "data/README.md" in cited
+    for name in sorted(cited):
+        assert (ROOT / "service" / name).is_file() and any(fnmatch(name, p) for p in patterns), name
+
+
 def test_missing_extra_names_the_pip_extra():
     declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     assert set(EXTRA_OF_MODULE.values()) <= set(declared)
@@ -153,7 +166,7 @@ def test_replay_mf4_without_asammdf_names_the_extra(tmp_path, monkeypatch, capsy
     monkeypatch.setattr(replay.cli, "installed", lambda module: module != "asammdf")
     log = tmp_path / "pack.mf4"
     log.write_bytes(b"")
-    assert main(["replay", str(log)]) == 2
+    assert main(["replay", str(log)]) == 3
     assert capsys.readouterr().err.strip() == (
         f"socd replay: error: {log}: MF4 needs asammdf, which is not installed: pip install 'socd[mf4]'"
     )
@@ -164,9 +177,25 @@ def test_demo_without_matplotlib_says_which_extra(monkeypatch, capsys):
     from service.cli import main
 
     monkeypatch.setattr(service.extras, "installed", lambda module: module != "matplotlib")
-    assert main(["demo", "--plot", "x.png", "--seconds", "5"]) == 2
+    assert main(["demo", "--plot", "x.png", "--seconds", "5"]) == 3
     assert capsys.readouterr().err.strip() == (
         "socd demo: error: --plot needs matplotlib, which is not installed: pip install 'socd[fit]'"
+    )
+
+
+def test_a_flag_whose_extra_is_missing_exits_3_at_once(tmp_path, monkeypatch, capsys):
+    """The README promises exit 3 for a missing optional extra: `socd demo --plot` and an MF4 log in
+    `socd replay` exited 2 (above), and `socd watch --plot` waited for the service and failed only when
+    its first data came, or timed out with exit 1 where none came, without naming the extra."""
+    import service.extras
+    from service.cli import main
+
+    monkeypatch.setattr(service.extras, "installed", lambda module: module != "matplotlib")
+    started = time.monotonic()
+    assert main(["watch", "--once", "--timeout", "3", "--plot", str(tmp_path / "w.png")]) == 3
+    assert time.monotonic() - started < 2
+    assert capsys.readouterr().err.strip() == (
+        "socd watch: error: --plot needs matplotlib, which is not installed: pip install 'socd[fit]'"
     )
 
 

@@ -273,3 +273,21 @@ def test_truth_out_says_when_its_start_was_read_from_a_voltage_still_relaxing(tm
     assert "truth.csv: the truth starts at" in err and "read from the OCV at 10 s, 1 s into a rest" in err
     assert main([*argv, "--soc0", "0.8"]) == 0
     assert "the truth starts at" not in capsys.readouterr().err
+
+
+def test_the_bundled_drive_replays_from_the_full_charge_it_starts_at(tmp_path, capsys):
+    """`socd replay pan18650pf_25C_US06` read the truth's start from a voltage a second into the drive's
+    first rest (97.8 %) and warned it might be a few % off, where `socd demo` replays the same drive
+    from the full charge it is known to start at (service/data/README.md)."""
+    truth = tmp_path / "truth.csv"
+    assert socd_main(["replay", "pan18650pf_25C_US06", "--no-send", "--cells", "2", "--stop", "60",
+                      "--record", str(tmp_path / "d.asc"), "--truth-out", str(truth)]) == 0
+    assert "relaxing" not in capsys.readouterr().err
+    with truth.open() as fh:
+        first = next(csv.DictReader(fh))
+    assert float(first["soc_0"]) == 1.0 and float(first["soc_ref"]) == 1.0
+    # a --soc0 given still wins
+    assert socd_main(["replay", "pan18650pf_25C_US06", "--no-send", "--cells", "2", "--stop", "60", "--soc0", "0.9",
+                      "--record", str(tmp_path / "e.asc"), "--truth-out", str(truth)]) == 0
+    with truth.open() as fh:
+        assert float(next(csv.DictReader(fh))["soc_0"]) == 0.9

@@ -1,8 +1,8 @@
 """The built package works on its own: ``python -m build`` (sdist, then the wheel from it), the
 wheel installed with its core dependencies only in a fresh venv outside the checkout, and
 ``socd demo`` and ``socd replay`` of the shipped recording by its name run from an empty directory:
-the packaged DBCs, profile and drive cycle, the generated-DBC import, the whole chain, and no
-research or plotting library in the daemon.
+the packaged DBCs, profile and drive cycle, the generated-DBC import, the whole chain, the documents
+the help and the demo cite, and no research or plotting library in the daemon.
 
 Slow (a build, a venv and a pip install from the index; about a minute) and needs PyPI.
 """
@@ -45,6 +45,17 @@ def test_wheel_installed_in_a_fresh_venv_runs_the_demo(tmp_path: Path) -> None:
     rmse = re.search(r"^SOC error vs truth: RMSE (\d+\.\d+) %", done.stdout, re.MULTILINE)
     assert rmse and float(rmse.group(1)) < 10.0, done.stdout
     assert "plot: not written (needs matplotlib, which is not installed: pip install 'socd[fit]')" in done.stdout
+
+    # the documents socd's output cites are installed: the results the help texts cite, where
+    # `socd --help` says, and the bundled drive's README, which the demo cites for its full start
+    helped = " ".join(_run([str(socd), "--help"], cwd=work, timeout=60).stdout.split())
+    results = re.search(r"is installed with socd: (\S+)/NAME\.md", helped)
+    assert results and Path(results.group(1)).is_relative_to(venv), helped
+    shipped = {p.name for p in Path(results.group(1)).iterdir()}
+    assert {"tuning.md", "characterisation.md", "cell_options.md"} <= shipped
+    assert {Path(name).suffix for name in shipped} == {".md"}, shipped  # not the research tool beside them
+    assert "(service/data/README.md)" in done.stdout
+    assert (Path(results.group(1)).parents[1] / "data" / "README.md").is_file()
 
     # the recording the package ships, named alone, replayed to a log
     done = _run([str(socd), "replay", "pan18650pf_25C_US06", "--no-send", "--cells", "2", "--record", "drive.asc"],

@@ -2,7 +2,8 @@
 bundled drive recording (``service/data``).
 
 They live in the repository's top-level ``dbc/`` and ``configs/``; ``service/assets/dbc`` and
-``service/assets/configs`` are symbolic links to those directories, so a source checkout, an
+``service/assets/configs`` are symbolic links to those directories (as ``service/assets/results``
+is to ``docs/results/``, whose markdown the help texts cite), so a source checkout, an
 editable install and a built wheel (which copies the files in) all find them here, through
 :mod:`importlib.resources`, at the same relative places.  The example configs' relative paths
 (``../dbc/bms_pack.dbc``, ``cells/panasonic_18650pf.toml``) therefore hold inside the package too.
@@ -17,6 +18,10 @@ from pathlib import Path
 DBC_DIR_NAME = "dbc"
 CONFIG_DIR_NAME = "configs"
 PROFILE_DIR_NAME = "cells"
+#: the measured results (``docs/results/*.md`` of the repository) the help texts cite
+RESULTS_DIR_NAME = "results"
+#: how a help text cites one of them
+RESULTS_CITATION = "docs/results/"
 #: the recordings shipped with the package, beside this package (``service/data``)
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 #: recording names in the data directory that the demo takes for a drive cycle, in preference
@@ -48,6 +53,17 @@ def config_path(name: str) -> Path:
 def profile_path(name: str) -> Path:
     """A bundled cell profile, e.g. ``profile_path("panasonic_18650pf.toml")``."""
     return asset_path(CONFIG_DIR_NAME, PROFILE_DIR_NAME, name)
+
+
+def results_dir() -> Path:
+    """Where the results a help text cites as ``docs/results/NAME.md`` are installed."""
+    return asset_path(RESULTS_DIR_NAME)
+
+
+def results_note() -> str:
+    """The sentence that tells a user with only the installed package where ``docs/results/`` is."""
+    return (f"{RESULTS_CITATION}NAME.md in a help text, where a default was measured, is installed "
+            f"with socd: {results_dir()}/NAME.md")
 
 
 def bundled_profiles() -> list[str]:

@@ -24,6 +24,7 @@ from service.commands.common_args import (
     text_stream,
     write_json,
 )
+from service.errors import MissingExtra
 
 MAX_DEMO_CELLS = 256  # the output DBC's cell index is 8 bits; above 96 an input DBC is generated
 DEFAULT_PLOT = Path("socd-demo.png")
@@ -68,7 +69,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from service.assets import bundled_recording
+    from service.assets import bundled_recording, missing_file_hint
     from service.cell.profile import ProfileError
     from service.config import DEFAULT_CELL_PROFILE
     from service.demo import run_demo, summary_text, write_plot
@@ -83,7 +84,8 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
     if args.recording is not None and not args.recording.is_file():
         raise UserError(f"{args.recording}: " + ("not a regular file (a pipe, socket or device)"
-                                                 if args.recording.exists() else "no such recording"))
+                                                 if args.recording.exists()
+                                                 else f"no such recording{missing_file_hint('recording')}"))
     inputs = [args.recording or bundled_recording(), args.cell or DEFAULT_CELL_PROFILE]
     for flag, out in (("--json", args.json), ("--plot", args.plot)):
         refuse_overwriting_inputs(out, inputs, flag)
@@ -91,7 +93,7 @@ def _demo(args: argparse.Namespace) -> int:
     plot = args.plot
     if not installed("matplotlib"):
         if plot is not None:
-            raise UserError(f"--plot {install_hint('matplotlib')}")
+            raise MissingExtra(f"--plot {install_hint('matplotlib')}")
     elif plot is None and not args.no_plot:
         plot = DEFAULT_PLOT
     try:

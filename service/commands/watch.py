@@ -34,6 +34,7 @@ from service.commands.common_args import (
     positive_float,
     setup_logging,
 )
+from service.errors import MissingExtra
 
 PLOT_EVERY_S = 2.0
 
@@ -418,7 +419,12 @@ async def _live(console: Any, view: PackView, title: str, args: argparse.Namespa
 
 
 def _watch(args: argparse.Namespace) -> int:
+    from service.extras import install_hint, installed
+
     setup_logging(args)
+    if args.plot and not installed("matplotlib"):
+        # said now, not when the first data arrives (or never, where the service is not up)
+        raise MissingExtra(f"--plot {install_hint('matplotlib')}")
     try:
         return asyncio.run(watch(args))
     except KeyboardInterrupt:
