@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from service.cli import main
+from service.demo import DemoResult, summary_text
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "panasonic_18650pf"
 KEYS = {"cells", "frames_in", "frames_rejected", "values_rejected", "soc_rmse_pct", "zenoh_messages",
@@ -51,6 +53,11 @@ def test_demo_on_the_bundled_drive_cycle(tmp_path: Path, capsys: pytest.CaptureF
     assert "truth: the recorded cell starts at 100.0 % SOC, as the bundled drive starts at the end" in text
     assert json.loads(out.read_text())["soc_within_2sigma_pct"] is None  # nothing scored past 600 s
     assert list(scratch.iterdir()) == []
+    # a fast replay that filled the publisher's queue says why publish_drops is up; in real time it is a fault
+    result = DemoResult(**json.loads(out.read_text()))
+    dropped = replace(result, status_flags={**result.status_flags, "publish_drops": True})
+    assert "status flags: publish_drops (the drive ran" in summary_text(dropped)
+    assert summary_text(replace(dropped, wall_s=dropped.seconds_replayed)).endswith("status flags: publish_drops")
 
 
 def test_demo_with_a_given_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str],
