@@ -1440,3 +1440,43 @@ def test_check_refuses_a_zenoh_endpoint_the_session_cannot_open(tmp_path: Path, 
     cfg.write_text(f'[zenoh]\nconnect = ["{endpoint}"]\n')
     code, err = run_cli(capsys, ["check", "--config", str(cfg)])
     assert_one_line_error(code, err, expected)
+
+
+def test_diagnose_refuses_an_ocv_table_the_recording_rests_above(tmp_path: Path, capsys) -> None:
+    """The bundled 4.2 V drive with an LFP-like table that ends at 3.65 V: every rest read as SOC 1
+    (clipped), and `socd diagnose` left 207 mV held out and exited 0 (on a synthetic drive it named
+    capacity)."""
+    rec = Path(__file__).resolve().parents[1] / "service" / "data" / "pan18650pf_25C_US06.csv"
+    ocv = tmp_path / "lfp_ocv.csv"
+    soc = np.linspace(0, 1, 21)
+    ocv.write_text("soc,ocv_v\n" + "\n".join(f"{s:g},{2.5 + 1.15 * s ** 0.3:.4f}" for s in soc) + "\n")
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--ocv", str(ocv), "--capacity-ah", "2.77",
+                                 "--effects", "capacity", "-q"])
+    assert_one_line_error(code, err, f"{rec}: its voltage at rest or light load reaches ")
+    assert f"above the OCV at full charge (3650 mV) of the OCV table {ocv}" in err, err
+
+
+def test_no_shared_recording_rests_above_its_own_ocv_table() -> None:
+    """The OCV-range check passes the bundled drive with its profile, and every shared recording with
+    its own table (synthetic) or its cell's bundled profile (real)."""
+    from service.cell.ocv import OcvTable, load_ocv_csv
+    from service.cell.profile import load_profile
+    from service.cell.truth import ocv_range_problem
+    from service.commands.common_args import cell_file
+    from service.recording import load_recording
+
+    bundled = Path(__file__).resolve().parents[1] / "service" / "data" / "pan18650pf_25C_US06.csv"
+    assert ocv_range_problem(load_recording(bundled), load_profile(DEFAULT_CELL_PROFILE).ocv_table(), "p") is None
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    files = [p for p in sorted(shared.glob("real/*/*.csv")) + sorted(shared.glob("synthetic/*.csv"))
+             if "soc_table" not in p.name and not p.stem.endswith("_ocv") and p.parent.name != "ocv"]
+    if not files:
+        pytest.skip("../shared/data is not here")
+    cells = {"pan18650pf": "panasonic_18650pf", "calce20r": "calce_inr18650_20r", "calce_a123": "calce_a123"}
+    tables = {name: load_profile(cell_file(name)).ocv_table() for name in cells.values()}
+    for path in files:
+        if path.parent.name == "synthetic":
+            table = OcvTable.from_points(*load_ocv_csv(path.with_name(path.stem + "_ocv.csv")))
+        else:
+            table = tables[next(c for prefix, c in cells.items() if path.name.startswith(prefix))]
+        assert ocv_range_problem(load_recording(path), table, "t") is None, path.name

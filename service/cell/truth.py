@@ -189,6 +189,34 @@ def capacity_slip(rec: Recording, table, capacity_ah: float, source: str) -> str
             "recording (is it in the right unit?), or the OCV table is far off the cell where it reads")
 
 
+def ocv_range_problem(rec: Recording, table, source: str) -> str | None:
+    """Why the settled light-load voltage of ``rec`` (:func:`settled_light_load`) cannot be read on the
+    OCV ``table`` (``source`` names where it came from, e.g. ``the OCV table ocv.csv``), or None: its 99th percentile lies more than half of
+    :data:`CAPACITY_SLIP_ALLOWANCE_V` above the table's OCV at SOC 1 (median temperature), a SOC past
+    full no cell rests at. A table of another cell or chemistry reads such a voltage as a SOC clipped to 1,
+    and a diagnosis names whatever absorbs the hundreds of mV left. On every shared recording with its
+    table or bundled profile the voltage stays within 25 mV of it. The bottom is not checked: a cell
+    relaxing after a cold cut-off stays 200 mV below the bundled Panasonic profile's OCV at SOC 0."""
+    if len(rec) < 2:
+        return None
+    settled = settled_light_load(rec)
+    if np.count_nonzero(settled) < 10:
+        return None
+    hi = float(np.percentile(rec.voltage_v[settled], 99.0))
+    full = float(table.ocv(np.array(1.0), float(np.median(rec.temperature_c))))
+    if hi <= full + CAPACITY_SLIP_ALLOWANCE_V / 2:
+        return None
+    return (f"{rec.path}: its voltage at rest or light load reaches {1e3 * hi:.0f} mV, {1e3 * (hi - full):.0f} mV "
+            f"above the OCV at full charge ({1e3 * full:.0f} mV) of {source}: that OCV is not "
+            "this cell's (another cell's or chemistry's table?)")
+
+
+def check_ocv_range(rec: Recording, table, source: str) -> None:
+    """Raise :class:`UserError` where :func:`ocv_range_problem` finds the recording outside the table."""
+    if (why := ocv_range_problem(rec, table, source)) is not None:
+        raise UserError(why)
+
+
 #: s: a step between samples at least this long, and ...
 UNLOGGED_MIN_STEP_S = 60.0
 #: ... this many times the recording's median step, is a pause in the logging

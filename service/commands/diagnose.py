@@ -161,6 +161,7 @@ def run(args: argparse.Namespace) -> int:
         check_counted_span,
         check_current_scale,
         check_current_sign,
+        check_ocv_range,
         check_unlogged_charge,
     )
     from service.characterisation.block_average import describe, to_fit_period
@@ -188,6 +189,7 @@ def run(args: argparse.Namespace) -> int:
     check_current_scale(rec, profile.effective_capacity_ah, source)
     check_counted_span(rec, profile.effective_capacity_ah)
     check_unlogged_charge(rec, profile.effective_capacity_ah, source)
+    check_ocv_range(rec, profile.ocv_table(), f"the OCV table {args.ocv}" if fit_base else f"the profile {args.cell}")
     if (slip := capacity_slip(rec, profile.ocv_table(), profile.effective_capacity_ah, source)) is not None:
         print(f"socd diagnose: warning: {slip}", file=sys.stderr)
     if not fit_base and (beyond := profile.temperatures_beyond_fit(rec.temperature_c)) is not None:
