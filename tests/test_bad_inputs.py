@@ -742,6 +742,32 @@ def test_a_pause_in_the_logging_under_load_is_refused(tmp_path: Path, capsys, co
     assert not (tmp_path / "cell.toml").exists()
 
 
+def _constant_current_with_a_hole(tmp_path: Path, hole_s: int) -> Path:
+    """A minute's rest, then 2.77 A for 3000 s logged every second, with ``hole_s`` of rows lost from
+    its middle: the same current on both sides of the hole."""
+    t = np.arange(0, 3060)
+    keep = (t < 1500) | (t >= 1500 + hole_s)
+    i = np.where(t < 60, 0.0, 2.77)
+    v = np.where(t < 60, 4.1, 4.0 - 0.5 * (t - 60) / 3000)
+    return _recording(tmp_path, "cc_hole.csv", "\n".join(f"{a},{b:g},{c:.4f},25.0" for a, b, c in
+                                                         zip(t[keep], i[keep], v[keep])))
+
+
+@pytest.mark.parametrize("command", ["fit", "evaluate", "diagnose"])
+def test_rows_lost_from_a_constant_current_stretch_are_refused(tmp_path: Path, capsys, command: str) -> None:
+    """20 minutes cut out of a 1C stretch logged every second: the current is the same on both sides, so
+    the hole passed as sparse logging, 33 % of the capacity was counted that never flowed in the file,
+    and `socd diagnose` fitted a base model 1 V off on the held-out part of such a pulse test and named
+    capacity."""
+    path = _constant_current_with_a_hole(tmp_path, 1200)
+    argv = {"fit": ["fit", str(path), "--capacity-ah", "2.77", "-q", "-o", str(tmp_path / "cell.toml")],
+            "evaluate": ["evaluate", "--cell", str(DEFAULT_CELL_PROFILE), str(path), "-q"],
+            "diagnose": ["diagnose", str(path), "--cell", str(DEFAULT_CELL_PROFILE), "-q"]}[command]
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, "cc_hole.csv: time_s jumps by 1201 s after 1499 s under 2.77 A, amid samples 1 s")
+    assert "split the recording there" in err and not (tmp_path / "cell.toml").exists()
+
+
 def test_pauses_at_rest_and_in_a_constant_current_stretch_are_not_refused() -> None:
     """Sparse logging is not a gap: a pulse test logged every 300 s at rest (its next pulse held over the
     last pause, as the Panasonic and PyBaMM pulse tests here have it), a C/20 discharge logged every
@@ -756,6 +782,11 @@ def test_pauses_at_rest_and_in_a_constant_current_stretch_are_not_refused() -> N
     t = 600.0 * np.arange(60)
     cc = Recording(Path("cc.csv"), t, np.full(t.size, 0.14), np.linspace(4.1, 3.0, t.size), np.full(t.size, 25.0))
     assert unlogged_charge(cc, 2.77, "c") is None
+    # the same C/20 stretch after a drive logged every second: its pauses are amid pauses as long
+    t = np.concatenate([np.arange(0.0, 3600.0), 3600.0 + 600.0 * np.arange(60)])
+    i = np.where(t < 3600, 2.0 * np.sin(t / 20.0) ** 2, 0.14)
+    mixed = Recording(Path("mixed.csv"), t, i, np.linspace(4.1, 3.0, t.size), np.full(t.size, 25.0))
+    assert unlogged_charge(mixed, 2.77, "c") is None
 
     shared = Path(__file__).resolve().parents[2] / "shared" / "data"
     files = [p for p in sorted(shared.glob("real/*/*.csv")) + sorted(shared.glob("synthetic/*.csv"))

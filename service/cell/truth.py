@@ -226,7 +226,9 @@ UNLOGGED_STEP_FACTOR = 10.0
 #: nothing was logged is not known
 UNLOGGED_MAX_SHARE = 0.01
 #: the current on both sides of a pause within this share of the larger (plus
-#: :data:`HELD_CURRENT_A`) is one constant-current stretch logged sparsely (a C/20 OCV test), not a gap
+#: :data:`HELD_CURRENT_A`) is one constant-current stretch logged sparsely (a C/20 OCV test), not a gap,
+#: where the stretch is logged sparsely beside the pause too: a step next to it at least
+#: 1/:data:`UNLOGGED_STEP_FACTOR` of its length
 CONSTANT_CURRENT_SHARE = 0.05
 
 
@@ -235,8 +237,10 @@ def unlogged_charge(rec: Recording, capacity_ah: float, source: str) -> str | No
 
     Each sample's current is held over the interval before it (:func:`coulomb_soc`).  Over a
     pause (:data:`UNLOGGED_MIN_STEP_S`, :data:`UNLOGGED_STEP_FACTOR`) that begins under load and
-    where the current differs on its two sides, that counts the resumed current over the whole pause
-    (a pause that begins at rest is a logger's sparse logging there); where it counts more than
+    where the current differs on its two sides, or where it is the same but the samples beside the
+    pause are logged densely (rows cut out of one constant-current stretch), that counts the resumed
+    current over the whole pause (a pause that begins at rest is a logger's sparse logging there, and
+    one amid steps as long in a constant-current stretch too); where it counts more than
     :data:`UNLOGGED_MAX_SHARE` of ``capacity_ah``, the truth and every filter's current integral
     after it are off by an amount no sample shows."""
     if len(rec) < 3:
@@ -250,12 +254,18 @@ def unlogged_charge(rec: Recording, capacity_ah: float, source: str) -> str | No
     # a logger that logs sparsely at rest pauses with no current before it (a pulse test's rests): the
     # pulse that ends such a pause is held over it, by the logger's timing, not a loss of data
     loaded = np.abs(before) > HELD_CURRENT_A
-    bad = paused & loaded & changed & (counted_ah > UNLOGGED_MAX_SHARE * capacity_ah)
+    # the longer step beside each one (0 at the ends): a constant-current stretch logged sparsely has
+    # steps as long around its pauses; one long step amid dense samples is rows that were lost
+    beside = np.maximum(np.r_[0.0, step[:-1]], np.r_[step[1:], 0.0])
+    sparse = beside * UNLOGGED_STEP_FACTOR >= step
+    bad = paused & loaded & (changed | ~sparse) & (counted_ah > UNLOGGED_MAX_SHARE * capacity_ah)
     if not bad.any():
         return None
     k = int(np.argmax(bad))
-    return (f"{rec.path}: time_s jumps by {step[k]:g} s after {rec.time_s[k]:.10g} s while the current changes from "
-            f"{before[k]:g} to {after[k]:g} A: holding {after[k]:g} A over that pause counts {counted_ah[k]:.3g} Ah "
+    how = (f"while the current changes from {before[k]:g} to {after[k]:g} A" if changed[k]
+           else f"under {after[k]:g} A, amid samples {beside[k]:g} s apart")
+    return (f"{rec.path}: time_s jumps by {step[k]:g} s after {rec.time_s[k]:.10g} s {how}: "
+            f"holding {after[k]:g} A over that pause counts {counted_ah[k]:.3g} Ah "
             f"({100 * counted_ah[k] / capacity_ah:.2g} % of {source} {capacity_ah:g} Ah) that no sample saw, "
             "and the charge that did flow is not known: split the recording there")
 
