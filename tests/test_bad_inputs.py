@@ -817,7 +817,8 @@ def test_a_recording_beyond_the_profiles_temperatures_is_named(tmp_path: Path, c
     """The bundled profile is fitted at -20 to 25 °C. A -45 °C log was scored and diagnosed on
     extrapolated parameters without a word. Within 10 K of the fitted range there is nothing to say:
     the bundled 25 °C drive heats the cell to 33 °C."""
-    rows = "\n".join(f"{t},{1.0 if t % 60 < 30 else 0.0},{4.0 - 0.0003 * t},{temp_c}" for t in range(300))
+    # opens at rest: a recording that opens under load is warned of for its initial SOC too
+    rows = "\n".join(f"{t},{0.0 if t % 60 < 30 else 1.0},{4.0 - 0.0003 * t},{temp_c}" for t in range(300))
     rec = _recording(tmp_path, "cold.csv", rows)
     for argv in (["evaluate", str(rec), "--cell", "panasonic_18650pf", "--estimator", "coulomb", "--no-bar", "-q"],
                  ["diagnose", str(rec), "--cell", "panasonic_18650pf", "--effects", "capacity", "-q"]):
@@ -1512,3 +1513,32 @@ def test_no_shared_recording_rests_above_its_own_ocv_table() -> None:
         else:
             table = tables[next(c for prefix, c in cells.items() if path.name.startswith(prefix))]
         assert ocv_range_problem(load_recording(path), table, "t") is None, path.name
+
+
+def test_diagnose_says_when_a_recording_opens_under_load(tmp_path: Path, capsys) -> None:
+    """A drive cut in its middle: its initial SOC is read from the first voltage corrected by R_ohm·I,
+    4 % of SOC low on a synthetic DST, and diagnose named hysteresis with exit 0 and no word of it (its
+    JSON said the SOC came from an opening rest). It now says so, once, before it fits; --soc0 silences it."""
+    from service.assets import bundled_recording
+    from service.diagnosis.pipeline import initial_state_text
+    from service.recording import load_recording, save_recording
+
+    rec = load_recording(bundled_recording())
+    k = int(np.argmax((rec.time_s > 1000.0) & (rec.current_a > 2.0)))
+    cut = save_recording(tmp_path / "mid_drive.csv", np.column_stack(
+        [rec.time_s[k:], rec.current_a[k:], rec.voltage_v[k:], rec.temperature_c[k:]]))
+    # --save-effect without --save-profile is refused after the input checks, so nothing is fitted
+    argv = ["diagnose", str(cut), "--cell", str(DEFAULT_CELL_PROFILE), "--save-effect", "none", "-q"]
+    code, err = run_cli(capsys, argv)
+    lines = err.splitlines()
+    assert code == 2 and len(lines) == 2 and "--save-effect needs --save-profile" in lines[1], err
+    assert f"warning: {cut}: it opens under load ({load_recording(cut).current_a[0]:g} A)" in lines[0], err
+    assert "give --soc0 if it is known" in lines[0], err
+    code, err = run_cli(capsys, [*argv, "--soc0", "0.9"])
+    assert code == 2 and "warning" not in err, err
+    code, err = run_cli(capsys, ["diagnose", str(bundled_recording()), "--cell", str(DEFAULT_CELL_PROFILE),
+                                 "--save-effect", "none", "-q"])
+    assert code == 2 and "warning" not in err, err  # the whole drive opens at rest
+    assert "opens under load" in initial_state_text(load_recording(cut), 2.77, None)
+    assert "opening rest" in initial_state_text(rec, 2.77, None)
+    assert "--soc0" in initial_state_text(load_recording(cut), 2.77, 0.9)

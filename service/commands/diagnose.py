@@ -166,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from service.characterisation.block_average import describe, to_fit_period
     from service.diagnosis.effects import EFFECTS
-    from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
+    from service.diagnosis.pipeline import DiagnoseOptions, opens_under_load, run_diagnosis
     from service.recording import load_recording
 
     setup_logging(args)
@@ -196,6 +196,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"socd diagnose: warning: {rec.path.name}: {beyond}", file=sys.stderr)
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise UserError(f"--soc0 must be in [0, 1], got {args.soc0:g}")
+    if args.soc0 is None and opens_under_load(rec, profile.effective_capacity_ah):
+        print(f"socd diagnose: warning: {rec.path}: it opens under load ({rec.current_a[0]:g} A), not at rest: its "
+              "initial SOC is read from the first voltage corrected by R_ohm·I, without the polarisation before it, "
+              "and a start SOC a few % off can be named hysteresis, capacity or ocv; give --soc0 if it is known",
+              file=sys.stderr)
     if args.save_effect is not None:
         if not args.save_profile:
             raise UserError("--save-effect needs --save-profile (where to write it)")
