@@ -1542,3 +1542,18 @@ def test_diagnose_says_when_a_recording_opens_under_load(tmp_path: Path, capsys)
     assert "opens under load" in initial_state_text(load_recording(cut), 2.77, None)
     assert "opening rest" in initial_state_text(rec, 2.77, None)
     assert "--soc0" in initial_state_text(load_recording(cut), 2.77, 0.9)
+
+
+@pytest.mark.parametrize("sep, named", [(";", "';'"), ("\t", "tabs")])
+@pytest.mark.parametrize("which", ["recording", "ocv"])
+def test_a_file_separated_by_semicolons_or_tabs_is_named_so(tmp_path: Path, capsys, sep: str, named: str,
+                                                            which: str) -> None:
+    """A spreadsheet's export in a decimal-comma locale: its header reads as one field, and the error said
+    the columns time_s, current_a, ... were missing from a header that shows every one of them."""
+    ocv = tmp_path / "ocv.csv"
+    ocv.write_text("soc,ocv_v\n" + "\n".join(f"{s:g},{3.0 + 1.2 * s:g}" for s in np.linspace(0, 1, 11)) + "\n")
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    bad = rec if which == "recording" else ocv
+    bad.write_text(bad.read_text().replace(",", sep))
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--ocv", str(ocv), "--capacity-ah", "2.9", "-q"])
+    assert_one_line_error(code, err, f"{bad}: row 1: the fields are separated by {named}, not commas")
