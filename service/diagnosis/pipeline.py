@@ -242,7 +242,10 @@ class Diagnosis:
 
 # -- statistics ---------------------------------------------------------------------------------
 def noise_sigma(rec: Recording, capacity_ah: float) -> float:
-    """Voltage noise σ from consecutive differences inside rests (robust, MAD)."""
+    """Voltage noise σ from consecutive differences inside rests (robust, MAD), and at least the rounding
+    error of the voltage's resolution (its smallest step between samples, ``q / √12``): a voltage logged
+    in steps coarser than its noise (10 mV) stands still in a rest, its MAD is 0, and the noise read
+    1e-5 V made every bar that scales with it nothing."""
     rest = np.abs(rec.current_a) < 0.01 * capacity_ah
     both = rest[1:] & rest[:-1]
     d = np.diff(rec.voltage_v)[both]
@@ -251,7 +254,10 @@ def noise_sigma(rec: Recording, capacity_ah: float) -> float:
     # second differences cancel slow relaxation; var(d2) = 6 σ² for white noise
     d2 = np.diff(d) if d.size > 3 else d
     mad = float(np.median(np.abs(d2 - np.median(d2))))
-    return max(1.4826 * mad / math.sqrt(6.0), 1e-5)
+    steps = np.abs(np.diff(rec.voltage_v))
+    steps = steps[steps > 1e-9]
+    resolution = float(np.min(steps)) if steps.size else 0.0
+    return max(1.4826 * mad / math.sqrt(6.0), resolution / math.sqrt(12.0), 1e-5)
 
 
 #: held-out base RMSE within this multiple of the voltage noise: the model explains the recording
