@@ -714,6 +714,30 @@ def test_no_shared_recording_looks_logged_charge_positive() -> None:
     assert flagged >= 60, flagged
 
 
+def test_diagnose_refuses_a_voltage_that_never_moves(tmp_path: Path, capsys) -> None:
+    """A stuck voltage channel (the bundled drive with its voltage held at 3.9 V): a synthetic DST so
+    diagnosed named capacity with exit 0. No shared recording has a large current step the voltage
+    stays put at everywhere."""
+    from dataclasses import replace
+
+    from service.assets import bundled_recording
+    from service.cell.truth import check_voltage_moves
+    from service.recording import load_recording, save_recording
+
+    rec = load_recording(bundled_recording())
+    check_voltage_moves(rec)
+    stuck = save_recording(tmp_path / "stuck.csv", np.column_stack(
+        [rec.time_s, rec.current_a, np.full(len(rec), 3.9), rec.temperature_c]))
+    code, err = run_cli(capsys, ["diagnose", str(stuck), "--cell", str(DEFAULT_CELL_PROFILE), "-q"])
+    assert_one_line_error(code, err, f"{stuck}: the voltage does not move at any of its ")
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    for path in sorted(shared.glob("real/*/*.csv")) + sorted(shared.glob("synthetic/*.csv")):
+        if "soc_table" not in path.name and not path.stem.endswith("_ocv"):
+            rec = load_recording(path)
+            check_voltage_moves(rec)
+            check_voltage_moves(replace(rec, voltage_v=np.round(rec.voltage_v, 2)))  # written to 10 mV
+
+
 def _drive_with_a_pause(tmp_path: Path, pause_s: int) -> tuple[Path, float]:
     """The bundled US06 with ``pause_s`` of rows cut out where the current resumes under load (a logger
     that lost them): the sample after the pause holds its current over the whole pause."""

@@ -63,14 +63,31 @@ SIGN_MIN_STEPS = 20
 SIGN_AGREEMENT = 0.8
 
 
+def _large_steps(rec: Recording) -> tuple[np.ndarray, np.ndarray]:
+    """The current's and the voltage's moves over the current's steps by :data:`SIGN_STEP_SHARE` of its
+    largest value or more."""
+    d_i, d_v = np.diff(rec.current_a), np.diff(rec.voltage_v)
+    peak = float(np.max(np.abs(rec.current_a))) if len(rec) else 0.0
+    steps = np.abs(d_i) > SIGN_STEP_SHARE * peak if peak > 0.0 else np.zeros(d_i.size, dtype=bool)
+    return d_i[steps], d_v[steps]
+
+
 def current_sign_steps(rec: Recording) -> tuple[int, int]:
     """``(up, steps)``: of the current's steps by :data:`SIGN_STEP_SHARE` of its largest value or more,
     how many move the voltage the same way. A cell's ohmic drop moves it the other way in socd's
     convention (discharge positive)."""
-    d_i, d_v = np.diff(rec.current_a), np.diff(rec.voltage_v)
-    peak = float(np.max(np.abs(rec.current_a))) if len(rec) else 0.0
-    steps = np.abs(d_i) > SIGN_STEP_SHARE * peak if peak > 0.0 else np.zeros(d_i.size, dtype=bool)
-    return int(np.count_nonzero(d_v[steps] / d_i[steps] > 0.0)), int(np.count_nonzero(steps))
+    d_i, d_v = _large_steps(rec)
+    return int(np.count_nonzero(d_v / d_i > 0.0)), int(d_i.size)
+
+
+def check_voltage_moves(rec: Recording) -> None:
+    """Raise :class:`UserError` where the voltage stays exactly where it was at every one of
+    :data:`SIGN_MIN_STEPS` or more large current steps (:func:`current_sign_steps`): a stuck channel or a
+    constant column, whose voltage no model of the cell can follow (a diagnosis named capacity on it)."""
+    d_i, d_v = _large_steps(rec)
+    if d_i.size >= SIGN_MIN_STEPS and not np.any(d_v):
+        raise UserError(f"{rec.path}: the voltage does not move at any of its {d_i.size} large current steps: "
+                        "voltage_v looks stuck or filled with a constant")
 
 
 def check_current_sign(rec: Recording) -> None:

@@ -163,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
         check_current_sign,
         check_ocv_range,
         check_unlogged_charge,
+        check_voltage_moves,
     )
     from service.characterisation.block_average import describe, to_fit_period
     from service.diagnosis.effects import EFFECTS
@@ -185,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
     if len(rec) < 100:
         raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
     check_current_sign(rec)
+    check_voltage_moves(rec)
     source = "--capacity-ah" if fit_base else "the profile's capacity_ah"
     check_current_scale(rec, profile.effective_capacity_ah, source)
     check_counted_span(rec, profile.effective_capacity_ah)
