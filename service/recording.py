@@ -23,6 +23,7 @@ from service.validation import (
     check_time_steps,
     check_values,
     read_text,
+    separator_problem,
 )
 
 REQUIRED_COLUMNS = ("time_s", "current_a", "voltage_v", "temperature_c")
@@ -113,6 +114,8 @@ def _load(path: Path, bounds: RecordingBounds | None) -> Recording:
     except csv.Error as exc:
         raise InputFileError(f"{path}: row 1: not a CSV header: {exc}") from None
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing and (why := separator_problem(header)) is not None:
+        raise InputFileError(f"{path}: {why}")
     if missing:
         raise InputFileError(
             f"{path}: missing column(s) {', '.join(missing)}; header is {','.join(header)[:120] or '(empty)'}"

@@ -61,6 +61,18 @@ def read_text(path: str | Path, what: str) -> str:
     return text.replace("\r\n", "\n").replace("\r", "\n")
 
 
+def separator_problem(header: Sequence[str]) -> str | None:
+    """What is wrong where a CSV header read at commas is one field split by ';' or tabs (a spreadsheet's
+    export in a locale with a decimal comma), or None."""
+    if len(header) != 1:
+        return None
+    sep = next((name for char, name in ((";", "';'"), ("\t", "tabs")) if char in header[0]), None)
+    if sep is None:
+        return None
+    return (f"row 1: the fields are separated by {sep}, not commas; socd reads comma-separated values with a '.' "
+            f"decimal point (header is {header[0][:120]!r})")
+
+
 def check_text_file(path: str | Path, what: str, chunk_bytes: int = 1 << 20) -> str:
     """Like :func:`read_text`, streamed (for logs that may not fit in memory); returns the first line."""
     path = Path(path)

@@ -7,6 +7,7 @@ and cantools parse what they are given.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -713,6 +714,30 @@ def test_no_shared_recording_looks_logged_charge_positive() -> None:
     assert flagged >= 60, flagged
 
 
+def test_diagnose_refuses_a_voltage_that_never_moves(tmp_path: Path, capsys) -> None:
+    """A stuck voltage channel (the bundled drive with its voltage held at 3.9 V): a synthetic DST so
+    diagnosed named capacity with exit 0. No shared recording has a large current step the voltage
+    stays put at everywhere."""
+    from dataclasses import replace
+
+    from service.assets import bundled_recording
+    from service.cell.truth import check_voltage_moves
+    from service.recording import load_recording, save_recording
+
+    rec = load_recording(bundled_recording())
+    check_voltage_moves(rec)
+    stuck = save_recording(tmp_path / "stuck.csv", np.column_stack(
+        [rec.time_s, rec.current_a, np.full(len(rec), 3.9), rec.temperature_c]))
+    code, err = run_cli(capsys, ["diagnose", str(stuck), "--cell", str(DEFAULT_CELL_PROFILE), "-q"])
+    assert_one_line_error(code, err, f"{stuck}: the voltage does not move at any of its ")
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    for path in sorted(shared.glob("real/*/*.csv")) + sorted(shared.glob("synthetic/*.csv")):
+        if "soc_table" not in path.name and not path.stem.endswith("_ocv"):
+            rec = load_recording(path)
+            check_voltage_moves(rec)
+            check_voltage_moves(replace(rec, voltage_v=np.round(rec.voltage_v, 2)))  # written to 10 mV
+
+
 def _drive_with_a_pause(tmp_path: Path, pause_s: int) -> tuple[Path, float]:
     """The bundled US06 with ``pause_s`` of rows cut out where the current resumes under load (a logger
     that lost them): the sample after the pause holds its current over the whole pause."""
@@ -742,6 +767,32 @@ def test_a_pause_in_the_logging_under_load_is_refused(tmp_path: Path, capsys, co
     assert not (tmp_path / "cell.toml").exists()
 
 
+def _constant_current_with_a_hole(tmp_path: Path, hole_s: int) -> Path:
+    """A minute's rest, then 2.77 A for 3000 s logged every second, with ``hole_s`` of rows lost from
+    its middle: the same current on both sides of the hole."""
+    t = np.arange(0, 3060)
+    keep = (t < 1500) | (t >= 1500 + hole_s)
+    i = np.where(t < 60, 0.0, 2.77)
+    v = np.where(t < 60, 4.1, 4.0 - 0.5 * (t - 60) / 3000)
+    return _recording(tmp_path, "cc_hole.csv", "\n".join(f"{a},{b:g},{c:.4f},25.0" for a, b, c in
+                                                         zip(t[keep], i[keep], v[keep])))
+
+
+@pytest.mark.parametrize("command", ["fit", "evaluate", "diagnose"])
+def test_rows_lost_from_a_constant_current_stretch_are_refused(tmp_path: Path, capsys, command: str) -> None:
+    """20 minutes cut out of a 1C stretch logged every second: the current is the same on both sides, so
+    the hole passed as sparse logging, 33 % of the capacity was counted that never flowed in the file,
+    and `socd diagnose` fitted a base model 1 V off on the held-out part of such a pulse test and named
+    capacity."""
+    path = _constant_current_with_a_hole(tmp_path, 1200)
+    argv = {"fit": ["fit", str(path), "--capacity-ah", "2.77", "-q", "-o", str(tmp_path / "cell.toml")],
+            "evaluate": ["evaluate", "--cell", str(DEFAULT_CELL_PROFILE), str(path), "-q"],
+            "diagnose": ["diagnose", str(path), "--cell", str(DEFAULT_CELL_PROFILE), "-q"]}[command]
+    code, err = run_cli(capsys, argv)
+    assert_one_line_error(code, err, "cc_hole.csv: time_s jumps by 1201 s after 1499 s under 2.77 A, amid samples 1 s")
+    assert "split the recording there" in err and not (tmp_path / "cell.toml").exists()
+
+
 def test_pauses_at_rest_and_in_a_constant_current_stretch_are_not_refused() -> None:
     """Sparse logging is not a gap: a pulse test logged every 300 s at rest (its next pulse held over the
     last pause, as the Panasonic and PyBaMM pulse tests here have it), a C/20 discharge logged every
@@ -756,6 +807,11 @@ def test_pauses_at_rest_and_in_a_constant_current_stretch_are_not_refused() -> N
     t = 600.0 * np.arange(60)
     cc = Recording(Path("cc.csv"), t, np.full(t.size, 0.14), np.linspace(4.1, 3.0, t.size), np.full(t.size, 25.0))
     assert unlogged_charge(cc, 2.77, "c") is None
+    # the same C/20 stretch after a drive logged every second: its pauses are amid pauses as long
+    t = np.concatenate([np.arange(0.0, 3600.0), 3600.0 + 600.0 * np.arange(60)])
+    i = np.where(t < 3600, 2.0 * np.sin(t / 20.0) ** 2, 0.14)
+    mixed = Recording(Path("mixed.csv"), t, i, np.linspace(4.1, 3.0, t.size), np.full(t.size, 25.0))
+    assert unlogged_charge(mixed, 2.77, "c") is None
 
     shared = Path(__file__).resolve().parents[2] / "shared" / "data"
     files = [p for p in sorted(shared.glob("real/*/*.csv")) + sorted(shared.glob("synthetic/*.csv"))
@@ -785,7 +841,8 @@ def test_a_recording_beyond_the_profiles_temperatures_is_named(tmp_path: Path, c
     """The bundled profile is fitted at -20 to 25 °C. A -45 °C log was scored and diagnosed on
     extrapolated parameters without a word. Within 10 K of the fitted range there is nothing to say:
     the bundled 25 °C drive heats the cell to 33 °C."""
-    rows = "\n".join(f"{t},{1.0 if t % 60 < 30 else 0.0},{4.0 - 0.0003 * t},{temp_c}" for t in range(300))
+    # opens at rest: a recording that opens under load is warned of for its initial SOC too
+    rows = "\n".join(f"{t},{0.0 if t % 60 < 30 else 1.0},{4.0 - 0.0003 * t},{temp_c}" for t in range(300))
     rec = _recording(tmp_path, "cold.csv", rows)
     for argv in (["evaluate", str(rec), "--cell", "panasonic_18650pf", "--estimator", "coulomb", "--no-bar", "-q"],
                  ["diagnose", str(rec), "--cell", "panasonic_18650pf", "--effects", "capacity", "-q"]):
@@ -1491,3 +1548,87 @@ def test_a_usage_error_is_one_line(tmp_path: Path, capsys, monkeypatch, argv: li
     monkeypatch.chdir(tmp_path)
     code, err = run_cli(capsys, argv)
     assert_one_line_error(code, err, names)
+
+
+def test_diagnose_refuses_an_ocv_table_the_recording_rests_above(tmp_path: Path, capsys) -> None:
+    """The bundled 4.2 V drive with an LFP-like table that ends at 3.65 V: every rest read as SOC 1
+    (clipped), and `socd diagnose` left 207 mV held out and exited 0 (on a synthetic drive it named
+    capacity)."""
+    rec = Path(__file__).resolve().parents[1] / "service" / "data" / "pan18650pf_25C_US06.csv"
+    ocv = tmp_path / "lfp_ocv.csv"
+    soc = np.linspace(0, 1, 21)
+    ocv.write_text("soc,ocv_v\n" + "\n".join(f"{s:g},{2.5 + 1.15 * s ** 0.3:.4f}" for s in soc) + "\n")
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--ocv", str(ocv), "--capacity-ah", "2.77",
+                                 "--effects", "capacity", "-q"])
+    assert_one_line_error(code, err, f"{rec}: its voltage at rest or light load reaches ")
+    assert f"above the OCV at full charge (3650 mV) of the OCV table {ocv}" in err, err
+
+
+def test_no_shared_recording_rests_above_its_own_ocv_table() -> None:
+    """The OCV-range check passes the bundled drive with its profile, and every shared recording with
+    its own table (synthetic) or its cell's bundled profile (real)."""
+    from service.cell.ocv import OcvTable, load_ocv_csv
+    from service.cell.profile import load_profile
+    from service.cell.truth import ocv_range_problem
+    from service.commands.common_args import cell_file
+    from service.recording import load_recording
+
+    bundled = Path(__file__).resolve().parents[1] / "service" / "data" / "pan18650pf_25C_US06.csv"
+    assert ocv_range_problem(load_recording(bundled), load_profile(DEFAULT_CELL_PROFILE).ocv_table(), "p") is None
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    files = [p for p in sorted(shared.glob("real/*/*.csv")) + sorted(shared.glob("synthetic/*.csv"))
+             if "soc_table" not in p.name and not p.stem.endswith("_ocv") and p.parent.name != "ocv"]
+    if not files:
+        pytest.skip("../shared/data is not here")
+    cells = {"pan18650pf": "panasonic_18650pf", "calce20r": "calce_inr18650_20r", "calce_a123": "calce_a123"}
+    tables = {name: load_profile(cell_file(name)).ocv_table() for name in cells.values()}
+    for path in files:
+        if path.parent.name == "synthetic":
+            table = OcvTable.from_points(*load_ocv_csv(path.with_name(path.stem + "_ocv.csv")))
+        else:
+            table = tables[next(c for prefix, c in cells.items() if path.name.startswith(prefix))]
+        assert ocv_range_problem(load_recording(path), table, "t") is None, path.name
+
+
+def test_diagnose_says_when_a_recording_opens_under_load(tmp_path: Path, capsys) -> None:
+    """A drive cut in its middle: its initial SOC is read from the first voltage corrected by R_ohm·I,
+    4 % of SOC low on a synthetic DST, and diagnose named hysteresis with exit 0 and no word of it (its
+    JSON said the SOC came from an opening rest). It now says so, once, before it fits; --soc0 silences it."""
+    from service.assets import bundled_recording
+    from service.diagnosis.pipeline import initial_state_text
+    from service.recording import load_recording, save_recording
+
+    rec = load_recording(bundled_recording())
+    k = int(np.argmax((rec.time_s > 1000.0) & (rec.current_a > 2.0)))
+    cut = save_recording(tmp_path / "mid_drive.csv", np.column_stack(
+        [rec.time_s[k:], rec.current_a[k:], rec.voltage_v[k:], rec.temperature_c[k:]]))
+    # --save-effect without --save-profile is refused after the input checks, so nothing is fitted
+    argv = ["diagnose", str(cut), "--cell", str(DEFAULT_CELL_PROFILE), "--save-effect", "none", "-q"]
+    code, err = run_cli(capsys, argv)
+    lines = err.splitlines()
+    assert code == 2 and len(lines) == 2 and "--save-effect needs --save-profile" in lines[1], err
+    assert f"warning: {cut}: it opens under load ({load_recording(cut).current_a[0]:g} A)" in lines[0], err
+    assert "give --soc0 if it is known" in lines[0], err
+    code, err = run_cli(capsys, [*argv, "--soc0", "0.9"])
+    assert code == 2 and "warning" not in err, err
+    code, err = run_cli(capsys, ["diagnose", str(bundled_recording()), "--cell", str(DEFAULT_CELL_PROFILE),
+                                 "--save-effect", "none", "-q"])
+    assert code == 2 and "warning" not in err, err  # the whole drive opens at rest
+    assert "opens under load" in initial_state_text(load_recording(cut), 2.77, None)
+    assert "opening rest" in initial_state_text(rec, 2.77, None)
+    assert "--soc0" in initial_state_text(load_recording(cut), 2.77, 0.9)
+
+
+@pytest.mark.parametrize("sep, named", [(";", "';'"), ("\t", "tabs")])
+@pytest.mark.parametrize("which", ["recording", "ocv"])
+def test_a_file_separated_by_semicolons_or_tabs_is_named_so(tmp_path: Path, capsys, sep: str, named: str,
+                                                            which: str) -> None:
+    """A spreadsheet's export in a decimal-comma locale: its header reads as one field, and the error said
+    the columns time_s, current_a, ... were missing from a header that shows every one of them."""
+    ocv = tmp_path / "ocv.csv"
+    ocv.write_text("soc,ocv_v\n" + "\n".join(f"{s:g},{3.0 + 1.2 * s:g}" for s in np.linspace(0, 1, 11)) + "\n")
+    rec = _recording(tmp_path, "ok.csv", GOOD_ROWS)
+    bad = rec if which == "recording" else ocv
+    bad.write_text(bad.read_text().replace(",", sep))
+    code, err = run_cli(capsys, ["diagnose", str(rec), "--ocv", str(ocv), "--capacity-ah", "2.9", "-q"])
+    assert_one_line_error(code, err, f"{bad}: row 1: the fields are separated by {named}, not commas")

@@ -119,6 +119,22 @@ def test_none_with_a_large_residual_says_the_physics_is_missing(tmp_path):
     assert json.loads(json.dumps(dg.to_json()))["assessment"]["state"] == "unexplained"
 
 
+def test_noise_of_a_voltage_logged_in_coarse_steps_is_its_rounding_error(tmp_path):
+    """A recording whose voltage was written to 10 mV (coarser than its noise) stands still in its rests:
+    the noise read from them was the 1e-5 V floor, the 1 x noise bar on the held-out drop was nothing, and
+    a clean synthetic DST was named hysteresis. The noise is at least the rounding error q/sqrt(12); a
+    voltage written finely reads as before."""
+    from dataclasses import replace
+
+    from service.diagnosis.pipeline import noise_sigma
+
+    rec = load_recording(simulated_recording(tmp_path, "none"))
+    fine = noise_sigma(rec, CAP)
+    coarse = noise_sigma(replace(rec, voltage_v=np.round(rec.voltage_v, 2)), CAP)
+    assert coarse == pytest.approx(0.01 / np.sqrt(12.0), rel=1e-6)  # was the 1e-5 V floor
+    assert noise_sigma(replace(rec, voltage_v=np.round(rec.voltage_v, 4)), CAP) == pytest.approx(fine, rel=0.1)
+
+
 def test_cli_json_report_and_profile(tmp_path, capsys):
     rec = simulated_recording(tmp_path, "capacity")
     ocv = tmp_path / "ocv.csv"

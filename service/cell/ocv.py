@@ -234,13 +234,15 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
     import io
     from pathlib import Path
 
-    from service.validation import check_values, read_text
+    from service.validation import check_values, read_text, separator_problem
 
     path = Path(path)
     rows = list(csv.reader(io.StringIO(read_text(path, "OCV table"))))
     if not rows:
         raise ValueError(f"{path}: empty OCV table")
     header = [h.strip() for h in rows[0]]
+    if "soc" not in header and (why := separator_problem(header)) is not None:
+        raise ValueError(f"{path}: {why}")
     if "soc" not in header:
         raise ValueError(f"{path}: OCV table needs a 'soc' column; header is {','.join(header)}")
     col = ocv_column(header)

@@ -63,14 +63,31 @@ SIGN_MIN_STEPS = 20
 SIGN_AGREEMENT = 0.8
 
 
+def _large_steps(rec: Recording) -> tuple[np.ndarray, np.ndarray]:
+    """The current's and the voltage's moves over the current's steps by :data:`SIGN_STEP_SHARE` of its
+    largest value or more."""
+    d_i, d_v = np.diff(rec.current_a), np.diff(rec.voltage_v)
+    peak = float(np.max(np.abs(rec.current_a))) if len(rec) else 0.0
+    steps = np.abs(d_i) > SIGN_STEP_SHARE * peak if peak > 0.0 else np.zeros(d_i.size, dtype=bool)
+    return d_i[steps], d_v[steps]
+
+
 def current_sign_steps(rec: Recording) -> tuple[int, int]:
     """``(up, steps)``: of the current's steps by :data:`SIGN_STEP_SHARE` of its largest value or more,
     how many move the voltage the same way. A cell's ohmic drop moves it the other way in socd's
     convention (discharge positive)."""
-    d_i, d_v = np.diff(rec.current_a), np.diff(rec.voltage_v)
-    peak = float(np.max(np.abs(rec.current_a))) if len(rec) else 0.0
-    steps = np.abs(d_i) > SIGN_STEP_SHARE * peak if peak > 0.0 else np.zeros(d_i.size, dtype=bool)
-    return int(np.count_nonzero(d_v[steps] / d_i[steps] > 0.0)), int(np.count_nonzero(steps))
+    d_i, d_v = _large_steps(rec)
+    return int(np.count_nonzero(d_v / d_i > 0.0)), int(d_i.size)
+
+
+def check_voltage_moves(rec: Recording) -> None:
+    """Raise :class:`UserError` where the voltage stays exactly where it was at every one of
+    :data:`SIGN_MIN_STEPS` or more large current steps (:func:`current_sign_steps`): a stuck channel or a
+    constant column, whose voltage no model of the cell can follow (a diagnosis named capacity on it)."""
+    d_i, d_v = _large_steps(rec)
+    if d_i.size >= SIGN_MIN_STEPS and not np.any(d_v):
+        raise UserError(f"{rec.path}: the voltage does not move at any of its {d_i.size} large current steps: "
+                        "voltage_v looks stuck or filled with a constant")
 
 
 def check_current_sign(rec: Recording) -> None:
@@ -189,6 +206,34 @@ def capacity_slip(rec: Recording, table, capacity_ah: float, source: str) -> str
             "recording (is it in the right unit?), or the OCV table is far off the cell where it reads")
 
 
+def ocv_range_problem(rec: Recording, table, source: str) -> str | None:
+    """Why the settled light-load voltage of ``rec`` (:func:`settled_light_load`) cannot be read on the
+    OCV ``table`` (``source`` names where it came from, e.g. ``the OCV table ocv.csv``), or None: its 99th percentile lies more than half of
+    :data:`CAPACITY_SLIP_ALLOWANCE_V` above the table's OCV at SOC 1 (median temperature), a SOC past
+    full no cell rests at. A table of another cell or chemistry reads such a voltage as a SOC clipped to 1,
+    and a diagnosis names whatever absorbs the hundreds of mV left. On every shared recording with its
+    table or bundled profile the voltage stays within 25 mV of it. The bottom is not checked: a cell
+    relaxing after a cold cut-off stays 200 mV below the bundled Panasonic profile's OCV at SOC 0."""
+    if len(rec) < 2:
+        return None
+    settled = settled_light_load(rec)
+    if np.count_nonzero(settled) < 10:
+        return None
+    hi = float(np.percentile(rec.voltage_v[settled], 99.0))
+    full = float(table.ocv(np.array(1.0), float(np.median(rec.temperature_c))))
+    if hi <= full + CAPACITY_SLIP_ALLOWANCE_V / 2:
+        return None
+    return (f"{rec.path}: its voltage at rest or light load reaches {1e3 * hi:.0f} mV, {1e3 * (hi - full):.0f} mV "
+            f"above the OCV at full charge ({1e3 * full:.0f} mV) of {source}: that OCV is not "
+            "this cell's (another cell's or chemistry's table?)")
+
+
+def check_ocv_range(rec: Recording, table, source: str) -> None:
+    """Raise :class:`UserError` where :func:`ocv_range_problem` finds the recording outside the table."""
+    if (why := ocv_range_problem(rec, table, source)) is not None:
+        raise UserError(why)
+
+
 #: s: a step between samples at least this long, and ...
 UNLOGGED_MIN_STEP_S = 60.0
 #: ... this many times the recording's median step, is a pause in the logging
@@ -198,7 +243,9 @@ UNLOGGED_STEP_FACTOR = 10.0
 #: nothing was logged is not known
 UNLOGGED_MAX_SHARE = 0.01
 #: the current on both sides of a pause within this share of the larger (plus
-#: :data:`HELD_CURRENT_A`) is one constant-current stretch logged sparsely (a C/20 OCV test), not a gap
+#: :data:`HELD_CURRENT_A`) is one constant-current stretch logged sparsely (a C/20 OCV test), not a gap,
+#: where the stretch is logged sparsely beside the pause too: a step next to it at least
+#: 1/:data:`UNLOGGED_STEP_FACTOR` of its length
 CONSTANT_CURRENT_SHARE = 0.05
 
 
@@ -207,8 +254,10 @@ def unlogged_charge(rec: Recording, capacity_ah: float, source: str) -> str | No
 
     Each sample's current is held over the interval before it (:func:`coulomb_soc`).  Over a
     pause (:data:`UNLOGGED_MIN_STEP_S`, :data:`UNLOGGED_STEP_FACTOR`) that begins under load and
-    where the current differs on its two sides, that counts the resumed current over the whole pause
-    (a pause that begins at rest is a logger's sparse logging there); where it counts more than
+    where the current differs on its two sides, or where it is the same but the samples beside the
+    pause are logged densely (rows cut out of one constant-current stretch), that counts the resumed
+    current over the whole pause (a pause that begins at rest is a logger's sparse logging there, and
+    one amid steps as long in a constant-current stretch too); where it counts more than
     :data:`UNLOGGED_MAX_SHARE` of ``capacity_ah``, the truth and every filter's current integral
     after it are off by an amount no sample shows."""
     if len(rec) < 3:
@@ -222,12 +271,18 @@ def unlogged_charge(rec: Recording, capacity_ah: float, source: str) -> str | No
     # a logger that logs sparsely at rest pauses with no current before it (a pulse test's rests): the
     # pulse that ends such a pause is held over it, by the logger's timing, not a loss of data
     loaded = np.abs(before) > HELD_CURRENT_A
-    bad = paused & loaded & changed & (counted_ah > UNLOGGED_MAX_SHARE * capacity_ah)
+    # the longer step beside each one (0 at the ends): a constant-current stretch logged sparsely has
+    # steps as long around its pauses; one long step amid dense samples is rows that were lost
+    beside = np.maximum(np.r_[0.0, step[:-1]], np.r_[step[1:], 0.0])
+    sparse = beside * UNLOGGED_STEP_FACTOR >= step
+    bad = paused & loaded & (changed | ~sparse) & (counted_ah > UNLOGGED_MAX_SHARE * capacity_ah)
     if not bad.any():
         return None
     k = int(np.argmax(bad))
-    return (f"{rec.path}: time_s jumps by {step[k]:g} s after {rec.time_s[k]:.10g} s while the current changes from "
-            f"{before[k]:g} to {after[k]:g} A: holding {after[k]:g} A over that pause counts {counted_ah[k]:.3g} Ah "
+    how = (f"while the current changes from {before[k]:g} to {after[k]:g} A" if changed[k]
+           else f"under {after[k]:g} A, amid samples {beside[k]:g} s apart")
+    return (f"{rec.path}: time_s jumps by {step[k]:g} s after {rec.time_s[k]:.10g} s {how}: "
+            f"holding {after[k]:g} A over that pause counts {counted_ah[k]:.3g} Ah "
             f"({100 * counted_ah[k] / capacity_ah:.2g} % of {source} {capacity_ah:g} Ah) that no sample saw, "
             "and the charge that did flow is not known: split the recording there")
 

@@ -161,11 +161,13 @@ def run(args: argparse.Namespace) -> int:
         check_counted_span,
         check_current_scale,
         check_current_sign,
+        check_ocv_range,
         check_unlogged_charge,
+        check_voltage_moves,
     )
     from service.characterisation.block_average import describe, to_fit_period
     from service.diagnosis.effects import EFFECTS
-    from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
+    from service.diagnosis.pipeline import DiagnoseOptions, opens_under_load, run_diagnosis
     from service.recording import load_recording
 
     setup_logging(args)
@@ -184,16 +186,23 @@ def run(args: argparse.Namespace) -> int:
     if len(rec) < 100:
         raise UserError(f"{rec.path}: {len(rec)} samples is too short to fit and hold out (need >= 100)")
     check_current_sign(rec)
+    check_voltage_moves(rec)
     source = "--capacity-ah" if fit_base else "the profile's capacity_ah"
     check_current_scale(rec, profile.effective_capacity_ah, source)
     check_counted_span(rec, profile.effective_capacity_ah)
     check_unlogged_charge(rec, profile.effective_capacity_ah, source)
+    check_ocv_range(rec, profile.ocv_table(), f"the OCV table {args.ocv}" if fit_base else f"the profile {args.cell}")
     if (slip := capacity_slip(rec, profile.ocv_table(), profile.effective_capacity_ah, source)) is not None:
         print(f"socd diagnose: warning: {slip}", file=sys.stderr)
     if not fit_base and (beyond := profile.temperatures_beyond_fit(rec.temperature_c)) is not None:
         print(f"socd diagnose: warning: {rec.path.name}: {beyond}", file=sys.stderr)
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise UserError(f"--soc0 must be in [0, 1], got {args.soc0:g}")
+    if args.soc0 is None and opens_under_load(rec, profile.effective_capacity_ah):
+        print(f"socd diagnose: warning: {rec.path}: it opens under load ({rec.current_a[0]:g} A), not at rest: its "
+              "initial SOC is read from the first voltage corrected by R_ohm·I, without the polarisation before it, "
+              "and a start SOC a few % off can be named hysteresis, capacity or ocv; give --soc0 if it is known",
+              file=sys.stderr)
     if args.save_effect is not None:
         if not args.save_profile:
             raise UserError("--save-effect needs --save-profile (where to write it)")

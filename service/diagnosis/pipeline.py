@@ -242,7 +242,10 @@ class Diagnosis:
 
 # -- statistics ---------------------------------------------------------------------------------
 def noise_sigma(rec: Recording, capacity_ah: float) -> float:
-    """Voltage noise σ from consecutive differences inside rests (robust, MAD)."""
+    """Voltage noise σ from consecutive differences inside rests (robust, MAD), and at least the rounding
+    error of the voltage's resolution (its smallest step between samples, ``q / √12``): a voltage logged
+    in steps coarser than its noise (10 mV) stands still in a rest, its MAD is 0, and the noise read
+    1e-5 V made every bar that scales with it nothing."""
     rest = np.abs(rec.current_a) < 0.01 * capacity_ah
     both = rest[1:] & rest[:-1]
     d = np.diff(rec.voltage_v)[both]
@@ -251,7 +254,10 @@ def noise_sigma(rec: Recording, capacity_ah: float) -> float:
     # second differences cancel slow relaxation; var(d2) = 6 σ² for white noise
     d2 = np.diff(d) if d.size > 3 else d
     mad = float(np.median(np.abs(d2 - np.median(d2))))
-    return max(1.4826 * mad / math.sqrt(6.0), 1e-5)
+    steps = np.abs(np.diff(rec.voltage_v))
+    steps = steps[steps > 1e-9]
+    resolution = float(np.min(steps)) if steps.size else 0.0
+    return max(1.4826 * mad / math.sqrt(6.0), resolution / math.sqrt(12.0), 1e-5)
 
 
 #: held-out base RMSE within this multiple of the voltage noise: the model explains the recording
@@ -477,12 +483,29 @@ def opening_rest_end(rec: Recording, capacity_ah: float) -> int:
     return (int(np.argmin(rest)) if not rest.all() else rest.size) - 1
 
 
+def opens_under_load(rec: Recording, capacity_ah: float) -> bool:
+    """Whether ``rec``'s first sample is under load (not a rest by ``REST_MAX_C``): its initial SOC is then
+    read from the first voltage corrected by ``R_ohm·I`` (:func:`initial_rest_voltage`), which leaves the
+    polarisation of the load before it out (a drive cut in its middle read 4 % of SOC low)."""
+    return not abs(rec.current_a[0]) < REST_MAX_C * capacity_ah
+
+
 def initial_rest_voltage(rec: Recording, capacity_ah: float, r_guess: float) -> tuple[float, float]:
     """Voltage that stands for the OCV at the start, and the temperature there."""
     end = opening_rest_end(rec, capacity_ah) + 1
-    if abs(rec.current_a[0]) < REST_MAX_C * capacity_ah:
+    if not opens_under_load(rec, capacity_ah):
         return float(np.mean(rec.voltage_v[max(0, end - 5):end])), float(rec.temperature_c[0])
     return float(rec.voltage_v[0] + r_guess * rec.current_a[0]), float(rec.temperature_c[0])
+
+
+def initial_state_text(rec: Recording, capacity_ah: float, soc0: float | None) -> str:
+    """How the diagnosis took its initial SOC (``protocol.initial_state``)."""
+    if soc0 is not None:
+        return f"SOC {soc0:g} as given (--soc0), no soc_true"
+    if opens_under_load(rec, capacity_ah):
+        return ("SOC from OCV at the first voltage corrected by R_ohm·I: the recording opens under load "
+                f"({rec.current_a[0]:g} A), so the polarisation before it is left out (no soc_true)")
+    return "SOC from OCV at the opening rest voltage (no soc_true)"
 
 
 def _score_profile(profile: CellProfile, rec: Recording, v_rest0: float, u_h0: float, memory_length: int,
@@ -774,7 +797,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
     protocol = {
         "split": opt.split, "fit_fraction": float(fit_full.mean()), "t_split_s": float(t_split),
         "fit_samples": int(fit_full.sum()), "heldout_samples": int(held.sum()),
-        "initial_state": "SOC from OCV at the opening rest voltage (no soc_true)",
+        "initial_state": initial_state_text(rec, cap, opt.soc0),
     }
     assessment = assess(verdict, outcomes, rmse_fit_base, rmse_before, 1000 * sigma, sig)
     return Diagnosis(
