@@ -7,7 +7,6 @@ and cantools parse what they are given.
 from __future__ import annotations
 
 import os
-import re
 import shutil
 from pathlib import Path
 
