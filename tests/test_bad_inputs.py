@@ -1385,7 +1385,10 @@ def test_json_output_writes_a_value_that_is_not_finite_as_null(tmp_path: Path, c
     out = tmp_path / "r.json"
     write_json(str(out), {"a": float("nan"), "b": [1.0, float("inf")], "c": np.float64(2.5)})
     assert json.loads(out.read_text()) == {"a": None, "b": [1.0, None], "c": 2.5}
-    assert "2 value(s) in the JSON were not finite" in capsys.readouterr().err
+    # the warning names where (a 10-minute recording's capacity signature had an infinite range, and
+    # the warning blamed "a model that diverged" without saying which value)
+    assert "2 value(s) in the JSON were not finite (NaN or infinity) and are written as null: a, b[1]" in \
+        capsys.readouterr().err
 
 
 @pytest.mark.parametrize("case", ["shared_frame_id", "input_scale_zero", "soc_too_narrow", "index_too_narrow"])

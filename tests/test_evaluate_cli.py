@@ -765,3 +765,22 @@ def test_fit_caps_the_diffusion_time_constant_where_told(tmp_path: Path, nmc_rec
         assert tau_df <= (cap or MAX_TAU_DF_S) * (1 + 1e-6)
     assert main(["fit", "--help"]) == 0
     assert f"default {MAX_TAU_DF_S:g}" in " ".join(capsys.readouterr().out.split())
+
+
+def test_evaluate_warns_when_the_recording_rests_above_the_profile_s_full_charge(tmp_path: Path, capsys) -> None:
+    """The bundled 4.2 V drive on a profile whose OCV table is 0.3 V lower (another cell's): every rest
+    read as SOC 1 and the scores came out with no word; diagnose refuses such a table, evaluate warns and
+    scores (a user may mean to score a filter on another cell's profile)."""
+    from service.assets import bundled_recording
+    from service.cell.profile import save_profile
+    from service.config import DEFAULT_CELL_PROFILE
+
+    bundled = load_profile(DEFAULT_CELL_PROFILE)
+    low = [[v - 0.3 for v in row] for row in bundled.ocv.ocv_v]
+    cell = tmp_path / "other_cell.toml"
+    save_profile(bundled.model_copy(update={"ocv": bundled.ocv.model_copy(update={"ocv_v": low})}), cell)
+    assert main(["evaluate", "--cell", str(cell), str(bundled_recording()), "--estimator", "coulomb", "-q",
+                 "--json", str(tmp_path / "r.json")]) == 0
+    err = capsys.readouterr().err
+    assert "its voltage at rest or light load reaches" in err and "of the profile 'panasonic_18650pf'" in err
+    assert json.loads((tmp_path / "r.json").read_text())["results"]

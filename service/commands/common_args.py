@@ -526,28 +526,35 @@ def _plain(x: Any) -> Any:
     raise TypeError(f"{type(x).__name__} is not JSON serialisable")
 
 
-def finite_json(obj: Any) -> tuple[Any, int]:
-    """``obj`` with every non-finite float (NaN, ±inf: not JSON) as None, and how many there were."""
+def finite_json(obj: Any, where: str = "") -> tuple[Any, list[str]]:
+    """``obj`` with every non-finite float (NaN, ±inf: not JSON) as None, and where each was
+    (``effects[0].params_std.tau_s``)."""
     if isinstance(obj, float):
-        return (obj, 0) if math.isfinite(obj) else (None, 1)
+        return (obj, []) if math.isfinite(obj) else (None, [where or "(the value)"])
     if isinstance(obj, dict):
-        items = [(k, finite_json(v)) for k, v in obj.items()]
-        return {k: v for k, (v, _) in items}, sum(n for _, (_, n) in items)
+        items = [(k, finite_json(v, f"{where}.{k}" if where else str(k))) for k, v in obj.items()]
+        return {k: v for k, (v, _) in items}, [w for _, (_, ws) in items for w in ws]
     if isinstance(obj, (list, tuple)):
-        parts = [finite_json(v) for v in obj]
-        return [v for v, _ in parts], sum(n for _, n in parts)
-    return obj, 0
+        parts = [finite_json(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+        return [v for v, _ in parts], [w for _, ws in parts for w in ws]
+    return obj, []
+
+
+#: how many of the non-finite values' places a warning names
+NAMED_NOT_FINITE = 4
 
 
 def write_json(dest: str | None, obj: Any) -> None:
     """Write ``obj`` as JSON to ``dest`` (a path, ``-`` for stdout, None for nowhere); a value that is
-    not finite (a model that diverged) is written as null, and a warning says how many."""
+    not finite (a model that diverged, a figure the data cannot give) is written as null, and a warning
+    names where."""
     if dest is None:
         return
     obj, not_finite = finite_json(json.loads(json.dumps(obj, default=_plain)))
     if not_finite:
-        print(f"socd: warning: {not_finite} value(s) in the JSON were not finite (NaN or infinity: a model that "
-              "diverged) and are written as null", file=sys.stderr)
+        named = ", ".join(not_finite[:NAMED_NOT_FINITE]) + (", ..." if len(not_finite) > NAMED_NOT_FINITE else "")
+        print(f"socd: warning: {len(not_finite)} value(s) in the JSON were not finite (NaN or infinity) and are "
+              f"written as null: {named}", file=sys.stderr)
     text = json.dumps(obj, indent=1, allow_nan=False)
     if dest == "-":
         sys.stdout.write(text + "\n")

@@ -12,7 +12,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from service.cell.profile import ProfileError, load_profile
-from service.cell.truth import capacity_slip, per_recording
+from service.cell.truth import capacity_slip, ocv_range_problem, per_recording
 from service.cli import UserError
 from service.commands.common_args import (
     add_cell_argument,
@@ -176,6 +176,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"socd evaluate: warning: {rec.path.name}: {beyond}", file=sys.stderr)
         if (slip := capacity_slip(rec, table, profile.effective_capacity_ah, "the profile's capacity_ah")) is not None:
             print(f"socd evaluate: warning: {slip}", file=sys.stderr)
+        # a warning, not a refusal as in diagnose: scoring a filter on a profile of another cell is a
+        # question a user may mean to ask, but the answer should say what it is
+        if (off := ocv_range_problem(rec, table, f"the profile {profile.name!r}")) is not None:
+            print(f"socd evaluate: warning: {off}", file=sys.stderr)
     names_seen = [r.name for r in recordings]
     if (args.traces or args.plots) and len(set(names_seen)) < len(names_seen):
         twice = next(n for n in names_seen if names_seen.count(n) > 1)
