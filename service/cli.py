@@ -95,10 +95,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_parser(parser: argparse.ArgumentParser, command: str | None) -> argparse.ArgumentParser | None:
+    """The parser of ``command`` (``socd run``'s), or None."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return action.choices.get(command) if command else None
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args, unknown = parser.parse_known_args(argv)
+        if unknown:  # named by the command's parser (socd run: error: ...), not the top level's (socd: ...)
+            (_command_parser(parser, getattr(args, "command", None)) or parser).error(
+                f"unrecognized arguments: {' '.join(unknown)}")
     except SystemExit as exc:  # argparse's own error (exit 2, flag named on stderr), --help, --version
         return exc.code if isinstance(exc.code, int) else 2
     if not getattr(args, "func", None):

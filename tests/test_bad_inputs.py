@@ -1543,6 +1543,9 @@ def test_an_unknown_config_key_is_called_so_with_the_key_meant(tmp_path: Path, c
      "socd diagnose: error: argument --capacity-ah: expected a number, got 'x'"),
     (["evaluate", "r.csv"], "socd evaluate: error: the following arguments are required: --cell"),
     (["demoo"], "socd: error: argument COMMAND: invalid choice: 'demoo'"),
+    # an option the command does not have is named by the command (it read "socd: error: ...")
+    (["run", "--bogus"], "socd run: error: unrecognized arguments: --bogus"),
+    (["--bogus"], "socd: error: unrecognized arguments: --bogus"),
 ])
 def test_a_usage_error_is_one_line(tmp_path: Path, capsys, monkeypatch, argv: list[str], names: str) -> None:
     """A wrong --capacity-ah printed socd fit's 17-line usage block before the one line that said what
