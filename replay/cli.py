@@ -67,7 +67,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPa
     )
     p.add_argument("input", type=recording_file, help=recording_help(
         "cell recording CSV, or a python-can log (" + ", ".join(LOG_SUFFIXES) + ", optionally .gz)"))
-    p.add_argument("--config", help="SocdConfig TOML for the DBC, mapping and pack size "
+    p.add_argument("--config", help="socd's config TOML (as for socd run) for the DBC, mapping and pack size "
                    "(default: the packaged default.toml); its [bus] fills bus flags not given")
     add_bus_arguments(p)
 

@@ -77,8 +77,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         "does with a sensor error the truth does not contain: coulomb counting drifts by F "
                         "per hour, a filter that reads the voltage should not. Default 0")
     p.add_argument("--settings", metavar="TOML",
-                   help="pipeline settings (EstimatorSettings fields, top level or under [estimator]) to "
-                        "override; an [ecm2rc_ekf] table sets the 2-RC EKF's tuning (EkfTuning fields)")
+                   help="a TOML of filter settings to override: the config's [estimator] keys (top level or "
+                        "under [estimator]; `socd schema` lists them with their defaults), and an [ecm2rc_ekf] "
+                        "table for the 2-RC EKF's tuning (voltage_noise_v, current_noise_c, ...)")
     p.add_argument("--plots", metavar="DIR", type=output_dir, help="write PNG plots per recording")
     p.add_argument("--traces", metavar="DIR", type=output_dir,
                    help="write <recording>_traces.csv per recording: time, truth, measured voltage and each "
