@@ -45,6 +45,7 @@ from service.commands.common_args import (
     progress_enabled,
     recording_file,
     recording_help,
+    recording_path_problem,
     refuse_overwriting_inputs,
     refuse_shared_outputs,
     relative_sigma,
@@ -166,16 +167,14 @@ def truth_leaves_cell(pack) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args)
-    from service.assets import missing_file_hint
     from service.config import DEFAULT_CONFIG
     from service.validation import InputFileError, check_can_log
 
     path = Path(args.input)
     if path.is_dir():
         raise UserError(f"{path}: is a folder, not a recording or CAN log")
-    if not path.is_file():
-        raise UserError(f"{path}: " + ("not a regular file (a pipe, socket or device)" if path.exists()
-                                       else f"no such file{missing_file_hint('recording')}"))
+    if (why := recording_path_problem(path, "no such file")) is not None:
+        raise UserError(f"{path}: {why}")
     refuse_shared_outputs([("--record", args.record), ("--truth-out", args.truth_out)])
     mf4_files = [f for f in (str(path), args.record) if f and f.lower().endswith(".mf4")]
     if mf4_files and not installed("asammdf"):

@@ -406,6 +406,18 @@ def recording_file(text: str) -> str:
     return str(bundled) if bundled is not None else text
 
 
+def recording_path_problem(path: Path, missing: str) -> str | None:
+    """Why ``path`` is no recording to read, or None: not there (``missing``, e.g. "no such file", with
+    the recording socd ships named) or not a regular file."""
+    if path.is_file():
+        return None
+    if path.exists():
+        return "not a regular file (a pipe, socket or device)"
+    from service.assets import missing_file_hint
+
+    return f"{missing}{missing_file_hint('recording')}"
+
+
 def recording_help(text: str) -> str:
     """``text`` with the name of the recording socd ships, which :func:`recording_file` takes alone."""
     from service.assets import bundled_recording_names

@@ -16,6 +16,7 @@ from service.commands.common_args import (
     positive_float,
     recording_file,
     recording_help,
+    recording_path_problem,
     refuse_overwriting_inputs,
     refuse_shared_outputs,
     relative_sigma,
@@ -69,7 +70,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from service.assets import bundled_recording, missing_file_hint
+    from service.assets import bundled_recording
     from service.cell.profile import ProfileError
     from service.config import DEFAULT_CELL_PROFILE
     from service.demo import run_demo, summary_text, write_plot
@@ -82,10 +83,8 @@ def _demo(args: argparse.Namespace) -> int:
         raise UserError(f"--speed must be >= 0, got {args.speed}")
     if args.seconds is not None and args.seconds <= 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
-    if args.recording is not None and not args.recording.is_file():
-        raise UserError(f"{args.recording}: " + ("not a regular file (a pipe, socket or device)"
-                                                 if args.recording.exists()
-                                                 else f"no such recording{missing_file_hint('recording')}"))
+    if args.recording is not None and (why := recording_path_problem(args.recording, "no such recording")):
+        raise UserError(f"{args.recording}: {why}")
     inputs = [args.recording or bundled_recording(), args.cell or DEFAULT_CELL_PROFILE]
     for flag, out in (("--json", args.json), ("--plot", args.plot)):
         refuse_overwriting_inputs(out, inputs, flag)

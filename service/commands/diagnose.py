@@ -191,8 +191,9 @@ def run(args: argparse.Namespace) -> int:
     check_current_scale(rec, profile.effective_capacity_ah, source)
     check_counted_span(rec, profile.effective_capacity_ah)
     check_unlogged_charge(rec, profile.effective_capacity_ah, source)
-    check_ocv_range(rec, profile.ocv_table(), f"the OCV table {args.ocv}" if fit_base else f"the profile {args.cell}")
-    if (slip := capacity_slip(rec, profile.ocv_table(), profile.effective_capacity_ah, source)) is not None:
+    table = profile.ocv_table()
+    check_ocv_range(rec, table, f"the OCV table {args.ocv}" if fit_base else f"the profile {args.cell}")
+    if (slip := capacity_slip(rec, table, profile.effective_capacity_ah, source)) is not None:
         print(f"socd diagnose: warning: {slip}", file=sys.stderr)
     if not fit_base and (beyond := profile.temperatures_beyond_fit(rec.temperature_c)) is not None:
         print(f"socd diagnose: warning: {rec.path.name}: {beyond}", file=sys.stderr)
