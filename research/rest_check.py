@@ -32,8 +32,9 @@ import numpy as np
 
 from service.cell.fitting import last_current_direction
 from service.cell.profile import CellProfile, ProfileError, load_profile
+from service.cell.rests import rest_level_a
 from service.cell.truth import per_recording, truth_and_start
-from service.characterisation.ocv_sources import rest_level_a, rest_spans
+from service.characterisation.ocv_sources import rest_spans
 from service.errors import UserError
 from service.recording import Recording, load_recording
 

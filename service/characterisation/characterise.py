@@ -68,6 +68,7 @@ from service.cell.profile import (
     SocResistanceSpec,
     lift_to_ohmic_floor,
 )
+from service.cell.rests import load_level_a, rest_level_a
 from service.cell.soc_dependence import pulse_resistances, scale_rows
 from service.cell.temperature_law import scaled_by_law, temperature_law_factor
 from service.cell.trajectory import simulate_batch
@@ -86,12 +87,10 @@ from service.characterisation.ocv_sources import (
     capacity_above_test,
     interpolate_between_rests,
     is_ocv_test,
-    load_level_a,
     ocv_from_test,
     ocv_row_from_rests,
     ocv_rows_by_temperature,
     rest_alignment,
-    rest_level_a,
     rest_points,
     rest_spans,
     rests_settled,

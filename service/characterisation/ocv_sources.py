@@ -8,31 +8,17 @@ from itertools import pairwise
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
-from scipy.ndimage import maximum_filter1d, median_filter, uniform_filter1d
+from scipy.ndimage import median_filter
 from scipy.optimize import least_squares
 
 from service.cell.coulomb import coulomb_soc
 from service.cell.ocv import GRID_POINTS, OcvTable, make_monotone
+from service.cell.rests import REST_CURRENT_C, resting
 from service.cell.units import SECONDS_PER_HOUR
 from service.characterisation.ocv_choices import REST_INTERP_MAX_GAP
 from service.recording import Recording
 
-REST_CURRENT_C = 0.01  # |I| below this fraction of 1C counts as rest (:func:`resting`)
 REST_MIN_S = 600.0
-#: the current sensor's noise σ is read on the samples below this fraction of 1C (rests and the
-#: slowest currents; the noise of a rest is centred on zero)
-NOISE_BAND_C = 0.05
-#: :func:`resting` tests each sample against :data:`REST_CURRENT_C` while the noise σ is at most this
-#: fraction of it
-REST_PER_SAMPLE_NOISE = 1.0 / 3.0
-#: where the noise is larger, :func:`resting` averages the current over
-#: enough samples that the mean's noise is this many times smaller than that level (a rest's mean then
-#: crosses it about once in two million samples), and no single rest sample lies further than this many
-#: σ from it (a load pulse does at once)
-REST_NOISE_SIGMAS = 5.0
-#: the longest average :func:`resting` takes (s): wider would blur a rest's edges by minutes (a
-#: slowly logged test averages fewer samples, and its rests may stay cut by the noise)
-REST_MAX_AVERAGE_S = 120.0
 #: an OCV test's branches run at or below this fraction of 1C (C/20 is usual)
 OCV_TEST_MAX_C = 0.1
 #: a slow branch is one uninterrupted charge or discharge at or below OCV_TEST_MAX_C that moves at
@@ -74,55 +60,6 @@ def slow_branches(rec: Recording, capacity_ah: float) -> list[tuple[float, np.nd
             mask[best[0]:best[1]] = True
             out.append((sign, mask))
     return out
-
-
-def current_noise_a(current_a: np.ndarray, capacity_ah: float) -> float:
-    """The current sensor's noise σ [A], read robustly (1.4826 × the median absolute value) on the
-    samples within :data:`NOISE_BAND_C` of zero: rests, whose true current is zero.  0 for a logger
-    that records rests as exact zeros."""
-    quiet = np.abs(current_a)[np.abs(current_a) < NOISE_BAND_C * capacity_ah]
-    return float(1.4826 * np.median(quiet)) if quiet.size else 0.0
-
-
-def _rest_level(level: float, sigma: float) -> float:
-    """:func:`rest_level_a` from the level and the noise σ, both in A."""
-    return level if sigma <= REST_PER_SAMPLE_NOISE * level else level + REST_NOISE_SIGMAS * sigma
-
-
-def rest_level_a(current_a: np.ndarray, capacity_ah: float) -> float:
-    """The largest |I| [A] a rest sample shows: ``REST_CURRENT_C · C``, plus
-    :data:`REST_NOISE_SIGMAS` noise σ where the sensor's noise (:func:`current_noise_a`) is too large
-    for that level alone."""
-    return _rest_level(REST_CURRENT_C * capacity_ah, current_noise_a(np.asarray(current_a, dtype=float), capacity_ah))
-
-
-def load_level_a(current_a: np.ndarray, capacity_ah: float) -> float:
-    """A current [A] that is load beyond doubt: five times ``REST_CURRENT_C · C``, and beyond any
-    rest sample (:func:`rest_level_a`)."""
-    return max(5.0 * REST_CURRENT_C * capacity_ah, rest_level_a(current_a, capacity_ah))
-
-
-def resting(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> np.ndarray:
-    """Rest samples: ``|I| < REST_CURRENT_C · C``, where the sensor's noise
-    (:func:`current_noise_a`) stays well within that.  On a small cell the noise alone can exceed
-    1 % of 1C (5 mA on a 0.17 Ah cell's 1.7 mA) and would cut every rest into pieces shorter than a
-    rest is read at; there a rest is where the current's running mean (over enough samples to bring
-    the noise under the level, within :data:`REST_MAX_AVERAGE_S`) is below it: no current flows on
-    average.  A rest then reaches back to its edges by up to half that window through samples within
-    the noise of the level, so a load pulse ends it where the pulse begins, and a current under the
-    noise (C/20 on such a cell) within half a window."""
-    current_a = np.asarray(current_a, dtype=float)
-    level = REST_CURRENT_C * capacity_ah
-    sigma = current_noise_a(current_a, capacity_ah)
-    top = _rest_level(level, sigma)
-    if top == level:
-        return np.abs(current_a) < level
-    period_s = float(np.median(np.diff(time_s))) if len(time_s) > 1 else 1.0
-    longest = max(1, int(REST_MAX_AVERAGE_S / max(period_s, 1e-9)))
-    width = min(longest, int(np.ceil((REST_NOISE_SIGMAS * sigma / level) ** 2))) | 1
-    mean = uniform_filter1d(current_a, size=width, mode="nearest")
-    quiet = np.abs(current_a) < top
-    return maximum_filter1d((np.abs(mean) < level) & quiet, size=width, mode="nearest") & quiet
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

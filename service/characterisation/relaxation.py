@@ -31,7 +31,8 @@ from scipy.optimize import least_squares
 
 from service.cell.fitting import small_cell_ratio
 from service.cell.profile import BranchSpec
-from service.characterisation.ocv_sources import load_level_a, rest_spans
+from service.cell.rests import load_level_a
+from service.characterisation.ocv_sources import rest_spans
 from service.recording import Recording
 
 #: a rest must last this long to carry the slow relaxation

@@ -72,6 +72,7 @@ import numpy as np
 
 from service.cell.fitting import FitSegment, encode_point, estimate_r_ohm, fit_parameters
 from service.cell.profile import CellProfile, OcvSpec, ParameterPoint
+from service.cell.rests import REST_CURRENT_C, resting
 from service.cell.trajectory import simulate
 from service.diagnosis.effects import (
     DIFFUSION_MIN_TAU_S,
@@ -246,7 +247,7 @@ def noise_sigma(rec: Recording, capacity_ah: float) -> float:
     error of the voltage's resolution (its smallest step between samples, ``q / √12``): a voltage logged
     in steps coarser than its noise (10 mV) stands still in a rest, its MAD is 0, and the noise read
     1e-5 V made every bar that scales with it nothing."""
-    rest = np.abs(rec.current_a) < 0.01 * capacity_ah
+    rest = np.abs(rec.current_a) < REST_CURRENT_C * capacity_ah  # quiet samples one by one (fallback below)
     both = rest[1:] & rest[:-1]
     d = np.diff(rec.voltage_v)[both]
     if d.size < 20:
@@ -475,9 +476,10 @@ def rmse_mv(r: np.ndarray) -> float:
 def opening_rest_end(rec: Recording, capacity_ah: float) -> int:
     """Index of the last sample of the opening rest (0 when the recording starts under load).
 
-    A rest is ``|I| < REST_MAX_C`` · 1C, the rest test of the signatures: on a small cell the
-    current sensor's noise alone can exceed 1 % of 1C and would cut the rest short."""
-    rest = np.abs(rec.current_a) < REST_MAX_C * capacity_ah
+    A rest is ``|I| < REST_MAX_C`` · 1C, the rest test of the signatures (read on the current's running
+    mean where the sensor's noise crosses that level): on a small cell the current sensor's noise alone
+    can exceed 1 % of 1C and would cut the rest short."""
+    rest = resting(rec.time_s, rec.current_a, capacity_ah, REST_MAX_C)
     if not rest[0]:
         return 0
     return (int(np.argmin(rest)) if not rest.all() else rest.size) - 1
@@ -487,7 +489,7 @@ def opens_under_load(rec: Recording, capacity_ah: float) -> bool:
     """Whether ``rec``'s first sample is under load (not a rest by ``REST_MAX_C``): its initial SOC is then
     read from the first voltage corrected by ``R_ohm·I`` (:func:`initial_rest_voltage`), which leaves the
     polarisation of the load before it out (a drive cut in its middle read 4 % of SOC low)."""
-    return not abs(rec.current_a[0]) < REST_MAX_C * capacity_ah
+    return not resting(rec.time_s, rec.current_a, capacity_ah, REST_MAX_C)[0]
 
 
 def initial_rest_voltage(rec: Recording, capacity_ah: float, r_guess: float) -> tuple[float, float]:

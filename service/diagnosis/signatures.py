@@ -28,7 +28,8 @@ departure the effect describes is present.  An effect whose signature fires is
 * ``current_bias`` — in a rest the true current is exactly zero, so the mean of the
   *measured* current over rest samples is the sensor offset itself (:func:`rest_current_offset`).
   Rests are runs of at least :data:`REST_MIN_SAMPLES` samples with ``|I| < REST_MAX_C · C``
-  (3 % of 1C: above any offset worth naming, so a biased rest is still a rest) whose
+  (3 % of 1C: above any offset worth naming, so a biased rest is still a rest; where the
+  sensor's noise crosses that level, its running mean, :func:`service.cell.rests.resting`) whose
   current is *constant* (robust spread within :data:`REST_SPREAD_FACTOR` of the pooled
   rest noise) and whose level agrees with the other rests (a trickle or a low load step is
   not a rest).  The offset's standard error is corrected for autocorrelation
@@ -123,6 +124,7 @@ from service.cell.current_steps import (
     steps_resolve_kinetics,
 )
 from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN
+from service.cell.rests import resting
 from service.cell.units import SECONDS_PER_HOUR
 from service.characterisation.relaxation import rc_voltage
 from service.diagnosis.effects import KINETICS_MAX_I0_C
@@ -279,7 +281,7 @@ def rest_runs(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> 
 
     Returns ``[start, stop)`` index pairs with :data:`REST_EDGE_SAMPLES` trimmed at each end.
     """
-    near = np.abs(current_a) < REST_MAX_C * capacity_ah
+    near = resting(time_s, current_a, capacity_ah, REST_MAX_C)
     runs = [(a + REST_EDGE_SAMPLES, b - REST_EDGE_SAMPLES)
             for a, b in _runs(near, REST_MIN_SAMPLES + 2 * REST_EDGE_SAMPLES)]
     if not runs:
@@ -371,7 +373,7 @@ def capacity_end_point(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: f
     before it says more about the SOC.
     """
     window = np.flatnonzero(time_s >= time_s[-1] - CAPACITY_END_WINDOW_S)
-    rest = window[np.abs(current_a[window]) < REST_MAX_C * capacity_ah]
+    rest = window[resting(time_s, current_a, capacity_ah, REST_MAX_C)[window]]
     if rest.size:
         return int(rest[-1])
     return int(window[np.argmin(np.abs(current_a[window]))])
@@ -464,9 +466,10 @@ def rest_relaxation(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.nda
            "what": f"relaxation still to come at the ends of rests >= {min_rest_s:.0f} s (diffusion tail "
                    "2·t·dV/dt) over the ohmic step when the current stopped (median, no model)"}
     rests = []
+    near = resting(time_s, current_a, capacity_ah, REST_MAX_C)
     for a, b in rest_runs(time_s, current_a, capacity_ah):
         j = a - 1
-        while j >= 0 and abs(current_a[j]) < REST_MAX_C * capacity_ah:
+        while j >= 0 and near[j]:
             j -= 1
         start = j + 1
         if j < 0 or time_s[b - 1] - time_s[start] < min_rest_s:
