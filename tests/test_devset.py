@@ -132,6 +132,25 @@ def test_decide_refuses_diffusion_whose_signature_read_rests_and_did_not_fire():
     wide = {tuple(sorted(r.items())) for r in rule_grid(wide=True)}
     assert {tuple(sorted(r.items())) for r in rule_grid()} < wide
 
+def test_decide_names_diffusion_its_relaxation_measures_directly_when_the_lag_only_agrees():
+    """From ``relax_direct_ratio`` the relaxation left at the rest ends measures slow diffusion
+    directly: a surface lag that leaves the held-out RMSE 3 % higher (within the direct margin)
+    is named, where as a nominated effect it needs a 5 % gain; below that ratio, or with its
+    z short, it stays nominated; a lag that makes the held-out part far worse is not named."""
+    import math
+
+    agree = _ev("A", "diffusion", [_cand("diffusion", -0.03, "nominated")])
+    agree.signatures = {"diffusion": {"statistic": 0.5, "z": 20.0}}
+    assert decide(agree, {"relax_direct_ratio": math.inf})[0] == "none"
+    assert decide(agree, {"relax_direct_ratio": 0.35})[0] == "diffusion"
+    agree.signatures = {"diffusion": {"statistic": 0.3, "z": 20.0}}
+    assert decide(agree, {"relax_direct_ratio": 0.35})[0] == "none"
+    agree.signatures = {"diffusion": {"statistic": 0.5, "z": 4.0}}
+    assert decide(agree, {"relax_direct_ratio": 0.35})[0] == "none"
+    worse = _ev("A", "diffusion", [_cand("diffusion", -0.5, "nominated")])
+    worse.signatures = {"diffusion": {"statistic": 0.5, "z": 20.0}}
+    assert decide(worse, {"relax_direct_ratio": 0.35})[0] == "none"
+
 
 def test_the_rest_length_rule_reads_the_signature_at_that_length():
     """relax_rest_min_s (rules --search-rest-length): a fit-only diffusion gain on a drive that parks only briefly is named when the

@@ -103,8 +103,9 @@ departure the effect describes is present.  An effect whose signature fires is
   median ratio is at least :data:`RELAX_MIN_RATIO` and the pooled z of the remaining
   relaxation is at least :data:`RELAX_MIN_Z`.  It nominates (the lower gain bar), it does not
   measure the extension's size: how much of the slow relaxation the surface lag describes is
-  left to the held-out score.  The pipeline passes only the fit part's rests, so no held-out
-  voltage enters it.
+  left to the held-out score.  From a median ratio of :data:`RELAX_DIRECT_RATIO` it measures the
+  departure directly (the held-out voltage then only has to agree).  The pipeline passes only the
+  fit part's rests, so no held-out voltage enters it.
 """
 
 from __future__ import annotations
@@ -200,6 +201,12 @@ RELAX_MIN_STEP_C = 0.2
 RELAX_MIN_RATIO = 0.15
 #: pooled z of the remaining relaxation needed besides
 RELAX_MIN_Z = 5.0
+#: ... and at this ratio (with the same z) the relaxation *measures* slow diffusion directly: the
+#: surface lag then only has to agree with the held-out voltage, not improve it (a base model whose
+#: slow branch stretches to hours describes the relaxation as well as the lag does, and the held-out
+#: gain that decides a nominated effect is not there).  ``math.inf``: never (chosen leave-one-cell-out,
+#: ``python -m research.devset rules``)
+RELAX_DIRECT_RATIO = math.inf
 #: the opening point must be a rest at least this long (a recording that opens under load has
 #: no OCV-anchored start)
 CAPACITY_MIN_OPENING_REST_S = 30.0
@@ -494,7 +501,8 @@ def rest_relaxation(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.nda
     out.update(statistic=round(stat, 3), z=round(z, 2), rest_end_s=ends.tolist(),
                step_mv=[round(1000 * float(x), 1) for x in step], remaining_mv=[round(1000 * float(x), 1) for x in remaining],
                ratio=[round(float(x), 3) for x in ratio], step_current_a=step_a.tolist(),
-               nominated=bool(stat >= RELAX_MIN_RATIO and z >= RELAX_MIN_Z))
+               nominated=bool(stat >= RELAX_MIN_RATIO and z >= RELAX_MIN_Z),
+               direct=bool(stat >= RELAX_DIRECT_RATIO and z >= RELAX_MIN_Z))
     return out
 
 
