@@ -470,7 +470,11 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
             c = replace(c, evidence="nominated" if nominated else "fit", fixed_reasons=fixed)
         elif c.name == "diffusion" and {"relax_min_ratio", "relax_min_z", "relax_direct_ratio", "relax_rest_min_s",
                                         "diffusion_signature"} & rule.keys():
-            from service.diagnosis.signatures import RELAX_DIRECT_RATIO, RELAX_MIN_RATIO, RELAX_MIN_Z
+            from service.diagnosis.signatures import (
+                RELAX_DIRECT_RATIO,
+                RELAX_MIN_RATIO,
+                RELAX_MIN_Z,
+            )
 
             sig = (ev.signatures["diffusion_by_rest"][rest_key(rule["relax_rest_min_s"])]
                    if "relax_rest_min_s" in rule else ev.signatures["diffusion"])
