@@ -374,7 +374,6 @@ RULE_GRID: dict[str, tuple[float, ...]] = {
     "relax_min_ratio": (0.15, 0.20, 0.30),
     "relax_min_z": (3.0, 5.0),
     "direct_max_rise_rel": (0.10, 0.15, 0.20, 0.30),
-    "relax_direct_ratio": (math.inf, 0.25, 0.35, 0.50),
 }
 #: ``rules --wide-grid``: the axes whose chosen value sits at an edge of :data:`RULE_GRID`, extended past it
 #: (a check that the choice is not held by the grid's edge; docs/results/diagnose.md)
@@ -401,6 +400,10 @@ REST_LENGTH_GRID: dict[str, tuple[float, ...]] = {"relax_rest_min_s": RELAX_REST
 #: ``rules --search-lag-bound``: the shortest surface lag the diffusion extension may fit and still be
 #: slow diffusion (service.diagnosis.effects.DIFFUSION_MIN_TAU_S), searched with the rest
 LAG_BOUND_GRID: dict[str, tuple[float, ...]] = {"diffusion_min_tau_s": (30.0, 60.0, 120.0)}
+#: ``rules --search-direct-diffusion``: the relaxation ratio from which it measures slow diffusion directly
+#: (service.diagnosis.signatures.RELAX_DIRECT_RATIO; inf: never, the product's).  Searched with the rest
+#: on eight cells it reads fewer verdicts right held out than the search without it (docs/results/diagnose.md)
+DIRECT_DIFFUSION_GRID: dict[str, tuple[float, ...]] = {"relax_direct_ratio": (math.inf, 0.25, 0.35, 0.50)}
 #: ``rules --search-hysteresis``: the hysteresis signatures' levels (service.diagnosis.signatures
 #: BRANCH_MIN_Z, BRANCH_MIN_HALF_GAP_V, DIRECTION_MIN_Z), searched with the rest
 HYSTERESIS_GRID: dict[str, tuple[float, ...]] = {
@@ -433,19 +436,22 @@ def current_rule() -> dict[str, float]:
 
 
 def rule_axes(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False,
-              with_hysteresis: bool = False, with_lag_bound: bool = False) -> dict[str, tuple[float, ...]]:
+              with_hysteresis: bool = False, with_lag_bound: bool = False,
+              with_direct_diffusion: bool = False) -> dict[str, tuple[float, ...]]:
     """The values searched per rule: :data:`RULE_GRID` (:data:`WIDE_GRID` with ``wide``), and
     :data:`REQUIREMENT_GRID` with ``with_requirement``, :data:`REST_LENGTH_GRID` with ``with_rest_length``,
-    :data:`HYSTERESIS_GRID` with ``with_hysteresis``, :data:`LAG_BOUND_GRID` with ``with_lag_bound``."""
+    :data:`HYSTERESIS_GRID` with ``with_hysteresis``, :data:`LAG_BOUND_GRID` with ``with_lag_bound``,
+    :data:`DIRECT_DIFFUSION_GRID` with ``with_direct_diffusion``."""
     return {**(WIDE_GRID if wide else RULE_GRID), **(REQUIREMENT_GRID if with_requirement else {}),
             **(REST_LENGTH_GRID if with_rest_length else {}), **(HYSTERESIS_GRID if with_hysteresis else {}),
-            **(LAG_BOUND_GRID if with_lag_bound else {})}
+            **(LAG_BOUND_GRID if with_lag_bound else {}), **(DIRECT_DIFFUSION_GRID if with_direct_diffusion else {})}
 
 
 def rule_grid(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False,
-              with_hysteresis: bool = False, with_lag_bound: bool = False) -> list[dict[str, float]]:
+              with_hysteresis: bool = False, with_lag_bound: bool = False,
+              with_direct_diffusion: bool = False) -> list[dict[str, float]]:
     """Every rule of :func:`rule_axes` with the same switches."""
-    axes = rule_axes(with_requirement, wide, with_rest_length, with_hysteresis, with_lag_bound)
+    axes = rule_axes(with_requirement, wide, with_rest_length, with_hysteresis, with_lag_bound, with_direct_diffusion)
     keys = list(axes)
     return [dict(zip(keys, values)) for values in itertools.product(*(axes[k] for k in keys))]
 
@@ -613,7 +619,7 @@ def tally(evs: Sequence[Evidence], rule: dict[str, float]) -> Tally:
 
 
 #: the axes whose steps :func:`_distance_to_default` counts (a rule on no axis here counts 1 when moved)
-STEP_AXES: dict[str, tuple[float, ...]] = {**RULE_GRID, **HYSTERESIS_GRID}
+STEP_AXES: dict[str, tuple[float, ...]] = {**RULE_GRID, **HYSTERESIS_GRID, **DIRECT_DIFFUSION_GRID}
 
 
 def _distance_to_default(rule: dict[str, float], now: dict[str, float]) -> float:
@@ -824,6 +830,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-lag-bound", action="store_true",
                     help="rules: search also the shortest surface lag a fitted diffusion may have (30, 60, 120 s; "
                          "the product's is 60 s; evidence diagnosed before the lag was kept keeps its refusals)")
+    ap.add_argument("--search-direct-diffusion", action="store_true",
+                    help="rules: search also the relaxation ratio from which the signature measures slow diffusion "
+                         "directly (inf = never, the product's; 0.25, 0.35, 0.5)")
+    ap.add_argument("--product-rule", action="store_true",
+                    help="rules: search nothing, hold every rule at the product's value: how socd diagnose as it "
+                         "ships reads these cells (a set no rule was chosen on, e.g. other --cells in another "
+                         "--workdir)")
     ap.add_argument("--hold", action="append", default=[], metavar="RULE=VALUE",
                     help="rules: search only the rules with RULE at VALUE, e.g. relax_rest_min_s=500 (a level held "
                          "for every fold, to compare it with the one the search chooses); repeatable")
@@ -866,13 +879,17 @@ def main(argv: list[str] | None = None) -> int:
                   json.loads((args.labelled / f"{ev.stem}.meta.json").read_text())["capacity_ah"])
         ev.cell = set_cell(labels.get(ev.stem, {}).get("cell", ev.cell), cells)
     grid = rule_grid(args.search_requirement, args.wide_grid, args.search_rest_length, args.search_hysteresis,
-                     args.search_lag_bound)
+                     args.search_lag_bound, args.search_direct_diffusion)
     if args.diffusion_signature is not None and not args.search_requirement:
         grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
+    if args.product_rule:
+        now = current_rule()
+        grid = [{k: now[k] for k in grid[0]}]
     grid = [r for r in grid if all(r.get(k) == v for k, v in held.items())]
     if not grid:
         ap.error(f"--hold {' '.join(args.hold)}: no rule of the grid searched holds that (--wide-grid adds "
-                 "values; --search-rest-length, --search-hysteresis and --search-lag-bound add the rules they name)")
+                 "values; --search-rest-length, --search-hysteresis, --search-lag-bound and --search-direct-diffusion "
+                 "add the rules they name)")
     doc = search([*evs, *labelled], grid, progress=lambda msg: print(msg, file=sys.stderr))
     held_out = {r["stem"]: r["verdict"] for r in doc["rows"]}
     doc["labelled"] = [{"stem": ev.stem, "cell": ev.cell, "truth": ev.effect, "verdict": held_out[ev.stem],
@@ -888,7 +905,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _parse_holds(ap: argparse.ArgumentParser, holds: Sequence[str]) -> dict[str, float]:
     """``--hold RULE=VALUE`` options as a dict; an unknown rule or a value off its grid is an error."""
-    axes = rule_axes(with_requirement=True, wide=True, with_rest_length=True, with_hysteresis=True, with_lag_bound=True)
+    axes = rule_axes(with_requirement=True, wide=True, with_rest_length=True, with_hysteresis=True, with_lag_bound=True,
+                     with_direct_diffusion=True)
     out = {}
     for h in holds:
         key, _, value = h.partition("=")

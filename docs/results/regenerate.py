@@ -1646,6 +1646,14 @@ python -m research.devset evidence --jobs 2 --workdir out/devset
 python -m research.devset labelled --jobs 2 --workdir out/devset
 python -m research.devset rules --workdir out/devset --json out/devset_rules.json""",
           devset_table("devset_rules.json"), 90, ("needs:pybamm",)),
+    Table("devset_blind", "diagnose.md", """\
+# three cells no rule was chosen on, built as the development set is, read with the product's rule as it ships
+B="--cells ORegan2022,Chen2020_composite,Bonkile2024 --workdir out/devset_blind"
+python -m research.devset $B build --jobs 2
+python -m research.devset $B evidence --jobs 2
+python -m research.devset $B --labelled-workdir out/devset_blind/no_labelled rules --product-rule \\
+    --json out/devset_blind.json""",
+          devset_table("devset_blind.json"), 30, ("needs:pybamm",)),
     Table("devset_rules_wide", "diagnose.md", """\
 # the set and its evidence are devset_rules'
 python -m research.devset rules --workdir out/devset --wide-grid --hold direct_max_rise_rel=0.2 \\
