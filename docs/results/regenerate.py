@@ -1237,6 +1237,12 @@ python -m research.unseen_cell build --cells Ramadass2004 --ambients 40,25 --job
 python -m research.unseen_cell run --cells NCA_Kim2011 --ambients 25,10,0 --workdir $W --refit &
 python -m research.unseen_cell run --cells Ramadass2004 --ambients 40,25 --workdir $W --refit; wait""",
           unseen_table("blind", BLIND_CELLS, groups=BLIND_GROUPS), 20, ("needs:pybamm",)),
+    Table("unseen_lgm50", "characterisation.md", """\
+W=out/unseen_lgm50
+python -m research.unseen_cell build --cells ORegan2022,Chen2020_composite --ambients 25 --jobs 2 --workdir $W
+python -m research.unseen_cell run --cells ORegan2022,Chen2020_composite --ambients 25 --workdir $W --refit""",
+          unseen_table("unseen_lgm50", ("ORegan2022", "Chen2020_composite"), groups=UNSEEN_GROUPS[:1]), 15,
+          ("needs:pybamm",)),
     Table("unseen_blind_hppc", "characterisation.md", """\
 W=out/blind   # the recordings are unseen_blind's
 R="--workdir $W --fit-drive HPPC --profile-tag _hppc --refit"
