@@ -447,6 +447,12 @@ def rule_axes(with_requirement: bool = False, wide: bool = False, with_rest_leng
             **(LAG_BOUND_GRID if with_lag_bound else {}), **(DIRECT_DIFFUSION_GRID if with_direct_diffusion else {})}
 
 
+def product_rule_grid(grid: Sequence[dict[str, float]]) -> list[dict[str, float]]:
+    """``rules --product-rule``: the one rule the product ships, on the axes of ``grid``."""
+    now = current_rule()
+    return [{k: now[k] for k in grid[0]}]
+
+
 def rule_grid(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False,
               with_hysteresis: bool = False, with_lag_bound: bool = False,
               with_direct_diffusion: bool = False) -> list[dict[str, float]]:
@@ -883,8 +889,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.diffusion_signature is not None and not args.search_requirement:
         grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
     if args.product_rule:
-        now = current_rule()
-        grid = [{k: now[k] for k in grid[0]}]
+        grid = product_rule_grid(grid)
     grid = [r for r in grid if all(r.get(k) == v for k, v in held.items())]
     if not grid:
         ap.error(f"--hold {' '.join(args.hold)}: no rule of the grid searched holds that (--wide-grid adds "

@@ -170,6 +170,18 @@ def test_the_rest_length_rule_reads_the_signature_at_that_length():
     assert set(rule_grid()[0]) <= set(current_rule())  # the tie-break reads the current value of each
 
 
+def test_the_product_rule_is_one_rule_of_the_grid_at_the_shipped_values():
+    """rules --product-rule: nothing is searched; the rule is the product's, on the same axes as the
+    grid, and the grid holds it (so a search can choose it)."""
+    from research.devset import product_rule_grid
+
+    grid = rule_grid()
+    (rule,) = product_rule_grid(grid)
+    assert set(rule) == set(grid[0]) and rule in grid
+    assert rule == {k: v for k, v in current_rule().items() if k in rule}
+    assert decide(_ev("A", "capacity", [_cand("capacity", 0.4)]), rule)[0] == "capacity"
+
+
 @pytest.mark.parametrize("hold", ["foo=1", "relax_rest_min_s=400", "relax_rest_min_s=abc"])
 def test_a_held_rule_off_the_grid_is_an_error_naming_it(hold, capsys):
     from research.devset import main
