@@ -380,10 +380,14 @@ def capacity_end_point(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: f
     before it says more about the SOC.
     """
     window = np.flatnonzero(time_s >= time_s[-1] - CAPACITY_END_WINDOW_S)
-    rest = window[resting(time_s, current_a, capacity_ah, REST_MAX_C)[window]]
-    if rest.size:
-        return int(rest[-1])
-    return int(window[np.argmin(np.abs(current_a[window]))])
+    rest = resting(time_s, current_a, capacity_ah, REST_MAX_C)
+    if not rest[window].any():
+        return int(window[np.argmin(np.abs(current_a[window]))])
+    last_load = np.maximum.accumulate(np.where(rest, -1, np.arange(time_s.size)))
+    relaxed_s = np.where(last_load >= 0, time_s - time_s[np.maximum(last_load, 0)], np.inf)
+    candidates = window[rest[window]]
+    longest = relaxed_s[candidates].max()
+    return int(candidates[relaxed_s[candidates] >= longest][-1])
 
 
 def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, temperature_c: np.ndarray,
@@ -415,6 +419,19 @@ def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     ohmic, eta_end = -r_ohm * float(current_a[i_end]), float(eta[i_end])
     ohmic = math.copysign(min(abs(ohmic), abs(eta_end)), eta_end) if ohmic * eta_end > 0 else 0.0
     s1 = _soc_interval(table, float(voltage_v[i_end]), eta_end, float(temperature_c[i_end]), ohmic)
+    rest = resting(time_s, current_a, capacity_ah, REST_MAX_C)
+    loads = np.flatnonzero(~rest[:i_end + 1])
+    if rest[i_end] and loads.size and time_s[i_end] - time_s[loads[-1]] >= RELAX_REST_MIN_S:
+        # ad hoc: a long rest's end, its OCV bounded by its measured relaxation (model-free)
+        origin = int(loads[-1]) + 1
+        _, remaining, se, _ = _rest_end_line(time_s, voltage_v, origin, i_end + 1)
+        sign = math.copysign(1.0, current_a[loads[-1]])
+        far = float(voltage_v[i_end]) + sign * (2 * abs(remaining) + 2 * (se if math.isfinite(se) else 0.0))
+        lo_v = min(float(voltage_v[i_end]), far) - CAPACITY_OCV_FLOOR_V
+        hi_v = max(float(voltage_v[i_end]), far) + CAPACITY_OCV_FLOOR_V
+        t_c = float(temperature_c[i_end])
+        soc = table.soc_from_ocv(np.array([lo_v, float(voltage_v[i_end]) + sign * abs(remaining), hi_v]), t_c)
+        s1 = (float(soc[0]), float(soc[1]), float(soc[2]))
     # charge drawn in "SOC of the stated capacity", as the model counts it
     drawn = float(soc_model[i_start] - soc_model[i_end])
     hours = float(time_s[i_end] - time_s[i_start]) / SECONDS_PER_HOUR
