@@ -103,8 +103,10 @@ def _two_point(scale: float, tail: str = "rest", sign: float = 1.0, polarisation
         i += [0.0] * 600
     elif tail == "load":
         i += [sign * 2.0 * cap] * 30
-    else:  # "pause": a minute's pause, then a last 2C burst into the cut-off
+    elif tail == "pause":  # a minute's pause, then a last 2C burst into the cut-off
         i += [0.0] * 60 + [sign * 2.0 * cap] * 30
+    else:  # "long pause": ten minutes' rest, then a last 2C burst into the cut-off
+        i += [0.0] * 600 + [sign * 2.0 * cap] * 30
     i_true = np.array(i)
     t = np.arange(i_true.size, dtype=float)
     temp = np.full(t.size, 25.0)
@@ -181,6 +183,19 @@ def test_two_point_capacity_end_is_the_lightest_load_before_a_cut_off():
     assert capacity_end_point(t, np.r_[np.full(300, 4.0), np.full(100, 2.0)], 2.0) == 300  # lightest load
     sig = _two_point(1.0, "pause", polarisation_error=-0.9)
     assert not sig["nominated"] and sig["capacity_scale_range"][0] <= 1.0 <= sig["capacity_scale_range"][1], sig
+
+
+@pytest.mark.parametrize("scale", [0.85, 1.0])
+def test_two_point_capacity_reads_a_long_rest_by_its_relaxation_not_the_model(scale):
+    """Ten minutes' rest before a last burst into the cut-off: the check closes at that rest's end
+    and bounds its OCV by the rest's own relaxation, so a model whose polarisation is four times
+    the cell's (the fit part's extrapolation to empty) neither hides a 15 % fade nor fakes one."""
+    sig = _two_point(scale, "long pause", polarisation_error=3.0)
+    assert sig["end_bound"] == "relaxation", sig
+    lo, hi = sig["capacity_scale_range"]
+    assert lo <= scale <= hi and sig["nominated"] == (scale < 1.0), sig
+    assert sig["capacity_scale"] == pytest.approx(scale, abs=0.02), sig
+    assert _two_point(scale, "pause", polarisation_error=3.0)["end_bound"] == "model"  # a minute's pause
 
 
 def _thermal(t: np.ndarray, i: np.ndarray, t_start: float, t_amb: np.ndarray, tau_s: float = 900.0,

@@ -45,13 +45,16 @@ departure the effect describes is present.  An effect whose signature fires is
   Capacity is defined between ``v_min`` and ``v_max`` at equilibrium, so the ends of the
   OCV curve anchor SOC for any cell, aged or not; the points are the opening rest (at least
   :data:`CAPACITY_MIN_OPENING_REST_S`; a recording that opens under load is not checked) and
-  the end (the latest rest sample in the last :data:`CAPACITY_END_WINDOW_S`, else the lightest
-  load there: a final rest, or the approach to a cut-off).  Under load the OCV there is the voltage minus
-  the base model's overpotential ``η``; the model may be wrong, so the OCV is taken only to
+  the end (the rest sample in the last :data:`CAPACITY_END_WINDOW_S` longest after its load, else
+  the lightest load there: a final rest, or the approach to a cut-off).  Under load the OCV there is the
+  voltage minus the base model's overpotential ``η``; the model may be wrong, so the OCV is taken only to
   lie between ``V − η_Ω`` and ``V − η_Ω − 2(η − η_Ω)``, where ``η_Ω = −R_Ω·I`` is the
   ohmic drop (``R_Ω`` identified from the fit part's voltage steps) and the model's
-  polarisation ``η − η_Ω`` may be off by up to 100 %; the interval is widened by
-  :data:`CAPACITY_OCV_FLOOR_V` (hysteresis, relaxation, table error).  Nominated, as a
+  polarisation ``η − η_Ω`` may be off by up to 100 %.  At the end of a rest of at least
+  :data:`RELAX_REST_MIN_S` the rest's own relaxation bounds it instead (the voltage, and twice the
+  relaxation still to come read as a diffusion tail): there the model's polarisation is an
+  extrapolation of the fit part, on a cell that has run to its cut-off tens of mV off.  Either
+  interval is widened by :data:`CAPACITY_OCV_FLOOR_V` (hysteresis, relaxation, table error).  Nominated, as a
   direct measurement, when the whole resulting capacity interval lies at least
   :data:`CAPACITY_MIN_ERROR` from the stated capacity and the points are at least
   :data:`CAPACITY_MIN_SPAN` of SOC apart; a flat OCV (LFP) widens the interval by itself.
@@ -371,19 +374,46 @@ def _soc_interval(table, v: float, eta: float, temp_c: float, ohmic_v: float = 0
     return float(soc[0]), float(soc[1]), float(soc[2])
 
 
+def _seconds_since_load(time_s: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """For each sample, the seconds since the last sample that was not a rest (``inf`` before any)."""
+    last_load = np.maximum.accumulate(np.where(rest, -1, np.arange(time_s.size)))
+    return np.where(last_load >= 0, time_s - time_s[np.maximum(last_load, 0)], np.inf)
+
+
 def capacity_end_point(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> int:
     """The closing point of the two-point check: within the last :data:`CAPACITY_END_WINDOW_S`,
-    the latest rest sample, else the sample of least current.
+    the rest sample longest after its last load (the latest of those), else the sample of least
+    current.
 
     A cut-off under high current is a poor OCV anchor (the overpotential is most of the
     voltage, and a kinetics-limited cell reaches ``v_min`` at any SOC); the lightest load just
-    before it says more about the SOC.
+    before it says more about the SOC, and of the rest samples before it the most relaxed one
+    most: a pulse test that runs into its cut-off has a short rest after its last pulse and a
+    long one before it.  A recording that ends in a rest closes at its last sample.
     """
     window = np.flatnonzero(time_s >= time_s[-1] - CAPACITY_END_WINDOW_S)
-    rest = window[resting(time_s, current_a, capacity_ah, REST_MAX_C)[window]]
-    if rest.size:
-        return int(rest[-1])
-    return int(window[np.argmin(np.abs(current_a[window]))])
+    rest = resting(time_s, current_a, capacity_ah, REST_MAX_C)
+    if not rest[window].any():
+        return int(window[np.argmin(np.abs(current_a[window]))])
+    candidates = window[rest[window]]
+    relaxed_s = _seconds_since_load(time_s, rest)[candidates]
+    return int(candidates[relaxed_s >= relaxed_s.max()][-1])
+
+
+def _relaxed_soc_interval(table, time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray,
+                          temp_c: float, origin: int, end: int) -> tuple[tuple[float, float, float], float]:
+    """``(SOC low, mid, high)`` at the end ``end`` of the rest that began at ``origin``, with its OCV
+    bounded by the rest's own relaxation and not by a model: the voltage relaxes towards the OCV
+    (up after a discharge, down after a charge), and what is still to come is read as a diffusion
+    tail from the rest's last quarter (``2·t·dV/dt``, :func:`_rest_end_line`), taken twice with two
+    standard errors, and widened by :data:`CAPACITY_OCV_FLOOR_V`.  Also the relaxation still to come, V."""
+    _, remaining, se, _ = _rest_end_line(time_s, voltage_v, origin, end + 1)
+    toward = math.copysign(1.0, float(current_a[origin - 1]))
+    v = float(voltage_v[end])
+    far = v + toward * (2.0 * abs(remaining) + (2.0 * se if math.isfinite(se) else 0.0))
+    ocv = np.array([min(v, far) - CAPACITY_OCV_FLOOR_V, v + toward * abs(remaining), max(v, far) + CAPACITY_OCV_FLOOR_V])
+    soc = table.soc_from_ocv(ocv, temp_c)
+    return (float(soc[0]), float(soc[1]), float(soc[2])), remaining
 
 
 def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray, temperature_c: np.ndarray,
@@ -415,6 +445,15 @@ def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     ohmic, eta_end = -r_ohm * float(current_a[i_end]), float(eta[i_end])
     ohmic = math.copysign(min(abs(ohmic), abs(eta_end)), eta_end) if ohmic * eta_end > 0 else 0.0
     s1 = _soc_interval(table, float(voltage_v[i_end]), eta_end, float(temperature_c[i_end]), ohmic)
+    end_bound, remaining = "model", None
+    rest = resting(time_s, current_a, capacity_ah, REST_MAX_C)
+    loads = np.flatnonzero(~rest[:i_end + 1])
+    if rest[i_end] and loads.size and time_s[i_end] - time_s[loads[-1]] >= RELAX_REST_MIN_S:
+        # the end of a long rest: its own relaxation bounds the OCV, not the model, whose polarisation
+        # there is an extrapolation of the fit part and can be off by tens of mV
+        s1, remaining = _relaxed_soc_interval(table, time_s, current_a, voltage_v, float(temperature_c[i_end]),
+                                              int(loads[-1]) + 1, i_end)
+        end_bound = "relaxation"
     # charge drawn in "SOC of the stated capacity", as the model counts it
     drawn = float(soc_model[i_start] - soc_model[i_end])
     hours = float(time_s[i_end] - time_s[i_start]) / SECONDS_PER_HOUR
@@ -429,6 +468,8 @@ def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
                soc_end=round(s1[1], 4), soc_end_range=[round(s1[0], 4), round(s1[2], 4)],
                overpotential_start_mv=round(1000 * float(eta[i_start]), 1),
                overpotential_end_mv=round(1000 * float(eta[i_end]), 1), ohmic_end_mv=round(1000 * ohmic, 1),
+               end_bound=end_bound,
+               relaxation_to_come_mv=None if remaining is None else round(1000 * remaining, 1),
                drawn_soc=round(drawn, 4),
                t_start_s=float(time_s[i_start]), t_end_s=float(time_s[i_end]))
     if drawn < 0:  # a charge: the same check with the points' roles swapped
