@@ -45,8 +45,9 @@ departure the effect describes is present.  An effect whose signature fires is
   Capacity is defined between ``v_min`` and ``v_max`` at equilibrium, so the ends of the
   OCV curve anchor SOC for any cell, aged or not; the points are the opening rest (at least
   :data:`CAPACITY_MIN_OPENING_REST_S`; a recording that opens under load is not checked) and
-  the end (the rest sample in the last :data:`CAPACITY_END_WINDOW_S` longest after its load, else
-  the lightest load there: a final rest, or the approach to a cut-off).  Under load the OCV there is the
+  the end (in the last :data:`CAPACITY_END_WINDOW_S`, the end of the latest rest of at least
+  :data:`RELAX_REST_MIN_S`, else the latest rest sample, else the lightest load there: a final rest,
+  or the approach to a cut-off).  Under load the OCV there is the
   voltage minus the base model's overpotential ``η``; the model may be wrong, so the OCV is taken only to
   lie between ``V − η_Ω`` and ``V − η_Ω − 2(η − η_Ω)``, where ``η_Ω = −R_Ω·I`` is the
   ohmic drop (``R_Ω`` identified from the fit part's voltage steps) and the model's
@@ -382,22 +383,23 @@ def _seconds_since_load(time_s: np.ndarray, rest: np.ndarray) -> np.ndarray:
 
 def capacity_end_point(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: float) -> int:
     """The closing point of the two-point check: within the last :data:`CAPACITY_END_WINDOW_S`,
-    the rest sample longest after its last load (the latest of those), else the sample of least
-    current.
+    the end of the latest rest of at least :data:`RELAX_REST_MIN_S`, else the latest rest sample,
+    else the sample of least current.
 
     A cut-off under high current is a poor OCV anchor (the overpotential is most of the
     voltage, and a kinetics-limited cell reaches ``v_min`` at any SOC); the lightest load just
-    before it says more about the SOC, and of the rest samples before it the most relaxed one
-    most: a pulse test that runs into its cut-off has a short rest after its last pulse and a
-    long one before it.  A recording that ends in a rest closes at its last sample.
+    before it says more about the SOC, and a long rest before it more still: its own relaxation
+    bounds the OCV there (:func:`two_point_capacity`).  A pulse test that runs into its cut-off has
+    a short rest after its last pulse and a long one before it.  A recording that ends in a rest
+    closes at its last sample.
     """
     window = np.flatnonzero(time_s >= time_s[-1] - CAPACITY_END_WINDOW_S)
     rest = resting(time_s, current_a, capacity_ah, REST_MAX_C)
     if not rest[window].any():
         return int(window[np.argmin(np.abs(current_a[window]))])
     candidates = window[rest[window]]
-    relaxed_s = _seconds_since_load(time_s, rest)[candidates]
-    return int(candidates[relaxed_s >= relaxed_s.max()][-1])
+    long_rest = candidates[_seconds_since_load(time_s, rest)[candidates] >= RELAX_REST_MIN_S]
+    return int(long_rest[-1]) if long_rest.size else int(candidates[-1])
 
 
 def _relaxed_soc_interval(table, time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray,
