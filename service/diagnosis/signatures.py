@@ -375,9 +375,13 @@ def _soc_interval(table, v: float, eta: float, temp_c: float, ohmic_v: float = 0
     return float(soc[0]), float(soc[1]), float(soc[2])
 
 
-def _seconds_since_load(time_s: np.ndarray, rest: np.ndarray) -> np.ndarray:
-    """For each sample, the seconds since the last sample that was not a rest (``inf`` before any)."""
-    last_load = np.maximum.accumulate(np.where(rest, -1, np.arange(time_s.size)))
+def _last_load(rest: np.ndarray) -> np.ndarray:
+    """For each sample, the index of the last sample at or before it that was not a rest (−1 before any)."""
+    return np.maximum.accumulate(np.where(rest, -1, np.arange(rest.size)))
+
+
+def _seconds_since_load(time_s: np.ndarray, last_load: np.ndarray) -> np.ndarray:
+    """For each sample, the seconds since its :func:`_last_load` (``inf`` before any load)."""
     return np.where(last_load >= 0, time_s - time_s[np.maximum(last_load, 0)], np.inf)
 
 
@@ -398,7 +402,7 @@ def capacity_end_point(time_s: np.ndarray, current_a: np.ndarray, capacity_ah: f
     if not rest[window].any():
         return int(window[np.argmin(np.abs(current_a[window]))])
     candidates = window[rest[window]]
-    long_rest = candidates[_seconds_since_load(time_s, rest)[candidates] >= RELAX_REST_MIN_S]
+    long_rest = candidates[_seconds_since_load(time_s, _last_load(rest))[candidates] >= RELAX_REST_MIN_S]
     return int(long_rest[-1]) if long_rest.size else int(candidates[-1])
 
 
@@ -448,13 +452,12 @@ def two_point_capacity(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.
     ohmic = math.copysign(min(abs(ohmic), abs(eta_end)), eta_end) if ohmic * eta_end > 0 else 0.0
     s1 = _soc_interval(table, float(voltage_v[i_end]), eta_end, float(temperature_c[i_end]), ohmic)
     end_bound, remaining = "model", None
-    rest = resting(time_s, current_a, capacity_ah, REST_MAX_C)
-    loads = np.flatnonzero(~rest[:i_end + 1])
-    if rest[i_end] and loads.size and time_s[i_end] - time_s[loads[-1]] >= RELAX_REST_MIN_S:
+    load = int(_last_load(resting(time_s, current_a, capacity_ah, REST_MAX_C))[i_end])
+    if 0 <= load < i_end and time_s[i_end] - time_s[load] >= RELAX_REST_MIN_S:
         # the end of a long rest: its own relaxation bounds the OCV, not the model, whose polarisation
         # there is an extrapolation of the fit part and can be off by tens of mV
         s1, remaining = _relaxed_soc_interval(table, time_s, current_a, voltage_v, float(temperature_c[i_end]),
-                                              int(loads[-1]) + 1, i_end)
+                                              load + 1, i_end)
         end_bound = "relaxation"
     # charge drawn in "SOC of the stated capacity", as the model counts it
     drawn = float(soc_model[i_start] - soc_model[i_end])
@@ -516,11 +519,9 @@ def rest_relaxation(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.nda
            "what": f"relaxation still to come at the ends of rests >= {min_rest_s:.0f} s (diffusion tail "
                    "2·t·dV/dt) over the ohmic step when the current stopped (median, no model)"}
     rests = []
-    near = resting(time_s, current_a, capacity_ah, REST_MAX_C)
+    last_load = _last_load(resting(time_s, current_a, capacity_ah, REST_MAX_C))
     for a, b in rest_runs(time_s, current_a, capacity_ah):
-        j = a - 1
-        while j >= 0 and near[j]:
-            j -= 1
+        j = int(last_load[a - 1]) if a > 0 else -1  # the load sample before the rest, −1 if none
         start = j + 1
         if j < 0 or time_s[b - 1] - time_s[start] < min_rest_s:
             continue  # the opening rest, or too short
