@@ -680,6 +680,9 @@ class Row:
     # the effect's part of the base held-out RMSE, sqrt(base² - twin²), over the twin's (the model's
     # floor on that drive): below 1 the effect is smaller than what the base model misses anyway
     effect_to_floor: float | None = None
+    # the cut the clean twin's floor leaves room for, 1 - twin / base held-out RMSE (0 when the
+    # base is at or under the floor): what an extension that removed the whole effect would cut
+    best_cut: float | None = None
 
 
 def leave_one_cell_out(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = None,
@@ -702,9 +705,11 @@ def leave_one_cell_out(evs: Sequence[Evidence], grid: Sequence[dict[str, float]]
                 if floor is not None and named.rmse_before_mv > floor:
                     excess = (named.rmse_before_mv - named.rmse_after_mv) / (named.rmse_before_mv - floor)
             floor = floors.get(f"{ev.cell}_none_clean_{ev.drive}")
-            visible = (math.sqrt(max(ev.base_rmse_heldout_mv**2 - floor**2, 0.0)) / floor
-                       if floor and ev.effect != "none" else None)
-            rows.append(Row(ev.stem, ev.cell, ev.effect, ev.level, ev.drive, verdict, cut, excess, visible))
+            visible = best = None
+            if floor and ev.effect != "none":
+                visible = math.sqrt(max(ev.base_rmse_heldout_mv**2 - floor**2, 0.0)) / floor
+                best = max(1.0 - floor / ev.base_rmse_heldout_mv, 0.0)
+            rows.append(Row(ev.stem, ev.cell, ev.effect, ev.level, ev.drive, verdict, cut, excess, visible, best))
     return rows, chosen
 
 
@@ -776,10 +781,21 @@ def report(rows: Sequence[Row], chosen: dict[str, dict], pooled_rule: dict[str, 
     out += ["", (f"Named right: median held-out RMSE cut {_median_pct(cuts)} (n = {len(cuts)}); median share of the "
                 f"effect's part of the held-out RMSE removed, against the clean twin's floor, {_median_pct(excess)} "
                 f"(n = {len(excess)})."),
+            "", _best_cut_line(effect_rows),
             "", *_visibility_lines(effect_rows),
             "", "Rule chosen on all cells (the product's default): "
             + ", ".join(f"`{k}` = {v:g}" for k, v in pooled_rule.items()) + "."]
     return "\n".join(out)
+
+
+def _best_cut_line(effect_rows: Sequence[Row]) -> str:
+    """The median cut the clean twins' floors leave room for: the ceiling of the median cut for
+    extensions of this base model that take none of its model-form error."""
+    right = [r.best_cut for r in effect_rows if r.verdict == r.effect and r.best_cut is not None]
+    every = [r.best_cut for r in effect_rows if r.best_cut is not None]
+    return (f"The cut the clean twin's floor leaves room for (1 − twin's base held-out RMSE / the recording's): median "
+            f"{_median_pct(right)} where named right (n = {len(right)}), {_median_pct(every)} over every effect "
+            f"recording (n = {len(every)}).")
 
 
 def _median_pct(xs: Sequence[float]) -> str:

@@ -213,6 +213,8 @@ def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     assert kin.cut == pytest.approx(0.2) and kin.excess_removed == pytest.approx(0.5)
     # the effect's part, sqrt(10² - 6²) = 8 mV, over the 6 mV floor
     assert kin.effect_to_floor == pytest.approx(8 / 6)
+    # an extension that removed the whole effect would leave the 6 mV floor: a 40 % cut at best
+    assert kin.best_cut == pytest.approx(0.4)
     doc = search(evs, grid)
     doc["labelled"] = [{"stem": "dst_s101", "cell": "A", "truth": "none", "verdict": "none", "verdict_before": "none"},
                        {"stem": "hppc_s105", "cell": "A", "truth": "diffusion", "verdict": "none",
@@ -223,6 +225,7 @@ def test_rules_are_chosen_without_the_held_out_cell_false_alarms_first():
     assert "| kinetics |  |  | 3 |" in text and "| capacity | 1 |  |  |" in text
     assert "Rule chosen on all cells (the product's default): `min_rel_gain` = 0.15." in text
     assert "median 1 s" in text and "(7 recordings" in text
+    assert "leaves room for (1 − twin's base held-out RMSE / the recording's): median 40 % where named right (n = 3)" in text
     assert "| kinetics | 1.33 (0/3 below 1) | – |" in text
 
 
