@@ -40,6 +40,7 @@ twin.  Needs PyBaMM (``pip install -e .[research]``).
 from __future__ import annotations
 
 import argparse
+import functools
 import itertools
 import json
 import math
@@ -150,10 +151,12 @@ class Candidate:
     fixed_reasons: list[str] = field(default_factory=list)
     significant: bool = False
     #: the fitted size a plausibility bound reads (kinetics: the exchange current in C; diffusion:
-    #: the surface lag's time constant in s), if any
+    #: the surface lag's time constant in s; capacity: the capacity scale), if any
     size: float | None = None
     #: a directly measured effect retried on the confirmation split (significance_reasons' ``measured``)
     measured: bool = False
+    #: the standard error of ln ``size`` from the fit (diffusion: σ(ln τ)), if any
+    size_ln_std: float | None = None
 
 
 @dataclass
@@ -202,13 +205,19 @@ def _candidate_from_json(doc: dict) -> Candidate:
 def signature_stats(sig: dict) -> dict[str, dict]:
     """What the signature rules of :data:`SIGNATURE_RULES` read from a diagnosis's signatures
     (``Diagnosis.signatures``): the kinetics step fit's exchange current and its 95 % upper bound,
-    the diffusion relaxation ratio and its z, and the hysteresis signatures' statistics (the rest
-    ends' half-gap fit and the direction state in the base residual)."""
+    the diffusion relaxation ratio and its z, the capacity check's scale and interval, and the
+    hysteresis signatures' statistics (the rest ends' half-gap fit and the direction state in the
+    base residual)."""
     kin, rel, temp = sig.get("kinetics", {}), sig.get("diffusion", {}), sig.get("temperature", {})
     out = {"kinetics": {"i0_upper_c": kin.get("i0_upper_c"), "resolved": bool(kin.get("resolved", False))},
            "diffusion": {"statistic": rel.get("statistic") if "z" in rel else None, "z": rel.get("z")},
            "temperature": {"opening_c": temp.get("opening_temp_c"), "coldest_c": temp.get("coldest_temp_c"),
                            "nominal_c": temp.get("nominal_ambient_c")}}
+    cap = sig.get("capacity")
+    if cap is not None:  # the two-point check (service.diagnosis.signatures.two_point_capacity)
+        out["capacity"] = {"nominated": bool(cap.get("nominated")), "skipped": cap.get("skipped"),
+                           "scale": cap.get("capacity_scale"), "range": cap.get("capacity_scale_range"),
+                           "span_soc": cap.get("drawn_soc")}
     if "hysteresis" in sig:  # read with the base model's residual: a diagnosis has it, the recording alone not
         branch = sig["hysteresis"]
         direction = branch.get("direction", {})
@@ -270,10 +279,13 @@ def _candidates(dg, opt) -> list[Candidate]:
         n_rule = len(significance_reasons(e.score, e.rmse_before_mv, e.rmse_after_mv, e.delta_bic, noise_mv,
                                           e.evidence, opt))
         size = (e.params["kinetics_i0_a"] / cap if e.name == "kinetics"
-                else e.params["tau_s"] if e.name == "diffusion" else None)
+                else e.params["tau_s"] if e.name == "diffusion"
+                else e.params["capacity_scale"] if e.name == "capacity" else None)
+        # the kinetics and diffusion extensions' first coordinate is ln(size)
+        ln_std = e.coordinates_std[0] if e.name in ("kinetics", "diffusion") and e.coordinates_std else None
         out.append(Candidate(name=e.name, score=float(e.score), rmse_before_mv=float(e.rmse_before_mv),
                              rmse_after_mv=float(e.rmse_after_mv), delta_bic=float(e.delta_bic), evidence=e.evidence,
-                             fixed_reasons=list(e.reasons[n_rule:]), size=size))
+                             fixed_reasons=list(e.reasons[n_rule:]), size=size, size_ln_std=ln_std))
     return out
 
 
@@ -390,7 +402,8 @@ WIDE_GRID: dict[str, tuple[float, ...]] = {
 #: with ``rules --search-rest-length`` the shortest rest it reads (RELAX_REST_MIN_S)
 SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "relax_direct_ratio", "relax_rest_min_s",
                    "diffusion_signature",
-                   "branch_min_z", "branch_min_half_gap_v", "direction_min_z", "diffusion_min_tau_s")
+                   "branch_min_z", "branch_min_half_gap_v", "direction_min_z", "diffusion_min_tau_s",
+                   "lag_max_ln_tau_std")
 #: a structural rule the search leaves alone unless asked (``rules --search-requirement``): whether a
 #: fit-only diffusion is refused never (0), where its relaxation signature read rests and did not
 #: fire (1, the product), or always (2): the index into service.diagnosis.effects.SIGNATURE_NEEDED
@@ -400,6 +413,9 @@ REST_LENGTH_GRID: dict[str, tuple[float, ...]] = {"relax_rest_min_s": RELAX_REST
 #: ``rules --search-lag-bound``: the shortest surface lag the diffusion extension may fit and still be
 #: slow diffusion (service.diagnosis.effects.DIFFUSION_MIN_TAU_S), searched with the rest
 LAG_BOUND_GRID: dict[str, tuple[float, ...]] = {"diffusion_min_tau_s": (30.0, 60.0, 120.0)}
+#: ``rules --search-lag-std``: how well the fit part must determine the surface lag's time constant
+#: (service.diagnosis.effects.DIFFUSION_MAX_LN_TAU_STD, σ of ln τ; inf: not at all), searched with the rest
+LAG_STD_GRID: dict[str, tuple[float, ...]] = {"lag_max_ln_tau_std": (0.75, 1.0, 1.5, math.inf)}
 #: ``rules --search-direct-diffusion``: the relaxation ratio from which it measures slow diffusion directly
 #: (service.diagnosis.signatures.RELAX_DIRECT_RATIO; inf: never, the product's).  Searched with the rest
 #: on eight cells it reads fewer verdicts right held out than the search without it (docs/results/diagnose.md)
@@ -417,6 +433,7 @@ def current_rule() -> dict[str, float]:
     """The product's current value of every rule of :data:`RULE_GRID`."""
     from service.diagnosis import signatures
     from service.diagnosis.effects import (
+        DIFFUSION_MAX_LN_TAU_STD,
         DIFFUSION_MIN_TAU_S,
         EFFECTS,
         KINETICS_MAX_I0_C,
@@ -431,20 +448,22 @@ def current_rule() -> dict[str, float]:
                relax_rest_min_s=signatures.RELAX_REST_MIN_S,
                diffusion_signature=float(SIGNATURE_NEEDED.index(EFFECTS["diffusion"].needs_signature)),
                branch_min_z=signatures.BRANCH_MIN_Z, branch_min_half_gap_v=signatures.BRANCH_MIN_HALF_GAP_V,
-               direction_min_z=signatures.DIRECTION_MIN_Z, diffusion_min_tau_s=DIFFUSION_MIN_TAU_S)
+               direction_min_z=signatures.DIRECTION_MIN_Z, diffusion_min_tau_s=DIFFUSION_MIN_TAU_S,
+               lag_max_ln_tau_std=DIFFUSION_MAX_LN_TAU_STD)
     return now
 
 
 def rule_axes(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False,
               with_hysteresis: bool = False, with_lag_bound: bool = False,
-              with_direct_diffusion: bool = False) -> dict[str, tuple[float, ...]]:
+              with_direct_diffusion: bool = False, with_lag_std: bool = False) -> dict[str, tuple[float, ...]]:
     """The values searched per rule: :data:`RULE_GRID` (:data:`WIDE_GRID` with ``wide``), and
     :data:`REQUIREMENT_GRID` with ``with_requirement``, :data:`REST_LENGTH_GRID` with ``with_rest_length``,
     :data:`HYSTERESIS_GRID` with ``with_hysteresis``, :data:`LAG_BOUND_GRID` with ``with_lag_bound``,
-    :data:`DIRECT_DIFFUSION_GRID` with ``with_direct_diffusion``."""
+    :data:`DIRECT_DIFFUSION_GRID` with ``with_direct_diffusion``, :data:`LAG_STD_GRID` with ``with_lag_std``."""
     return {**(WIDE_GRID if wide else RULE_GRID), **(REQUIREMENT_GRID if with_requirement else {}),
             **(REST_LENGTH_GRID if with_rest_length else {}), **(HYSTERESIS_GRID if with_hysteresis else {}),
-            **(LAG_BOUND_GRID if with_lag_bound else {}), **(DIRECT_DIFFUSION_GRID if with_direct_diffusion else {})}
+            **(LAG_BOUND_GRID if with_lag_bound else {}), **(DIRECT_DIFFUSION_GRID if with_direct_diffusion else {}),
+            **(LAG_STD_GRID if with_lag_std else {})}
 
 
 def product_rule_grid(grid: Sequence[dict[str, float]]) -> list[dict[str, float]]:
@@ -455,9 +474,10 @@ def product_rule_grid(grid: Sequence[dict[str, float]]) -> list[dict[str, float]
 
 def rule_grid(with_requirement: bool = False, wide: bool = False, with_rest_length: bool = False,
               with_hysteresis: bool = False, with_lag_bound: bool = False,
-              with_direct_diffusion: bool = False) -> list[dict[str, float]]:
+              with_direct_diffusion: bool = False, with_lag_std: bool = False) -> list[dict[str, float]]:
     """Every rule of :func:`rule_axes` with the same switches."""
-    axes = rule_axes(with_requirement, wide, with_rest_length, with_hysteresis, with_lag_bound, with_direct_diffusion)
+    axes = rule_axes(with_requirement, wide, with_rest_length, with_hysteresis, with_lag_bound, with_direct_diffusion,
+                     with_lag_std)
     keys = list(axes)
     return [dict(zip(keys, values)) for values in itertools.product(*(axes[k] for k in keys))]
 
@@ -471,7 +491,9 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
     out = []
     for c in cands:
         if c.name == "diffusion" and "diffusion_min_tau_s" in rule and c.size is not None:
-            c = replace(c, fixed_reasons=_tau_reasons(c, rule["diffusion_min_tau_s"]))
+            c = _changed(c, fixed_reasons=_tau_reasons(c, rule["diffusion_min_tau_s"]))
+        if c.name == "diffusion" and "lag_max_ln_tau_std" in rule:
+            c = _changed(c, fixed_reasons=_undetermined_reasons(c, rule["lag_max_ln_tau_std"]))
         if c.name == "kinetics" and "kinetics_max_i0_c" in rule:
             k = rule["kinetics_max_i0_c"]
             sig = ev.signatures["kinetics"]
@@ -479,7 +501,7 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
             fixed = [r for r in c.fixed_reasons if not r.startswith(KINETICS_SIZE_REASON)]
             if c.size is not None and c.size >= k:
                 fixed.append(f"{KINETICS_SIZE_REASON}{c.size:.2f} C >= {k:g} C")
-            c = replace(c, evidence="nominated" if nominated else "fit", fixed_reasons=fixed)
+            c = _changed(c, evidence="nominated" if nominated else "fit", fixed_reasons=fixed)
         elif c.name == "diffusion" and {"relax_min_ratio", "relax_min_z", "relax_direct_ratio", "relax_rest_min_s",
                                         "diffusion_signature"} & rule.keys():
             from service.diagnosis.signatures import (
@@ -494,11 +516,11 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
             z_ok = read and sig["z"] >= rule.get("relax_min_z", RELAX_MIN_Z)
             nominated = z_ok and sig["statistic"] >= rule.get("relax_min_ratio", RELAX_MIN_RATIO)
             direct = nominated and sig["statistic"] >= rule.get("relax_direct_ratio", RELAX_DIRECT_RATIO)
-            c = replace(c, evidence="direct" if direct else "nominated" if nominated else "fit",
+            c = _changed(c, evidence="direct" if direct else "nominated" if nominated else "fit",
                         fixed_reasons=_signature_requirement(c, nominated, read, rule))
         elif (c.name == "hysteresis" and not confirmation and HYSTERESIS_GRID.keys() & rule.keys()
               and "hysteresis" in ev.signatures):
-            c = replace(c, evidence=hysteresis_evidence(ev.signatures["hysteresis"], rule))
+            c = _changed(c, evidence=hysteresis_evidence(ev.signatures["hysteresis"], rule))
         out.append(c)
     return out
 
@@ -513,6 +535,17 @@ def _tau_reasons(c: Candidate, min_tau_s: float) -> list[str]:
     fixed = [r for r in c.fixed_reasons if not r.startswith(DIFFUSION_TAU_REASON)]
     if c.size < min_tau_s:
         fixed.append(f"{DIFFUSION_TAU_REASON}{c.size:.0f} s < {min_tau_s:g} s")
+    return fixed
+
+
+def _undetermined_reasons(c: Candidate, max_ln_std: float) -> list[str]:
+    """The diffusion candidate's fixed reasons with the undetermined-lag bound at ``max_ln_std``
+    (:data:`service.diagnosis.effects.DIFFUSION_MAX_LN_TAU_STD` in the product)."""
+    from service.diagnosis.effects import DIFFUSION_UNDETERMINED_REASON
+
+    fixed = [r for r in c.fixed_reasons if not r.startswith(DIFFUSION_UNDETERMINED_REASON)]
+    if c.size_ln_std is not None and c.size_ln_std >= max_ln_std:
+        fixed.append(f"{DIFFUSION_UNDETERMINED_REASON}{c.size_ln_std:.2f} >= {max_ln_std:g}")
     return fixed
 
 
@@ -549,6 +582,22 @@ def _signature_requirement(c: Candidate, nominated: bool, read: bool, rule: dict
     return fixed
 
 
+def _changed(c: Candidate, **changes) -> Candidate:
+    """A copy of ``c`` with ``changes`` (what :func:`dataclasses.replace` gives, without re-running
+    ``__init__``: the rule search makes millions of these)."""
+    out = object.__new__(Candidate)
+    out.__dict__ = {**c.__dict__, **changes}
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _options(thresholds: tuple[tuple[str, float], ...]):
+    """The pipeline's options at a rule's significance thresholds (one per rule, not per recording)."""
+    from service.diagnosis.pipeline import DiagnoseOptions
+
+    return replace(DiagnoseOptions(), **dict(thresholds))
+
+
 def _judge(cands: Iterable[Candidate], noise_mv: float, opt) -> list[Candidate]:
     """The candidates with ``significant`` set under ``opt`` and ranked as the pipeline ranks them."""
     from service.diagnosis.pipeline import rank, significance_reasons
@@ -557,7 +606,7 @@ def _judge(cands: Iterable[Candidate], noise_mv: float, opt) -> list[Candidate]:
     for c in cands:
         reasons = significance_reasons(c.score, c.rmse_before_mv, c.rmse_after_mv, c.delta_bic, noise_mv,
                                        c.evidence, opt, c.measured)
-        judged.append(replace(c, significant=not reasons and not c.fixed_reasons))
+        judged.append(_changed(c, significant=not reasons and not c.fixed_reasons))
     return rank(judged, opt.min_abs_gain_noise * noise_mv)
 
 
@@ -567,9 +616,9 @@ def decide(ev: Evidence, rule: dict[str, float]) -> tuple[str, Candidate | None]
     diagnosis ran with), and the named candidate (with the figures of the split it was named on).
     A retry on the confirmation split is possible only for effects the diagnosis itself nominated
     or measured directly (their figures are the only ones there)."""
-    from service.diagnosis.pipeline import SIGNATURE_REQUIRED, DiagnoseOptions, retry_candidates
+    from service.diagnosis.pipeline import SIGNATURE_REQUIRED, retry_candidates
 
-    opt = replace(DiagnoseOptions(), **{k: v for k, v in rule.items() if k not in SIGNATURE_RULES})
+    opt = _options(tuple(sorted((k, v) for k, v in rule.items() if k not in SIGNATURE_RULES)))
     ranked = _judge(_with_signature_rules(ev.candidates, ev, rule), ev.noise_mv, opt)
     if ranked and ranked[0].significant:
         return ranked[0].name, ranked[0]
@@ -638,15 +687,36 @@ def _distance_to_default(rule: dict[str, float], now: dict[str, float]) -> float
     return steps
 
 
-def tallies_by_cell(evs: Sequence[Evidence], grid: Sequence[dict[str, float]], progress=None) -> list[dict[str, Tally]]:
+#: rules per job when the search runs on several processes
+TALLY_CHUNK = 400
+
+
+def _tally_chunk(job: tuple[Sequence[Evidence], Sequence[dict[str, float]]]) -> list[dict[str, Tally]]:
+    evs, rules = job
+    by_cell: dict[str, list[Evidence]] = {}
+    for ev in evs:
+        by_cell.setdefault(ev.cell, []).append(ev)
+    return [{c: tally(cell_evs, rule) for c, cell_evs in by_cell.items()} for rule in rules]
+
+
+def tallies_by_cell(evs: Sequence[Evidence], grid: Sequence[dict[str, float]], progress=None,
+                    jobs: int = 1) -> list[dict[str, Tally]]:
     """For each rule of ``grid``, its tally on each cell's recordings (computed once; a fold's
-    training tally is the sum over its cells)."""
-    cells = list(dict.fromkeys(ev.cell for ev in evs))
-    out = []
-    for n, rule in enumerate(grid):
-        out.append({c: tally([ev for ev in evs if ev.cell == c], rule) for c in cells})
-        if progress and n % 500 == 499:
-            progress(f"{n + 1}/{len(grid)} rules")
+    training tally is the sum over its cells), on ``jobs`` processes."""
+    chunks = [(evs, grid[k:k + TALLY_CHUNK]) for k in range(0, len(grid), TALLY_CHUNK)]
+    out: list[dict[str, Tally]] = []
+    if jobs <= 1 or len(chunks) == 1:
+        results = map(_tally_chunk, chunks)
+        for part in results:
+            out.extend(part)
+            if progress:
+                progress(f"{len(out)}/{len(grid)} rules")
+        return out
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        for part in pool.map(_tally_chunk, chunks):
+            out.extend(part)
+            if progress:
+                progress(f"{len(out)}/{len(grid)} rules")
     return out
 
 
@@ -827,7 +897,8 @@ def main(argv: list[str] | None = None) -> int:
                          "recordings); plan: list the recordings")
     ap.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR, help="the set's cache (default: %(default)s)")
     ap.add_argument("--cells", default=",".join(CELLS), help="PyBaMM parameter sets (default: %(default)s)")
-    ap.add_argument("--jobs", type=int, default=1, help="recordings simulated or diagnosed at once (default 1)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="recordings simulated or diagnosed at once, or processes the rule search runs on (default 1)")
     ap.add_argument("--labelled", type=Path, default=LABELLED_DATA,
                     help="the labelled synthetic recordings (default: %(default)s)")
     ap.add_argument("--labelled-workdir", type=Path, default=DEFAULT_WORKDIR / "labelled",
@@ -852,6 +923,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-lag-bound", action="store_true",
                     help="rules: search also the shortest surface lag a fitted diffusion may have (30, 60, 120 s; "
                          "the product's is 60 s; evidence diagnosed before the lag was kept keeps its refusals)")
+    ap.add_argument("--search-lag-std", action="store_true",
+                    help="rules: search also how well the fit part must determine a fitted diffusion lag's time "
+                         "constant (σ of ln τ below 0.75, 1, 1.5 or no bound; the product's is 1)")
     ap.add_argument("--search-direct-diffusion", action="store_true",
                     help="rules: search also the relaxation ratio from which the signature measures slow diffusion "
                          "directly (inf = never, the product's; 0.25, 0.35, 0.5)")
@@ -901,7 +975,7 @@ def main(argv: list[str] | None = None) -> int:
                   json.loads((args.labelled / f"{ev.stem}.meta.json").read_text())["capacity_ah"])
         ev.cell = set_cell(labels.get(ev.stem, {}).get("cell", ev.cell), cells)
     grid = rule_grid(args.search_requirement, args.wide_grid, args.search_rest_length, args.search_hysteresis,
-                     args.search_lag_bound, args.search_direct_diffusion)
+                     args.search_lag_bound, args.search_direct_diffusion, args.search_lag_std)
     if args.diffusion_signature is not None and not args.search_requirement:
         grid = [{**r, "diffusion_signature": args.diffusion_signature} for r in grid]
     if args.product_rule:
@@ -909,9 +983,9 @@ def main(argv: list[str] | None = None) -> int:
     grid = [r for r in grid if all(r.get(k) == v for k, v in held.items())]
     if not grid:
         ap.error(f"--hold {' '.join(args.hold)}: no rule of the grid searched holds that (--wide-grid adds "
-                 "values; --search-rest-length, --search-hysteresis, --search-lag-bound and --search-direct-diffusion "
+                 "values; --search-rest-length, --search-hysteresis, --search-lag-bound, --search-lag-std and --search-direct-diffusion "
                  "add the rules they name)")
-    doc = search([*evs, *labelled], grid, progress=lambda msg: print(msg, file=sys.stderr))
+    doc = search([*evs, *labelled], grid, progress=lambda msg: print(msg, file=sys.stderr), jobs=args.jobs)
     held_out = {r["stem"]: r["verdict"] for r in doc["rows"]}
     doc["labelled"] = [{"stem": ev.stem, "cell": ev.cell, "truth": ev.effect, "verdict": held_out[ev.stem],
                         "verdict_before": decide(ev, {})[0]} for ev in labelled]
@@ -927,7 +1001,7 @@ def main(argv: list[str] | None = None) -> int:
 def _parse_holds(ap: argparse.ArgumentParser, holds: Sequence[str]) -> dict[str, float]:
     """``--hold RULE=VALUE`` options as a dict; an unknown rule or a value off its grid is an error."""
     axes = rule_axes(with_requirement=True, wide=True, with_rest_length=True, with_hysteresis=True, with_lag_bound=True,
-                     with_direct_diffusion=True)
+                     with_direct_diffusion=True, with_lag_std=True)
     out = {}
     for h in holds:
         key, _, value = h.partition("=")
@@ -962,11 +1036,12 @@ def _complete(ev: Evidence, csv: Path, capacity_ah: float) -> None:
         ev.signatures["diffusion_by_rest"] = relaxation_by_rest(load_recording(csv), capacity_ah, DiagnoseOptions())
 
 
-def search(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = None, progress=None) -> dict:
+def search(evs: Sequence[Evidence], grid: Sequence[dict[str, float]] | None = None, progress=None,
+           jobs: int = 1) -> dict:
     """The leave-one-cell-out rows, the rule per held-out cell, the rule chosen on every cell and
     its in-sample tally, and the diagnosis run times, as the ``rules`` stage writes them."""
     grid = grid if grid is not None else rule_grid()
-    by_cell = tallies_by_cell(evs, grid, progress)
+    by_cell = tallies_by_cell(evs, grid, progress, jobs)
     rows, chosen = leave_one_cell_out(evs, grid, by_cell=by_cell)
     pooled_rule, pooled = choose_rule(evs, grid, by_cell)
     seconds = [ev.seconds_chronological + ev.seconds_confirmation for ev in evs]

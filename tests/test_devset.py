@@ -5,6 +5,7 @@ own model, as in test_diagnose)."""
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter
 from dataclasses import replace
 
@@ -27,6 +28,7 @@ from research.devset import (
     plan,
     rule_grid,
     search,
+    tallies_by_cell,
 )
 from research.validate import user_profile, write_case
 from research.validate_pybamm import EFFECTS, LEVELS
@@ -278,6 +280,40 @@ def test_the_surface_lag_bound_moves_the_diffusion_plausibility():
     assert current_rule()["diffusion_min_tau_s"] == 60.0
     assert {r["diffusion_min_tau_s"] for r in rule_grid(with_lag_bound=True)} == {30.0, 60.0, 120.0}
     assert "diffusion_min_tau_s" not in rule_grid()[0]
+
+
+def test_the_undetermined_lag_bound_moves_the_diffusion_plausibility():
+    """A lag with a 50 % held-out gain whose τ the fit leaves at σ(ln τ) 1.2: refused at the
+    product's bound of 1, named at 1.5 or with no bound; a determined lag is named at every bound."""
+    from service.diagnosis.effects import DIFFUSION_UNDETERMINED_REASON
+
+    loose = replace(_cand("diffusion", 0.50, before=20.0, fixed=[f"{DIFFUSION_UNDETERMINED_REASON}1.20 >= 1: the fit"]),
+                    size=120.0, size_ln_std=1.2)
+    ev = _ev("A", "none", [loose, _cand("ocv", 0.05)])
+    ev.signatures = {"diffusion": {"statistic": None, "z": None}}
+    assert decide(ev, {})[0] == "none"
+    assert decide(ev, {"lag_max_ln_tau_std": 1.0})[0] == "none"
+    assert decide(ev, {"lag_max_ln_tau_std": 1.5})[0] == "diffusion"
+    assert decide(ev, {"lag_max_ln_tau_std": math.inf})[0] == "diffusion"
+    tight = replace(loose, fixed_reasons=[], size_ln_std=0.3)
+    ev.candidates = [tight, _cand("ocv", 0.05)]
+    assert all(decide(ev, {"lag_max_ln_tau_std": b})[0] == "diffusion" for b in (0.75, 1.0, math.inf))
+    assert current_rule()["lag_max_ln_tau_std"] == 1.0
+    assert {r["lag_max_ln_tau_std"] for r in rule_grid(with_lag_std=True)} == {0.75, 1.0, 1.5, math.inf}
+    assert "lag_max_ln_tau_std" not in rule_grid()[0]
+
+
+def test_the_rule_search_on_two_processes_tallies_as_on_one(monkeypatch):
+    """The search split over processes (chunks of rules) gives every rule the same tally per cell."""
+    from research import devset
+
+    monkeypatch.setattr(devset, "TALLY_CHUNK", 2)
+    evs = [_ev(cell, "kinetics", [_cand("kinetics", g)], stem=f"{cell}_kin_{g}") for cell in "AB" for g in (0.1, 0.2, 0.3)]
+    evs += [_ev(cell, "none", [_cand("ocv", 0.18)], stem=f"{cell}_none_clean_dst") for cell in "AB"]
+    grid = [{"min_rel_gain": g} for g in (0.10, 0.15, 0.20, 0.25, 0.30)]
+    one = tallies_by_cell(evs, grid)
+    assert tallies_by_cell(evs, grid, jobs=2) == one
+    assert len({(t["A"].right, t["A"].false_alarms) for t in one}) > 1, "the rules differ on the set"
 
 
 def test_hysteresis_levels_move_its_evidence_class():

@@ -177,6 +177,11 @@ class EffectOutcome:
     evidence: str = "fit"
     #: the held-out protocol its rmse_* and score come from (DiagnoseOptions.split / confirm_split)
     split: str = "chronological"
+    #: standard errors of the extension's fit coordinates (Effect.bounds' order; natural logs for
+    #: the positive parameters), None when the fit gave none
+    coordinates_std: list[float] | None = None
+    #: why the fitted extension is not this effect whatever its gain (Effect.implausible), if so
+    implausible: str | None = None
 
     def to_json(self) -> dict:
         return {
@@ -188,6 +193,7 @@ class EffectOutcome:
             "whiteness_lag1_after": round(self.whiteness_after, 4),
             "rmse_fit_after_mv": round(self.rmse_fit_after_mv, 3), "fit_seconds": round(self.fit_seconds, 2),
             "not_significant_because": self.reasons, "evidence": self.evidence, "split": self.split,
+            "coordinates_std": self.coordinates_std,
         }
 
 
@@ -311,10 +317,12 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
     # held-out gain enough, but refused: the input the effect is about does not show it
     refused = [e for e in outcomes if not e.significant and len(e.reasons) == 1
                and e.reasons[0].startswith(SIGNATURE_REQUIRED)]
+    # held-out gain enough, but the fitted size is a healthy cell's or the fit does not determine it
+    implausible = [e for e in outcomes if not e.significant and e.implausible and e.reasons == [e.implausible]]
     fit_only = []
     for e in outcomes:
         fit_gain = 1.0 - e.rmse_fit_after_mv / rmse_fit_base_mv if rmse_fit_base_mv > 0 else 0.0
-        if not e.significant and e not in refused and fit_gain >= FIT_ONLY_GAIN:
+        if not e.significant and e not in refused and e not in implausible and fit_gain >= FIT_ONLY_GAIN:
             fit_only.append({"name": e.name, "fit_gain": round(fit_gain, 4), "heldout_gain": round(e.score, 4)})
     fit_only.sort(key=lambda d: -d["fit_gain"])
     signed = [{"name": e.name, "heldout_gain": round(e.score, 4)} for e in outcomes
@@ -330,7 +338,7 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
         state = "unexplained"
         leads = ", ".join(f"{d['name']} (fit part {100 * d['fit_gain']:.0f} % lower, held out "
                           f"{100 * d['heldout_gain']:+.0f} %)" for d in fit_only) or "none"
-        opening = "no candidate is named" if refused else "no candidate generalises"
+        opening = "no candidate is named" if refused or implausible else "no candidate generalises"
         text = (f"{opening}, yet the base model leaves {rmse_held_base_mv:.2f} mV on the held-out "
                 f"part ({ratio:.0f} x the voltage noise): the model's form, or physics outside the candidate "
                 f"library, or physics that does not extrapolate from the fit part to the held-out one; "
@@ -344,6 +352,9 @@ def assess(verdict: str, outcomes: list[EffectOutcome], rmse_fit_base_mv: float,
                    "effect, and the gain is physics every cell has (temperature: the resistance following the "
                    "cell's own self-heating; diffusion: slow dynamics the base circuit lacks, while the rests "
                    "relax within minutes); `--save-effect` keeps it in the profile if you want it modelled")
+    if implausible:
+        text += "; " + "; ".join(f"{e.name} (held out {100 * e.score:+.0f} %) would generalise but is not this effect: "
+                                 f"{e.implausible}" for e in implausible)
     return {"state": state, "text": text, "heldout_rmse_over_noise": round(ratio, 2),
             "signature_without_extension": signed,
             "refused_without_signature": [{"name": e.name, "heldout_gain": round(e.score, 4)} for e in refused],
@@ -754,7 +765,8 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
         direct = nominated and bool(sig.get(name, {}).get("direct", False))
         evidence = "direct" if direct else "nominated" if nominated else "fit"
         reasons = significance_reasons(score, rmse_before, after, dbic, 1000 * sigma, evidence, opt)
-        why = eff.implausible(phys, problem.ctx) if eff.implausible else None
+        coord_std = None if std is None else np.asarray(std[7:], dtype=float)
+        why = eff.implausible(phys, problem.ctx, coord_std) if eff.implausible else None
         if why:
             reasons.append(why)
         own = sig.get(name, {})
@@ -769,6 +781,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
             delta_bic=dbic, detection=eff.detect(full_ctx), whiteness_before=lag1(r_base[held]),
             whiteness_after=lag1(r_ext[held]), rmse_fit_after_mv=rmse_mv(r_ext[fit_full]), fit_seconds=res.seconds,
             profile=prof, v_sim=v_ext, u_h0=u_h0, reasons=reasons, evidence=evidence,
+            coordinates_std=None if coord_std is None else [float(v) for v in coord_std], implausible=why,
         ))
     outcomes = rank(outcomes, opt.min_abs_gain_noise * 1000 * sigma)
     verdict = outcomes[0].name if outcomes and outcomes[0].significant else "none"
