@@ -1650,7 +1650,7 @@ python -m research.clean_twin --data ../shared/data/synthetic --jobs 2 --workdir
 python -m research.devset build --jobs 2 --workdir out/devset
 python -m research.devset evidence --jobs 2 --workdir out/devset
 python -m research.devset labelled --jobs 2 --workdir out/devset
-python -m research.devset rules --workdir out/devset --json out/devset_rules.json""",
+python -m research.devset rules --jobs 2 --workdir out/devset --json out/devset_rules.json""",
           devset_table("devset_rules.json"), 90, ("needs:pybamm",)),
     Table("devset_blind", "diagnose.md", """\
 # three cells no rule was chosen on, built as the development set is, read with the product's rule as it ships
@@ -1662,7 +1662,7 @@ python -m research.devset $B --labelled-workdir out/devset_blind/no_labelled rul
           devset_table("devset_blind.json"), 30, ("needs:pybamm",)),
     Table("devset_rules_wide", "diagnose.md", """\
 # the set and its evidence are devset_rules'
-python -m research.devset rules --workdir out/devset --wide-grid --hold direct_max_rise_rel=0.2 \\
+python -m research.devset rules --jobs 2 --workdir out/devset --wide-grid --hold direct_max_rise_rel=0.2 \\
     --json out/devset_rules_wide.json""",
           devset_summary_table("devset_rules_wide.json"), 5, ("needs:devset_rules", "needs:pybamm")),
     Table("devset_hysteresis_levels", "diagnose.md", """\
@@ -1671,6 +1671,12 @@ H="--hold min_rel_gain=0.25 --hold min_rel_gain_nominated=0.05 --hold min_abs_ga
 H="$H --hold kinetics_max_i0_c=0.15 --hold relax_min_ratio=0.15 --hold relax_min_z=5 --hold direct_max_rise_rel=0.2"
 python -m research.devset rules --workdir out/devset --search-hysteresis $H --json out/devset_hysteresis_levels.json""",
           devset_summary_table("devset_hysteresis_levels.json"), 2, ("needs:devset_rules", "needs:pybamm")),
+    Table("devset_lag_std", "diagnose.md", """\
+# the set and its evidence are devset_rules'; the other rules held at the product's values
+H="--hold min_rel_gain=0.25 --hold min_rel_gain_nominated=0.05 --hold min_abs_gain_noise=1 --hold min_delta_bic=0"
+H="$H --hold kinetics_max_i0_c=0.15 --hold relax_min_ratio=0.15 --hold relax_min_z=5 --hold direct_max_rise_rel=0.2"
+python -m research.devset rules --workdir out/devset --search-lag-std $H --json out/devset_lag_std.json""",
+          devset_summary_table("devset_lag_std.json"), 2, ("needs:devset_rules", "needs:pybamm")),
     Table("validate", "diagnose.md", "python -m research.validate --seeds 3 --workdir out/validate --json out/validate.json",
           validate_table("validate.json"), 8),
     Table("roundtrip", "diagnose.md", "python -m research.roundtrip --workdir out/roundtrip --json out/roundtrip.json",
