@@ -40,6 +40,7 @@ twin.  Needs PyBaMM (``pip install -e .[research]``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import itertools
 import json
@@ -217,7 +218,7 @@ def signature_stats(sig: dict) -> dict[str, dict]:
     if cap is not None:  # the two-point check (service.diagnosis.signatures.two_point_capacity)
         out["capacity"] = {"nominated": bool(cap.get("nominated")), "skipped": cap.get("skipped"),
                            "scale": cap.get("capacity_scale"), "range": cap.get("capacity_scale_range"),
-                           "span_soc": cap.get("drawn_soc")}
+                           "drawn_soc": cap.get("drawn_soc")}
     if "hysteresis" in sig:  # read with the base model's residual: a diagnosis has it, the recording alone not
         branch = sig["hysteresis"]
         direction = branch.get("direction", {})
@@ -704,16 +705,10 @@ def tallies_by_cell(evs: Sequence[Evidence], grid: Sequence[dict[str, float]], p
     """For each rule of ``grid``, its tally on each cell's recordings (computed once; a fold's
     training tally is the sum over its cells), on ``jobs`` processes."""
     chunks = [(evs, grid[k:k + TALLY_CHUNK]) for k in range(0, len(grid), TALLY_CHUNK)]
+    parallel = jobs > 1 and len(chunks) > 1
     out: list[dict[str, Tally]] = []
-    if jobs <= 1 or len(chunks) == 1:
-        results = map(_tally_chunk, chunks)
-        for part in results:
-            out.extend(part)
-            if progress:
-                progress(f"{len(out)}/{len(grid)} rules")
-        return out
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        for part in pool.map(_tally_chunk, chunks):
+    with ProcessPoolExecutor(max_workers=jobs) if parallel else contextlib.nullcontext() as pool:
+        for part in (pool.map if parallel else map)(_tally_chunk, chunks):
             out.extend(part)
             if progress:
                 progress(f"{len(out)}/{len(grid)} rules")

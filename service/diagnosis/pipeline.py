@@ -781,7 +781,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
             delta_bic=dbic, detection=eff.detect(full_ctx), whiteness_before=lag1(r_base[held]),
             whiteness_after=lag1(r_ext[held]), rmse_fit_after_mv=rmse_mv(r_ext[fit_full]), fit_seconds=res.seconds,
             profile=prof, v_sim=v_ext, u_h0=u_h0, reasons=reasons, evidence=evidence,
-            coordinates_std=None if coord_std is None else [float(v) for v in coord_std], implausible=why,
+            coordinates_std=None if coord_std is None else coord_std.tolist(), implausible=why,
         ))
     outcomes = rank(outcomes, opt.min_abs_gain_noise * 1000 * sigma)
     verdict = outcomes[0].name if outcomes and outcomes[0].significant else "none"
