@@ -30,8 +30,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import signal, sparse
 from scipy.interpolate import PchipInterpolator
-from scipy.optimize import lsq_linear, minimize
+from scipy.optimize import lsq_linear, minimize, nnls
 
 from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment, small_cell_ratio
@@ -53,6 +54,8 @@ HUBER_K = 1.345
 HUBER_PASSES = 3
 #: candidate time constants of the grid search, per branch
 TAU_GRID_POINTS = 9
+#: runs of equal sample interval shorter than this on average: the branch inputs are stepped sample by sample
+MIN_RUN_SAMPLES = 8
 #: samples at most in one fit (whole segments are thinned evenly beyond it)
 MAX_FIT_SAMPLES = 40000
 
@@ -134,8 +137,35 @@ def _prepare(segments: list[FitSegment], capacity_ah: float) -> _Prepared:
 
 def branch_inputs(prep: _Prepared, taus_s: np.ndarray) -> np.ndarray:
     """``x[k, j]``: the current through a unit resistance's RC branch of time constant
-    ``taus_s[j]`` (exact discretisation, relaxed at each segment's start)."""
+    ``taus_s[j]`` (exact discretisation, relaxed at each segment's start).
+
+    Within a run of equal sample intervals the recursion is a fixed first-order filter
+    (:func:`scipy.signal.lfilter`, its state carried from run to run); a recording whose
+    interval changes at most samples is stepped sample by sample instead."""
     taus = np.asarray(taus_s, dtype=float)
+    n = prep.current_a.size
+    run_start = np.ones(n, dtype=bool)
+    run_start[1:] = ~np.isclose(prep.dt_s[1:], prep.dt_s[:-1], rtol=1e-9, atol=0.0)
+    run_start[prep.starts] = True
+    firsts = np.flatnonzero(run_start)
+    if firsts.size > max(n // MIN_RUN_SAMPLES, 1):
+        return _branch_inputs_stepwise(prep, taus)
+    seg_start = np.zeros(n, dtype=bool)
+    seg_start[prep.starts] = True
+    out = np.empty((n, taus.size))
+    x = np.zeros(taus.size)
+    for lo, hi in zip(firsts, np.append(firsts[1:], n)):
+        if seg_start[lo]:
+            x[:] = 0.0
+        a = np.exp(-prep.dt_s[hi - 1] / taus)
+        for j, aj in enumerate(a):
+            out[lo:hi, j], _ = signal.lfilter([1.0 - aj], [1.0, -aj], prep.current_a[lo:hi], zi=[aj * x[j]])
+        x = out[hi - 1].copy()
+    return out
+
+
+def _branch_inputs_stepwise(prep: _Prepared, taus: np.ndarray) -> np.ndarray:
+    """:func:`branch_inputs` one sample at a time (any sample intervals)."""
     out = np.empty((prep.current_a.size, taus.size))
     x = np.zeros(taus.size)
     is_start = np.zeros(prep.current_a.size, dtype=bool)
@@ -177,24 +207,49 @@ def _hat_basis(soc: np.ndarray, knots: np.ndarray) -> np.ndarray:
     return basis
 
 
-def _triangular_factor(ab: np.ndarray) -> np.ndarray:
-    """Upper-triangular ``R`` with ``RᵀR = [A b]ᵀ[A b]`` (Cholesky of the Gram matrix, with a
-    jitter far below the data's scale where a column is empty)."""
-    gram = ab.T @ ab
+def _triangular_factor(gram: np.ndarray) -> np.ndarray:
+    """``R`` with ``RᵀR = gram``: the Cholesky factor of the augmented Gram matrix
+    ``[A b]ᵀ W [A b]``, with a jitter far below the data's scale where a column is empty
+    (and, should that still fail, the symmetric square root from its eigenvalues)."""
     jitter = 1e-12 * max(float(np.trace(gram)), 1e-12) / gram.shape[0]
     for _ in range(6):
         try:
             return np.linalg.cholesky(gram + jitter * np.eye(gram.shape[0])).T
         except np.linalg.LinAlgError:
             jitter *= 100.0
-    return np.linalg.qr(ab, mode="r")
+    lam, vec = np.linalg.eigh(gram)
+    return np.sqrt(np.maximum(lam, 0.0))[:, None] * vec.T
+
+
+def _bounded_lstsq(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray, floor: float) -> np.ndarray:
+    """``argmin ||a x - b||`` with ``lo ≤ x ≤ hi``.
+
+    Every lower bound here is finite but the OCV level's, and the upper bounds are the
+    resistances' ``r_max``, which a fit rarely reaches.  So the problem is first solved as
+    non-negative least squares (:func:`scipy.optimize.nnls`, Lawson-Hanson, an order of
+    magnitude faster than the general bounded solver) in ``y = x - lo`` with the level's
+    bound at ``floor``; where that solution breaks an upper bound or sits on the stand-in
+    floor, the general bounded solver (BVLS) solves the problem as posed."""
+    lo_eff = np.where(np.isfinite(lo), lo, floor)
+    try:
+        y, _ = nnls(a, b - a @ lo_eff)
+    except RuntimeError:  # iteration limit: leave it to the general solver
+        y = None
+    if y is not None:
+        x = lo_eff + y
+        on_floor = np.any((~np.isfinite(lo)) & (y <= 0.0))
+        if not on_floor and np.all(x <= hi):
+            return x
+    return lsq_linear(a, b, bounds=(lo, hi), method="bvls", tol=1e-12).x
 
 
 class _LinearProblem:
     """The bounded linear least-squares problem for fixed time constants.
 
     Unknowns: ``[R0, R1, R2]`` then, when the OCV is fitted, ``[level, d_1 .. d_{K-1}]``
-    with the knot values ``v_j = level + Σ_{i ≤ j} d_i`` (``d ≥ 0``: monotone)."""
+    with the knot values ``v_j = level + Σ_{i ≤ j} d_i`` (``d ≥ 0``: monotone).  The OCV's
+    columns are the sparse hat basis times the cumulative sum, so the normal equations are
+    formed in O(samples) per pass without a dense ``samples × knots`` matrix."""
 
     def __init__(self, prep: _Prepared, ocv_fixed: np.ndarray | None, knots: np.ndarray,
                  prior_v: np.ndarray | None, smooth_weight: float, prior_weight: float, r_max: float) -> None:
@@ -202,66 +257,89 @@ class _LinearProblem:
         self.r_max = r_max
         self.knots = knots
         self.fixed = ocv_fixed  # OCV at every sample, or None
+        self.rhs = prep.voltage_v - (ocv_fixed if ocv_fixed is not None else 0.0)
         n = prep.current_a.size
-        if ocv_fixed is None:
-            k = knots.size
-            cum = np.tril(np.ones((k, k)))  # v = cum @ [level, d_1..]
-            self.ocv_cols = _hat_basis(prep.soc, knots) @ cum
+        k = 0 if ocv_fixed is not None else knots.size
+        self.cum = np.tril(np.ones((k, k)))  # v = cum @ [level, d_1..]
+        self.hat = sparse.csr_matrix(_hat_basis(prep.soc, knots)) if k else None
+        self.pen_gram, self.pen_cross, self.pen_ss = np.zeros((k, k)), np.zeros(k), 0.0
+        if k:
             # penalty rows: second differences of v (= first differences of d), scaled so the
             # penalty's weight grows with the data and does not depend on the knot count
             scale = math.sqrt(n / k)
             d2 = np.zeros((k - 2, k))
             for r in range(k - 2):
                 d2[r, r:r + 3] = (1.0, -2.0, 1.0)
-            pen = [smooth_weight * scale * (d2 @ cum)]
+            pen = [smooth_weight * scale * (d2 @ self.cum)]
             pen_rhs = [np.zeros(k - 2)]
             if prior_v is not None and prior_weight > 0:
-                pen.append(prior_weight * scale * cum)
+                pen.append(prior_weight * scale * self.cum)
                 pen_rhs.append(prior_weight * scale * prior_v)
-            self.pen = np.vstack(pen)
-            self.pen_rhs = np.concatenate(pen_rhs)
-        else:
-            self.ocv_cols = np.zeros((n, 0))
-            self.pen = np.zeros((0, 0))
-            self.pen_rhs = np.zeros(0)
+            rows, rows_rhs = np.vstack(pen), np.concatenate(pen_rhs)
+            self.pen_gram, self.pen_cross, self.pen_ss = rows.T @ rows, rows.T @ rows_rhs, float(rows_rhs @ rows_rhs)
+
+    @property
+    def n_ocv(self) -> int:
+        return self.cum.shape[0]
+
+    @property
+    def level_floor(self) -> float:
+        """A level no OCV of this recording goes below (the free OCV level's stand-in lower bound
+        for the non-negative solver): 5 V under the lowest voltage measured."""
+        return float(np.min(self.prep.voltage_v)) - 5.0
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        k = self.ocv_cols.shape[1]
+        k = self.n_ocv
         lo = np.concatenate([[0.0, 0.0, 0.0], [-np.inf] if k else [], np.zeros(max(k - 1, 0))])
         hi = np.concatenate([[self.r_max] * 3, [np.inf] if k else [], np.full(max(k - 1, 0), np.inf)])
         return lo, hi
 
-    def design(self, x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        i = self.prep.current_a
-        a = np.column_stack([-i, -x1, -x2, self.ocv_cols])
-        rhs = self.prep.voltage_v - (self.fixed if self.fixed is not None else 0.0)
-        return a, rhs
+    def gram(self, c: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """``[A b]ᵀ W [A b]`` plus the penalty rows' own, with ``A = [c, hat·cum]`` (``c`` the
+        resistances' columns) and ``W = diag(w)``: the last row and column are the right-hand side's."""
+        cb = np.column_stack([c, self.rhs])
+        wcb = cb * w[:, None]
+        k, nc = self.n_ocv, c.shape[1]
+        p = nc + k
+        g = np.zeros((p + 1, p + 1))
+        small = cb.T @ wcb
+        idx = np.r_[0:nc, p]
+        g[np.ix_(idx, idx)] = small
+        if k:
+            hat_t = self.hat.T
+            g[nc:p, nc:p] = self.cum.T @ (hat_t @ self.hat.multiply(w[:, None])).toarray() @ self.cum + self.pen_gram
+            cross = self.cum.T @ (hat_t @ wcb)
+            cross[:, -1] += self.pen_cross
+            g[nc:p, idx] = cross
+            g[idx, nc:p] = cross.T
+            g[p, p] += self.pen_ss
+        return g
+
+    def predict(self, c: np.ndarray, coef: np.ndarray) -> np.ndarray:
+        """``A @ coef`` (without forming ``A``)."""
+        out = c @ coef[:c.shape[1]]
+        if self.n_ocv:
+            out = out + self.hat @ (self.cum @ coef[c.shape[1]:])
+        return out
 
     def solve(self, x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """Huber-weighted solution: ``(coefficients, residuals, robust cost)``."""
-        a, rhs = self.design(x1, x2)
-        w = np.ones(rhs.size)
+        c = -np.column_stack([self.prep.current_a, x1, x2])
+        w = np.ones(self.rhs.size)
         lo, hi = self.bounds()
-        coef = np.zeros(a.shape[1])
+        p = lo.size
         for _ in range(HUBER_PASSES):
-            sw = np.sqrt(w)
-            aw, bw = a * sw[:, None], rhs * sw
-            if self.pen.size:
-                pen = np.zeros((self.pen.shape[0], a.shape[1]))
-                pen[:, 3:] = self.pen
-                aw, bw = np.vstack([aw, pen]), np.concatenate([bw, self.pen_rhs])
             # the tall problem compressed to its triangular factor: the same minimiser
-            # (||A x - b||² = ||R x - Qᵀb||² + const) at a fraction of the cost
-            tri = _triangular_factor(np.column_stack([aw, bw]))
-            p = aw.shape[1]
-            coef = lsq_linear(tri[:p, :p], tri[:p, p], bounds=(lo, hi), method="bvls", tol=1e-12).x
-            resid = rhs - a @ coef
+            # (||A x - b||²_W = ||R x - Qᵀb||² + const) at a fraction of the cost
+            tri = _triangular_factor(self.gram(c, w))
+            coef = _bounded_lstsq(tri[:p, :p], tri[:p, p], lo, hi, self.level_floor)
+            resid = self.rhs - self.predict(c, coef)
             scale = max(1.4826 * float(np.median(np.abs(resid - np.median(resid)))), 1e-4)
             u = np.abs(resid) / (HUBER_K * scale)
             w = np.where(u <= 1.0, 1.0, 1.0 / np.maximum(u, 1e-12))
-        c = HUBER_K * scale
+        cut = HUBER_K * scale
         r = np.abs(resid)
-        cost = float(np.sum(np.where(r <= c, 0.5 * r**2, c * r - 0.5 * c**2)))
+        cost = float(np.sum(np.where(r <= cut, 0.5 * r**2, cut * r - 0.5 * cut**2)))
         return coef, resid, cost
 
     def knot_values(self, coef: np.ndarray) -> np.ndarray | None:
