@@ -23,6 +23,8 @@ class EstimateTrace:
     soc: np.ndarray
     v_pred: np.ndarray | None = None
     soc_std: np.ndarray | None = None
+    #: the filter's own SOC σ, before what it does not model is added (``soc_std`` is the published one)
+    filter_soc_std: np.ndarray | None = None
     #: identified parameters over time, name -> [T] array (for plots)
     params: dict[str, np.ndarray] = field(default_factory=dict)
 

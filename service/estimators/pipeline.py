@@ -588,6 +588,7 @@ class PipelineEstimator:
         T = len(recording)
         soc = np.empty(T)
         std = np.empty(T)
+        own_std = np.empty(T)
         vp = np.empty(T)
         params = {k: np.empty(T) for k in PARAMETER_NAMES}
         bias = np.empty(T) if self.settings.current_bias_state else None
@@ -596,7 +597,7 @@ class PipelineEstimator:
         for k in range(T):
             est.step(dt[k], recording.current_a[k], recording.voltage_v[k:k + 1], recording.temperature_c[k:k + 1], one)
             est.slow_update()
-            soc[k], std[k], vp[k] = est.soc[0], est.soc_std[0], est.v_pred[0]
+            soc[k], std[k], own_std[k], vp[k] = est.soc[0], est.soc_std[0], est.filter_soc_std[0], est.v_pred[0]
             p = est.params
             params["r_ohm"][k], params["r_ct"][k], params["c_dl"][k], params["m"][k] = p.r_ohm[0], p.r[0, 0], p.c[0, 0], p.alpha[0, 0]
             params["r_df"][k], params["c_df"][k], params["n"][k] = p.r[0, 1], p.c[0, 1], p.alpha[0, 1]
@@ -604,7 +605,7 @@ class PipelineEstimator:
                 bias[k] = est.ukf.current_bias_a[0]
         if bias is not None:
             params["current_bias_a"] = bias
-        return EstimateTrace(soc=soc, v_pred=vp, soc_std=std, params=params)
+        return EstimateTrace(soc=soc, v_pred=vp, soc_std=std, filter_soc_std=own_std, params=params)
 
 
 #: innovation window of the paper's FO-MI-UKF when the settings ask for a single innovation
