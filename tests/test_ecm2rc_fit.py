@@ -274,3 +274,38 @@ def test_the_2rc_start_point_keeps_the_diffusion_cap(cap_s: float | None) -> Non
     tau_df = (pt.r_df * pt.c_df) ** (1.0 / pt.n)
     assert tau_df == pytest.approx(min(400.0, cap_s or np.inf))
     assert (pt.r_ohm, pt.r_ct, pt.r_df) == (0.02, 0.01, 0.015)
+
+
+def test_the_fast_solver_gives_the_bounded_solvers_minimiser_on_and_off_a_ceiling():
+    """The non-negative solve is the bounded problem's minimiser where no ceiling binds, and a
+    solution past a resistance's ceiling goes to the general bounded solver (BVLS)."""
+    from scipy.optimize import lsq_linear
+
+    from service.characterisation.ecm2rc_fit import _bounded_lstsq
+
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(12, 6))
+    lo = np.array([0.0, 0.0, 0.0, -np.inf, 0.0, 0.0])
+    for x_true, ceiling in ((np.array([0.02, 0.01, 0.03, 3.6, 0.1, 0.0]), 2.0),
+                            (np.array([2.5, 0.01, 0.03, 3.6, 0.1, 0.2]), 2.0)):
+        b = a @ x_true + rng.normal(0.0, 1e-3, 12)
+        hi = np.array([ceiling] * 3 + [np.inf] * 3)
+        got = _bounded_lstsq(a, b, lo, hi, floor=-5.0)
+        want = lsq_linear(a, b, bounds=(lo, hi), method="bvls", tol=1e-12).x
+        np.testing.assert_allclose(got, want, atol=1e-9)
+        assert np.all(got <= hi + 1e-12) and np.all(got[np.isfinite(lo)] >= -1e-12)
+    assert got[0] == pytest.approx(2.0)  # the second case sits on its ceiling
+
+
+def test_branch_inputs_are_the_exact_recursion_on_regular_gapped_and_jittered_time():
+    from service.characterisation.ecm2rc_fit import _branch_inputs_stepwise, _prepare, branch_inputs
+
+    base = segment(600)
+    gapped = base.time_s.astype(float).copy()
+    gapped[300:] += 45.0  # one logging gap
+    jittered = np.cumsum(np.random.default_rng(5).uniform(0.5, 1.5, base.time_s.size))
+    taus = np.array([1.0, 8.0, 150.0, 1000.0])
+    for t in (base.time_s, gapped, jittered):
+        segs = [FitSegment(t, base.current_a, base.voltage_v, base.temperature_c, base.soc0), base]
+        prep = _prepare(segs, CAPACITY_AH)
+        np.testing.assert_allclose(branch_inputs(prep, taus), _branch_inputs_stepwise(prep, taus), rtol=0, atol=1e-12)
