@@ -248,8 +248,9 @@ class _LinearProblem:
 
     Unknowns: ``[R0, R1, R2]`` then, when the OCV is fitted, ``[level, d_1 .. d_{K-1}]``
     with the knot values ``v_j = level + Σ_{i ≤ j} d_i`` (``d ≥ 0``: monotone).  The OCV's
-    columns are the sparse hat basis times the cumulative sum, so the normal equations are
-    formed in O(samples) per pass without a dense ``samples × knots`` matrix."""
+    columns are the sparse hat basis (at most three knots per sample) times the cumulative sum,
+    so each Huber pass forms the normal equations in O(samples), not by stacking and multiplying
+    a dense ``samples × knots`` matrix."""
 
     def __init__(self, prep: _Prepared, ocv_fixed: np.ndarray | None, knots: np.ndarray,
                  prior_v: np.ndarray | None, smooth_weight: float, prior_weight: float, r_max: float) -> None:
