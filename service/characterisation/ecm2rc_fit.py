@@ -256,9 +256,10 @@ class _LinearProblem:
                  prior_v: np.ndarray | None, smooth_weight: float, prior_weight: float, r_max: float) -> None:
         self.prep = prep
         self.r_max = r_max
-        self.knots = knots
-        self.fixed = ocv_fixed  # OCV at every sample, or None
         self.rhs = prep.voltage_v - (ocv_fixed if ocv_fixed is not None else 0.0)
+        #: a level no OCV of this recording goes below (the free OCV level's stand-in lower bound
+        #: for the non-negative solver): 5 V under the lowest voltage measured
+        self.level_floor = float(np.min(prep.voltage_v)) - 5.0
         n = prep.current_a.size
         k = 0 if ocv_fixed is not None else knots.size
         self.cum = np.tril(np.ones((k, k)))  # v = cum @ [level, d_1..]
@@ -282,12 +283,6 @@ class _LinearProblem:
     @property
     def n_ocv(self) -> int:
         return self.cum.shape[0]
-
-    @property
-    def level_floor(self) -> float:
-        """A level no OCV of this recording goes below (the free OCV level's stand-in lower bound
-        for the non-negative solver): 5 V under the lowest voltage measured."""
-        return float(np.min(self.prep.voltage_v)) - 5.0
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         k = self.n_ocv
@@ -344,7 +339,7 @@ class _LinearProblem:
         return coef, resid, cost
 
     def knot_values(self, coef: np.ndarray) -> np.ndarray | None:
-        if self.fixed is not None:
+        if not self.n_ocv:
             return None
         return np.cumsum(coef[3:])
 
