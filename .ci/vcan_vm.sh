@@ -3,6 +3,10 @@
 # kernel has SocketCAN, with vcan0 up (mtu 72, so CAN FD works).
 #
 #   bash .ci/vcan_vm.sh [command...]      (from the repo root)
+#   bash .ci/vcan_vm.sh --prepare         (host tools, kernel and initramfs only; no boot)
+#
+# --prepare lets CI fetch and build everything the VM needs in the background while
+# the host test suite runs; the later boot finds it cached.
 #
 # Why a VM: the CI host kernel has no CAN (AF_CAN fails with errno 97, and
 # `ip link add type vcan` fails), and /dev/kvm does not boot a stock kernel, so
@@ -39,6 +43,11 @@ RECIPE=1
 # Modules the initramfs needs before the host root is mounted.
 INITRD_MODULES=(virtio_pci 9pnet_virtio 9p overlay)
 
+prepare_only=0
+if [ "${1:-}" = "--prepare" ]; then
+    prepare_only=1
+    shift
+fi
 if [ $# -eq 0 ]; then
     set -- python -m pytest -m vcan -v tests
 fi
@@ -154,6 +163,10 @@ flock -u 9
 kver=$(cat "$build_dir/kver")
 modules="$build_dir/kernel/lib/modules/$kver"
 prep_s=$(seconds_since "$started")
+if [ "$prepare_only" = 1 ]; then
+    log "prepared kernel $kver in $CACHE (${prep_s} s)"
+    exit 0
+fi
 
 # ---------------------------------------------------------- per-run script
 # The guest gets the host's environment essentials; PATH starts with the
