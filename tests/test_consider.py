@@ -70,8 +70,8 @@ def _run(settings: EstimatorSettings, n: int = 1800) -> tuple[np.ndarray, np.nda
 
 
 def test_only_the_published_sigma_moves() -> None:
-    soc, std, own, _ = _run(EstimatorSettings())
-    soc_off, std_off, own_off, _ = _run(EstimatorSettings(**OFF))
+    soc, std, own, _ = _run(EstimatorSettings(), n=1200)
+    soc_off, std_off, own_off, _ = _run(EstimatorSettings(**OFF), n=1200)
     np.testing.assert_array_equal(soc, soc_off)
     np.testing.assert_array_equal(own, own_off)
     np.testing.assert_array_equal(std_off, own_off)  # nothing considered: the filter's own σ

@@ -91,7 +91,7 @@ def _consistent_10hz(prof: CellProfile, drive: Recording) -> Recording:
 
 def test_the_filter_keeps_a_1s_profile_at_10hz(drive: Recording) -> None:
     prof = fractional_profile()
-    rec = _consistent_10hz(prof, drive)
+    rec = _consistent_10hz(prof, drive.slice(0, 401))  # 400 s: the last 100 s are scored
     est = PackEstimator(prof, 1, EstimatorSettings(), sample_period_s=sample_period_s(rec.time_s))
     assert est.memory_length == 160
     err = {}

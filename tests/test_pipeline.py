@@ -21,7 +21,7 @@ def _rmse_after(err: np.ndarray, time_s: np.ndarray, after_s: float = 600.0) -> 
 # -- convergence -------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", list(ESTIMATORS))
 def test_converges_from_wrong_start(nmc_recording, nmc_profile, name: str) -> None:
-    rec = nmc_recording(duration_s=1200, seed=0, soc0=0.9)
+    rec = nmc_recording(duration_s=900, seed=0, soc0=0.9)
     trace = ESTIMATORS[name]().run(load_recording(rec.path), nmc_profile, 0.7)
     err = trace.soc - rec.soc_true
     assert _rmse_after(err, rec.time_s) < 0.03
@@ -31,13 +31,13 @@ def test_converges_from_wrong_start(nmc_recording, nmc_profile, name: str) -> No
 
 
 def test_single_scale_converges_at_mid_soc(nmc_recording, nmc_profile) -> None:
-    rec = nmc_recording(duration_s=1200, seed=0, soc0=0.5)
+    rec = nmc_recording(duration_s=900, seed=0, soc0=0.5)
     trace = fom_single_scale().run(load_recording(rec.path), nmc_profile, 0.7)
     assert _rmse_after(trace.soc - rec.soc_true, rec.time_s) < 0.03
 
 
 def test_full_pipeline_parameters_stay_near_truth(nmc_recording, nmc_profile, nmc_true_parameters) -> None:
-    rec = nmc_recording(duration_s=1200, seed=0, soc0=0.5)
+    rec = nmc_recording(duration_s=900, seed=0, soc0=0.5)
     trace = fomiukf().run(load_recording(rec.path), nmc_profile, 0.7)
     for name in ("r_ohm", "r_ct", "r_df"):
         ratio = trace.params[name][-1] / nmc_true_parameters[name]
@@ -369,7 +369,7 @@ def _adapted_variance(profile, rec, settings: EstimatorSettings) -> tuple[float,
 
 
 def test_adaptive_noise_grows_only_when_the_model_is_wrong(nmc_recording, nmc_profile_factory) -> None:
-    rec = nmc_recording(duration_s=1500, seed=3, soc0=0.8)
+    rec = nmc_recording(duration_s=1000, seed=3, soc0=0.8)
     # the fixed part of the noise model held at 0.02 V/A and 0.02 A on this 2 Ah cell for both runs, so the
     # comparison is what the adaptation adds to one base (a larger fixed per-C-rate term also leans on the
     # current integral under load, and on this cell reaches about the same SOC error without adapting)
@@ -404,8 +404,9 @@ def _offset_run(rec, profile, settings: EstimatorSettings, offset_a: float):
 def test_current_offset_state_learns_a_sensor_offset(nmc_recording, nmc_profile) -> None:
     """The model is exact here, so a drift of SOC against the OCV is the offset's alone: with
     the offset state the filter learns it (sign and size) and keeps SOC closer to the truth
-    than the same filter without the state."""
-    rec = nmc_recording(duration_s=7200, seed=3, soc0=0.9)
+    than the same filter without the state (80 min: the offset is learned in about the first 10, and
+    the SOC is scored over the last 20)."""
+    rec = nmc_recording(duration_s=4800, seed=3, soc0=0.9)
     offset = 0.03 * nmc_profile.capacity_ah
     on = EstimatorSettings(current_bias_state=True, current_bias_init_std_c=0.05)
     with_state = _offset_run(rec, nmc_profile, on, offset)
@@ -419,7 +420,8 @@ def test_current_offset_state_learns_a_sensor_offset(nmc_recording, nmc_profile)
 
 
 def test_current_offset_state_stays_near_zero_without_an_offset(nmc_recording, nmc_profile) -> None:
-    rec = nmc_recording(duration_s=7200, seed=3, soc0=0.9)
+    # 40 min: four times what the state takes to learn a real offset (the test above)
+    rec = nmc_recording(duration_s=2400, seed=3, soc0=0.9)
     on = EstimatorSettings(current_bias_state=True, current_bias_init_std_c=0.05)
     trace = _offset_run(rec, nmc_profile, on, 0.0)
     assert abs(trace.params["current_bias_a"][-1]) < 0.005 * nmc_profile.capacity_ah
@@ -506,7 +508,9 @@ def _bumped_table(profile, bump_v: float):
 def test_ocv_error_state_holds_soc_against_a_local_table_error(nmc_recording, nmc_profile) -> None:
     """A table 10 mV high over mid SOC pulls a filter that reads it as white noise off by its
     offset over the OCV slope; with the OCV-error state the persistent residual is taken up by the
-    state and SOC stays closer to the truth.  On the exact table the state costs little."""
+    state and SOC stays closer to the truth.  On the exact table the state costs little (checked over
+    the first hour, from a start 0.2 off).  The table-error comparison needs the whole two hours: the
+    ratio grows toward its bar when the recording is cut or started lower."""
     rec = nmc_recording(duration_s=7200, seed=3, soc0=0.9)
     recording = load_recording(rec.path)
     wrong = _bumped_table(nmc_profile, 0.010)
@@ -514,8 +518,9 @@ def test_ocv_error_state_holds_soc_against_a_local_table_error(nmc_recording, nm
     err = {name: _rmse_after(fomiukf(s).run(recording, wrong, 0.9).soc - rec.soc_true, rec.time_s)
            for name, s in (("on", on), ("off", EstimatorSettings()))}
     assert err["on"] < 0.7 * err["off"], err
-    exact = fomiukf(on).run(recording, nmc_profile, 0.7)
-    assert _rmse_after(exact.soc - rec.soc_true, rec.time_s) < 0.01
+    hour = 3600
+    exact = fomiukf(on).run(recording.slice(0, hour), nmc_profile, 0.7)
+    assert _rmse_after(exact.soc - rec.soc_true[:hour], rec.time_s[:hour]) < 0.01
 
 
 def test_ocv_error_state_is_off_by_default() -> None:

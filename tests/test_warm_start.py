@@ -1,8 +1,8 @@
 """``socd evaluate --warm-start``: polarisation states driven by the current before the start.
 
 A cell with an hour-long relaxation branch is charged, rests ten minutes and is then
-driven: started relaxed, a filter reads the charge's leftover polarisation as SOC; warm,
-it does not.  Simulated with the model itself, so the truth is exact.
+driven for about twenty minutes: started relaxed, a filter reads the charge's leftover
+polarisation as SOC; warm, it does not.  Simulated with the model itself, so the truth is exact.
 """
 
 from __future__ import annotations
@@ -32,12 +32,13 @@ def _profile(**hyst: float) -> CellProfile:
 
 
 def _charge_rest_drive(seed: int = 0) -> tuple[Recording, int, np.ndarray]:
-    """40 min at 1C charge from 20 %, 10 min rest, about 50 min of 0.3-1.5C discharge steps and rests.
+    """40 min at 1C charge from 20 %, 10 min rest, about 20 min of 0.3-1.5C discharge steps and rests
+    (the leftover polarisation is largest early in the drive, so a longer one only dilutes it).
 
     Returns the recording, the index of the start point (end of the rest) and true SOC."""
     rng = np.random.default_rng(seed)
     cur = [np.full(2400, -2.0), np.zeros(600)]
-    for _ in range(60):
+    for _ in range(24):
         cur.append(np.full(int(rng.integers(20, 80)), float(rng.choice([0.6, 1.5, 3.0, 0.0]))))
     i = np.concatenate(cur)
     t = np.arange(i.size, dtype=float)
