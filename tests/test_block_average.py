@@ -85,11 +85,11 @@ def test_the_panasonic_10hz_log_averages_to_the_shared_1s_file() -> None:
 
 
 def test_fit_on_10hz_data_keeps_the_16s_memory_unless_told(tmp_path: Path, nmc_recording, capsys) -> None:
-    rec = nmc_recording(name="fast", duration_s=1200, seed=4, soc0=0.95, dt_s=0.1)
+    rec = nmc_recording(name="fast", duration_s=900, seed=4, soc0=0.95, dt_s=0.1)
     spans = {}
     for label, flags in (("default", []), ("recorded rate", ["--fit-period", "0"])):
         out = tmp_path / f"{label.replace(' ', '_')}.toml"
-        rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "-o", str(out), *flags])
+        rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "1", "--force", "-o", str(out), *flags])
         err = capsys.readouterr().err
         assert rc == 0, err
         assert ("block-averaged to 1 s" in err) == (label == "default"), err

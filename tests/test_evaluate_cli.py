@@ -274,7 +274,7 @@ def test_current_bias_reaches_the_estimators_not_the_truth(tmp_path: Path, nmc_r
     rec = nmc_recording(name="drive", duration_s=900, seed=5, soc0=0.9)
 
     def max_error(bias: str) -> float:
-        assert main(["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "coulomb",
+        assert main(["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "coulomb", "--no-bar",
                      "--init-soc-error", "0", "--current-bias-c", bias, "--quiet",
                      "--json", str(tmp_path / "r.json")]) == 0
         doc = json.loads((tmp_path / "r.json").read_text())
@@ -294,10 +294,10 @@ def test_offset_state_learns_the_evaluate_offset_and_writes_it_to_the_traces(
         tmp_path: Path, nmc_recording, nmc_profile_file, nmc_profile, capsys) -> None:
     """``current_bias_state`` in the settings file: the traces CSV gains the learned offset,
     which approaches the offset ``--current-bias-c`` added (the model is exact here)."""
-    rec = nmc_recording(name="drive", duration_s=5400, seed=3, soc0=0.9)
+    rec = nmc_recording(name="drive", duration_s=1800, seed=3, soc0=0.9)  # learned by about 600 s
     (tmp_path / "s.toml").write_text("current_bias_state = true\ncurrent_bias_init_std_c = 0.05\n")
     rc = main(["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "foukf",
-               "--estimator", "coulomb", "--current-bias-c", "0.03", "--settings", str(tmp_path / "s.toml"),
+               "--estimator", "coulomb", "--no-bar", "--current-bias-c", "0.03", "--settings", str(tmp_path / "s.toml"),
                "--quiet", "--traces", str(tmp_path / "tr")])
     assert rc == 0, capsys.readouterr().err
     tr = np.genfromtxt(tmp_path / "tr" / "drive_traces.csv", delimiter=",", names=True)
@@ -310,7 +310,7 @@ def test_settings_file_tunes_both_the_pipeline_and_the_ekf(tmp_path: Path, nmc_r
                                                           capsys) -> None:
     """One settings file: top-level fields tune the pipeline, [ecm2rc_ekf] the 2-RC EKF (same file
     for a grid over both); each table reaches its own estimator and only it."""
-    rec = nmc_recording(name="drive", duration_s=900, seed=5, soc0=0.9)
+    rec = nmc_recording(name="drive", duration_s=300, seed=5, soc0=0.9)
 
     def run(text: str | None) -> dict[str, float]:
         argv = ["evaluate", str(rec.path), "--cell", str(nmc_profile_file), "--estimator", "foukf",
@@ -548,11 +548,11 @@ def test_fit_stores_the_textbook_2rc_model_beside_the_fractional_one(tmp_path: P
     to it, and ``ecm2rc-ekf`` then runs on the stored 2-RC parameters."""
     rec = nmc_recording(name="fitdrive", duration_s=2400, seed=4, soc0=0.95)
     out = tmp_path / "fitted.toml"
-    rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "5", "-o", str(out)])
+    rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "2", "-o", str(out)])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     assert "textbook 2-RC at 25 °C" in captured.err
-    assert "search finished in" in captured.err or "search stopped at its 5 s bound" in captured.err
+    assert "search finished in" in captured.err or "search stopped at its 2 s bound" in captured.err
     prof = load_profile(out)
     assert prof.ecm2rc is not None and len(prof.ecm2rc.points) == 1
     pt = prof.ecm2rc.points[0]
@@ -571,7 +571,7 @@ def test_fit_refuses_a_recording_no_model_follows_and_writes_nothing(tmp_path: P
     rows = zip(rec.time_s, rec.current_a, 3.7 + rng.normal(0.0, 0.3, rec.time_s.size), rec.temperature_c)
     bad.write_text("time_s,current_a,voltage_v,temperature_c\n" + "".join(f"{t},{i},{v},{c}\n" for t, i, v, c in rows))
     out, report = tmp_path / "never.toml", tmp_path / "never.json"
-    args = ["fit", "--candidates", "1", str(bad), "--capacity-ah", "2.0", "--max-seconds", "3", "-o", str(out),
+    args = ["fit", "--candidates", "1", str(bad), "--capacity-ah", "2.0", "--max-seconds", "1", "-o", str(out),
             "--report", str(report)]
     err = _fail(args, capsys)
     assert "25 °C" in err and "Nothing written" in err and "--force" in err
@@ -674,7 +674,7 @@ def test_several_starts_keep_the_search_that_fits_best(nmc_recording, monkeypatc
 
     monkeypatch.setattr(ch, "fit_parameters", first_far_off)
     rec = nmc_recording(name="starts", duration_s=2400, seed=4, soc0=0.95)
-    _profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=False, max_seconds=5,
+    _profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=False, max_seconds=2,
                                       seed=7, starts=2)
     (t,) = report.temperatures
     assert seeds == [7, 8]
@@ -718,7 +718,7 @@ def test_a_search_that_ends_on_the_2rc_submodel_keeps_the_2rc_fits_point(nmc_rec
 
     monkeypatch.setattr(ch, "fit_parameters", on_submodel)
     rec = nmc_recording(name="submodel", duration_s=2400, seed=4, soc0=0.95)
-    profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=False, max_seconds=5)
+    profile, report = ch.characterise([load_recording(rec.path)], 2.0, [None], fit_kinetics=False, max_seconds=2)
     (t,) = report.temperatures
     assert ch.on_2rc_submodel(searched["point"])
     assert searched["point"].c_dl != pytest.approx(profile.parameters[0].c_dl, rel=1e-3)
@@ -754,10 +754,10 @@ def test_fit_caps_the_diffusion_time_constant_where_told(tmp_path: Path, nmc_rec
     the textbook 2-RC's slow bound, and the help says so."""
     from service.characterisation.characterise import MAX_TAU_DF_S
 
-    rec = nmc_recording(name="fitdrive", duration_s=2400, seed=4, soc0=0.95)
+    rec = nmc_recording(name="fitdrive", duration_s=1200, seed=4, soc0=0.95)
     for cap, out in ((None, tmp_path / "default.toml"), (40.0, tmp_path / "capped.toml")):
         flags = [] if cap is None else ["--max-tau-df", f"{cap:g}"]
-        rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "5", "--force", "-q", *flags,
+        rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "1", "--force", "-q", *flags,
                    "-o", str(out)])
         assert rc == 0, capsys.readouterr().err
         pt = load_profile(out).parameters[0]
@@ -779,7 +779,7 @@ def test_evaluate_warns_when_the_recording_rests_above_the_profile_s_full_charge
     low = [[v - 0.3 for v in row] for row in bundled.ocv.ocv_v]
     cell = tmp_path / "other_cell.toml"
     save_profile(bundled.model_copy(update={"ocv": bundled.ocv.model_copy(update={"ocv_v": low})}), cell)
-    assert main(["evaluate", "--cell", str(cell), str(bundled_recording()), "--estimator", "coulomb", "-q",
+    assert main(["evaluate", "--cell", str(cell), str(bundled_recording()), "--estimator", "coulomb", "--no-bar", "-q",
                  "--json", str(tmp_path / "r.json")]) == 0
     err = capsys.readouterr().err
     assert "its voltage at rest or light load reaches" in err and "of the profile 'panasonic_18650pf'" in err

@@ -77,8 +77,8 @@ def test_branch_derivatives_match_finite_differences() -> None:
 )
 def test_parameter_ekf_recovers_resistances(nmc_recording, nmc_profile_factory, truth, names, start) -> None:
     """Started 30 % off with a prior σ of 30 %, the EKF gets R_ohm within 15 % and R_ct
-    within 20 % in 20 minutes of pulses (measured: ~3 % and ~8 %)."""
-    rec = nmc_recording(duration_s=1200, seed=1, soc0=0.9)
+    within 20 % in 10 minutes of pulses (measured: at most ~3.5 % and ~5 %)."""
+    rec = nmc_recording(duration_s=600, seed=1, soc0=0.9)
     true_r_ohm, true_r_ct = truth["r_ohm"], truth["r_ct"]
     prof = nmc_profile_factory(r_ohm=true_r_ohm * start[0], r_ct=true_r_ct * start[1])
     s = EstimatorSettings(slow_identifier=False)
@@ -121,7 +121,7 @@ def test_identifier_matches_its_noise_and_then_moves_less_on_it(nmc_recording, n
     """Voltage error far beyond the identifier's fixed R (30 mV against 10 mV): the matched
     variance learns it and the identified resistances wander less than with the fixed R; on the
     clean recording it learns little and stays near the truth."""
-    rec = nmc_recording(duration_s=1500, seed=2, soc0=0.9)
+    rec = nmc_recording(duration_s=600, seed=2, soc0=0.9)
     matched = EstimatorSettings(adaptive_noise_samples=300)
     fixed = EstimatorSettings(adaptive_noise_samples=0)
     noisy_matched, est = _identified_spread(rec, nmc_profile, matched, 0.03)

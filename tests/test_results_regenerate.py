@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from service.cli import main
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "docs" / "results" / "regenerate.py"
 A123 = ROOT.parent / "shared" / "data" / "real" / "calce_a123"
@@ -73,11 +75,23 @@ def test_latency_table_carries_the_run_s_figures(regen, tmp_path):
     assert cells[1] == "8" and cells[5] == f"{got['put_ms']['p50']:.1f} / {got['put_ms']['p99']:.1f}"
 
 
+def head(src: Path, dst: Path, until_s: float) -> Path:
+    """``src``'s header and its rows stamped before ``until_s`` (its first column is ``time_s``), written to ``dst``."""
+    header, *rows = src.read_text().splitlines(keepends=True)
+    dst.write_text(header + "".join(r for r in rows if float(r.split(",", 1)[0]) < until_s))
+    return dst
+
+
 @pytest.mark.skipif(not A123.is_dir(), reason="needs ../shared/data/real/calce_a123")
-def test_evaluate_table_is_the_mean_of_the_run_s_rows(regen, tmp_path):
-    socd("evaluate", "--cell", "configs/cells/calce_a123.toml", str(A123 / "calce_a123_20C_FUDS.csv"),
-         str(A123 / "calce_a123_20C_US06.csv"), "--full-at", "4478", "--full-at", "4436",
-         "--estimator", "ecm2rc-ekf", "--estimator", "coulomb", "--quiet", "--json", str(tmp_path / "a.json"))
+def test_evaluate_table_is_the_mean_of_the_run_s_rows(regen, tmp_path, capsys):
+    """A real ``socd evaluate`` (in this process) on two CALCE A123 drives, each cut 30 minutes after
+    its full charge (the runs score from there, the RMSE after 600 s over the last 20 minutes)."""
+    (tmp_path / "rec").mkdir()
+    recs = [head(A123 / f"calce_a123_20C_{drive}.csv", tmp_path / "rec" / f"calce_a123_20C_{drive}.csv", full + 1800.0)
+            for drive, full in (("FUDS", 4478.0), ("US06", 4436.0))]
+    assert main(["evaluate", "--cell", str(ROOT / "configs" / "cells" / "calce_a123.toml"), *map(str, recs),
+                 "--full-at", "4478", "--full-at", "4436", "--estimator", "ecm2rc-ekf", "--estimator", "coulomb",
+                 "--quiet", "--json", str(tmp_path / "a.json")]) == 0, capsys.readouterr().err
     results = json.loads((tmp_path / "a.json").read_text())["results"]
     table = regen.evaluate_table("a.json")(tmp_path)
     lines = table.splitlines()
@@ -154,21 +168,23 @@ def test_a_table_waits_for_the_tables_it_needs(regen):
         regen.waves([a, b])
 
 
-def test_seed_spread_table_reads_the_fit_logs_and_the_evaluations(regen, tmp_path, nmc_recording):
-    """Two real ``socd fit`` runs (seeds 0 and 1, their logs kept as the table's script keeps them) and
-    ``socd evaluate`` on each: the table gives each run's SOC RMSE after 600 s and the fit RMSE its log
-    printed, and the averaged row is the mean of the runs' figures."""
-    rec = nmc_recording(name="spread", duration_s=2400, seed=4, soc0=0.95)
+def test_seed_spread_table_reads_the_fit_logs_and_the_evaluations(regen, tmp_path, nmc_recording, capsys):
+    """Two real ``socd fit`` runs (seeds 0 and 1, their logs kept as the table's script keeps them: what
+    they wrote to stdout and stderr) and ``socd evaluate`` on each, in this process: the table gives each
+    run's SOC RMSE after 600 s and the fit RMSE its log printed, and the averaged row is the mean of the
+    runs' figures."""
+    rec = nmc_recording(name="spread", duration_s=700, seed=4, soc0=0.95)
     (tmp_path / "seeds").mkdir()
+    capsys.readouterr()
     for s in (0, 1):
         stem = tmp_path / "seeds" / f"s{s}"
-        done = subprocess.run([sys.executable, "-m", "service.cli", "fit", "--candidates", "1", str(rec.path),
-                               "--capacity-ah", "2.0", "--max-seconds", "3", "--force", "--seed", str(s), "-o", f"{stem}.toml"],
-                              cwd=ROOT, capture_output=True, text=True, check=False)
-        assert done.returncode == 0, done.stderr
-        Path(f"{stem}.fitlog").write_text(done.stdout + done.stderr)
-        socd("evaluate", "--cell", f"{stem}.toml", str(rec.path), "--estimator", "fomiukf", "--no-bar", "--quiet",
-             "--json", f"{stem}.json")
+        rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "1", "--force",
+                   "--seed", str(s), "-o", f"{stem}.toml"])
+        done = capsys.readouterr()
+        assert rc == 0, done.err
+        Path(f"{stem}.fitlog").write_text(done.out + done.err)
+        assert main(["evaluate", "--cell", f"{stem}.toml", str(rec.path), "--estimator", "fomiukf", "--no-bar",
+                     "--quiet", "--json", f"{stem}.json"]) == 0, capsys.readouterr().err
     table = regen.seed_spread_table((("seed 0", "seeds/s0"), ("seed 1", "seeds/s1")), ("25",),
                                     (("all", r"spread"),), averaged=2)(tmp_path)
     lines = table.splitlines()

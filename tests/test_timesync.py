@@ -264,7 +264,7 @@ def daemon_config(tmp_path: Path, time_signal: str | None, tag: str):
 
 @pytest.fixture(scope="module")
 def drive():
-    rec = load_recording(RECORDING).slice(0, 1500)  # 25 minutes of US06 from full charge
+    rec = load_recording(RECORDING).slice(0, 750)  # 12.5 minutes of US06 from full charge
     profile = load_profile(DEFAULT_CELL_PROFILE)
     cfg = config(8)
     frames, pack = pack_frames(rec, cfg, profile, 8, SpreadSpec(soc=0.02, capacity=0.02), seed=5, start_soc=1.0)
