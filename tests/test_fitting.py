@@ -87,7 +87,7 @@ def test_fit_recovers_known_parameters():
 
 
 def test_fit_hysteresis_recovers_u_h():
-    n = 2400
+    n = 1200
     t = np.arange(n, dtype=float)
     i = pulse_current(n, 2.0, 5)
     temp = np.full(n, 25.0)
@@ -388,11 +388,12 @@ def test_fit_shares_the_reference_temperatures_shape(tmp_path: Path, nmc_recordi
     from service.cell.profile import load_profile
     from service.cli import main
 
-    drives = [nmc_recording(name=f"drive{t:g}", duration_s=1800, seed=5, soc0=0.95, temp_c=t, r_ohm=r)
+    # 15-min drives searched for 10 s each: about as many generations as 30-min drives get in 20 s
+    drives = [nmc_recording(name=f"drive{t:g}", duration_s=900, seed=5, soc0=0.95, temp_c=t, r_ohm=r)
               for t, r in ((25.0, 0.03), (0.0, 0.06))]
     out = tmp_path / "cell.toml"
     rc = main(["fit", "--candidates", "1", *(str(d.path) for d in drives), "--ocv", str(nmc_ocv_csv), "--capacity-ah", "2.0",
-               "--max-seconds", "20", "--force", *(("--shape", shape) if shape else ()), "-q", "-o", str(out),
+               "--max-seconds", "10", "--force", *(("--shape", shape) if shape else ()), "-q", "-o", str(out),
                # the diffusion time constant's cap (1000 s) would bend a held ratio where tau_ct x ratio is above it
                *(("--max-tau-df", "1e5") if shape == "orders-ratio" else ())])
     err = capsys.readouterr().err

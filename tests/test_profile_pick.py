@@ -34,7 +34,7 @@ def test_the_fit_file_score_is_socd_evaluates_mean_on_the_fit_recordings_but_the
     defaults (the research table fit_file_pick measured the rule that way); an OCV test among
     the fit recordings is left out.  Both score the profile as saved (12 significant digits: the
     score of a tiny SOC error moves by parts in 1e9 with the last digits)."""
-    drives = [nmc_recording(name=f"drive{k}", duration_s=1500, seed=k, soc0=0.9) for k in (1, 2)]
+    drives = [nmc_recording(name=f"drive{k}", duration_s=900, seed=k, soc0=0.9) for k in (1, 2)]
     ocv_test = write_ocv_test(tmp_path / "ocv25.csv", 25.0, 0.0)
     recs = [load_recording(ocv_test), *(load_recording(d.path) for d in drives)]
     kept, full = scored_recordings(recs, [None] * 3, NMC_CAPACITY_AH)
@@ -77,10 +77,10 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     the line. With --starts 2 each candidate runs two searches per temperature, so the second candidate
     starts two seeds on (6 and 7 after 4 and 5): no search is run twice."""
     assert DEFAULT_CANDIDATES == 2
-    drive = nmc_recording(name="drive", duration_s=2400, seed=3, soc0=0.95)
+    drive = nmc_recording(name="drive", duration_s=900, seed=3, soc0=0.95)
     out, report = tmp_path / "cell.toml", tmp_path / "fit.json"
     assert main(["fit", str(drive.path), "--ocv", str(nmc_ocv_csv), "--capacity-ah", str(NMC_CAPACITY_AH),
-                 "--max-seconds", "3", "--force", "--seed", "4", "--starts", "2", "-o", str(out),
+                 "--max-seconds", "2", "--force", "--seed", "4", "--starts", "2", "-o", str(out),
                  "--report", str(report)]) == 0
     err = capsys.readouterr().err
     assert "candidate profile 2 of 2: the fit again with optimiser seed 6 (the first used 4)" in err

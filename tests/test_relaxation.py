@@ -9,7 +9,7 @@ import pytest
 
 from service.cell.profile import BranchSpec, CellProfile, Extensions
 from service.cell.trajectory import simulate
-from service.characterisation.characterise import characterise
+from service.characterisation.characterise import FitReport, characterise
 from service.characterisation.relaxation import long_rests, measure_slow_relaxation, rc_voltage
 from service.recording import Recording
 from tests.test_fitting import TRUE, nmc_like_ocv
@@ -40,6 +40,20 @@ def _lab_test(with_slow: bool, seed: int = 0, rest_s: float = 7200.0) -> Recordi
     v, _ = simulate(prof, t, i, np.full(t.size, 25.0), 1.0)
     v = v + rng.normal(0.0, 0.2e-3, v.size)
     return Recording(Path(f"lab_{seed}.csv"), t, i, v, np.full(t.size, 25.0))
+
+
+#: the fractional search's time bound where a test reads only what does not come from that search (the
+#: OCV table, fitted jointly with the textbook 2-RC model, and the slow branch, measured from the rests)
+SEARCH_S = 1.0
+
+
+@pytest.fixture(scope="module")
+def anchored_fit() -> tuple[Recording, CellProfile, FitReport]:
+    """The lab test with a slow branch and its fit with the defaults (the rest anchor on): ``(rec, profile,
+    report)``, shared by the tests that read it."""
+    rec = _lab_test(True)
+    prof, report = characterise([rec], 2.0, [None], max_seconds=SEARCH_S)
+    return rec, prof, report
 
 
 def test_rc_voltage_matches_the_step_recursion_on_uneven_steps():
@@ -77,7 +91,7 @@ def test_without_a_long_rest_fit_says_what_is_missing():
 
 
 def test_profile_carries_the_measured_branch():
-    prof, _ = characterise([_lab_test(True)], 2.0, [None], slow_branch=True, max_seconds=4)
+    prof, _ = characterise([_lab_test(True)], 2.0, [None], slow_branch=True, max_seconds=SEARCH_S)
     (branch,) = prof.extensions.extra_branches
     assert branch.r == pytest.approx(SLOW.r, rel=0.1)
     assert branch.r * branch.c == pytest.approx(SLOW.r * SLOW.c, rel=0.1)
@@ -95,12 +109,11 @@ def _table_error_at_rests_mv(prof: CellProfile, rec: Recording, temp_c: float = 
             for p in rest_points(rec, 2.0, 1.0, extrapolate=True)[1:]]
 
 
-def test_rest_anchor_puts_the_joint_table_through_the_relaxed_rest_voltages():
+def test_rest_anchor_puts_the_joint_table_through_the_relaxed_rest_voltages(anchored_fit):
     """A cell with a slow branch, fitted without one: the rest anchor (the default) shifts the jointly
     fitted OCV onto the voltages the rests relaxed to, closer than the free joint fit passes them."""
-    rec = _lab_test(True)
-    free, free_report = characterise([rec], 2.0, [None], rest_anchor=False, max_seconds=4)
-    anchored, report = characterise([rec], 2.0, [None], max_seconds=4)
+    rec, anchored, report = anchored_fit
+    free, free_report = characterise([rec], 2.0, [None], rest_anchor=False, max_seconds=SEARCH_S)
     # with --no-rest-anchor the log says how far the joint table sits from the rests
     (said,) = [line for line in free_report.lines if "relaxed voltage minus the joint OCV" in line]
     assert "3 rest(s)" in said and "--no-rest-anchor" in said
@@ -118,27 +131,26 @@ def test_rest_anchor_anchors_every_temperature_at_its_own_rests():
     warm = _lab_test(True)
     cold = Recording(Path("lab_cold.csv"), warm.time_s, warm.current_a, warm.voltage_v - 0.015,
                      np.full(warm.time_s.size, 10.0))
-    prof, report = characterise([warm, cold], 2.0, [None, None], rest_anchor=True, max_seconds=4)
+    prof, report = characterise([warm, cold], 2.0, [None, None], rest_anchor=True, max_seconds=SEARCH_S)
     for rec, temp in ((warm, 25.0), (cold, 10.0)):
         err = _table_error_at_rests_mv(prof, rec, temp)
         assert len(err) == 2 and max(abs(e) for e in err) < 0.5, (temp, err)
     assert sum("anchored at the relaxed rest voltage" in line for line in report.lines) == 2
 
 
-def test_default_anchors_where_a_long_rest_exists_and_keeps_the_joint_table_where_none_does():
-    rec = _lab_test(True)
-    default, _ = characterise([rec], 2.0, [None], max_seconds=4)
-    required, _ = characterise([rec], 2.0, [None], rest_anchor=True, max_seconds=4)
+def test_default_anchors_where_a_long_rest_exists_and_keeps_the_joint_table_where_none_does(anchored_fit):
+    rec, default, _ = anchored_fit
+    required, _ = characterise([rec], 2.0, [None], rest_anchor=True, max_seconds=SEARCH_S)
     assert default.ocv.ocv_v == required.ocv.ocv_v
     short = _lab_test(True, rest_s=300.0)
     short = short.slice(int(np.searchsorted(short.time_s, 600.0)))
-    kept, report = characterise([short], 2.0, [None], max_seconds=2)
-    free, _ = characterise([short], 2.0, [None], rest_anchor=False, max_seconds=2)
+    kept, report = characterise([short], 2.0, [None], max_seconds=SEARCH_S)
+    free, _ = characterise([short], 2.0, [None], rest_anchor=False, max_seconds=SEARCH_S)
     assert kept.ocv.ocv_v == free.ocv.ocv_v
     assert any("no rest of 600 s or more to anchor" in line for line in report.lines)
     # an OCV table given: nothing to anchor, and no error without the flag
     table = (np.array(nmc_like_ocv().soc), np.array(nmc_like_ocv().ocv_v[0]))
-    characterise([rec], 2.0, [None], ocv_table=table, max_seconds=2)
+    characterise([rec], 2.0, [None], ocv_table=table, max_seconds=SEARCH_S)
 
 
 def test_rest_anchor_needs_a_jointly_fitted_table_and_a_long_rest():
