@@ -755,14 +755,17 @@ def test_fit_caps_the_diffusion_time_constant_where_told(tmp_path: Path, nmc_rec
     from service.characterisation.characterise import MAX_TAU_DF_S
 
     rec = nmc_recording(name="fitdrive", duration_s=1200, seed=4, soc0=0.95)
-    for cap, out in ((None, tmp_path / "default.toml"), (40.0, tmp_path / "capped.toml")):
+    cap_s = 10.0  # under the time constant the uncapped fit finds here, so the cap has to bind
+    tau_df = {}
+    for cap, out in ((None, tmp_path / "default.toml"), (cap_s, tmp_path / "capped.toml")):
         flags = [] if cap is None else ["--max-tau-df", f"{cap:g}"]
         rc = main(["fit", "--candidates", "1", str(rec.path), "--capacity-ah", "2.0", "--max-seconds", "1", "--force", "-q", *flags,
                    "-o", str(out)])
         assert rc == 0, capsys.readouterr().err
         pt = load_profile(out).parameters[0]
-        tau_df = (pt.r_df * pt.c_df) ** (1.0 / pt.n)
-        assert tau_df <= (cap or MAX_TAU_DF_S) * (1 + 1e-6)
+        tau_df[cap] = (pt.r_df * pt.c_df) ** (1.0 / pt.n)
+        assert tau_df[cap] <= (cap or MAX_TAU_DF_S) * (1 + 1e-6)
+    assert tau_df[None] > 1.5 * cap_s, tau_df
     assert main(["fit", "--help"]) == 0
     assert f"default {MAX_TAU_DF_S:g}" in " ".join(capsys.readouterr().out.split())
 
