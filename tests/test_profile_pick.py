@@ -85,14 +85,16 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     err = capsys.readouterr().err
     assert "candidate profile 2 of 2: the fit again with optimiser seed 6 (the first used 4)" in err
     assert re.findall(r"search \d of 2 \(seed (\d)\)", err) == ["4", "5", "6", "7"], err
-    m = re.search(r"profile pick: .*: seed 4 ([\d.]+) %, seed 6 ([\d.]+) %; keeping seed (\d)'s", err)
+    m = re.search(r"profile pick: .*: seed 4 ([\d.]+) %, seed 6 ([\d.]+) %; keeping seed (\d)'s; seed \d's profile "
+                  r"with its 25 °C point the textbook 2-RC point \(no hysteresis\) reads ([\d.]+) %; "
+                  r"(writing that point|keeping the fitted point)", err)
     assert m, err
     readings = {4: float(m.group(1)), 6: float(m.group(2))}
-    kept = int(m.group(3))
+    kept, two_rc = int(m.group(3)), float(m.group(4))
     assert readings[kept] == min(readings.values())
     written = load_profile(out)
     again = fit_file_score(written, kept, [load_recording(drive.path)], [None])
-    assert round(again.soc_rmse_after_600s_pct, 2) == pytest.approx(readings[kept], abs=0.006)
+    assert round(again.soc_rmse_after_600s_pct, 2) == pytest.approx(min(readings[kept], two_rc), abs=0.006)
     # the profile keeps the pick's readings and the seed kept after the log is gone
     assert written.notes["profile_pick"] == m.group(0).removeprefix("profile pick: ")
     # --report says the same by machine: both candidates, their readings, which one the profile is
@@ -100,6 +102,11 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     assert summary.profile == str(out) and summary.profile_pick == written.notes["profile_pick"]
     assert [c.seed for c in summary.candidates] == [4, 6] and summary.written().seed == kept
     assert {c.seed: round(c.fit_file_soc_rmse_after_600s_pct, 2) for c in summary.candidates} == readings
+    assert round(summary.written().reference_two_rc_soc_rmse_after_600s_pct, 2) == two_rc
+    w = summary.written()
+    assert w.reference_two_rc_written == (m.group(5) == "writing that point")
+    assert w.reference_two_rc_written == (w.reference_two_rc_soc_rmse_after_600s_pct < w.fit_file_soc_rmse_after_600s_pct)
+    assert all(c.reference_two_rc_soc_rmse_after_600s_pct is None for c in summary.candidates if not c.written)
     for c in summary.candidates:
         assert [t.temp_c for t in c.temperatures] == [25.0] and c.refusal is None
         assert any(f"seed {c.seed}" in line for line in c.log), "each candidate keeps its own log"
@@ -126,3 +133,70 @@ def test_where_the_evaluation_refuses_a_fit_recordings_truth_the_first_candidate
     assert got.seed == 0 and got.readings == {}
     assert got.profile.name == "first" and "cannot be scored" in got.profile.notes["profile_pick"]
     assert "cannot be scored" in capsys.readouterr().err and "keeping seed 0's" in log.lines[-1]
+
+
+def _with_two_rc(profile, r_scale: float = 1.0):
+    """``profile`` with a stored textbook 2-RC fit at each of its temperatures: the synthetic cell's
+    resistances and time constants (``r_scale`` times the branch resistances) and its OCV."""
+    from service.cell.profile import Ecm2RcPoint, Ecm2RcSpec
+    from tests.conftest import NMC_PARAMETERS, TAU_CT_S, TAU_DF_S
+
+    p = NMC_PARAMETERS
+    points = [Ecm2RcPoint(temp_c=q.temp_c, r0=p["r_ohm"], r1=p["r_ct"] * r_scale, tau1_s=TAU_CT_S,
+                          r2=p["r_df"] * r_scale, tau2_s=TAU_DF_S) for q in profile.parameters]
+    return profile.model_copy(update={"ecm2rc": Ecm2RcSpec(ocv=profile.ocv, points=points)})
+
+
+def test_the_reference_two_rc_variant_sets_only_the_point_nearest_25c(nmc_profile_factory) -> None:
+    """The variant the pick reads last: the point nearest 25 °C is the stored 2-RC point in the
+    fractional form (orders 1, C = τ/R), the others stay; none without a 2-RC fit, and none where
+    the reference point already is the 2-RC point."""
+    from service.characterisation.characterise import ecm_start_point
+    from service.characterisation.profile_pick import reference_two_rc_variant
+    from tests.conftest import NMC_PARAMETERS, TAU_CT_S, TAU_DF_S
+
+    fractional = nmc_profile_factory(temps_c=(10.0, 23.0, 40.0))
+    assert reference_two_rc_variant(fractional) is None
+    profile = _with_two_rc(fractional)
+    variant = reference_two_rc_variant(profile)
+    assert variant is not None
+    cold, ref, warm = variant.parameters
+    assert cold == profile.parameters[0] and warm == profile.parameters[2]
+    assert ref.temp_c == 23.0 and ref.m == 1.0 and ref.n == 1.0
+    assert ref.r_ct == pytest.approx(NMC_PARAMETERS["r_ct"]) and ref.r_ct * ref.c_dl == pytest.approx(TAU_CT_S)
+    assert ref.r_df * ref.c_df == pytest.approx(TAU_DF_S)
+    already = profile.model_copy(update={"parameters": [
+        ecm_start_point(e, e.temp_c) if e.temp_c == 23.0 else q for e, q in zip(profile.ecm2rc.points, profile.parameters)]})
+    assert reference_two_rc_variant(already) is None
+
+
+@pytest.mark.parametrize("truth", ["two_rc", "fractional"])
+def test_the_pick_writes_the_reference_two_rc_point_only_where_the_filter_reads_the_fit_recordings_better_on_it(
+        tmp_path: Path, nmc_recording, nmc_profile_factory, truth: str) -> None:
+    """A recording made by a 2-RC cell (orders 1) is read better on the stored 2-RC point than on a
+    fractional fit that missed it, so that point is written; made by the fractional cell, whose 2-RC
+    fit is off (branch resistances three times too large), the fitted point stays. Both
+    readings are in the pick's note and in the summary fields."""
+    import argparse
+
+    from tests.conftest import TAU_CT_S, TAU_DF_S
+
+    if truth == "two_rc":
+        drive = nmc_recording(name="drive", duration_s=1000, seed=5, soc0=0.9, m=1.0, n=1.0,
+                              c_dl=TAU_CT_S / 0.01, c_df=TAU_DF_S / 0.02)
+        fitted = _with_two_rc(nmc_profile_factory(r_ct=0.03, m=0.5, r_df=0.06, n=0.5))
+    else:
+        drive = nmc_recording(name="drive", duration_s=1000, seed=5, soc0=0.9)
+        fitted = _with_two_rc(nmc_profile_factory(), r_scale=3.0)
+    log = fit_report(argparse.Namespace(quiet=True), Bar(None, None))
+    got = choose([Candidate(0, fitted, None, log), Candidate(1, fitted, None, log)], [load_recording(drive.path)],
+                 [None], log, Bar(None, None))
+    note = got.profile.notes["profile_pick"]
+    assert got.reference_two_rc is not None and got.readings[0] is not None
+    assert "with its 25 °C point the textbook 2-RC point (no hysteresis) reads" in note, note
+    if truth == "two_rc":
+        assert got.reference_two_rc < got.readings[0] and got.reference_two_rc_written
+        assert got.profile.parameters[0].m == 1.0 and "writing that point" in note
+    else:
+        assert got.reference_two_rc > got.readings[0] and not got.reference_two_rc_written
+        assert got.profile.parameters == fitted.parameters and "keeping the fitted point" in note

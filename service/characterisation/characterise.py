@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import sys
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from itertools import pairwise
 
@@ -147,6 +147,15 @@ MIN_CURRENT_CHANGES = 4
 MIN_FITTED_S = 600.0
 #: a fitted CPE order this close to 1 is a capacitor (the branch is an RC branch)
 ORDER_ONE_TOL = 0.02
+
+
+#: the temperature group nearest this is the fit's reference: the others share its shape (``--shape``)
+REFERENCE_TEMP_C = 25.0
+
+
+def reference_temperature(temps_c: Iterable[float]) -> float:
+    """The fit's reference temperature among ``temps_c``: the one nearest :data:`REFERENCE_TEMP_C`."""
+    return min(temps_c, key=lambda t: abs(t - REFERENCE_TEMP_C))
 
 
 def worse_than(rmse_mv: float, reference_mv: float) -> bool:
@@ -440,7 +449,7 @@ def characterise(
         groups[key].append((part, soc))
         whole[key].append(rec)
     temps = sorted(groups)
-    ref_t = min(temps, key=lambda t: abs(t - 25.0))
+    ref_t = reference_temperature(temps)
     rep.say(f"temperature groups (each recording's median measured temperature, to {TEMP_GROUP_C:g} °C): "
             f"{', '.join(f'{t:g} °C ({len(groups[t])} rec.)' for t in temps)}; reference {ref_t:g} °C")
     extra_branches: list[BranchSpec] = []

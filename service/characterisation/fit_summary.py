@@ -58,6 +58,10 @@ class CandidateSummary(BaseModel):
     #: the pick's reading: ``fomiukf``'s mean SOC RMSE after 600 s on the fit recordings, %
     #: (``None`` where the pick did not run or could not score it)
     fit_file_soc_rmse_after_600s_pct: float | None = None
+    #: the written candidate read the same way with its reference temperature's point the textbook 2-RC
+    #: point (``None`` for the others, or where the pick did not read it), and whether that point was written
+    reference_two_rc_soc_rmse_after_600s_pct: float | None = None
+    reference_two_rc_written: bool = False
     temperatures: list[TemperatureSummary]
     #: the candidate's fit log, line by line (without the ``[fit]`` prefix)
     log: list[str]

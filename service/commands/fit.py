@@ -78,7 +78,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             "Where the fractional search ends on the 2-RC model itself (orders 1, no Butler-Volmer bend), the "
             "2-RC fit's own point is kept for that temperature (the fit log says so). The whole fit runs "
             f"{DEFAULT_CANDIDATES} times with different optimiser seeds and the profile whose {PICK_ESTIMATOR} reads "
-            "the fit recordings' own SOC best is written (--candidates)."
+            "the fit recordings' own SOC best is written (--candidates); where it reads them better with its "
+            "reference temperature's point (nearest 25 °C) the textbook 2-RC point, that point is written."
         ),
     )
     p.add_argument("recordings", nargs="+", metavar="RECORDING", type=recording_file,
@@ -187,7 +188,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         f"one whose {PICK_ESTIMATOR} reads the fit recordings' SOC best (all but OCV tests, from a 20 %% "
                         f"wrong start, after 600 s) is written, and the log gives each one's reading (default "
                         f"{DEFAULT_CANDIDATES}, chosen leave-one-cell-out: docs/results/characterisation.md, "
-                        "fit_file_pick; 1 fits once). Costs N fits plus N filter runs over the fit recordings. The "
+                        "fit_file_pick; 1 fits once and reads nothing). The one kept is read once more with its "
+                        "reference temperature's point the textbook 2-RC point, which is written where it reads "
+                        "better. Costs N fits plus N + 1 filter runs over the fit recordings. The "
                         "profile's notes keep the readings and the seed kept (notes.profile_pick)")
     p.add_argument("--seed", type=SEED, default=0,
                    help="seed of the global search (default 0); on a cell whose parameters the data pins down poorly, another seed can give as good a fit with other parameters (docs/results/tuning.md)")
@@ -291,6 +294,10 @@ class Pick:
     profile: CellProfile
     seed: int
     readings: dict[int, float | None]
+    #: the kept candidate read with its reference temperature's point the textbook 2-RC point
+    #: (None: not read), and whether that is the profile written
+    reference_two_rc: float | None = None
+    reference_two_rc_written: bool = False
 
 
 def fit_report(args: argparse.Namespace, bar: Bar) -> FitReport:
@@ -349,10 +356,14 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
            log: FitReport, bar: Bar) -> Pick:
     """Of the candidates the quality check passes, the one whose filter reads the fit recordings
     best (:mod:`service.characterisation.profile_pick`); the first refusal is raised where none passes."""
+    from service.characterisation.characterise import reference_temperature
     from service.characterisation.profile_pick import (
+        FitFileScore,
         describe_pick,
+        describe_reference_two_rc,
         fit_file_score,
         pick_profile,
+        reference_two_rc_variant,
         scored_recordings,
     )
 
@@ -377,7 +388,21 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
             return Pick(say_pick(passed[0].profile, what, log, notice=True), passed[0].seed, {})
     profile, kept = pick_profile(scored)
     readings = {s.seed: s.soc_rmse_after_600s_pct for _, s in scored}
-    return Pick(say_pick(profile, describe_pick([s for _, s in scored], kept), log), kept.seed, readings)
+    what = describe_pick([s for _, s in scored], kept)
+    variant = reference_two_rc_variant(profile)
+    if variant is None:
+        return Pick(say_pick(profile, what, log), kept.seed, readings)
+    bar.update(description=f"seed {kept.seed}'s profile with its reference point the 2-RC point")
+    try:
+        read = fit_file_score(variant, kept.seed, recs, full_at)
+    except (ValueError, UserError):  # scored above with the same recordings; kept as a guard
+        read = FitFileScore(kept.seed, None, 0)
+    ref_t = reference_temperature(p.temp_c for p in profile.parameters)
+    written = (read.soc_rmse_after_600s_pct is not None and kept.soc_rmse_after_600s_pct is not None
+               and read.soc_rmse_after_600s_pct < kept.soc_rmse_after_600s_pct)
+    what += "; " + describe_reference_two_rc(kept, read, ref_t)
+    return Pick(say_pick(variant if written else profile, what, log), kept.seed, readings,
+                read.soc_rmse_after_600s_pct, written)
 
 
 def say_pick(profile: CellProfile, what: str, log: FitReport, notice: bool = False) -> CellProfile:
@@ -400,6 +425,9 @@ def fit_summary(out: Path, candidates: list[Candidate], pick: Pick) -> FitSummar
         candidates=[CandidateSummary(seed=c.seed, written=c.seed == pick.seed,
                                      refusal=None if c.refusal is None else c.refusal.problems,
                                      fit_file_soc_rmse_after_600s_pct=pick.readings.get(c.seed),
+                                     reference_two_rc_soc_rmse_after_600s_pct=(
+                                         pick.reference_two_rc if c.seed == pick.seed else None),
+                                     reference_two_rc_written=c.seed == pick.seed and pick.reference_two_rc_written,
                                      temperatures=[TemperatureSummary.of(t) for t in c.report.temperatures],
                                      log=list(c.report.lines))
                     for c in candidates])
