@@ -102,7 +102,8 @@ def describe_reference_two_rc(kept: FitFileScore, variant: FitFileScore, ref_tem
     """The pick's second line: the kept profile read with its reference point the 2-RC point, and which
     is written."""
     if variant.soc_rmse_after_600s_pct is None or kept.soc_rmse_after_600s_pct is None:
-        return f"with its {ref_temp_c:g} °C point the textbook 2-RC point it was not scored; keeping the fit"
+        return (f"seed {kept.seed}'s profile with its {ref_temp_c:g} °C point the textbook 2-RC point could not be "
+                "scored; keeping the fitted point")
     better = variant.soc_rmse_after_600s_pct < kept.soc_rmse_after_600s_pct
     return (f"seed {kept.seed}'s profile with its {ref_temp_c:g} °C point the textbook 2-RC point (no hysteresis) "
             f"reads {variant.soc_rmse_after_600s_pct:.2f} %; "
