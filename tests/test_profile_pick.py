@@ -168,6 +168,11 @@ def test_the_reference_two_rc_variant_sets_only_the_point_nearest_25c(nmc_profil
     already = profile.model_copy(update={"parameters": [
         ecm_start_point(e, e.temp_c) if e.temp_c == 23.0 else q for e, q in zip(profile.ecm2rc.points, profile.parameters)]})
     assert reference_two_rc_variant(already) is None
+    from service.characterisation.profile_pick import describe_reference_two_rc
+
+    line = describe_reference_two_rc(FitFileScore(2, 0.5, 1), FitFileScore(2, None, 0), 23.0)
+    assert line == ("seed 2's profile with its 23 °C point the textbook 2-RC point could not be scored; "
+                    "keeping the fitted point")
 
 
 @pytest.mark.parametrize("truth", ["two_rc", "fractional"])
