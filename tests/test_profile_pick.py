@@ -170,7 +170,7 @@ def test_the_reference_two_rc_variant_sets_only_the_point_nearest_25c(nmc_profil
     assert reference_two_rc_variant(already) is None
     from service.characterisation.profile_pick import describe_reference_two_rc
 
-    line = describe_reference_two_rc(FitFileScore(2, 0.5, 1), FitFileScore(2, None, 0), 23.0)
+    line = describe_reference_two_rc(FitFileScore(2, 0.5, 1), FitFileScore(2, None, 0), 23.0, False)
     assert line == ("seed 2's profile with its 23 °C point the textbook 2-RC point could not be scored; "
                     "keeping the fitted point")
 

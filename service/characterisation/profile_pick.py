@@ -98,16 +98,15 @@ def reference_two_rc_variant(profile: CellProfile) -> CellProfile | None:
     return None if same else variant
 
 
-def describe_reference_two_rc(kept: FitFileScore, variant: FitFileScore, ref_temp_c: float) -> str:
-    """The pick's second line: the kept profile read with its reference point the 2-RC point, and which
-    is written."""
-    if variant.soc_rmse_after_600s_pct is None or kept.soc_rmse_after_600s_pct is None:
+def describe_reference_two_rc(kept: FitFileScore, variant: FitFileScore, ref_temp_c: float, written: bool) -> str:
+    """The pick's second line: the kept profile read with its reference point the 2-RC point, and
+    whether that point is ``written`` (:func:`pick_profile` decides it, as between the seeds)."""
+    if variant.soc_rmse_after_600s_pct is None:
         return (f"seed {kept.seed}'s profile with its {ref_temp_c:g} °C point the textbook 2-RC point could not be "
                 "scored; keeping the fitted point")
-    better = variant.soc_rmse_after_600s_pct < kept.soc_rmse_after_600s_pct
     return (f"seed {kept.seed}'s profile with its {ref_temp_c:g} °C point the textbook 2-RC point (no hysteresis) "
             f"reads {variant.soc_rmse_after_600s_pct:.2f} %; "
-            + ("writing that point" if better else "keeping the fitted point"))
+            + ("writing that point" if written else "keeping the fitted point"))
 
 
 def describe_pick(scores: Sequence[FitFileScore], kept: FitFileScore) -> str:

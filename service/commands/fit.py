@@ -398,11 +398,12 @@ def choose(candidates: list[Candidate], originals: list[Recording], full: list[s
     except (ValueError, UserError):  # scored above with the same recordings; kept as a guard
         read = FitFileScore(kept.seed, None, 0)
     ref_t = reference_temperature(p.temp_c for p in profile.parameters)
-    written = (read.soc_rmse_after_600s_pct is not None and kept.soc_rmse_after_600s_pct is not None
-               and read.soc_rmse_after_600s_pct < kept.soc_rmse_after_600s_pct)
-    what += "; " + describe_reference_two_rc(kept, read, ref_t)
-    return Pick(say_pick(variant if written else profile, what, log), kept.seed, readings,
-                read.soc_rmse_after_600s_pct, written)
+    # the seeds' rule: the lower reading, the fitted point on equals (the variant reads the same
+    # recordings, so it is unscored exactly where the kept profile is)
+    chosen, _ = pick_profile([(profile, kept), (variant, read)])
+    written = chosen is variant
+    what += "; " + describe_reference_two_rc(kept, read, ref_t, written)
+    return Pick(say_pick(chosen, what, log), kept.seed, readings, read.soc_rmse_after_600s_pct, written)
 
 
 def say_pick(profile: CellProfile, what: str, log: FitReport, notice: bool = False) -> CellProfile:
