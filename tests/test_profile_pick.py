@@ -11,7 +11,12 @@ import pytest
 
 from service.cell.profile import load_profile
 from service.characterisation.characterise import PoorFitError
-from service.characterisation.fit_summary import FitSummary
+from service.characterisation.fit_summary import (
+    PICKED_TWO_RC_SOURCE,
+    FitSummary,
+    TemperatureSummary,
+    with_picked_two_rc,
+)
 from service.characterisation.profile_pick import (
     DEFAULT_CANDIDATES,
     FitFileScore,
@@ -110,6 +115,22 @@ def test_socd_fit_writes_the_candidate_whose_filter_reads_the_fit_recordings_bes
     for c in summary.candidates:
         assert [t.temp_c for t in c.temperatures] == [25.0] and c.refusal is None
         assert any(f"seed {c.seed}" in line for line in c.log), "each candidate keeps its own log"
+        # the written point's source says whether the pick replaced the fitted one
+        picked = c.written and w.reference_two_rc_written
+        assert (c.temperatures[0].source == PICKED_TWO_RC_SOURCE) == picked, c.temperatures[0].source
+
+
+def test_the_report_names_the_picked_2rc_point_at_the_reference_temperature_only() -> None:
+    """Only the temperature nearest 25 °C (the one the variant replaces) changes its source."""
+    def summary(t: float) -> TemperatureSummary:
+        return TemperatureSummary(temp_c=t, rmse_mv=5.0, ecm_rmse_mv=6.0, ecm_simulated_mv=6.5,
+                                  overpotential_rms_mv=40.0, unexplained_share=0.125, source="fractional fit",
+                                  at_bounds=["n = 1 (upper bound)"], ocv_measured=True, problem=None)
+
+    got = with_picked_two_rc([summary(t) for t in (0.0, 10.0, 30.0, 45.0)])
+    assert [t.source for t in got] == ["fractional fit", "fractional fit", PICKED_TWO_RC_SOURCE, "fractional fit"]
+    assert got[2].rmse_mv == 5.0 and got[2].at_bounds == ["n = 1 (upper bound)"], "the fit's figures stay"
+    assert with_picked_two_rc([]) == []
 
 
 def test_where_the_evaluation_refuses_a_fit_recordings_truth_the_first_candidate_is_written(

@@ -13,7 +13,10 @@ from pathlib import Path
 
 from pydantic import BaseModel, Field
 
-from service.characterisation.characterise import TemperatureFit
+from service.characterisation.characterise import TemperatureFit, reference_temperature
+
+#: a temperature's ``source`` where the profile pick wrote the stored 2-RC point over the fitted one
+PICKED_TWO_RC_SOURCE = "2-RC point (profile pick)"
 
 
 class TemperatureSummary(BaseModel):
@@ -30,7 +33,10 @@ class TemperatureSummary(BaseModel):
     overpotential_rms_mv: float
     #: ``rmse_mv / overpotential_rms_mv``: 0 explains every millivolt, 1 none
     unexplained_share: float | None
-    #: "fractional fit", "2-RC start" or "2-RC fit" (which point the profile keeps there)
+    #: which point the profile keeps there: "fractional fit", "2-RC start" or "2-RC fit" from the fit,
+    #: or :data:`PICKED_TWO_RC_SOURCE` where the profile pick wrote the 2-RC point at the reference
+    #: temperature (``rmse_mv``, ``unexplained_share`` and ``at_bounds`` then still describe the
+    #: fractional fit the pick read it against)
     source: str
     #: search coordinates that ended on a bound, e.g. "i0_a = 0.05 (lower bound)"
     at_bounds: list[str]
@@ -45,6 +51,15 @@ class TemperatureSummary(BaseModel):
                    overpotential_rms_mv=fit.overpotential_rms_mv, unexplained_share=_finite(fit.unexplained_share),
                    source=fit.source, at_bounds=list(fit.at_bounds), ocv_measured=fit.ocv_measured,
                    problem=fit.problem())
+
+
+def with_picked_two_rc(temperatures: list[TemperatureSummary]) -> list[TemperatureSummary]:
+    """``temperatures`` with the reference temperature's ``source`` saying the profile pick wrote the
+    2-RC point there (:func:`service.characterisation.profile_pick.reference_two_rc_variant`)."""
+    if not temperatures:
+        return temperatures
+    ref = reference_temperature(t.temp_c for t in temperatures)
+    return [t.model_copy(update={"source": PICKED_TWO_RC_SOURCE}) if t.temp_c == ref else t for t in temperatures]
 
 
 class CandidateSummary(BaseModel):

@@ -419,7 +419,12 @@ def fit_summary(out: Path, candidates: list[Candidate], pick: Pick) -> FitSummar
         CandidateSummary,
         FitSummary,
         TemperatureSummary,
+        with_picked_two_rc,
     )
+
+    def temperatures(c: Candidate) -> list[TemperatureSummary]:
+        summaries = [TemperatureSummary.of(t) for t in c.report.temperatures]
+        return with_picked_two_rc(summaries) if c.seed == pick.seed and pick.reference_two_rc_written else summaries
 
     return FitSummary(
         profile=str(out), profile_pick=pick.profile.notes.get("profile_pick"),
@@ -429,6 +434,6 @@ def fit_summary(out: Path, candidates: list[Candidate], pick: Pick) -> FitSummar
                                      reference_two_rc_soc_rmse_after_600s_pct=(
                                          pick.reference_two_rc if c.seed == pick.seed else None),
                                      reference_two_rc_written=c.seed == pick.seed and pick.reference_two_rc_written,
-                                     temperatures=[TemperatureSummary.of(t) for t in c.report.temperatures],
+                                     temperatures=temperatures(c),
                                      log=list(c.report.lines))
                     for c in candidates])
