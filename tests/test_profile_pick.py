@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from service.cell.profile import load_profile
-from service.characterisation.characterise import PoorFitError
+from service.characterisation.characterise import PoorFitError, ecm_start_point
 from service.characterisation.fit_summary import (
     PICKED_TWO_RC_SOURCE,
     FitSummary,
@@ -21,15 +21,17 @@ from service.characterisation.profile_pick import (
     DEFAULT_CANDIDATES,
     FitFileScore,
     describe_pick,
+    describe_reference_two_rc,
     fit_file_score,
     pick_profile,
+    reference_two_rc_variant,
     scored_recordings,
 )
 from service.cli import main
 from service.commands.fit import Candidate, choose, fit_report
 from service.commands.progress import Bar
 from service.recording import load_recording
-from tests.conftest import NMC_CAPACITY_AH
+from tests.conftest import NMC_CAPACITY_AH, NMC_PARAMETERS, TAU_CT_S, TAU_DF_S
 from tests.test_ocv_tests import write_ocv_test
 
 
@@ -172,9 +174,6 @@ def test_the_reference_two_rc_variant_sets_only_the_point_nearest_25c(nmc_profil
     """The variant the pick reads last: the point nearest 25 °C is the stored 2-RC point in the
     fractional form (orders 1, C = τ/R), the others stay; none without a 2-RC fit, and none where
     the reference point already is the 2-RC point."""
-    from service.characterisation.characterise import ecm_start_point
-    from service.characterisation.profile_pick import reference_two_rc_variant
-    from tests.conftest import NMC_PARAMETERS, TAU_CT_S, TAU_DF_S
 
     fractional = nmc_profile_factory(temps_c=(10.0, 23.0, 40.0))
     assert reference_two_rc_variant(fractional) is None
@@ -189,8 +188,6 @@ def test_the_reference_two_rc_variant_sets_only_the_point_nearest_25c(nmc_profil
     already = profile.model_copy(update={"parameters": [
         ecm_start_point(e, e.temp_c) if e.temp_c == 23.0 else q for e, q in zip(profile.ecm2rc.points, profile.parameters)]})
     assert reference_two_rc_variant(already) is None
-    from service.characterisation.profile_pick import describe_reference_two_rc
-
     line = describe_reference_two_rc(FitFileScore(2, 0.5, 1), FitFileScore(2, None, 0), 23.0, False)
     assert line == ("seed 2's profile with its 23 °C point the textbook 2-RC point could not be scored; "
                     "keeping the fitted point")

@@ -422,18 +422,17 @@ def fit_summary(out: Path, candidates: list[Candidate], pick: Pick) -> FitSummar
         with_picked_two_rc,
     )
 
-    def temperatures(c: Candidate) -> list[TemperatureSummary]:
-        summaries = [TemperatureSummary.of(t) for t in c.report.temperatures]
-        return with_picked_two_rc(summaries) if c.seed == pick.seed and pick.reference_two_rc_written else summaries
+    def summary(c: Candidate) -> CandidateSummary:
+        written = c.seed == pick.seed
+        picked_two_rc = written and pick.reference_two_rc_written
+        temperatures = [TemperatureSummary.of(t) for t in c.report.temperatures]
+        return CandidateSummary(seed=c.seed, written=written,
+                                refusal=None if c.refusal is None else c.refusal.problems,
+                                fit_file_soc_rmse_after_600s_pct=pick.readings.get(c.seed),
+                                reference_two_rc_soc_rmse_after_600s_pct=pick.reference_two_rc if written else None,
+                                reference_two_rc_written=picked_two_rc,
+                                temperatures=with_picked_two_rc(temperatures) if picked_two_rc else temperatures,
+                                log=list(c.report.lines))
 
-    return FitSummary(
-        profile=str(out), profile_pick=pick.profile.notes.get("profile_pick"),
-        candidates=[CandidateSummary(seed=c.seed, written=c.seed == pick.seed,
-                                     refusal=None if c.refusal is None else c.refusal.problems,
-                                     fit_file_soc_rmse_after_600s_pct=pick.readings.get(c.seed),
-                                     reference_two_rc_soc_rmse_after_600s_pct=(
-                                         pick.reference_two_rc if c.seed == pick.seed else None),
-                                     reference_two_rc_written=c.seed == pick.seed and pick.reference_two_rc_written,
-                                     temperatures=temperatures(c),
-                                     log=list(c.report.lines))
-                    for c in candidates])
+    return FitSummary(profile=str(out), profile_pick=pick.profile.notes.get("profile_pick"),
+                      candidates=[summary(c) for c in candidates])
