@@ -387,6 +387,7 @@ RULE_GRID: dict[str, tuple[float, ...]] = {
     "relax_min_ratio": (0.15, 0.20, 0.30),
     "relax_min_z": (3.0, 5.0),
     "direct_max_rise_rel": (0.10, 0.15, 0.20, 0.30),
+    "capacity_min_change": (0.0, 0.02, 0.03, 0.05),
 }
 #: ``rules --wide-grid``: the axes whose chosen value sits at an edge of :data:`RULE_GRID`, extended past it
 #: (a check that the choice is not held by the grid's edge; docs/results/diagnose.md)
@@ -404,7 +405,7 @@ WIDE_GRID: dict[str, tuple[float, ...]] = {
 SIGNATURE_RULES = ("kinetics_max_i0_c", "relax_min_ratio", "relax_min_z", "relax_direct_ratio", "relax_rest_min_s",
                    "diffusion_signature",
                    "branch_min_z", "branch_min_half_gap_v", "direction_min_z", "diffusion_min_tau_s",
-                   "lag_max_ln_tau_std")
+                   "lag_max_ln_tau_std", "capacity_min_change")
 #: a structural rule the search leaves alone unless asked (``rules --search-requirement``): whether a
 #: fit-only diffusion is refused never (0), where its relaxation signature read rests and did not
 #: fire (1, the product), or always (2): the index into service.diagnosis.effects.SIGNATURE_NEEDED
@@ -434,6 +435,7 @@ def current_rule() -> dict[str, float]:
     """The product's current value of every rule of :data:`RULE_GRID`."""
     from service.diagnosis import signatures
     from service.diagnosis.effects import (
+        CAPACITY_MIN_CHANGE,
         DIFFUSION_MAX_LN_TAU_STD,
         DIFFUSION_MIN_TAU_S,
         EFFECTS,
@@ -450,7 +452,7 @@ def current_rule() -> dict[str, float]:
                diffusion_signature=float(SIGNATURE_NEEDED.index(EFFECTS["diffusion"].needs_signature)),
                branch_min_z=signatures.BRANCH_MIN_Z, branch_min_half_gap_v=signatures.BRANCH_MIN_HALF_GAP_V,
                direction_min_z=signatures.DIRECTION_MIN_Z, diffusion_min_tau_s=DIFFUSION_MIN_TAU_S,
-               lag_max_ln_tau_std=DIFFUSION_MAX_LN_TAU_STD)
+               lag_max_ln_tau_std=DIFFUSION_MAX_LN_TAU_STD, capacity_min_change=CAPACITY_MIN_CHANGE)
     return now
 
 
@@ -495,6 +497,9 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
             c = _changed(c, fixed_reasons=_tau_reasons(c, rule["diffusion_min_tau_s"]))
         if c.name == "diffusion" and "lag_max_ln_tau_std" in rule:
             c = _changed(c, fixed_reasons=_undetermined_reasons(c, rule["lag_max_ln_tau_std"]))
+        if c.name == "capacity" and c.size is not None:
+            min_change = rule["capacity_min_change"] if "capacity_min_change" in rule else _product_capacity_min()
+            c = _changed(c, fixed_reasons=_capacity_reasons(c, min_change))
         if c.name == "kinetics" and "kinetics_max_i0_c" in rule:
             k = rule["kinetics_max_i0_c"]
             sig = ev.signatures["kinetics"]
@@ -548,6 +553,23 @@ def _undetermined_reasons(c: Candidate, max_ln_std: float) -> list[str]:
     if c.size_ln_std is not None and c.size_ln_std >= max_ln_std:
         fixed.append(f"{DIFFUSION_UNDETERMINED_REASON}{c.size_ln_std:.2f} >= {max_ln_std:g}")
     return fixed
+
+
+def _product_capacity_min() -> float:
+    from service.diagnosis.effects import CAPACITY_MIN_CHANGE
+
+    return CAPACITY_MIN_CHANGE
+
+
+def _capacity_reasons(c: Candidate, min_change: float) -> list[str]:
+    """The capacity candidate's fixed reasons with the small-change bound at ``min_change``
+    (:data:`service.diagnosis.effects.CAPACITY_MIN_CHANGE` in the product).  Applied whether or not
+    the rule names it: evidence diagnosed before the bound existed carries no such reason."""
+    from service.diagnosis.effects import CAPACITY_SMALL_REASON, capacity_small_reason
+
+    fixed = [r for r in c.fixed_reasons if not r.startswith(CAPACITY_SMALL_REASON)]
+    why = capacity_small_reason(c.size, min_change)
+    return fixed if why is None else [*fixed, why]
 
 
 def hysteresis_evidence(sig: dict, rule: dict[str, float]) -> str:

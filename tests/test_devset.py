@@ -361,3 +361,25 @@ def test_a_labelled_file_joins_the_set_under_its_cell():
 
     assert set_cell("okane2022", ("OKane2022", "Chen2020")) == "OKane2022"
     assert set_cell("Xu2019", ("OKane2022",)) == "Xu2019"
+
+
+def test_the_capacity_change_bound_refuses_a_scale_near_one():
+    """A capacity scale of 1.023 with a 30 % held-out gain (a clean cell's drift) is refused at the
+    product's 3 % bound, whether or not its evidence carried the reason, and named with no bound; a
+    5 % fade is named at every bound the search tries but 5 %."""
+    from service.diagnosis.effects import CAPACITY_MIN_CHANGE, CAPACITY_SMALL_REASON
+
+    near = replace(_cand("capacity", 0.30, before=15.0), size=1.023)
+    ev = _ev("A", "none", [near, _cand("ocv", 0.05)])
+    ev.signatures = {"diffusion": {"statistic": None, "z": None}}
+    assert decide(ev, {})[0] == "none"
+    assert decide(ev, {"capacity_min_change": 0.03})[0] == "none"
+    assert decide(ev, {"capacity_min_change": 0.0})[0] == "capacity"
+    stale = replace(near, fixed_reasons=[f"{CAPACITY_SMALL_REASON}1.023 within 3 % of the stated capacity"])
+    ev.candidates = [stale, _cand("ocv", 0.05)]
+    assert decide(ev, {"capacity_min_change": 0.0})[0] == "capacity"
+    fade = replace(near, size=0.952)
+    ev.candidates = [fade, _cand("ocv", 0.05)]
+    assert [decide(ev, {"capacity_min_change": b})[0] for b in (0.0, 0.02, 0.03, 0.05)] == ["capacity"] * 3 + ["none"]
+    assert current_rule()["capacity_min_change"] == CAPACITY_MIN_CHANGE == 0.03
+    assert {r["capacity_min_change"] for r in rule_grid()} == {0.0, 0.02, 0.03, 0.05}

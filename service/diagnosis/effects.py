@@ -306,6 +306,28 @@ def _cap_feature(ctx):
     return "dOCV/dSOC x discharged Ah, V Ah", ctx.ocv_slope * ah
 
 
+#: the capacity effect is a capacity *unlike the stated one*.  New cells of one type spread by a few
+#: per cent in capacity and a datasheet rounds it, so a fitted scale within this fraction of 1 is a
+#: healthy cell's, and what the scale then fits is the base model's own drift along the drive (a
+#: clean cell's fit reads up to 2.3 % on the development set; a 5 % fade reads 4.8 % or more).
+#: Chosen leave-one-cell-out on the development set (research.devset, ``capacity_min_change``).
+CAPACITY_MIN_CHANGE = 0.03
+#: how the small-change reason begins (research.devset reads it back)
+CAPACITY_SMALL_REASON = "fitted capacity scale "
+
+
+def capacity_small_reason(scale: float, min_change: float = CAPACITY_MIN_CHANGE) -> str | None:
+    """Why a capacity scale within ``min_change`` of 1 is no capacity effect, else ``None``."""
+    if abs(scale - 1.0) < min_change:
+        return (f"{CAPACITY_SMALL_REASON}{scale:.3f} within {100 * min_change:g} % of the stated capacity: the "
+                "spread of new cells of one type, not an error or fade")
+    return None
+
+
+def _cap_implausible(ph: dict[str, float], ctx: Context, coord_std: np.ndarray | None = None) -> str | None:
+    return capacity_small_reason(ph["capacity_scale"])
+
+
 CAPACITY = Effect(
     name="capacity",
     title="capacity error or fade (capacity scale)",
@@ -317,6 +339,7 @@ CAPACITY = Effect(
     to_profile=lambda ph, profile, ctx: _ext(profile, capacity_scale=ph["capacity_scale"] * profile.extensions.capacity_scale),
     detect=lambda ctx: abs(_corr(ctx.residual_v, _cap_feature(ctx)[1])),
     feature=_cap_feature,
+    implausible=_cap_implausible,
 )
 
 

@@ -53,7 +53,8 @@ Protocol (stated in every report and JSON):
 * **Size**: an effect whose fitted size is that of a healthy cell is not significant
   (:attr:`Effect.implausible`; kinetics: apparent exchange current ``>= 0.15 C``,
   :data:`service.diagnosis.effects.KINETICS_MAX_I0_C`; diffusion: a surface lag faster than
-  :data:`service.diagnosis.effects.DIFFUSION_MIN_TAU_S`).
+  :data:`service.diagnosis.effects.DIFFUSION_MIN_TAU_S`; capacity: a scale within
+  :data:`service.diagnosis.effects.CAPACITY_MIN_CHANGE` of the stated capacity).
 * **Ranking** (:func:`rank`): a significant effect its signature measured directly goes
   before every fitted one; among the rest, held-out RMSEs within the noise margin of the
   best are tied (the voltage cannot tell them apart), and a tie goes to one its signature
@@ -75,6 +76,7 @@ from service.cell.profile import CellProfile, OcvSpec, ParameterPoint
 from service.cell.rests import REST_CURRENT_C, resting
 from service.cell.trajectory import simulate
 from service.diagnosis.effects import (
+    CAPACITY_MIN_CHANGE,
     DIFFUSION_MIN_TAU_S,
     EFFECTS,
     KINETICS_MAX_I0_C,
@@ -133,7 +135,7 @@ class DiagnoseOptions:
     nominal_ambient_c: float | None = NOMINAL_AMBIENT_C
     # significance thresholds (see module docstring), chosen leave-one-cell-out on the development
     # set (research.devset; docs/results/diagnose.md)
-    min_rel_gain: float = 0.25
+    min_rel_gain: float = 0.15
     # an effect nominated by its own signature (service.cell.diagnosis.signatures) needs less
     min_rel_gain_nominated: float = 0.05
     # an effect whose signature is a direct measurement (current_bias: the rest current) needs
@@ -802,6 +804,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
         "concentration_flag": 1.5,
         "kinetics_max_i0_c": KINETICS_MAX_I0_C,
         "diffusion_min_tau_s": DIFFUSION_MIN_TAU_S,
+        "capacity_min_change": CAPACITY_MIN_CHANGE,
     }
     base = {
         "point": point.model_dump(), "rmse_fit_mv": round(rmse_fit_base, 3),

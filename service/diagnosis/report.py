@@ -222,7 +222,8 @@ def write_report(dg, out_dir: str | Path) -> Path:
         f"and {100 * th.get('direct_max_rise_rel', 0.0):.0f} % of its base value = {th.get('direct_max_rise_mv', 0.0):.2f} mV."),
         (f"- Size: a fitted term the size of a healthy cell's is no departure and is not significant (kinetics: "
          f"exchange current ≥ {th.get('kinetics_max_i0_c', 0.1):g}C; diffusion: surface lag τ < "
-         f"{th.get('diffusion_min_tau_s', 60.0):.0f} s, which relaxes within three minutes)."),
+         f"{th.get('diffusion_min_tau_s', 60.0):.0f} s, which relaxes within three minutes; capacity: a scale "
+         f"within {100 * th.get('capacity_min_change', 0.0):g} % of the stated capacity)."),
         (f"- Ranking: a significant effect its signature measured directly goes before every fitted one; among the "
          f"rest, held-out RMSEs within {th['min_abs_gain_mv']:.2f} mV of the best are tied (the voltage cannot tell "
          "them apart), and a tie goes to one its signature nominated, then to the higher ΔBIC."),
