@@ -498,8 +498,7 @@ def _with_signature_rules(cands: Iterable[Candidate], ev: Evidence, rule: dict[s
         if c.name == "diffusion" and "lag_max_ln_tau_std" in rule:
             c = _changed(c, fixed_reasons=_undetermined_reasons(c, rule["lag_max_ln_tau_std"]))
         if c.name == "capacity" and c.size is not None:
-            min_change = rule["capacity_min_change"] if "capacity_min_change" in rule else _product_capacity_min()
-            c = _changed(c, fixed_reasons=_capacity_reasons(c, min_change))
+            c = _changed(c, fixed_reasons=_capacity_reasons(c, rule.get("capacity_min_change")))
         if c.name == "kinetics" and "kinetics_max_i0_c" in rule:
             k = rule["kinetics_max_i0_c"]
             sig = ev.signatures["kinetics"]
@@ -555,20 +554,18 @@ def _undetermined_reasons(c: Candidate, max_ln_std: float) -> list[str]:
     return fixed
 
 
-def _product_capacity_min() -> float:
-    from service.diagnosis.effects import CAPACITY_MIN_CHANGE
-
-    return CAPACITY_MIN_CHANGE
-
-
-def _capacity_reasons(c: Candidate, min_change: float) -> list[str]:
-    """The capacity candidate's fixed reasons with the small-change bound at ``min_change``
-    (:data:`service.diagnosis.effects.CAPACITY_MIN_CHANGE` in the product).  Applied whether or not
-    the rule names it: evidence diagnosed before the bound existed carries no such reason."""
-    from service.diagnosis.effects import CAPACITY_SMALL_REASON, capacity_small_reason
+def _capacity_reasons(c: Candidate, min_change: float | None) -> list[str]:
+    """The capacity candidate's fixed reasons with the small-change bound at ``min_change`` (``None``:
+    the product's :data:`service.diagnosis.effects.CAPACITY_MIN_CHANGE`).  Applied whether or not the
+    rule names it: evidence diagnosed before the bound existed carries no such reason."""
+    from service.diagnosis.effects import (
+        CAPACITY_MIN_CHANGE,
+        CAPACITY_SMALL_REASON,
+        capacity_small_reason,
+    )
 
     fixed = [r for r in c.fixed_reasons if not r.startswith(CAPACITY_SMALL_REASON)]
-    why = capacity_small_reason(c.size, min_change)
+    why = capacity_small_reason(c.size, CAPACITY_MIN_CHANGE if min_change is None else min_change)
     return fixed if why is None else [*fixed, why]
 
 
