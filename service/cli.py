@@ -67,7 +67,22 @@ def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: Bas
     parser.set_defaults(func=_fail)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def named_command(argv: list[str]) -> str | None:
+    """The subcommand ``argv`` names (its first word that is not a flag), or None when it names
+    none socd has (``socd --help``, ``socd --version``, a misspelt command)."""
+    for word in argv:
+        if word in ("-h", "--help"):  # socd's own help lists every command
+            return None
+        if not word.startswith("-"):
+            return word if word in SUBCOMMANDS else None
+    return None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """socd's parser with every subcommand, or with ``command``'s alone: what running it needs.
+    Each command's module is imported to build its parser, and ``socd run``'s and ``socd replay``'s
+    import python-can, which loads asammdf where the ``mf4`` extra is installed (1-2 s), so ``socd
+    evaluate`` does not build them."""
     parser = _Parser(
         prog="socd",
         description=(
@@ -80,6 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"socd {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, module_name in SUBCOMMANDS.items():
+        if command is not None and name != command:
+            continue
         try:
             module = importlib.import_module(module_name)
             module.add_subparser(subparsers)
@@ -104,7 +121,8 @@ def _command_parser(parser: argparse.ArgumentParser, command: str | None) -> arg
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(named_command(argv))
     try:
         args, unknown = parser.parse_known_args(argv)
         if unknown:  # named by the command's parser (socd run: error: ...), not the top level's (socd: ...)
