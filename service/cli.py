@@ -81,7 +81,7 @@ def named_command(argv: list[str]) -> str | None:
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """socd's parser with every subcommand, or with ``command``'s alone: what running it needs.
     Each command's module is imported to build its parser, and ``socd run``'s and ``socd replay``'s
-    import python-can, which loads asammdf where the ``mf4`` extra is installed (1-2 s), so ``socd
+    import python-can, which loads asammdf and pandas where the ``mf4`` extra is installed, so ``socd
     evaluate`` does not build them."""
     parser = _Parser(
         prog="socd",
