@@ -97,6 +97,26 @@ def test_a_nominated_effect_that_misses_its_bar_is_retried_on_the_interleaved_sp
     assert off.verdict == "none" and "confirmation" not in off.protocol
 
 
+def test_each_effect_carries_the_split_it_was_scored_on(tmp_path):
+    """``socd diagnose --split interleaved``: every effect's figures are the interleaved split's, and
+    the JSON and the report say so (the report notes a split only where it differs from the run's)."""
+    from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
+    from service.diagnosis.report import write_report
+    from service.recording import load_recording
+
+    cols, _ = va.simulate_cell(SLOW, hppc_current(1200.0), 0)
+    path = tmp_path / "slow_hppc.csv"
+    np.savetxt(path, cols, delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.5f")
+    quick = {"base_seconds": 8.0, "base_de_maxiter": 8, "effect_seconds": 6.0, "effects": ("diffusion", "capacity"),
+             "confirm_split": None}
+    dg = run_diagnosis(load_recording(path), va.user_profile(), DiagnoseOptions(**quick, split="interleaved"))
+    assert dg.protocol["split"] == "interleaved"
+    assert [e.split for e in dg.effects] == ["interleaved", "interleaved"]
+    assert all(e.to_json()["split"] == "interleaved" for e in dg.effects)
+    report = write_report(dg, tmp_path / "report").read_text()
+    assert "fitted and scored on the" not in report
+
+
 SYNTHETIC = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
 HPPC_DIFFUSION = "hppc_s105_437525"
 

@@ -782,7 +782,7 @@ def _diagnose_on_split(rec: Recording, profile: CellProfile, opt: DiagnoseOption
             rmse_after_mv=after, params={k: float(v) for k, v in phys.items()}, params_std=params_std,
             delta_bic=dbic, detection=eff.detect(full_ctx), whiteness_before=lag1(r_base[held]),
             whiteness_after=lag1(r_ext[held]), rmse_fit_after_mv=rmse_mv(r_ext[fit_full]), fit_seconds=res.seconds,
-            profile=prof, v_sim=v_ext, u_h0=u_h0, reasons=reasons, evidence=evidence,
+            profile=prof, v_sim=v_ext, u_h0=u_h0, reasons=reasons, evidence=evidence, split=opt.split,
             coordinates_std=None if coord_std is None else coord_std.tolist(), implausible=why,
         ))
     outcomes = rank(outcomes, opt.min_abs_gain_noise * 1000 * sigma)
