@@ -582,8 +582,6 @@ def confirm_nominated(dg: Diagnosis, rec: Recording, profile: CellProfile, opt: 
     if not confirmed:
         return dg
     first = dg.outcome(confirmed[0].name)
-    for e in confirmed:
-        e.split = opt.confirm_split
     dg.effects = confirmed + [e for e in dg.effects if e.name not in {c.name for c in confirmed}]
     dg.verdict = confirmed[0].name
     dg.assessment["state"] = "named"
