@@ -100,16 +100,10 @@ def test_a_nominated_effect_that_misses_its_bar_is_retried_on_the_interleaved_sp
 def test_each_effect_carries_the_split_it_was_scored_on(tmp_path):
     """``socd diagnose --split interleaved``: every effect's figures are the interleaved split's, and
     the JSON and the report say so (the report notes a split only where it differs from the run's)."""
-    from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
     from service.diagnosis.report import write_report
-    from service.recording import load_recording
 
-    cols, _ = va.simulate_cell(SLOW, hppc_current(1200.0), 0)
-    path = tmp_path / "slow_hppc.csv"
-    np.savetxt(path, cols, delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.5f")
-    quick = {"base_seconds": 8.0, "base_de_maxiter": 8, "effect_seconds": 6.0, "effects": ("diffusion", "capacity"),
-             "confirm_split": None}
-    dg = run_diagnosis(load_recording(path), va.user_profile(), DiagnoseOptions(**quick, split="interleaved"))
+    dg = _diagnose_diffusion(tmp_path, SLOW, 1200.0, effects=("diffusion", "capacity"), confirm_split=None,
+                             split="interleaved")
     assert dg.protocol["split"] == "interleaved"
     assert [e.split for e in dg.effects] == ["interleaved", "interleaved"]
     assert all(e.to_json()["split"] == "interleaved" for e in dg.effects)
@@ -146,7 +140,9 @@ def test_a_nominated_effect_confirmed_on_the_interleaved_split(tmp_path, capsys)
     assert next(d for d in leads if d["name"] == "diffusion")["confirmed_on"] == "interleaved"
 
 
-def _diagnose_diffusion(tmp_path, case: dict, rest_s: float):
+def _diagnose_diffusion(tmp_path, case: dict, rest_s: float, **options):
+    """``case`` on an HPPC with ``rest_s`` rests, diagnosed quickly for diffusion (``options``:
+    other or further DiagnoseOptions)."""
     from service.diagnosis.pipeline import DiagnoseOptions, run_diagnosis
     from service.recording import load_recording
 
@@ -154,7 +150,7 @@ def _diagnose_diffusion(tmp_path, case: dict, rest_s: float):
     path = tmp_path / f"hppc_{rest_s:.0f}.csv"
     np.savetxt(path, cols, delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.5f")
     quick = {"base_seconds": 8.0, "base_de_maxiter": 8, "effect_seconds": 6.0, "effects": ("diffusion",)}
-    return run_diagnosis(load_recording(path), va.user_profile(), DiagnoseOptions(**quick))
+    return run_diagnosis(load_recording(path), va.user_profile(), DiagnoseOptions(**(quick | options)))
 
 
 def test_diffusion_is_refused_where_its_signature_read_rests_and_did_not_fire(tmp_path):
