@@ -92,6 +92,8 @@ class EkfTuning:
     adaptive_noise_samples: int = Field(300, ge=0, le=100000)
     #: 'uniform' or 'load' (see service.estimators.adaptive_noise), as the pipeline's setting
     adaptive_noise_shape: Literal["uniform", "load"] = "uniform"
+    #: the learned variance's correlation inflation cap, as the pipeline's setting (1 = off)
+    adaptive_noise_correlation_cap: float = Field(1.0, ge=1, le=1000)
     #: SOC in [0, 1] (DESIGN), the same bound as the pipeline's filter
     soc_clip: tuple[float, float] = (0.0, 1.0)
     #: the measurement Jacobian's dOCV/dSOC: 0 = the table's slope at the estimate (the textbook
@@ -157,7 +159,8 @@ class Ecm2RcEkfBank:
         self._kinetic = not textbook and bool(profile.extensions.kinetics_i0_a is not None
                                               or any(pt.i0_a is not None for pt in profile.parameters))
         self._soc_scale = None if textbook else profile.soc_scale_table()
-        self.noise = AdaptiveNoise(n, max(t.adaptive_noise_samples, 1), t.adaptive_noise_shape)  # type: ignore[arg-type]
+        self.noise = AdaptiveNoise(n, max(t.adaptive_noise_samples, 1), t.adaptive_noise_shape,  # type: ignore[arg-type]
+                                   t.adaptive_noise_correlation_cap)
 
     @property
     def n_cells(self) -> int:

@@ -77,7 +77,8 @@ class FoMiUkf:
         self.wm, self.wc, self.gamma = merwe_weights(self.nx, settings.ukf_alpha, settings.ukf_beta, settings.ukf_kappa)
         self.nis_ema = np.ones(n_cells)
         #: adaptive measurement variance (covariance matching); inert unless adaptive_noise_samples
-        self.noise = AdaptiveNoise(n_cells, max(settings.adaptive_noise_samples, 1), settings.adaptive_noise_shape)
+        self.noise = AdaptiveNoise(n_cells, max(settings.adaptive_noise_samples, 1), settings.adaptive_noise_shape,
+                                   settings.adaptive_noise_correlation_cap)
         self.repairs = 0
         # outputs of the last step, used by the identifiers
         self.gain = np.zeros((n_cells, self.nx))

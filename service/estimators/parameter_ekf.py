@@ -104,6 +104,7 @@ class ParameterEkf:
         voltage_noise_v: float,
         init_rel: float = 0.1,
         adaptive_samples: int = 0,
+        correlation_cap: float = 1.0,
     ) -> None:
         unknown = [n for n in names if n not in PARAMETERS]
         if unknown:
@@ -136,7 +137,8 @@ class ParameterEkf:
         #: covariance matching of the identifier's own innovations (``adaptive_samples`` > 0), as the
         #: SOC filter matches its own: model-form error the fixed ``R`` does not describe (the cold, a
         #: fit from one drive) then slows the identifier instead of moving the parameters by it
-        self.noise = AdaptiveNoise(n_cells, adaptive_samples) if adaptive_samples else None
+        self.noise = (AdaptiveNoise(n_cells, adaptive_samples, correlation_cap=correlation_cap)
+                      if adaptive_samples else None)
 
     def reset(self, cells: np.ndarray) -> None:
         """Restart ``cells``: parameters back at the profile's with the prior's spread, so a cell

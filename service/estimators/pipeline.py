@@ -30,6 +30,7 @@ from service.cell.parameters import PARAMETER_NAMES
 from service.cell.profile import CellParameters, CellProfile
 from service.cell.soc_dependence import scaled_resistances
 from service.cell.units import SECONDS_PER_HOUR
+from service.estimators.adaptive_noise import N_MOMENTS, N_SHAPE_MOMENTS
 from service.estimators.base import EstimateTrace
 from service.estimators.capacity import CapacityEstimator
 from service.estimators.consider import MAX_REPORTED_SOC_STD, VARIANCE_ENTRIES, ConsiderCovariance
@@ -89,7 +90,8 @@ class PackEstimator:
         fast_names = {"multi": FAST_NAMES, "single": list(PARAMETER_NAMES)}.get(identification)
         if fast_names is not None and s.fast_identifier:
             self.fast = ParameterEkf(fast_names, self.n, nx, s.param_process_rel, s.voltage_noise_v,
-                                     init_rel=s.param_init_std_rel, adaptive_samples=s.adaptive_noise_samples)
+                                     init_rel=s.param_init_std_rel, adaptive_samples=s.adaptive_noise_samples,
+                                     correlation_cap=s.adaptive_noise_correlation_cap)
             self.fast.measurement = s.fast_identifier_input
         if identification == "multi" and s.slow_identifier:
             self.slow = SlowIdentifier(self.n, s.memory_length, s.slow_soc_delta, s.slow_param_process_rel)
@@ -447,14 +449,14 @@ class PackEstimator:
             "memory_length": np.array(self.settings.memory_length),
             "ukf_x": u.x, "ukf_P": u.P, "ukf_hist": u.hist, "ukf_var_hist": u.var_hist,
             "ukf_innovations": u.innovations, "ukf_gains": u.gains, "ukf_nis": u.nis_ema,
-            "ukf_noise_moments": u.noise.moments,
+            "ukf_noise_moments": u.noise.moments, "ukf_noise_previous": u.noise.previous,
             "reset_count": self.reset_count, "ocv_initialised": self.ocv_initialised,
             "surface_deficit": self.surface_deficit,
         }
         if self.fast is not None:
             st.update(fast_z=self.fast.z, fast_P=self.fast.P, fast_D=self.fast.D)
             if self.fast.noise is not None:
-                st.update(fast_noise_moments=self.fast.noise.moments)
+                st.update(fast_noise_moments=self.fast.noise.moments, fast_noise_previous=self.fast.noise.previous)
             st.update(self.fast.difference_state(self.n))
         if self.slow is not None:
             st.update(slow_z=self.slow.z, slow_P=self.slow.P, slow_ring=self.slow.ring, slow_moved=self.slow.moved)
@@ -476,6 +478,14 @@ class PackEstimator:
             if arr.dtype.kind == "f" and not np.isfinite(arr).all():
                 raise ValueError(f"estimator state '{key}' holds non-finite values")
             return arr.copy()
+
+        def noise_state(prefix: str) -> tuple[np.ndarray, np.ndarray | None]:
+            # states written before the innovation's autocorrelation was kept: the shape moments alone
+            key = f"{prefix}_noise_moments"
+            width = N_SHAPE_MOMENTS if np.shape(state[key])[1:] == (N_SHAPE_MOMENTS,) else N_MOMENTS
+            moments = need(key, (self.n, width))
+            previous = need(f"{prefix}_noise_previous", (self.n,)) if f"{prefix}_noise_previous" in state else None
+            return moments, previous
 
         u = self.ukf
         if int(np.asarray(state.get("state_version", -1))) != STATE_VERSION:
@@ -499,8 +509,9 @@ class PackEstimator:
         nis = need("ukf_nis", u.nis_ema.shape)
         # adaptive noise: moments; older states kept one variance per cell, or none (starts from zero)
         if "ukf_noise_moments" in state:
-            noise_moments = need("ukf_noise_moments", u.noise.moments.shape)
+            noise_moments, noise_previous = noise_state("ukf")
         else:
+            noise_previous = None
             legacy = need("ukf_r_adapt", (self.n,)) if "ukf_r_adapt" in state else np.zeros(self.n)
             noise_moments = np.zeros_like(u.noise.moments)
             noise_moments[:, 3] = legacy
@@ -513,7 +524,7 @@ class PackEstimator:
                      need("fast_prev_active", (self.n,)))
                     if "fast_prev_v" in state else None)
             # the identifier's matched noise (states written before it existed, or without it: none learned)
-            fast_noise = (need("fast_noise_moments", self.fast.noise.moments.shape)
+            fast_noise = (noise_state("fast")
                           if self.fast.noise is not None and "fast_noise_moments" in state else None)
         if self.slow is not None:
             slow = (need("slow_z", self.slow.z.shape), need("slow_P", self.slow.P.shape),
@@ -535,15 +546,15 @@ class PackEstimator:
         surface = need("surface_deficit", (self.n,)) if "surface_deficit" in state else np.zeros(self.n)
         self.resize_memory(length)
         u.x, u.P, u.hist, u.var_hist, u.innovations, u.gains, u.nis_ema = x, P, hist, var_hist, innov, gains, nis
-        u.noise.set_moments(noise_moments)
+        u.noise.set_moments(noise_moments, noise_previous)
         self.reset_count, self.ocv_initialised = resets, ocv_init
         self.surface_deficit = surface
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast
             self.fast.set_difference_state(prev)
             if self.fast.noise is not None:
-                self.fast.noise.set_moments(fast_noise if fast_noise is not None
-                                            else np.zeros_like(self.fast.noise.moments))
+                self.fast.noise.set_moments(*(fast_noise if fast_noise is not None
+                                              else (np.zeros_like(self.fast.noise.moments), None)))
         if slow is not None:
             self.slow.z, self.slow.P, self.slow.ring, self.slow.moved = slow
             self.slow.hist0 = self.slow.ring.copy()

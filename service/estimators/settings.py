@@ -104,6 +104,13 @@ class EstimatorSettings(NoBooleanNumbers, BaseModel):
         "uniform", description="'uniform': one adapted variance for every sample; 'load': a + c·(|I|·R_total)², "
         "so the model error learned under load does not drown the rests (service.estimators.adaptive_noise)",
     )
+    adaptive_noise_correlation_cap: float = Field(
+        1.0, ge=1, le=1000,
+        description="the learned model-error variance is multiplied by the innovation's variance inflation factor "
+        "(1+ρ)/(1-ρ), ρ its lag-1 autocorrelation over the same window, at most this: a model error that persists "
+        "for minutes is counted as the few independent samples it is, not as fresh evidence every step (cold cells). "
+        "1 = off. Shared by the fast identifier (service.estimators.adaptive_noise)",
+    )
     current_noise_c: float = Field(
         0.0288, ge=0, le=10, description="σ of the current integral's error driving SOC process noise, as a fraction "
         "of 1C (the cell's capacity in A): scale-free, like voltage_noise_per_c_v. It stands for the sensor's "
