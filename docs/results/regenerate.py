@@ -1172,6 +1172,33 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference 1e-4 
                                         for c in MORE_UNSEEN_CELLS for v in ("1e-4", "3e-4", "1e-3")),
                                   UNSEEN_GROUPS[:2])(out),
           70, ("needs:pybamm", "needs:loco_pure_ohmic", "needs:filter_on_two_rc_model", "needs:unseen_cell_more")),
+    Table("loco_correlation_cap", "tuning.md", REAL + f"""\
+mkdir -p out/vif   # the profiles are the char_* tables' (out/s25/): socd fit's defaults
+PANX="$(ls $P/pan18650pf_{{25C,10C,0C,m10C,m20C}}_*.csv | grep -v HPPC)"
+cap_run() {{  # CAP BIAS: both filters with adaptive_noise_correlation_cap = CAP, current offset BIAS x 1C
+  printf "adaptive_noise_correlation_cap = $1\\n[ecm2rc_ekf]\\nadaptive_noise_correlation_cap = $1\\n" > out/vif/cap$1.toml
+  E="--estimator fomiukf --estimator ecm2rc-ekf --no-bar --settings out/vif/cap$1.toml --current-bias-c $2 -q"
+  socd evaluate --cell out/s25/calce.toml {CALCE} $E --json out/vif/calce_cap$1_b$2.json
+  socd evaluate --cell out/s25/a123.toml {A123} $E --json out/vif/a123_cap$1_b$2.json
+  socd evaluate --cell out/s25/pan_hppc.toml $PANX $E --json out/vif/pan_cap$1_b$2.json
+}}
+cap_run 1 0 & cap_run 10 0 & wait
+cap_run 30 0 & cap_run 1 0.01 & wait
+cap_run 10 0.01 & cap_run 30 0.01 & wait
+G=""; for v in 1 10 30; do for b in 0 0.01; do
+  G="$G $v=out/vif/calce_cap${{v}}_b$b.json@calce $v=out/vif/a123_cap${{v}}_b$b.json@a123 $v=out/vif/pan_cap${{v}}_b$b.json@panasonic"
+done; done
+python -m research.nested_tuning --by cell --estimator fomiukf --reference 1 --exclude {TUNING_EXCLUDE} $G \\
+    --json out/loco_correlation_cap.json
+python -m research.nested_tuning --by cell --estimator ecm2rc-ekf --reference 1 --exclude {TUNING_EXCLUDE} $G \\
+    --json out/loco_correlation_cap_ekf.json""",
+          lambda out: nested_table("loco_correlation_cap.json")(out)
+          + "\n\nThe 2-RC EKF, tuned the same way:\n\n" + nested_table("loco_correlation_cap_ekf.json")(out)
+          + "\n\n" + runs_table(tuple((f"Panasonic, HPPC alone, cap {v}" + (", +1 % offset" if b == "0.01" else ""),
+                                          f"vif/pan_cap{v}_b{b}.json", e)
+                                         for e in ("fomiukf", "ecm2rc-ekf") for b in ("0", "0.01")
+                                         for v in ("1", "10", "30")), PAN_GROUPS)(out),
+          120, ("needs:char_calce", "needs:char_a123", "needs:char_pan_hppc")),
     Table("char_joint_ocv", "characterisation.md", REAL + f"""\
 socd fit $C/calce20r_25C_DST_80soc.csv --full-at 3303 --capacity-ah 1.999 --no-rest-anchor -q -o out/s25/calce_joint.toml
 socd evaluate --cell out/s25/calce_joint.toml {CALCE} --estimator fomiukf -q --json out/s25/calce_joint_eval.json
