@@ -83,3 +83,47 @@ def test_only_updated_cells_move() -> None:
     assert np.any(noise.moments[0] != 0.0) and np.all(noise.moments[1] == 0.0)
     noise.reset(np.array([True, False]))
     assert np.all(noise.moments == 0.0)
+
+
+def _ar1(noise: AdaptiveNoise, rho: np.ndarray, steps: int, sigma: float = 0.01, seed: int = 5) -> list[np.ndarray]:
+    """Feed innovations of lag-1 autocorrelation ``rho`` (per cell) and spread ``sigma``; returns
+    each step's ``S + f·R_extra``."""
+    rng = np.random.default_rng(seed)
+    e = np.zeros(rho.shape)
+    s = np.full(rho.shape, 1e-6)
+    out = []
+    for _ in range(steps):
+        e = rho * e + np.sqrt(1.0 - rho * rho) * rng.normal(0.0, sigma, rho.shape)
+        out.append(noise.match(e, s, np.zeros_like(e)))
+    return out
+
+
+def test_inflation_is_the_ar1_variance_inflation_factor() -> None:
+    rho = np.array([0.0, 0.5, 0.9])
+    noise = AdaptiveNoise(3, samples=300, correlation_cap=1000.0)
+    _ar1(noise, rho, 6000)
+    # (1+ρ)/(1-ρ) = 1, 3, 19; the exponentially weighted ρ over ~300 samples scatters by ~0.03-0.06
+    np.testing.assert_allclose(noise.inflation(), (1 + rho) / (1 - rho), rtol=0.35)
+    assert noise.inflation()[0] < 1.3
+    s_tot = noise.match(np.zeros(3), np.full(3, 1e-6), np.zeros(3), update=False)
+    np.testing.assert_allclose(s_tot, 1e-6 + noise.inflation() * noise.extra(np.zeros(3)), rtol=1e-12)
+
+
+def test_the_cap_bounds_the_factor_and_one_turns_it_off() -> None:
+    rho = np.full(2, 0.95)  # a factor of 39 uncapped
+    capped, off = AdaptiveNoise(2, 300, correlation_cap=10.0), AdaptiveNoise(2, 300)
+    with_cap, without = _ar1(capped, rho, 3000), _ar1(off, rho, 3000)
+    np.testing.assert_allclose(capped.inflation(), 10.0)
+    assert off.inflation() == 1.0
+    # the factor scales only what is returned: the learned variance is the same either way
+    np.testing.assert_array_equal(capped.moments[:, :5], off.moments[:, :5])
+    s = 1e-6
+    np.testing.assert_allclose(with_cap[-1] - s, 10.0 * (without[-1] - s), rtol=1e-9)
+
+
+def test_a_fit_without_model_error_is_not_slowed_however_correlated() -> None:
+    # innovations inside the predicted spread: nothing learned, so nothing inflated
+    noise = AdaptiveNoise(1, samples=300, correlation_cap=30.0)
+    s_tot = _ar1(noise, np.array([0.95]), 2000, sigma=1e-4)
+    assert noise.inflation()[0] > 20
+    np.testing.assert_allclose(s_tot[-1], 1e-6, rtol=0.05)

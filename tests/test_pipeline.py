@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from service.cell.model import MtsFom
+from service.estimators.adaptive_noise import N_SHAPE_MOMENTS
 from service.estimators.pipeline import PackEstimator, fom_single_scale, fomiukf, foukf
 from service.estimators.settings import EstimatorSettings
 from service.recording import load_recording
@@ -221,6 +222,28 @@ def test_adaptive_noise_state_round_trips_and_legacy_states_load(nmc_profile, sh
     legacy["ukf_r_adapt"] = np.full(est.n, 4e-6)
     restored.set_state(legacy)
     np.testing.assert_array_equal(restored.ukf.r_adapt, np.full(est.n, 4e-6))
+    # a state written before the innovation's autocorrelation was kept: the shape moments alone
+    shape_only = {k: v for k, v in state.items() if not k.endswith("_noise_previous")}
+    shape_only["ukf_noise_moments"] = state["ukf_noise_moments"][:, :N_SHAPE_MOMENTS]
+    shape_only["fast_noise_moments"] = state["fast_noise_moments"][:, :N_SHAPE_MOMENTS]
+    restored.set_state(shape_only)
+    np.testing.assert_array_equal(restored.ukf.noise.moments[:, :N_SHAPE_MOMENTS],
+                                  est.ukf.noise.moments[:, :N_SHAPE_MOMENTS])
+    assert np.all(restored.ukf.noise.moments[:, N_SHAPE_MOMENTS:] == 0.0)
+    assert np.all(restored.ukf.noise.previous == 0.0) and np.all(restored.fast.noise.previous == 0.0)
+
+
+def test_correlation_moments_round_trip_to_the_same_next_step(nmc_profile) -> None:
+    s = EstimatorSettings(adaptive_noise_samples=50, adaptive_noise_correlation_cap=30.0)
+    est, _ = _warm_pack(nmc_profile, s)
+    assert np.any(est.ukf.noise.previous != 0.0) and np.any(est.ukf.noise.moments[:, 5] != 0.0)
+    restored = PackEstimator(nmc_profile, est.n, s, "multi")
+    restored.set_state(est.get_state())
+    v = np.full(est.n, 3.7)
+    for e in (est, restored):
+        e.step(1.0, 1.0, v, np.full(est.n, 25.0))
+    np.testing.assert_array_equal(restored.soc, est.soc)
+    np.testing.assert_array_equal(restored.ukf.noise.moments, est.ukf.noise.moments)
 
 
 def test_soc_estimate_stays_inside_zero_one(nmc_profile) -> None:
@@ -269,6 +292,8 @@ def _corrupt(state: dict, key: str, how: str) -> dict:
         ("ukf_noise_moments", "shape"),
         ("fast_noise_moments", "nan"),
         ("fast_noise_moments", "shape"),
+        ("ukf_noise_previous", "nan"),
+        ("fast_noise_previous", "shape"),
     ],
 )
 def test_set_state_rejects_bad_state(nmc_profile, key: str, how: str) -> None:
