@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.estimators.adaptive_noise import ADAPT_CLIP, AdaptiveNoise
+from service.estimators.adaptive_noise import ADAPT_CLIP, N_SHAPE_MOMENTS, AdaptiveNoise
 
 
 def _feed(noise: AdaptiveNoise, steps: int, rest_var: float, load_coeff: float, seed: int = 0) -> np.ndarray:
@@ -116,7 +116,7 @@ def test_the_cap_bounds_the_factor_and_one_turns_it_off() -> None:
     np.testing.assert_allclose(capped.inflation(), 10.0)
     assert off.inflation() == 1.0
     # the factor scales only what is returned: the learned variance is the same either way
-    np.testing.assert_array_equal(capped.moments[:, :5], off.moments[:, :5])
+    np.testing.assert_array_equal(capped.moments[:, :N_SHAPE_MOMENTS], off.moments[:, :N_SHAPE_MOMENTS])
     s = 1e-6
     np.testing.assert_allclose(with_cap[-1] - s, 10.0 * (without[-1] - s), rtol=1e-9)
 

@@ -109,9 +109,9 @@ class AdaptiveNoise:
         sample = np.stack([np.ones_like(phi), phi, phi * phi, excess, excess * phi,
                            innovation * self.previous, innovation * innovation], axis=1)
         new = (1.0 - beta) * self.moments + beta * sample
-        where = np.reshape(update, (-1, 1)) if np.ndim(update) else update
-        self.moments = np.where(where, new, self.moments)
-        self.previous = np.where(np.reshape(where, -1) if np.ndim(update) else update, innovation, self.previous)
+        updated = np.broadcast_to(update, self.previous.shape)
+        self.moments = np.where(updated[:, None], new, self.moments)
+        self.previous = np.where(updated, innovation, self.previous)
         return s_tot
 
     def set_moments(self, moments: np.ndarray, previous: np.ndarray | None = None) -> None:

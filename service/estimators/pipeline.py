@@ -552,9 +552,10 @@ class PackEstimator:
         if fast is not None:
             self.fast.z, self.fast.P, self.fast.D = fast
             self.fast.set_difference_state(prev)
-            if self.fast.noise is not None:
-                self.fast.noise.set_moments(*(fast_noise if fast_noise is not None
-                                              else (np.zeros_like(self.fast.noise.moments), None)))
+            if fast_noise is not None:
+                self.fast.noise.set_moments(*fast_noise)
+            elif self.fast.noise is not None:
+                self.fast.noise.reset(np.arange(self.n))
         if slow is not None:
             self.slow.z, self.slow.P, self.slow.ring, self.slow.moved = slow
             self.slow.hist0 = self.slow.ring.copy()
