@@ -96,6 +96,7 @@ from service.characterisation.ocv_sources import (
     rests_settled,
 )
 from service.characterisation.relaxation import measure_slow_relaxation
+from service.characterisation.segment_selection import select_segments
 from service.characterisation.shape_choices import DEFAULT_SHAPE, SHAPES
 from service.characterisation.sustained_load import (
     SUSTAINED_C_RATE,
@@ -280,20 +281,6 @@ def split_at_rests(rec: Recording, soc: np.ndarray, capacity_ah: float, min_rest
             segs.append(FitSegment(rec.time_s[a:b], rec.current_a[a:b], rec.voltage_v[a:b],
                                    rec.temperature_c[a:b], float(soc[a]), u_h0_branch=branch))
     return segs
-
-
-def select_segments(segs: list[FitSegment], budget: int) -> list[FitSegment]:
-    """Keep whole segments, spread evenly over the list, within a sample budget."""
-    total = sum(len(s) for s in segs)
-    if total <= budget:
-        return segs
-    order = np.linspace(0, len(segs) - 1, len(segs)).astype(int)
-    keep, used = [], 0
-    stride = max(1, int(np.ceil(total / budget)))
-    for i in order[::stride]:
-        keep.append(segs[i])
-        used += len(segs[i])
-    return keep or segs[:1]
 
 
 def measure_soc_resistance(groups: dict[float, list[tuple[Recording, np.ndarray]]], capacity_ah: float,

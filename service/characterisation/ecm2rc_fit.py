@@ -38,6 +38,7 @@ from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment, small_cell_ratio
 from service.cell.ocv import EXTRAPOLATION_SPAN, OcvTable
 from service.characterisation.ocv_choices import OCV_SMOOTH_WEIGHT
+from service.characterisation.segment_selection import select_segments
 
 #: time-constant bounds of the two RC branches [s]
 TAU1_BOUNDS_S = (1.0, 100.0)
@@ -110,14 +111,6 @@ def r_max_ohm(capacity_ah: float) -> float:
     :data:`service.cell.fitting.BOUNDS_MIN_CAPACITY_AH` by the cell's ``small_cell_ratio``, as the
     fractional fit's resistance bounds are (a small cell's resistances are proportionally larger)."""
     return R_MAX_OHM * small_cell_ratio(capacity_ah)
-
-
-def _thin(segments: list[FitSegment], budget: int) -> list[FitSegment]:
-    total = sum(len(s) for s in segments)
-    if total <= budget:
-        return segments
-    stride = math.ceil(total / budget)
-    return [s for k, s in enumerate(segments) if k % stride == 0] or segments[:1]
 
 
 def _prepare(segments: list[FitSegment], capacity_ah: float) -> _Prepared:
@@ -364,7 +357,7 @@ def fit_ecm2rc(
         raise ValueError("the 2-RC fit needs at least one segment")
     if not capacity_ah > 0:
         raise ValueError(f"capacity must be > 0, got {capacity_ah}")
-    segments = _thin(segments, MAX_FIT_SAMPLES)
+    segments = select_segments(segments, MAX_FIT_SAMPLES)
     prep = _prepare(segments, capacity_ah)
     knots = np.linspace(0.0, 1.0, OCV_KNOTS)
     fixed = None
