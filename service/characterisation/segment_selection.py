@@ -9,10 +9,10 @@ it, only one kind survives.  On the Panasonic −20 °C HPPC test (four segment 
 of four) the fit then saw nothing but the 1.5 A pulses, and its parameters could not follow
 the larger pulses or a sustained load.
 
-:func:`select_segments` therefore groups the segments into kinds (peak current to a quarter
-octave, duration to an octave) and takes them in turn from every kind, each kind's segments
-in an order that spreads any prefix of them over the kind's SOC range (van der Corput), each
-kind starting at a different phase so their first segments lie at different SOCs.
+:func:`select_segments` therefore samples by kind (peak current to a quarter octave, length to
+an octave), as a stratified sample does: every kind is kept, each in proportion to its share
+of the samples, and each kind's segments are spread over its SOC range (van der Corput order,
+started at a different phase per kind so their first segments lie at different SOCs).
 """
 
 from __future__ import annotations
@@ -27,9 +27,13 @@ from service.cell.fitting import FitSegment
 
 Segment = TypeVar("Segment", bound=FitSegment)
 
+#: each kind's spread order starts this far (mod 1) past the previous kind's (the golden
+#: ratio's fraction, which never brings two kinds back to the same phase)
+KIND_PHASE = (math.sqrt(5.0) - 1.0) / 2.0
+
 
 def segment_kind(seg: FitSegment) -> tuple[int, int]:
-    """``(peak-current bin, duration bin)``: ``round(2·log2 |I|max)`` (a pulse test's amplitudes,
+    """``(peak-current bin, length bin)``: ``round(2·log2 |I|max)`` (a pulse test's amplitudes,
     each about double the last, fall in different bins) and ``round(log2 samples)``."""
     peak = float(np.max(np.abs(seg.current_a))) if len(seg) else 0.0
     return (round(2.0 * math.log2(max(peak, 1e-3))), round(math.log2(max(len(seg), 1))))
@@ -43,11 +47,6 @@ def van_der_corput(k: int) -> float:
         k >>= 1
         scale /= 2
     return out
-
-
-#: each kind's spread order starts this far (mod 1) past the previous kind's, so the kinds'
-#: first segments lie at different SOCs (the golden ratio's fraction never repeats a phase)
-KIND_PHASE = (math.sqrt(5.0) - 1.0) / 2.0
 
 
 def spread_order(n: int, phase: float = 0.0) -> list[int]:
@@ -66,31 +65,32 @@ def spread_order(n: int, phase: float = 0.0) -> list[int]:
 
 
 def select_segments(segs: Sequence[Segment], budget: int) -> list[Segment]:
-    """Whole segments within ``budget`` samples, every kind of segment represented.
+    """Whole segments within ``budget`` samples: a sample stratified by :func:`segment_kind`.
 
-    All of them when they fit.  Otherwise the kinds (:func:`segment_kind`) take turns, in the
-    order each first appears, each giving its next segment in :func:`spread_order` (started at
-    a different phase per kind); a segment
-    that would overrun the budget is passed over for smaller ones.  The kept segments come back
-    in recording order; at least one is kept."""
+    All of them when they fit.  Otherwise each step takes the next segment (:func:`spread_order`)
+    of the kind furthest below its share of the samples kept so far (the share it has of all
+    samples; a kind with none kept yet comes first, the largest first), passing over a segment
+    that would overrun the budget.  The kept segments come back in recording order; at least
+    one (the shortest) is kept."""
     total = sum(len(s) for s in segs)
     if total <= budget:
         return list(segs)
-    kinds: dict[tuple[int, int], list[int]] = {}
+    members: dict[tuple[int, int], list[int]] = {}
     for i, s in enumerate(segs):
-        kinds.setdefault(segment_kind(s), []).append(i)
-    queues = [[members[j] for j in spread_order(len(members), (k * KIND_PHASE) % 1.0)]
-              for k, members in enumerate(kinds.values())]
+        members.setdefault(segment_kind(s), []).append(i)
+    groups = sorted(members.values(), key=lambda m: -sum(len(segs[i]) for i in m))
+    share = [sum(len(segs[i]) for i in m) / total for m in groups]
+    queues = [[m[j] for j in spread_order(len(m), (k * KIND_PHASE) % 1.0)] for k, m in enumerate(groups)]
+    kept = [0] * len(groups)
     keep: list[int] = []
     used = 0
     while any(queues):
-        for q in queues:
-            if not q:
-                continue
-            i = q.pop(0)
-            if used + len(segs[i]) <= budget:
-                keep.append(i)
-                used += len(segs[i])
+        k = min((k for k, q in enumerate(queues) if q), key=lambda k: kept[k] / share[k])
+        i = queues[k].pop(0)
+        if used + len(segs[i]) <= budget:
+            keep.append(i)
+            used += len(segs[i])
+            kept[k] += len(segs[i])
     if not keep:
         keep = [min(range(len(segs)), key=lambda i: len(segs[i]))]
     return [segs[i] for i in sorted(keep)]
