@@ -13,6 +13,7 @@ import pytest
 from service.cell.coulomb import coulomb_soc
 from service.cell.fitting import FitSegment
 from service.characterisation.characterise import MAX_FIT_SAMPLES, split_at_rests
+from service.characterisation.fit_summary import TemperatureSummary
 from service.characterisation.segment_selection import (
     segment_kind,
     select_segments,
@@ -82,3 +83,24 @@ def test_the_cold_hppc_test_keeps_every_kind_of_its_segments() -> None:
     assert {segment_kind(s) for s in kept} == {segment_kind(s) for s in segs}
     peaks = [float(np.abs(s.current_a).max()) for s in kept]
     assert min(peaks) < 2.0 and max(peaks) > 11.0  # the 1.5 A pulses and the 11.6 A ones
+
+
+def test_a_fit_on_a_subsample_reads_its_point_on_every_segment_too(nmc_recording, monkeypatch) -> None:
+    """Where the search sees a subsample, the fit log and report give the point's RMSE over every
+    segment as well, so a subsample that does not stand for the recording shows; a fit that saw
+    everything gives no second figure. The real fit runs on a simulated cell with three segments, the
+    budget cut to hold two of them."""
+    import service.characterisation.characterise as ch
+
+    rec = load_recording(nmc_recording(name="subsample", duration_s=7200, seed=4, soc0=0.95).path)
+    _, whole_fit = ch.characterise([rec], 2.0, [None], fit_kinetics=False, max_seconds=2)
+    assert whole_fit.temperatures[0].whole_rmse_mv is None
+    monkeypatch.setattr(ch, "MAX_FIT_SAMPLES", 3000)
+    _, report = ch.characterise([rec], 2.0, [None], fit_kinetics=False, max_seconds=2)
+    (t,) = report.temperatures
+    # the budget holds the two short segments (SOC above 0.95) but not the long discharge to 0.43:
+    # the OCV fitted jointly on the subsample does not know that range, and the second figure shows it
+    assert t.whole_rmse_mv is not None and t.whole_rmse_mv > 3.0 * t.rmse_mv
+    assert TemperatureSummary.of(t).whole_rmse_mv == pytest.approx(t.whole_rmse_mv)
+    line = next(x for x in report.lines if "the search saw" in x)
+    assert "2 of 3 segments" in line and f"{t.whole_rmse_mv:.1f} mV" in line

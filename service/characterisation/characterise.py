@@ -197,6 +197,9 @@ class TemperatureFit:
     ecm_simulated_mv: float | None = None
     #: the OCV at this temperature came from a table or an OCV test, not a joint fit
     ocv_measured: bool = False
+    #: the point's RMSE [mV] over every segment of the recordings, where the search saw a
+    #: subsample of them (:func:`service.characterisation.segment_selection.select_segments`)
+    whole_rmse_mv: float | None = None
 
     @property
     def unexplained_share(self) -> float:
@@ -447,12 +450,12 @@ def characterise(
         slow_note = slow.describe()
         rep.say(f"slow relaxation branch (long rests at {ref_t:g} °C): {slow_note}")
 
-    def segments_of(t: float) -> list[FitSegment]:
+    def all_segments_of(t: float) -> list[FitSegment]:
         segs: list[FitSegment] = []
         for part, soc in groups[t]:
             segs += [s for s in split_at_rests(part, soc, capacity_ah, track_branch=ocv_branch != "mean")
                      if s.soc0 >= MIN_FIT_SOC]
-        return select_segments(segs, MAX_FIT_SAMPLES)
+        return segs
 
     def template(ocv_rows: dict[float, np.ndarray]) -> CellProfile:
         ts = sorted(ocv_rows)
@@ -482,7 +485,8 @@ def characterise(
     # (with no OCV table or test) the monotone joint OCV the fractional fit starts from
     ecm: dict[float, Ecm2RcFit] = {}
     order = sorted(temps, key=lambda t: abs(t - ref_t))  # reference first, then outwards
-    segs_at = {t: segments_of(t) for t in order}
+    every_seg_at = {t: all_segments_of(t) for t in order}
+    segs_at = {t: select_segments(every_seg_at[t], MAX_FIT_SAMPLES) for t in order}
     memory_span_s = fitted_memory_span_s([s for segs in segs_at.values() for s in segs], memory_length, rep)
     n_stages = 2 * len(temps)
     for k, t in enumerate(order):
@@ -579,10 +583,16 @@ def characterise(
         points[t] = pt
         if res.hysteresis is not None:
             hyst = res.hysteresis
+        whole = None
+        if len(segs) < len(every_seg_at[t]):
+            # the search saw a subsample: read the point on every segment too, so a subsample
+            # that does not stand for the recording shows in the log
+            read_hyst = res.hysteresis if source == "fractional fit" and res.hysteresis is not None else prof.hysteresis
+            whole = segments_rmse_mv(prof, pt, read_hyst, every_seg_at[t], memory_length, ea_t)
         outcome = TemperatureFit(temp_c=t, rmse_mv=rmse, ecm_rmse_mv=ecm[t].rmse_mv, ecm_simulated_mv=start_rmse,
                                  at_bounds=res.at_bounds if source == "fractional fit" else [], source=source,
                                  overpotential_rms_mv=overpotential_rms_mv(prof, segs),
-                                 ocv_measured=test_rows is not None)
+                                 ocv_measured=test_rows is not None, whole_rmse_mv=whole)
         rep.temperatures.append(outcome)
         rep.say(f"  {t:g} °C: R_ohm {pt.r_ohm * 1e3:.1f} mΩ, R_ct {pt.r_ct * 1e3:.1f} mΩ, m {pt.m:.2f}, "
                 f"R_df {pt.r_df * 1e3:.1f} mΩ, n {pt.n:.2f}"
@@ -596,6 +606,11 @@ def characterise(
                                "fit's own point is kept)"}.get(source, "")
                 + (f"; search stopped at its {max_seconds:g} s bound (--max-seconds)" if res.time_bound
                    else f"; search finished in {res.seconds:.0f} s"))
+        if whole is not None:
+            every = every_seg_at[t]
+            rep.say(f"  {t:g} °C: the search saw {len(segs)} of {len(every)} segments "
+                    f"({sum(len(x) for x in segs)} of {sum(len(x) for x in every)} samples, every kind of segment "
+                    f"in its share); on all of them the point reads {whole:.1f} mV")
         if outcome.at_bounds:
             rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}", notice=True)
         if pins and not np.allclose(list(shape_pins(pt, shape).values()), list(pins.values()), atol=1e-6):

@@ -43,6 +43,9 @@ class TemperatureSummary(BaseModel):
     ocv_measured: bool
     #: why the quality check refuses this temperature (``None``: it passes)
     problem: str | None
+    #: the kept point's RMSE over every segment, mV, where the search saw a subsample of them
+    #: (``None``: it saw them all, and ``rmse_mv`` is that figure)
+    whole_rmse_mv: float | None = None
 
     @classmethod
     def of(cls, fit: TemperatureFit) -> TemperatureSummary:
@@ -50,7 +53,7 @@ class TemperatureSummary(BaseModel):
                    ecm_simulated_mv=_finite(fit.ecm_simulated_mv),
                    overpotential_rms_mv=fit.overpotential_rms_mv, unexplained_share=_finite(fit.unexplained_share),
                    source=fit.source, at_bounds=list(fit.at_bounds), ocv_measured=fit.ocv_measured,
-                   problem=fit.problem())
+                   problem=fit.problem(), whole_rmse_mv=_finite(fit.whole_rmse_mv))
 
 
 def with_picked_two_rc(temperatures: list[TemperatureSummary]) -> list[TemperatureSummary]:
