@@ -609,8 +609,8 @@ def characterise(
         if whole is not None:
             every = every_seg_at[t]
             rep.say(f"  {t:g} °C: the search saw {len(segs)} of {len(every)} segments "
-                    f"({sum(len(x) for x in segs)} of {sum(len(x) for x in every)} samples, every kind of segment "
-                    f"in its share); on all of them the point reads {whole:.1f} mV")
+                    f"({sum(len(x) for x in segs)} of {sum(len(x) for x in every)} samples, stratified by kind of "
+                    f"segment); on all of them the point reads {whole:.1f} mV")
         if outcome.at_bounds:
             rep.say(f"  {t:g} °C: at a bound of the search: {', '.join(outcome.at_bounds)}", notice=True)
         if pins and not np.allclose(list(shape_pins(pt, shape).values()), list(pins.values()), atol=1e-6):
