@@ -22,6 +22,7 @@ from service.validation import (
     check_increasing,
     check_time_steps,
     check_values,
+    header_text,
     read_text,
     separator_problem,
 )
@@ -118,7 +119,7 @@ def _load(path: Path, bounds: RecordingBounds | None) -> Recording:
         raise InputFileError(f"{path}: {why}")
     if missing:
         raise InputFileError(
-            f"{path}: missing column(s) {', '.join(missing)}; header is {','.join(header)[:120] or '(empty)'}"
+            f"{path}: missing column(s) {', '.join(missing)}; header is {header_text(header)}"
         )
     cols = list(REQUIRED_COLUMNS) + (["soc_true"] if "soc_true" in header else [])
     twice = [c for c in cols if header.count(c) > 1]

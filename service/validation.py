@@ -61,6 +61,13 @@ def read_text(path: str | Path, what: str) -> str:
     return text.replace("\r\n", "\n").replace("\r", "\n")
 
 
+def header_text(header: Sequence[str]) -> str:
+    """A CSV header as an error message shows it: on one line (quoted, so a quoted field's line
+    break or tab reads as ``\\n`` / ``\\t``), at most 120 characters of it; ``(empty)`` for none."""
+    joined = ",".join(header)[:120]
+    return repr(joined) if joined else "(empty)"
+
+
 def separator_problem(header: Sequence[str]) -> str | None:
     """What is wrong where a CSV header read at commas is one field split by ';' or tabs (a spreadsheet's
     export in a locale with a decimal comma), or None."""

@@ -234,7 +234,7 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
     import io
     from pathlib import Path
 
-    from service.validation import check_values, read_text, separator_problem
+    from service.validation import check_values, header_text, read_text, separator_problem
 
     path = Path(path)
     rows = list(csv.reader(io.StringIO(read_text(path, "OCV table"))))
@@ -244,7 +244,7 @@ def load_ocv_csv(path) -> tuple[np.ndarray, np.ndarray]:
     if "soc" not in header and (why := separator_problem(header)) is not None:
         raise ValueError(f"{path}: {why}")
     if "soc" not in header:
-        raise ValueError(f"{path}: OCV table needs a 'soc' column; header is {','.join(header)}")
+        raise ValueError(f"{path}: OCV table needs a 'soc' column; header is {header_text(header)}")
     col = ocv_column(header)
     if col is None:
         raise ValueError(f"{path}: OCV table needs one of columns {', '.join(OCV_COLUMNS)}")
