@@ -654,6 +654,32 @@ def test_a_kinetics_fit_never_ends_worse_than_its_2rc_start(tmp_path: Path, nmc_
     ch.check_fit_quality(report)
 
 
+def test_an_exchange_current_at_its_lower_bound_is_fitted_again_with_linear_kinetics(nmc_recording) -> None:
+    """Where the default fits kinetics (enough current steps) and i0 ends on the search's lower bound, the
+    term took more curvature than it may give: that temperature is fitted again with linear kinetics, and
+    the log says so. The cell here bends more than the bound allows (i0 0.02 A, R_ohm holding its linear
+    drop); the same drive from the cell with linear kinetics keeps the term fitted. ``--kinetics`` keeps
+    the bound's i0."""
+    import service.characterisation.characterise as ch
+    from service.recording import load_recording
+
+    bent = nmc_recording(name="bent", duration_s=4200, seed=4, soc0=0.95, i0_a=0.02, r_ohm=0.02 + 0.0256926 / 0.02)
+    # the search reaches the bound within 1 s here; 4 s leave room for a loaded machine
+    profile, report = ch.characterise([load_recording(bent.path)], 2.0, [None], max_seconds=4)
+    assert "exchange current fitted" in " ".join(report.lines)
+    notice = [x for x in report.lines if "the search's lower bound" in x]
+    assert len(notice) == 1 and "again with linear kinetics" in notice[0], report.lines
+    assert profile.parameters[0].i0_a is None
+    forced, forced_report = ch.characterise([load_recording(bent.path)], 2.0, [None], fit_kinetics=True,
+                                            max_seconds=4)
+    assert forced.parameters[0].i0_a == pytest.approx(0.05, rel=0.01)
+    assert not any("the search's lower bound" in x for x in forced_report.lines)
+    plain = nmc_recording(name="plain", duration_s=4200, seed=4, soc0=0.95)
+    profile, report = ch.characterise([load_recording(plain.path)], 2.0, [None], max_seconds=3)
+    assert profile.parameters[0].i0_a is not None
+    assert not any("the search's lower bound" in x for x in report.lines)
+
+
 def test_several_starts_keep_the_search_that_fits_best(nmc_recording, monkeypatch) -> None:
     """``starts`` runs one search per seed and keeps the point that fits the segments best, whichever
     seed found it. The search on seed 7 is replaced by one ending far off; the real search runs on

@@ -159,6 +159,10 @@ class FitResult:
     #: the resistances' activation energy [J/mol] the point was fitted with (``temperature_law``),
     #: else None; the point is then the parameters at its own ``temp_c``
     ea_j_mol: float | None = None
+    #: the Butler-Volmer exchange current ended on its lower bound (the most non-linear the search
+    #: allows): the data asked for more curvature than the term may give, so the term absorbed
+    #: something it does not model rather than measuring i0
+    i0_at_lower_bound: bool = False
 
 
 # -- data helpers -------------------------------------------------------------------------
@@ -575,6 +579,7 @@ def fit_parameters(
     # R_ohm as decode() simulated it
     point = lift_to_ohmic_floor(point_from_x(x_fin, temp_c, i0, max_tau_df_s), i0, profile.min_r_ohm_scale(temp_c),
                                 min_pure_ohm)
+    hits = coordinates_at_bounds(x_fin, names, lo, hi)
     return FitResult(
         point=point,
         hysteresis=hyst,
@@ -582,8 +587,9 @@ def fit_parameters(
         n_evaluations=obj_g.n_evaluations + obj.n_evaluations,
         # an activation energy of 0 is a finding (no measurable change), not a degenerate fit
         # a pinned coordinate sits on its own narrow range by design
-        at_bounds=[b for name, b in coordinates_at_bounds(x_fin, names, lo, hi)
+        at_bounds=[b for name, b in hits
                    if name not in (pinned or {}) and not (name == "ea_kj_mol" and b.endswith("(lower bound)"))],
+        i0_at_lower_bound=any(name == "ln_i0_a" and b.endswith("(lower bound)") for name, b in hits),
         seconds=time.perf_counter() - t_start,
         time_bound=cut["global"] or cut["polish"],
         ea_j_mol=ea,

@@ -552,13 +552,17 @@ def characterise(
         law_t = temperature_law_resolvable(segs, t, rep)
         # the search coordinates the reference temperature's point holds here (--shape)
         pins = {} if t == ref_t else shape_pins(points[ref_t], shape)
-        res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length,
-                                       min_pure_ohm=pure_ohmic_share * ecm[t].r0,
-                                       fit_hysteresis=fit_hysteresis and t == ref_t, fit_kinetics=kinetics_t,
-                                       max_seconds=max_seconds, x0=start, warmer=warmer, colder=colder,
-                                       min_order=min_order, min_slow_order=min_slow_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
-                                       law_ref_temp_c=t,
-                                       pinned=pins or None)
+        search = dict(min_pure_ohm=pure_ohmic_share * ecm[t].r0, fit_hysteresis=fit_hysteresis and t == ref_t,
+                      max_seconds=max_seconds, x0=start, warmer=warmer, colder=colder, min_order=min_order,
+                      min_slow_order=min_slow_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
+                      law_ref_temp_c=t, pinned=pins or None)
+        res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length, fit_kinetics=kinetics_t,
+                                       **search)
+        if kinetics_t and fit_kinetics is None and res.i0_at_lower_bound:
+            say_exchange_current_unmeasured(rep, t, pt)
+            kinetics_t = False
+            res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length, fit_kinetics=False,
+                                           **search)
         ea_t = res.ea_j_mol
         # the 2-RC fit's point read as this model reads a point (the OCV as stored, the fractional
         # time step, no hysteresis): the bar the fit is held to, both read the same way
@@ -756,6 +760,17 @@ def temperature_law_resolvable(segments: list[FitSegment], temp_c: float, rep: F
         rep.say(f"temperature at {temp_c:g} °C spans {span:.1f} K (10th-90th percentile): the resistances' "
                 "activation energy is fitted with the point")
     return resolved
+
+
+def say_exchange_current_unmeasured(rep: FitReport, temp_c: float, point: ParameterPoint) -> None:
+    """A notice that a temperature's exchange current ended on the search's lower bound, so that
+    temperature is fitted again with linear kinetics. At that bound the Butler-Volmer term takes
+    nearly the whole instantaneous drop as a logarithm of the current, and the drop vanishes the
+    moment the current stops: the fit used the term to stand in for polarisation that outlasts the
+    pulse (which a drive's short stops then show), not to measure i0."""
+    rep.say(f"  {temp_c:g} °C: the exchange current i0 ended at {point.i0_a:.3g} A, the search's lower bound: the "
+            "pulses ask for more curvature than the Butler-Volmer term may give, so it is not measured; fitting "
+            "this temperature again with linear kinetics (--kinetics keeps it)", notice=True)
 
 
 def say_exchange_current_rising_in_the_cold(rep: FitReport, points: dict[float, ParameterPoint]) -> None:

@@ -100,8 +100,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="fit a Butler-Volmer exchange current i0 per temperature (the apparent resistance falls as "
                    "the current rises; matters in the cold). Default: at each temperature whose recordings have "
                    "20 or more clean current steps reaching 0.5C (HPPC tests, pulse and DST-like cycles), the "
-                   "steps that measure it; --kinetics fits it at every temperature, --no-kinetics at none "
-                   "(docs/results/tuning.md)")
+                   "steps that measure it, unless its i0 ends at the search's lower bound (not measured: that "
+                   "temperature is fitted again with linear kinetics); --kinetics fits it at every temperature "
+                   "and keeps it, --no-kinetics at none (docs/results/tuning.md)")
     p.add_argument("--min-order", type=cpe_order_bound, default=None, metavar="A",
                    help="lower bound of the CPE orders m, n (default 0.3); the short G-L memory represents low "
                    "orders poorly (the bundled Panasonic profile uses 0.5)")
