@@ -1097,6 +1097,24 @@ python -m research.nested_tuning --by cell --estimator fomiukf --reference 0 --e
                                   + tuple((f"`{c}`, 2-RC EKF, its own fit", f"unseen_cell/{c}_hppc_pure0_eval.json",
                                            "ecm2rc-ekf") for c in UNSEEN_CELLS), UNSEEN_M10_GROUPS)(out),
           90, ("needs:pybamm",)),
+    Table("hppc_i0_bound", "characterisation.md", """\
+python -m research.unseen_cell build --jobs 2
+python -m research.unseen_cell build --jobs 2 --cells Chen2020,Mohtat2020 --ambients -10
+# where the default's fit reached the bound (on Chen2020 and Mohtat2020: nowhere); the rest of each log is dropped
+for c in Chen2020 Mohtat2020; do
+  python -m research.unseen_cell fit --fit-drive HPPC --cells $c --ambients 25,10,0,-10 --profile-tag _hppc_c1 \\
+      --fit-flags="--candidates 1" --refit 2>&1 | grep "search's lower bound" || echo "$c: no i0 at its lower bound"
+done
+# the default (refit linear at the bound) against --kinetics (i0 kept at the bound) where it fired
+python -m research.unseen_cell run --fit-drive HPPC --cells Marquis2019 --profile-tag _hppc_c1 \\
+    --fit-flags="--candidates 1" --refit
+python -m research.unseen_cell run --fit-drive HPPC --cells Marquis2019 --profile-tag _hppc_kin1 \\
+    --fit-flags="--kinetics --candidates 1" --refit""",
+          runs_table((("`Marquis2019`, default (refit linear at the bound)", "unseen_cell/Marquis2019_hppc_c1_eval.json"),
+                      ("`Marquis2019`, `--kinetics` (kept at the bound)", "unseen_cell/Marquis2019_hppc_kin1_eval.json"),
+                      ("`Marquis2019`, 2-RC EKF, its own fit", "unseen_cell/Marquis2019_hppc_c1_eval.json",
+                       "ecm2rc-ekf")), UNSEEN_GROUPS),
+          40, ("needs:pybamm",)),
     Table("filter_on_two_rc_model", "characterisation.md", REAL + f"""\
 # the Panasonic profile is loco_pure_ohmic's default one (--pure-ohmic-share 0), scored there
 python -m research.two_rc_point out/s25/pan_hppc_pure0.toml out/s25/pan_hppc_2rc_whole.toml --ocv two-rc
