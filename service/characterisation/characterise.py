@@ -552,10 +552,10 @@ def characterise(
         law_t = temperature_law_resolvable(segs, t, rep)
         # the search coordinates the reference temperature's point holds here (--shape)
         pins = {} if t == ref_t else shape_pins(points[ref_t], shape)
-        search = dict(min_pure_ohm=pure_ohmic_share * ecm[t].r0, fit_hysteresis=fit_hysteresis and t == ref_t,
-                      max_seconds=max_seconds, x0=start, warmer=warmer, colder=colder, min_order=min_order,
-                      min_slow_order=min_slow_order, max_tau_df_s=max_tau_df_s, temperature_law=law_t,
-                      law_ref_temp_c=t, pinned=pins or None)
+        search = {"min_pure_ohm": pure_ohmic_share * ecm[t].r0, "fit_hysteresis": fit_hysteresis and t == ref_t,
+                  "max_seconds": max_seconds, "x0": start, "warmer": warmer, "colder": colder, "min_order": min_order,
+                  "min_slow_order": min_slow_order, "max_tau_df_s": max_tau_df_s, "temperature_law": law_t,
+                  "law_ref_temp_c": t, "pinned": pins or None}
         res, pt, rmse = best_of_starts(prof, segs, t, seed, starts, rep, memory_length, fit_kinetics=kinetics_t,
                                        **search)
         if kinetics_t and fit_kinetics is None and res.i0_at_lower_bound:
