@@ -661,9 +661,13 @@ def test_an_exchange_current_at_its_lower_bound_is_fitted_again_with_linear_kine
     drop); the same drive from the cell with linear kinetics keeps the term fitted. ``--kinetics`` keeps
     the bound's i0."""
     import service.characterisation.characterise as ch
+    from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN
     from service.recording import load_recording
 
-    bent = nmc_recording(name="bent", duration_s=4200, seed=4, soc0=0.95, i0_a=0.02, r_ohm=0.02 + 0.0256926 / 0.02)
+    # R_ohm: 20 mΩ pure ohmic above the Butler-Volmer term's linear drop RT/(F i0) at 25 °C
+    i0 = 0.02
+    linear_drop_ohm = GAS_CONSTANT * (25.0 + KELVIN) / (FARADAY * i0)
+    bent = nmc_recording(name="bent", duration_s=4200, seed=4, soc0=0.95, i0_a=i0, r_ohm=0.02 + linear_drop_ohm)
     # the search reaches the bound within 1 s here; 4 s leave room for a loaded machine
     profile, report = ch.characterise([load_recording(bent.path)], 2.0, [None], max_seconds=4)
     assert "exchange current fitted" in " ".join(report.lines)
