@@ -587,9 +587,9 @@ def fit_parameters(
         n_evaluations=obj_g.n_evaluations + obj.n_evaluations,
         # an activation energy of 0 is a finding (no measurable change), not a degenerate fit
         # a pinned coordinate sits on its own narrow range by design
-        at_bounds=[b for name, b in hits
-                   if name not in (pinned or {}) and not (name == "ea_kj_mol" and b.endswith("(lower bound)"))],
-        i0_at_lower_bound=any(name == "ln_i0_a" and b.endswith("(lower bound)") for name, b in hits),
+        at_bounds=[text for name, edge, text in hits
+                   if name not in (pinned or {}) and not (name == "ea_kj_mol" and edge == "lower")],
+        i0_at_lower_bound=any(name == "ln_i0_a" and edge == "lower" for name, edge, _ in hits),
         seconds=time.perf_counter() - t_start,
         time_bound=cut["global"] or cut["polish"],
         ea_j_mol=ea,
@@ -607,14 +607,14 @@ def pinned_bounds(value: float, lo: float, hi: float) -> tuple[float, float]:
 
 
 def coordinates_at_bounds(x: np.ndarray, names: list[str], lo: np.ndarray, hi: np.ndarray,
-                          rel: float = 1e-3) -> list[tuple[str, str]]:
-    """``(name, "name = value (lower|upper bound)")`` for every search coordinate within ``rel`` of
-    the width of its range from a bound (log coordinates shown as their value)."""
+                          rel: float = 1e-3) -> list[tuple[str, str, str]]:
+    """``(name, "lower" | "upper", "name = value (lower|upper bound)")`` for every search coordinate
+    within ``rel`` of the width of its range from a bound (log coordinates shown as their value)."""
     out = []
     for name, v, a, b in zip(names, x, lo, hi):
         edge = "lower" if v <= a + rel * (b - a) else "upper" if v >= b - rel * (b - a) else None
         if edge is None:
             continue
         shown = f"{name[3:]} = {math.exp(v):.4g}" if name.startswith("ln_") else f"{name} = {v:.3g}"
-        out.append((name, f"{shown} ({edge} bound)"))
+        out.append((name, edge, f"{shown} ({edge} bound)"))
     return out
