@@ -78,8 +78,10 @@ def select_segments(segs: Sequence[Segment], budget: int) -> list[Segment]:
     members: dict[tuple[int, int], list[int]] = {}
     for i, s in enumerate(segs):
         members.setdefault(segment_kind(s), []).append(i)
-    groups = sorted(members.values(), key=lambda m: -sum(len(segs[i]) for i in m))
-    share = [sum(len(segs[i]) for i in m) / total for m in groups]
+    # each kind with its samples, largest first
+    sized = sorted(((sum(len(segs[i]) for i in m), m) for m in members.values()), key=lambda x: -x[0])
+    groups = [m for _, m in sized]
+    share = [n / total for n, _ in sized]
     queues = [[m[j] for j in spread_order(len(m), (k * KIND_PHASE) % 1.0)] for k, m in enumerate(groups)]
     kept = [0] * len(groups)
     keep: list[int] = []
