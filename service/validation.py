@@ -77,7 +77,7 @@ def separator_problem(header: Sequence[str]) -> str | None:
     if sep is None:
         return None
     return (f"row 1: the fields are separated by {sep}, not commas; socd reads comma-separated values with a '.' "
-            f"decimal point (header is {header[0][:120]!r})")
+            f"decimal point (header is {header_text(header)})")
 
 
 def check_text_file(path: str | Path, what: str, chunk_bytes: int = 1 << 20) -> str:
