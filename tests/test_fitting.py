@@ -212,10 +212,11 @@ def test_r_ohm_below_the_linear_kinetic_drop_is_rejected_and_never_fitted():
     assert saved.parameters[0].r_ohm == pytest.approx(2.0 * GAS_CONSTANT * (25.0 + KELVIN) / FARADAY / 0.4)
 
 
-def test_r_ohm_keeps_its_linear_kinetic_part_matched_to_i0_between_temperatures():
-    """A --kinetics fit stores R_ohm = R_rest + 2RT/F/(2 i0); between fitted temperatures the rest
-    and i0 are interpolated and the linear kinetic drop is added back for the interpolated i0."""
-    from service.cell.profile import arrhenius_interp
+def test_between_temperatures_the_pulse_resistances_are_interpolated_not_r_ohm_and_i0():
+    """Between fitted temperatures the small-current resistance R_ohm and the apparent resistance at
+    1C are interpolated like the other resistances, and i0 is the one that gives both; beyond the
+    fitted range both are held."""
+    from service.cell.profile import apparent_resistance_ohm, arrhenius_interp
 
     def lin(t, i0):
         return 2.0 * GAS_CONSTANT * (t + KELVIN) / FARADAY / (2.0 * i0)
@@ -226,16 +227,33 @@ def test_r_ohm_keeps_its_linear_kinetic_part_matched_to_i0_between_temperatures(
     prof = profile(pts[0]).model_copy(update={"parameters": pts})
     temps = np.array([0.0, 12.0, 25.0])
     par = prof.parameters_at(temps)
-    assert par.r_ohm[0] == pytest.approx(pts[0].r_ohm) and par.r_ohm[2] == pytest.approx(pts[1].r_ohm)
+    assert par.r_ohm[[0, 2]] == pytest.approx([pts[0].r_ohm, pts[1].r_ohm])
+    assert par.kinetics_i0_a[[0, 2]] == pytest.approx([0.2, 5.0], rel=1e-9)
     grid = np.array([0.0, 25.0])
-    rest_12 = np.exp(arrhenius_interp(np.array([12.0]), grid, np.log([0.05, 0.02])))[0]
-    assert par.r_ohm[1] == pytest.approx(rest_12 + lin(12.0, par.kinetics_i0_a[1]))
-    # interpolating R_ohm whole keeps more of the cold point's large linear kinetic drop
-    whole_12 = np.exp(arrhenius_interp(np.array([12.0]), grid, np.log([pts[0].r_ohm, pts[1].r_ohm])))[0]
-    assert par.r_ohm[1] < 0.95 * whole_12
-    # beyond the fitted range the non-kinetic part is held (only i0 extends)
+    one_c = prof.effective_capacity_ah
+    at_1c = apparent_resistance_ohm(np.array([p.r_ohm for p in pts]), np.array([0.2, 5.0]), one_c, grid)
+    assert par.r_ohm[1] == pytest.approx(np.exp(arrhenius_interp(np.array([12.0]), grid, np.log([p.r_ohm for p in pts])))[0])
+    want_1c = np.exp(arrhenius_interp(np.array([12.0]), grid, np.log(at_1c)))[0]
+    assert apparent_resistance_ohm(par.r_ohm[1:2], par.kinetics_i0_a[1:2], one_c, temps[1:2])[0] == pytest.approx(want_1c)
+    # beyond the fitted range both are held at the end point
     warm = prof.parameters_at(np.array([35.0]))
-    assert warm.r_ohm[0] == pytest.approx(0.02 + lin(35.0, warm.kinetics_i0_a[0]))
+    assert warm.r_ohm[0] == pytest.approx(pts[1].r_ohm) and warm.kinetics_i0_a[0] == pytest.approx(5.0, rel=1e-9)
+
+
+def test_a_linear_point_beside_an_all_kinetic_one_interpolates_to_resistances_between_them():
+    """A fit may put a temperature's whole instantaneous drop in the Butler-Volmer term (R_ohm down
+    to the linear drop 2RT/F/(2 i0), i0 small) and give its neighbour linear kinetics.  Halfway
+    between, the drop at every current lies between the two neighbours' drops, not below both."""
+    from service.cell.profile import apparent_resistance_ohm, kinetic_linear_ohm
+
+    all_kinetic = TRUE.model_copy(update={"temp_c": 0.0, "i0_a": 0.054,
+                                          "r_ohm": float(kinetic_linear_ohm(0.054, 0.0)) + 0.002})
+    linear = TRUE.model_copy(update={"temp_c": -10.0, "i0_a": 500.0, "r_ohm": 0.071})
+    prof = profile(linear).model_copy(update={"parameters": [linear, all_kinetic]})
+    par = prof.parameters_at(np.array([-10.0, -5.0, 0.0]))
+    for current in (0.1, 0.5, 1.0, 2.0, 4.0, 6.0):
+        r = apparent_resistance_ohm(par.r_ohm, par.kinetics_i0_a, current, np.array([-10.0, -5.0, 0.0]))
+        assert min(r[0], r[2]) * 0.999 <= r[1] <= max(r[0], r[2]) * 1.001, (current, r)
 
 
 def test_resistances_bounded_by_the_neighbouring_temperatures():

@@ -463,19 +463,11 @@ class CellProfile(_Strict):
             # added by socd diagnose on top of the base model: it takes precedence
             i0 = self.extensions.kinetics_i0_a * ones
         elif self.parameters[0].i0_a is not None:
-            # characterised per temperature: Arrhenius in T like the resistances (i0 ∝ 1/R_ct)
-            i0 = interp("i0_a", True)
-            # a --kinetics fit keeps the linear kinetic drop 2RT/F / (2 i0) in R_ohm (the model
-            # subtracts it again in the Butler-Volmer term): interpolate the rest of R_ohm and i0,
-            # and add the linear drop back at the cell's own temperature, so the two stay matched
-            # between fitted temperatures
-            i0_g = np.array([p.i0_a for p in self.parameters])
-            pure_g = np.array([p.r_ohm for p in self.parameters]) - kinetic_linear_ohm(i0_g, grid)
-            if np.all(pure_g > 0):
-                # the non-kinetic part is held beyond the fitted range: per-temperature fits trade
-                # it against i0, so its end segment need not fall with temperature as it should
-                inside = np.clip(temp, grid.min(), grid.max())
-                r_ohm = np.exp(arrhenius_interp(inside, grid, np.log(pure_g))) + kinetic_linear_ohm(i0, temp)
+            # characterised per temperature: between fitted temperatures the two resistances a pulse
+            # test observes are interpolated, not R_ohm and i0 themselves. Per-temperature fits trade
+            # R_ohm against i0, and a linear point beside one whose whole drop is Butler-Volmer would
+            # otherwise interpolate to less resistance than either, at every current
+            r_ohm, i0 = self.kinetics_at(temp, grid)
         else:
             i0 = np.inf * ones
         arr = self.extensions.arrhenius
@@ -502,6 +494,27 @@ class CellProfile(_Strict):
             kinetics_i0_a=i0,
         )
 
+    def kinetics_at(self, temp: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``R_ohm`` and ``i0`` between fitted temperatures (a profile with ``i0_a`` per point):
+        the small-current resistance ``R_ohm`` and the apparent resistance at 1C (drop over
+        current, :func:`apparent_resistance_ohm`) are each interpolated like the other resistances
+        and held beyond the fitted temperatures, and ``i0`` is the exchange current that gives both
+        (:func:`exchange_current_matching`).  At a fitted temperature this returns the fitted pair."""
+        points = self.parameters
+        one_c = self.effective_capacity_ah
+        r_small = np.array([p.r_ohm for p in points])
+        r_one_c = apparent_resistance_ohm(r_small, np.array([p.i0_a for p in points]), one_c, grid)
+        i0_lo, i0_hi = min(p.i0_a for p in points), max(p.i0_a for p in points)
+        # held beyond the fitted range: a fit's R_ohm/i0 trade moves the end segments either way
+        inside = np.clip(temp, grid.min(), grid.max())
+        small = np.exp(arrhenius_interp(inside, grid, np.log(r_small)))
+        if np.any(r_one_c <= 0):
+            # an unfloored point whose drop falls at 1C: nothing observable to match; log-interpolate i0
+            return small, np.exp(arrhenius_interp(inside, grid, np.log([p.i0_a for p in points])))
+        large = np.exp(arrhenius_interp(inside, grid, np.log(r_one_c)))
+        i0 = exchange_current_matching(small, large, one_c, inside)
+        return small, np.clip(i0, i0_lo, i0_hi)
+
     @property
     def n_branches(self) -> int:
         return 2 + len(self.extensions.extra_branches)
@@ -519,6 +532,37 @@ def kinetic_linear_ohm(i0_a: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
     that a ``--kinetics`` fit keeps in ``R_ohm`` (:func:`service.cell.model.kinetic_overpotential`
     subtracts it again)."""
     return 2.0 * GAS_CONSTANT * (np.asarray(temp_c) + KELVIN) / FARADAY / (2.0 * np.asarray(i0_a))
+
+
+def apparent_resistance_ohm(r_ohm: np.ndarray, i0_a: np.ndarray, current_a: float,
+                            temp_c: np.ndarray) -> np.ndarray:
+    """Instantaneous drop over current at ``current_a`` of ``R_ohm`` with the Butler–Volmer term
+    (:func:`service.cell.model.kinetic_overpotential`): ``R_ohm − 2RT/F (y − asinh y) / I``,
+    ``y = I / (2 i0)``."""
+    y = current_a / (2.0 * np.asarray(i0_a, dtype=float))
+    return r_ohm - kinetic_linear_ohm(i0_a, temp_c) * (y - np.arcsinh(y)) / y
+
+
+#: bisection steps of :func:`exchange_current_matching` over y = I/(2 i0) in [1e-6, 1e6] (log):
+#: 2^-60 of 27.6 decades
+_MATCH_STEPS = 60
+
+
+def exchange_current_matching(r_small: np.ndarray, r_large: np.ndarray, current_a: float,
+                              temp_c: np.ndarray) -> np.ndarray:
+    """The ``i0`` whose Butler–Volmer term, with ``R_ohm = r_small``, gives apparent resistance
+    ``r_large`` at ``current_a`` (:func:`apparent_resistance_ohm`): solves
+    ``2RT/F (y − asinh y) / I = r_small − r_large`` for ``y = I / (2 i0)``, increasing in ``y``.
+    ``r_large ≥ r_small`` (no drop in resistance) gives the largest ``i0`` searched."""
+    vt = 2.0 * GAS_CONSTANT * (np.asarray(temp_c, dtype=float) + KELVIN) / FARADAY
+    target = np.maximum(np.asarray(r_small) - np.asarray(r_large), 0.0) * current_a / vt
+    lo, hi = np.full(target.shape, math.log(1e-6)), np.full(target.shape, math.log(1e6))
+    for _ in range(_MATCH_STEPS):
+        mid = 0.5 * (lo + hi)
+        y = np.exp(mid)
+        above = y - np.arcsinh(y) > target
+        hi, lo = np.where(above, mid, hi), np.where(above, lo, mid)
+    return current_a / (2.0 * np.exp(0.5 * (lo + hi)))
 
 
 def kinetic_floor_ohm(i0_a, temp_c, min_scale: float = 1.0):
