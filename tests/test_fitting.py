@@ -255,6 +255,15 @@ def test_a_linear_point_beside_an_all_kinetic_one_interpolates_to_resistances_be
         r = apparent_resistance_ohm(par.r_ohm, par.kinetics_i0_a, current, np.array([-10.0, -5.0, 0.0]))
         assert min(r[0], r[2]) * 0.999 <= r[1] <= max(r[0], r[2]) * 1.001, (current, r)
 
+    # beside a linear point of small resistance the two interpolations alone would put R_ohm below
+    # the linear Butler-Volmer drop (the voltage would rise under a large discharge): i0 gives way
+    small_linear = linear.model_copy(update={"r_ohm": 0.01})
+    temps = np.linspace(-15.0, 5.0, 41)
+    for pair in ([small_linear, all_kinetic], [all_kinetic.model_copy(update={"temp_c": -10.0}),
+                                               small_linear.model_copy(update={"temp_c": 0.0})]):
+        par = profile(pair[0]).model_copy(update={"parameters": pair}).parameters_at(temps)
+        assert np.all(par.r_ohm >= kinetic_linear_ohm(par.kinetics_i0_a, temps) * (1 - 1e-9))
+
 
 def test_resistances_bounded_by_the_neighbouring_temperatures():
     t, i, temp, v = _pulse_drive(profile(), 1200, 1)

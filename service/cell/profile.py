@@ -499,7 +499,9 @@ class CellProfile(_Strict):
         the small-current resistance ``R_ohm`` and the apparent resistance at 1C (drop over
         current, :func:`apparent_resistance_ohm`) are each interpolated like the other resistances
         and held beyond the fitted temperatures, and ``i0`` is the exchange current that gives both
-        (:func:`exchange_current_matching`).  At a fitted temperature this returns the fitted pair."""
+        (:func:`exchange_current_matching`), raised where needed to keep ``R_ohm`` above the linear
+        Butler–Volmer drop (:func:`kinetic_floor_ohm`).  At a fitted temperature this returns the
+        fitted pair."""
         points = self.parameters
         one_c = self.effective_capacity_ah
         r_small = np.array([p.r_ohm for p in points])
@@ -512,8 +514,11 @@ class CellProfile(_Strict):
             # an unfloored point whose drop falls at 1C: nothing observable to match; log-interpolate i0
             return small, np.exp(arrhenius_interp(inside, grid, np.log([p.i0_a for p in points])))
         large = np.exp(arrhenius_interp(inside, grid, np.log(r_one_c)))
-        i0 = exchange_current_matching(small, large, one_c, inside)
-        return small, np.clip(i0, i0_lo, i0_hi)
+        i0 = np.clip(exchange_current_matching(small, large, one_c, inside), i0_lo, i0_hi)
+        # never below the floor every fitted point keeps (R_ohm holds the linear drop, _kinetic_floor),
+        # which the two interpolations alone do not guarantee: the 1C match gives way there
+        min_scale = min(self.min_r_ohm_scale(float(t)) for t in grid)
+        return small, np.maximum(i0, kinetic_linear_ohm(1.0, temp) / (small * min_scale))
 
     @property
     def n_branches(self) -> int:
