@@ -216,14 +216,12 @@ def test_between_temperatures_the_pulse_resistances_are_interpolated_not_r_ohm_a
     """Between fitted temperatures the small-current resistance R_ohm and the apparent resistance at
     1C are interpolated like the other resistances, and i0 is the one that gives both; beyond the
     fitted range both are held."""
-    from service.cell.profile import apparent_resistance_ohm, arrhenius_interp
-
-    def lin(t, i0):
-        return 2.0 * GAS_CONSTANT * (t + KELVIN) / FARADAY / (2.0 * i0)
+    from service.cell.profile import apparent_resistance_ohm, arrhenius_interp, kinetic_linear_ohm
 
     rest = {0.0: 0.05, 25.0: 0.02}
     i0 = {0.0: 0.2, 25.0: 5.0}
-    pts = [TRUE.model_copy(update={"temp_c": t, "i0_a": i0[t], "r_ohm": rest[t] + lin(t, i0[t])}) for t in (0.0, 25.0)]
+    pts = [TRUE.model_copy(update={"temp_c": t, "i0_a": i0[t], "r_ohm": rest[t] + float(kinetic_linear_ohm(i0[t], t))})
+           for t in (0.0, 25.0)]
     prof = profile(pts[0]).model_copy(update={"parameters": pts})
     temps = np.array([0.0, 12.0, 25.0])
     par = prof.parameters_at(temps)

@@ -467,7 +467,7 @@ class CellProfile(_Strict):
             # test observes are interpolated, not R_ohm and i0 themselves. Per-temperature fits trade
             # R_ohm against i0, and a linear point beside one whose whole drop is Butler-Volmer would
             # otherwise interpolate to less resistance than either, at every current
-            r_ohm, i0 = self.kinetics_at(temp, grid)
+            r_ohm, i0 = self.kinetics_at(temp)
         else:
             i0 = np.inf * ones
         arr = self.extensions.arrhenius
@@ -494,7 +494,7 @@ class CellProfile(_Strict):
             kinetics_i0_a=i0,
         )
 
-    def kinetics_at(self, temp: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def kinetics_at(self, temp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``R_ohm`` and ``i0`` between fitted temperatures (a profile with ``i0_a`` per point):
         the small-current resistance ``R_ohm`` and the apparent resistance at 1C (drop over
         current, :func:`apparent_resistance_ohm`) are each interpolated like the other resistances
@@ -502,23 +502,23 @@ class CellProfile(_Strict):
         (:func:`exchange_current_matching`), raised where needed to keep ``R_ohm`` above the linear
         Butler–Volmer drop (:func:`kinetic_floor_ohm`).  At a fitted temperature this returns the
         fitted pair."""
-        points = self.parameters
+        grid = np.array([p.temp_c for p in self.parameters])
+        i0_g = np.array([p.i0_a for p in self.parameters])
+        r_small = np.array([p.r_ohm for p in self.parameters])
         one_c = self.effective_capacity_ah
-        r_small = np.array([p.r_ohm for p in points])
-        r_one_c = apparent_resistance_ohm(r_small, np.array([p.i0_a for p in points]), one_c, grid)
-        i0_lo, i0_hi = min(p.i0_a for p in points), max(p.i0_a for p in points)
+        r_one_c = apparent_resistance_ohm(r_small, i0_g, one_c, grid)
         # held beyond the fitted range: a fit's R_ohm/i0 trade moves the end segments either way
         inside = np.clip(temp, grid.min(), grid.max())
         small = np.exp(arrhenius_interp(inside, grid, np.log(r_small)))
         if np.any(r_one_c <= 0):
             # an unfloored point whose drop falls at 1C: nothing observable to match; log-interpolate i0
-            return small, np.exp(arrhenius_interp(inside, grid, np.log([p.i0_a for p in points])))
+            return small, np.exp(arrhenius_interp(inside, grid, np.log(i0_g)))
         large = np.exp(arrhenius_interp(inside, grid, np.log(r_one_c)))
-        i0 = np.clip(exchange_current_matching(small, large, one_c, inside), i0_lo, i0_hi)
+        i0 = np.clip(exchange_current_matching(small, large, one_c, inside), i0_g.min(), i0_g.max())
         # never below the floor every fitted point keeps (R_ohm holds the linear drop, _kinetic_floor),
         # which the two interpolations alone do not guarantee: the 1C match gives way there
         min_scale = min(self.min_r_ohm_scale(float(t)) for t in grid)
-        return small, np.maximum(i0, kinetic_linear_ohm(1.0, temp) / (small * min_scale))
+        return small, np.maximum(i0, floor_exchange_current_a(small, temp, min_scale))
 
     @property
     def n_branches(self) -> int:
@@ -532,11 +532,23 @@ EXTRAPOLATE_C = 15.0
 FIT_TEMPERATURE_MARGIN_K = 10.0
 
 
+def kinetic_voltage_v(temp_c: np.ndarray | float) -> np.ndarray:
+    """``2RT/F``, the voltage scale of the symmetric Butler–Volmer term
+    (:func:`service.cell.model.kinetic_overpotential`)."""
+    return 2.0 * GAS_CONSTANT * (np.asarray(temp_c, dtype=float) + KELVIN) / FARADAY
+
+
 def kinetic_linear_ohm(i0_a: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
     """Small-current resistance of the Butler–Volmer drop, ``2RT/F / (2 i0)``: the linear part
     that a ``--kinetics`` fit keeps in ``R_ohm`` (:func:`service.cell.model.kinetic_overpotential`
     subtracts it again)."""
-    return 2.0 * GAS_CONSTANT * (np.asarray(temp_c) + KELVIN) / FARADAY / (2.0 * np.asarray(i0_a))
+    return kinetic_voltage_v(temp_c) / (2.0 * np.asarray(i0_a))
+
+
+def floor_exchange_current_a(r_ohm: np.ndarray, temp_c: np.ndarray, min_scale: float = 1.0) -> np.ndarray:
+    """The smallest ``i0`` whose linear drop ``R_ohm`` still holds: :func:`kinetic_floor_ohm` solved
+    for ``i0``."""
+    return kinetic_voltage_v(temp_c) / (2.0 * np.asarray(r_ohm) * min_scale)
 
 
 def apparent_resistance_ohm(r_ohm: np.ndarray, i0_a: np.ndarray, current_a: float,
@@ -559,7 +571,7 @@ def exchange_current_matching(r_small: np.ndarray, r_large: np.ndarray, current_
     ``r_large`` at ``current_a`` (:func:`apparent_resistance_ohm`): solves
     ``2RT/F (y − asinh y) / I = r_small − r_large`` for ``y = I / (2 i0)``, increasing in ``y``.
     ``r_large ≥ r_small`` (no drop in resistance) gives the largest ``i0`` searched."""
-    vt = 2.0 * GAS_CONSTANT * (np.asarray(temp_c, dtype=float) + KELVIN) / FARADAY
+    vt = kinetic_voltage_v(temp_c)
     target = np.maximum(np.asarray(r_small) - np.asarray(r_large), 0.0) * current_a / vt
     lo, hi = np.full(target.shape, math.log(1e-6)), np.full(target.shape, math.log(1e6))
     for _ in range(_MATCH_STEPS):
