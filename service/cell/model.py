@@ -22,7 +22,7 @@ import numpy as np
 from service.cell.fractional import cpe_step, gl_weights, push_history
 from service.cell.hysteresis import hysteresis_step
 from service.cell.ocv import OcvTable
-from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN, CellParameters, CellProfile
+from service.cell.profile import CellParameters, CellProfile, kinetic_voltage_v
 from service.cell.soc_dependence import scaled_resistances
 from service.cell.units import SECONDS_PER_HOUR
 
@@ -75,7 +75,7 @@ def kinetic_overpotential(current_a: np.ndarray, i0_a: np.ndarray, temp_c: np.nd
     resistance at high current.  Zero when ``i0`` is infinite (extension off).
     """
     with np.errstate(divide="ignore", invalid="ignore"):
-        vt = 2.0 * GAS_CONSTANT * (temp_c + KELVIN) / FARADAY
+        vt = kinetic_voltage_v(temp_c)
         x = current_a / (2.0 * i0_a)
         eta = vt * (np.arcsinh(x) - x)
     return np.where(np.isfinite(i0_a), eta, 0.0)

@@ -20,14 +20,12 @@ from typing import Literal
 import numpy as np
 
 from service.cell.profile import (
-    FARADAY,
-    GAS_CONSTANT,
-    KELVIN,
     ArrheniusSpec,
     CellProfile,
     OcvCorrectionSpec,
     SurfaceDiffusionSpec,
     kinetic_floor_ohm,
+    kinetic_voltage_v,
     lift_to_ohmic_floor,
 )
 from service.cell.units import SECONDS_PER_HOUR
@@ -395,7 +393,7 @@ def _kin_profile(ph, profile, ctx):
 
 
 def _kin_feature(ctx):
-    vt = 2.0 * GAS_CONSTANT * (ctx.ref_temp_c + KELVIN) / FARADAY
+    vt = float(kinetic_voltage_v(ctx.ref_temp_c))
     x = ctx.current_a / max(ctx.capacity_ah, 1e-6)
     return "BV non-linearity asinh(I/C) - I/C (x 2RT/F), V", vt * (np.arcsinh(x) - x)
 

@@ -128,7 +128,7 @@ from service.cell.current_steps import (
     steps_peak_c,
     steps_resolve_kinetics,
 )
-from service.cell.profile import FARADAY, GAS_CONSTANT, KELVIN
+from service.cell.profile import kinetic_voltage_v
 from service.cell.rests import resting
 from service.cell.units import SECONDS_PER_HOUR
 from service.characterisation.relaxation import rc_voltage
@@ -691,7 +691,7 @@ def step_kinetics(time_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarr
         return out
     dv = voltage_v[j + 1] - voltage_v[j]
     d_amp = current_a[j + 1] - current_a[j]
-    vt = 2.0 * GAS_CONSTANT * (0.5 * (temperature_c[j] + temperature_c[j + 1]) + KELVIN) / FARADAY
+    vt = kinetic_voltage_v(0.5 * (temperature_c[j] + temperature_c[j + 1]))
 
     def resid(th):
         x = math.exp(th[1])
