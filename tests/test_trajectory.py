@@ -78,6 +78,23 @@ def test_simulate_equals_stepping_the_model(case):
     assert np.max(np.abs(soc - soc_ref)) < 1e-12
 
 
+def test_simulate_equals_stepping_with_an_exchange_current_per_temperature():
+    """A profile characterised with i0 at each temperature: along a temperature ramp each stretch's
+    Butler-Volmer term is its own parameters', whose linear part is in that stretch's R_ohm (with the
+    last stretch's i0 on every sample, the two parts no longer cancel and a large pulse in a warming
+    cell read hundreds of mV off)."""
+    cold = COLD.model_copy(update={"r_ohm": 0.1, "i0_a": 0.3})
+    prof = CellProfile(capacity_ah=2.0, ocv=nmc_like_ocv(), parameters=[cold, POINT.model_copy(update={"i0_a": 3.0})])
+    n = 1500
+    t = irregular_time(n, 3)
+    i = pulse_current(n, 6.0, 4)
+    temp = np.linspace(0.0, 20.0, n)
+    v_ref, soc_ref = stepwise(prof, t, i, temp, 0.9)
+    v, soc = simulate(prof, t, i, temp, 0.9)
+    assert np.max(np.abs(v - v_ref)) < 1e-10
+    assert np.max(np.abs(soc - soc_ref)) < 1e-12
+
+
 def test_batch_candidates_each_equal_their_own_model():
     """Three candidates with different branch orders and resistances in one call."""
     prof = _profile()

@@ -92,21 +92,20 @@ def simulate_batch(
             if k0 > 0:
                 model.set_params(params_at(float(temp_c[k0])))
             parts.append(_advance(model, dt[k0:k1], current_a[k0:k1], temp_c[k0:k1], hyst))
-        i_true, soc, u_h, x_surf, ohm_v, branch_v = (np.concatenate(a, axis=0) for a in zip(*parts))
+        soc, u_h, x_surf, ohm_v, branch_v, kinetic_v = (np.concatenate(a, axis=0) for a in zip(*parts))
         p = model.params
         temp_tn = np.broadcast_to(temp_c[:, None], soc.shape)
         ocv = model.open_circuit(temp_tn, soc if model.surface_tau_s is None else soc - x_surf)
         v = terminal_voltage(ocv, model.hysteresis_voltage(u_h, p.u_h_max), 1.0, ohm_v, branch_v)
-        if np.any(np.isfinite(p.kinetics_i0_a)):
-            v = v - kinetic_overpotential(i_true, p.kinetics_i0_a[None, :], temp_tn)
-    return v, soc
+    return v - kinetic_v, soc
 
 
 def _advance(model: MtsFom, dt: np.ndarray, current_a: np.ndarray, temp_c: np.ndarray,
              hyst: bool) -> tuple[np.ndarray, ...]:
     """Advance ``model`` over samples with fixed parameters; return ``[T, N]`` arrays of
-    current, SOC, ``U_h``, surface deficit, ohmic drop and branch-voltage sum, and leave
-    ``model`` in its end state (as ``MtsFom.step`` would)."""
+    SOC, ``U_h``, surface deficit, ohmic drop, branch-voltage sum and Butler-Volmer term (with
+    these parameters: its linear part is in this stretch's ``R_ohm``), and leave ``model`` in its
+    end state (as ``MtsFom.step`` would)."""
     p = model.params
     h = dt[:, None]
     i = current_a[:, None] - p.current_bias_a
@@ -131,7 +130,10 @@ def _advance(model: MtsFom, dt: np.ndarray, current_a: np.ndarray, temp_c: np.nd
         model.u_h = u_h[-1]
     branch = cpe_trajectory(i, dt, r, c, p.alpha, model.weights, model.history)
     model.soc = soc[-1]
-    return i, soc, u_h, x_surf, r_ohm * i, branch.sum(axis=-1)
+    kinetic_v = np.zeros_like(soc)
+    if np.any(np.isfinite(p.kinetics_i0_a)):
+        kinetic_v = kinetic_overpotential(i, p.kinetics_i0_a[None, :], np.broadcast_to(temp_c[:, None], soc.shape))
+    return soc, u_h, x_surf, r_ohm * i, branch.sum(axis=-1), kinetic_v
 
 
 def simulate(
