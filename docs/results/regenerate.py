@@ -1002,6 +1002,11 @@ socd fit $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv --capacity-ah 2.77 --full
 socd evaluate --cell out/s25/pan_hppc.toml $(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC) \\
     --estimator fomiukf -q --json out/s25/pan_hppc_eval.json""",
           group_table("s25/pan_hppc_eval.json", PAN_GROUPS), 60),
+    Table("hppc_pulse_check", "characterisation.md", REAL + """\
+python -m research.pulse_fit_check out/s25/pan_hppc.toml $P/pan18650pf_{25C,10C,0C,m10C,m20C}_HPPC.csv \\
+    --capacity-ah 2.77 --json out/s25/hppc_pulse_check.json   # out/s25/pan_hppc.toml: char_pan_hppc""",
+          lambda out: tool("pulse_fit_check").table(tool("pulse_fit_check").read_json(str(out / "s25/hppc_pulse_check.json"))),
+          2, ("needs:char_pan_hppc",)),
     Table("hppc_ocv_between_rests", "cell_options.md", REAL + """\
 PANX="$(ls $P/pan18650pf_{25C,10C,0C,m10C,m20C}_*.csv | grep -v HPPC)"   # near-reference (the default): char_pan_hppc's
 for v in joint settled interpolate; do
