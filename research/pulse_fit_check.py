@@ -64,7 +64,7 @@ def pulse_readings(time_s, current_a, voltage_v, model_v, rest_a: float, capacit
         level = float(current_a[j + 1])
         for after in PULSE_READ_S:
             k = int(np.searchsorted(time_s, time_s[j] + after - 1e-6))
-            if k >= time_s.size or k <= j + 1 or np.ptp(current_a[j + 1:k + 1]) > PULSE_STEADY * abs(level):
+            if k >= time_s.size or k <= j or np.ptp(current_a[j + 1:k + 1]) > PULSE_STEADY * abs(level):
                 continue
             c = level / capacity_ah
             c_rounded = float(f"{c:.1g}")
