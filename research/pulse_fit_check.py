@@ -31,6 +31,8 @@ import numpy as np
 SOC_BANDS = ((0.0, "SOC < 0.2"), (0.2, "0.2-0.8"), (0.8, "SOC ≥ 0.8"))
 #: times after a step from rest at which the apparent resistance is read, s
 PULSE_READ_S = (1.0, 10.0)
+#: a pulse is read only where a sample lies within this factor of the read time after the step
+PULSE_READ_SLACK = 1.5
 #: a pulse is read only while its current stays within this share of its level
 PULSE_STEADY = 0.1
 
@@ -65,6 +67,8 @@ def pulse_readings(time_s, current_a, voltage_v, model_v, rest_a: float, capacit
         for after in PULSE_READ_S:
             k = int(np.searchsorted(time_s, time_s[j] + after - 1e-6))
             if k >= time_s.size or k <= j or np.ptp(current_a[j + 1:k + 1]) > PULSE_STEADY * abs(level):
+                continue
+            if time_s[k] - time_s[j] > PULSE_READ_SLACK * after:  # no sample near the read time
                 continue
             c = level / capacity_ah
             c_rounded = float(f"{c:.1g}")
