@@ -189,6 +189,12 @@ def test_r_ohm_below_the_linear_kinetic_drop_is_rejected_and_never_fitted():
     with pytest.raises(ValueError, match="below the linear Butler-Volmer drop"):
         profile(bad.model_copy(update={"r_ohm": 1.5 * lin_0c}), extensions=Extensions(soc_resistance=table))
     assert profile(TRUE, extensions=Extensions(soc_resistance=table)).min_r_ohm_scale(0.0) == pytest.approx(0.5)
+    # over several temperatures: the lowest of any of them
+    two = SocResistanceSpec(soc=[0.0, 1.0], temps_c=[0.0, 25.0], r_ohm_scale=[[0.8, 1.0], [0.6, 1.0]],
+                            r_pol_scale=[[1.0, 1.0], [1.0, 1.0]])
+    scaled = profile(TRUE, extensions=Extensions(soc_resistance=two))
+    assert scaled.min_r_ohm_scale(0.0) == pytest.approx(0.8)
+    assert scaled.min_r_ohm_scale(np.array([0.0, 25.0])) == pytest.approx(0.6)
 
     # the fit's coordinates: R_ohm far below the floor decodes to the floor
     start = profile(ParameterPoint(temp_c=0.0, r_ohm=0.01, r_ct=0.01, c_dl=100, m=0.8, r_df=0.01, c_df=1000, n=0.8))

@@ -389,13 +389,14 @@ class CellProfile(_Strict):
                 )
         return self
 
-    def min_r_ohm_scale(self, temp_c: float) -> float:
-        """Lowest ``R_ohm`` SOC scale at ``temp_c`` (1 without a SOC-resistance table)."""
+    def min_r_ohm_scale(self, temp_c: float | np.ndarray) -> float:
+        """Lowest ``R_ohm`` SOC scale at ``temp_c``, or over every temperature of an array of them
+        (1 without a SOC-resistance table)."""
         table = self.soc_scale_table()
         if table is None:
             return 1.0
-        grid = np.linspace(0.0, 1.0, 201)
-        g_ohm, _ = table(grid, np.full(grid.shape, float(temp_c)))
+        soc, temps = np.meshgrid(np.linspace(0.0, 1.0, 201), np.atleast_1d(np.asarray(temp_c, dtype=float)))
+        g_ohm, _ = table(soc, temps)
         return float(min(np.min(g_ohm), 1.0))
 
     # -- derived objects ----------------------------------------------------------------
@@ -517,8 +518,7 @@ class CellProfile(_Strict):
         i0 = np.clip(exchange_current_matching(small, large, one_c, inside), i0_g.min(), i0_g.max())
         # never below the floor every fitted point keeps (R_ohm holds the linear drop, _kinetic_floor),
         # which the two interpolations alone do not guarantee: the 1C match gives way there
-        min_scale = min(self.min_r_ohm_scale(float(t)) for t in grid)
-        return small, np.maximum(i0, floor_exchange_current_a(small, temp, min_scale))
+        return small, np.maximum(i0, floor_exchange_current_a(small, temp, self.min_r_ohm_scale(grid)))
 
     @property
     def n_branches(self) -> int:
