@@ -128,11 +128,11 @@ def table(checks: list[RecordingCheck]) -> str:
         cells = [f"{ch.load_residual_mv[b]:+.0f} ({ch.load_segments[b]})" if b in ch.load_residual_mv else "-"
                  for b in bands]
         lines.append(f"| {ch.recording} | {ch.median_temp_c:.1f} | " + " | ".join(cells) + " |")
-    rates = sorted({c for ch in checks for c, *_ in pulse_summary(ch)})
+    summaries = [pulse_summary(ch) for ch in checks]
+    rates = sorted({c for summ in summaries for c, *_ in summ})
     lines += ["", "| recording | read after | " + " | ".join(f"{c:g}C measured / model [mΩ]" for c in rates) + " |",
               "|---|---|" + "---|" * len(rates)]
-    for ch in checks:
-        summ = pulse_summary(ch)
+    for ch, summ in zip(checks, summaries):
         for after in PULSE_READ_S:
             by_c = {c: (m, s) for c, a, m, s, _ in summ if a == after}
             cells = [f"{by_c[c][0]:.0f} / {by_c[c][1]:.0f}" if c in by_c else "-" for c in rates]
